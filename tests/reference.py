@@ -1,0 +1,71 @@
+"""Independent high-precision references (mpmath) for the coordinate kernels.
+
+Written separately from the library's kernels: the 3D reference uses the half-angle (Floater)
+form of the triangle weights, the 2D reference the tangent formula, both at 60 digits.
+"""
+
+from __future__ import annotations
+
+import mpmath as mp
+import torch
+
+mp.mp.dps = 60
+
+
+def _vec(p):
+    return mp.matrix([mp.mpf(float(c)) for c in p])
+
+
+def _cross(a, b):
+    return mp.matrix([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def mvc3d_reference(x, vertices, triangles) -> list:
+    """Mean value coordinates of one point (mpmath numbers), Floater-Kos-Reimers form:
+    w_i += (beta_jk + beta_ij n_ij.n_jk + beta_ki n_ki.n_jk) / (2 e_i . n_jk) / r_i, with unit
+    vectors e, beta the angle of each edge seen from x and n the unit normals of the planes
+    through x and each edge. Accurate in 60-digit arithmetic wherever x is off the support planes."""
+    xv = _vec(x)
+    P = [_vec(p) - xv for p in vertices.tolist()]
+    r = [mp.sqrt(_dot(p, p)) for p in P]
+    e = [p / rr for p, rr in zip(P, r)]
+    w = [mp.mpf(0)] * len(P)
+    for t in triangles.tolist():
+        for c in range(3):
+            i, j, k = t[c], t[(c + 1) % 3], t[(c + 2) % 3]
+
+            def beta(a, b):
+                return 2 * mp.asin(mp.sqrt(_dot(e[a] - e[b], e[a] - e[b])) / 2)
+
+            def nrm(a, b):
+                c_ = _cross(e[a], e[b])
+                return c_ / mp.sqrt(_dot(c_, c_))
+
+            njk, nij, nki = nrm(j, k), nrm(i, j), nrm(k, i)
+            num = beta(j, k) + beta(i, j) * _dot(nij, njk) + beta(k, i) * _dot(nki, njk)
+            w[i] += num / (2 * _dot(e[i], njk)) / r[i]
+    total = sum(w)
+    return [wi / total for wi in w]
+
+
+def mvc2d_reference(x, vertices) -> list:
+    """2D mean value coordinates of one point for a counter-clockwise polygon given in order."""
+    xv = [mp.mpf(float(c)) for c in x]
+    P = [[mp.mpf(float(a)) - xv[0], mp.mpf(float(b)) - xv[1]] for a, b in vertices.tolist()]
+    n = len(P)
+    r = [mp.sqrt(p[0] ** 2 + p[1] ** 2) for p in P]
+    ang = []
+    for i in range(n):
+        a, b = P[i], P[(i + 1) % n]
+        ang.append(mp.atan2(a[0] * b[1] - a[1] * b[0], a[0] * b[0] + a[1] * b[1]))
+    w = [(mp.tan(ang[i - 1] / 2) + mp.tan(ang[i] / 2)) / r[i] for i in range(n)]
+    total = sum(w)
+    return [wi / total for wi in w]
+
+
+def to_tensor(values) -> torch.Tensor:
+    return torch.tensor([float(v) for v in values], dtype=torch.float64)

@@ -1,0 +1,35 @@
+"""torchcage: cage coordinates (mean value, quad mean value, Green, local barycentric) as PyTorch
+building blocks.
+
+Example:
+    >>> import torch, torchcage
+    >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+    >>> mvc = torchcage.MeanValueCoordinates(cage, torch.zeros(1, 3, dtype=torch.float64))
+    >>> mvc(cage.vertices * 2).tolist()
+    [[0.0, 0.0, 0.0]]
+"""
+
+from . import data, functional
+from .cage import Cage
+from .errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError, PointsError
+from .io import load_cage, load_mesh, save_cage, save_mesh
+from .nn import MeanValueCoordinates
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Cage",
+    "CageError",
+    "CageOrientationError",
+    "CageTopologyError",
+    "DegenerateFaceError",
+    "MeanValueCoordinates",
+    "PointsError",
+    "__version__",
+    "data",
+    "functional",
+    "load_cage",
+    "load_mesh",
+    "save_cage",
+    "save_mesh",
+]

@@ -1,0 +1,399 @@
+"""The :class:`Cage`: a closed triangle/quad surface in 3D or a closed polygon in 2D.
+
+A cage is validated once, when it is built: finite vertices, indices in range, no repeated index
+in a face, no zero-area face, closed and manifold (every edge shared by exactly two faces in 3D,
+every vertex on exactly one incoming and one outgoing edge in 2D), consistent orientation. A cage
+that is consistently oriented *inward* (negative signed volume or area) is flipped, with a warning,
+so that normals point outward; vertex order is never changed.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+
+from .errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError
+
+__all__ = ["Cage"]
+
+#: Faces whose area (3D) or edge length (2D) is below this fraction of the squared (plain)
+#: bounding-box diagonal are rejected as degenerate.
+DEGENERATE_TOLERANCE = 1e-12
+
+
+def _as_vertices(vertices: Any) -> torch.Tensor:
+    v = torch.as_tensor(vertices)
+    if not (v.is_floating_point()):
+        if v.dtype.is_complex or v.dtype == torch.bool:
+            raise TypeError(f"cage vertices must be real numbers, got dtype {v.dtype}")
+        v = v.to(torch.float64)
+    if v.ndim != 2 or v.shape[1] not in (2, 3):
+        raise CageError(
+            f"cage vertices must have shape (V, 3) or (V, 2), got {tuple(v.shape)}; "
+            "pass one cage at a time (batch deformed cages in the modules' forward instead)"
+        )
+    if v.shape[0] < v.shape[1] + 1:
+        raise CageError(f"a {v.shape[1]}D cage needs at least {v.shape[1] + 1} vertices, got {v.shape[0]}")
+    bad = ~torch.isfinite(v).all(dim=1)
+    if bool(bad.any()):
+        idx = torch.nonzero(bad).flatten()[:10].tolist()
+        raise CageError(f"cage vertices contain NaN or inf (vertex indices {idx}); remove or fix them")
+    return v
+
+
+def _split_faces(faces: Any, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split faces given as a tensor or a list of index lists into triangles (T, 3) and quads (Q, 4)."""
+    if isinstance(faces, torch.Tensor) or hasattr(faces, "__array__"):
+        f = torch.as_tensor(faces, device=device)
+        if f.is_floating_point() or f.dtype == torch.bool or f.dtype.is_complex:
+            raise TypeError(f"faces must be integer indices, got dtype {f.dtype}")
+        f = f.long()
+        if f.ndim != 2 or f.shape[1] not in (3, 4):
+            raise CageError(
+                f"faces must have shape (F, 3) or (F, 4), got {tuple(f.shape)}; "
+                "for a mix of triangles and quads pass a list of index lists"
+            )
+        empty3 = torch.zeros((0, 3), dtype=torch.long, device=device)
+        empty4 = torch.zeros((0, 4), dtype=torch.long, device=device)
+        return (f, empty4) if f.shape[1] == 3 else (empty3, f)
+    if not isinstance(faces, Sequence):
+        raise TypeError(f"faces must be a LongTensor or a list of index lists, got {type(faces).__name__}")
+    tris, quads = [], []
+    for k, face in enumerate(faces):
+        idx = [int(i) for i in face]
+        if len(idx) == 3:
+            tris.append(idx)
+        elif len(idx) == 4:
+            quads.append(idx)
+        else:
+            raise CageError(
+                f"face {k} has {len(idx)} corners; cages support triangles and quads only "
+                "(split larger polygons into triangles or quads)"
+            )
+    t = torch.tensor(tris, dtype=torch.long, device=device).reshape(-1, 3)
+    q = torch.tensor(quads, dtype=torch.long, device=device).reshape(-1, 4)
+    return t, q
+
+
+def _polygon_edges(n: int, device: torch.device) -> torch.Tensor:
+    i = torch.arange(n, device=device)
+    return torch.stack([i, (i + 1) % n], dim=1)
+
+
+class Cage:
+    """A closed cage: a triangle/quad surface in 3D or a closed polygon in 2D.
+
+    Args:
+        vertices: ``(V, 3)`` or ``(V, 2)`` vertex positions (any real dtype; integers become float64).
+        faces: in 3D, a LongTensor ``(F, 3)`` or ``(F, 4)``, or a list of index lists of length 3
+            or 4 (a triquad cage). In 2D, the directed edges ``(E, 2)``, or ``None`` for one closed
+            polygon whose vertices are given in order.
+        validate: check topology, orientation and degenerate faces (default ``True``).
+
+    Attributes:
+        vertices: ``(V, D)`` vertex positions.
+        triangles: ``(T, 3)`` int64 triangle corners (3D; empty in 2D).
+        quads: ``(Q, 4)`` int64 quad corners (3D; empty in 2D).
+        edges: ``(E, 2)`` int64 directed polygon edges (2D; empty in 3D).
+
+    Raises:
+        CageError: bad shapes, non-finite vertices, indices out of range or repeated in a face.
+        DegenerateFaceError: a face of zero area (3D) or an edge of zero length (2D).
+        CageTopologyError: an open or non-manifold cage (the offending edges are named).
+        CageOrientationError: inconsistently oriented faces (a face pair is named).
+
+    Example:
+        >>> import torch, torchcage
+        >>> v = torch.tensor([[0., 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> cage = torchcage.Cage(v, [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        >>> cage.num_vertices, cage.dim, round(float(cage.signed_volume()), 4)
+        (4, 3, 0.1667)
+        >>> square = torchcage.Cage([[0., 0], [1, 0], [1, 1], [0, 1]])  # 2D polygon, in order
+        >>> square.edges.tolist()
+        [[0, 1], [1, 2], [2, 3], [3, 0]]
+    """
+
+    def __init__(self, vertices: Any, faces: Any = None, *, validate: bool = True) -> None:
+        v = _as_vertices(vertices)
+        self.vertices: torch.Tensor = v
+        dev = v.device
+        empty3 = torch.zeros((0, 3), dtype=torch.long, device=dev)
+        empty4 = torch.zeros((0, 4), dtype=torch.long, device=dev)
+        if v.shape[1] == 3:
+            if faces is None:
+                raise CageError("a 3D cage needs faces: a LongTensor (F, 3) / (F, 4) or a list of index lists")
+            self.triangles, self.quads = _split_faces(faces, dev)
+            self.edges = torch.zeros((0, 2), dtype=torch.long, device=dev)
+            if self.triangles.shape[0] + self.quads.shape[0] == 0:
+                raise CageError("a 3D cage needs at least one face")
+        else:
+            self.triangles, self.quads = empty3, empty4
+            if faces is None:
+                self.edges = _polygon_edges(v.shape[0], dev)
+            else:
+                e = torch.as_tensor(faces, device=dev)
+                if e.is_floating_point() or e.ndim != 2 or e.shape[1] != 2:
+                    raise CageError(
+                        f"2D cage edges must be an integer tensor of shape (E, 2), got {tuple(e.shape)} "
+                        f"({e.dtype}); or pass faces=None for one closed polygon given in order"
+                    )
+                self.edges = e.long()
+        if validate:
+            self._validate()
+
+    # ------------------------------------------------------------------ basic properties
+    @property
+    def dim(self) -> int:
+        """Ambient dimension, 2 or 3."""
+        return int(self.vertices.shape[1])
+
+    @property
+    def num_vertices(self) -> int:
+        """Number of cage vertices ``V``."""
+        return int(self.vertices.shape[0])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.vertices.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.vertices.device
+
+    @property
+    def has_quads(self) -> bool:
+        """True when the cage has at least one quad face."""
+        return self.quads.shape[0] > 0
+
+    @property
+    def faces(self) -> torch.Tensor | list[list[int]]:
+        """Faces as given: ``(F, 3)`` or ``(F, 4)`` tensor, or a list (triangles then quads) for a
+        triquad cage; the edges ``(E, 2)`` in 2D."""
+        if self.dim == 2:
+            return self.edges
+        if not self.has_quads:
+            return self.triangles
+        if self.triangles.shape[0] == 0:
+            return self.quads
+        return self.triangles.tolist() + self.quads.tolist()
+
+    @property
+    def scale(self) -> float:
+        """Length of the bounding-box diagonal (the scale every tolerance is relative to)."""
+        v = self.vertices.to(torch.float64)
+        return float((v.max(dim=0).values - v.min(dim=0).values).norm())
+
+    def __repr__(self) -> str:
+        if self.dim == 2:
+            body = f"edges={self.edges.shape[0]}"
+        else:
+            body = f"triangles={self.triangles.shape[0]}, quads={self.quads.shape[0]}"
+        return f"Cage(dim={self.dim}, vertices={self.num_vertices}, {body}, dtype={self.dtype}, device={self.device})"
+
+    # ------------------------------------------------------------------ derived geometry
+    def triangulated(self) -> Cage:
+        """A triangle-only cage: each quad ``(q0, q1, q2, q3)`` is split along ``q0``–``q2`` into
+        ``(q0, q1, q2)`` and ``(q0, q2, q3)``; triangles come first, in their order.
+
+        Returns:
+            A new :class:`Cage` sharing the vertices (``T + 2Q`` triangles).
+        """
+        if self.dim == 2 or not self.has_quads:
+            return self
+        q = self.quads
+        split = torch.stack([q[:, [0, 1, 2]], q[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
+        return Cage._trusted(self.vertices, torch.cat([self.triangles, split]), self.quads[:0], self.edges)
+
+    def triangle_normals(self, unit: bool = True) -> torch.Tensor:
+        """Outward normals of the triangles of :meth:`triangulated`, shape ``(T + 2Q, 3)``.
+
+        With ``unit=False`` the normals are ``(b - a) x (c - a)``, of length twice the area.
+        """
+        tri = self.triangulated().triangles
+        p = self.vertices[tri]
+        n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+        return torch.nn.functional.normalize(n, dim=-1) if unit else n
+
+    def quad_corner_normals(self) -> torch.Tensor:
+        """Unnormalised quad corner normals ``N_k = (q_{k+1} - q_k) x (q_{k+3} - q_k)``, ``(Q, 4, 3)``."""
+        p = self.vertices[self.quads]
+        return torch.linalg.cross(p.roll(-1, dims=1) - p, p.roll(1, dims=1) - p, dim=-1)
+
+    def edge_normals(self) -> torch.Tensor:
+        """Outward unit normals of the edges of a 2D cage, ``(E, 2)`` (right of each edge, for a
+        counter-clockwise polygon)."""
+        if self.dim != 2:
+            raise CageError("edge_normals() is for 2D cages; use triangle_normals() in 3D")
+        d = self.vertices[self.edges[:, 1]] - self.vertices[self.edges[:, 0]]
+        return torch.nn.functional.normalize(torch.stack([d[:, 1], -d[:, 0]], dim=1), dim=1)
+
+    def signed_volume(self) -> torch.Tensor:
+        """Signed volume (3D) or signed area (2D); positive for an outward-oriented cage."""
+        if self.dim == 2:
+            a = self.vertices[self.edges[:, 0]].to(torch.float64)
+            b = self.vertices[self.edges[:, 1]].to(torch.float64)
+            return (0.5 * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()).to(self.dtype)
+        tri = self.triangulated().triangles
+        p = self.vertices.to(torch.float64)
+        p = p - p.mean(dim=0)
+        a, b, c = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
+        return ((a * torch.linalg.cross(b, c, dim=-1)).sum() / 6.0).to(self.dtype)
+
+    def to(self, *args: Any, **kwargs: Any) -> Cage:
+        """A copy on another dtype and/or device, with ``Tensor.to`` arguments (``cage.to(torch.float32)``,
+        ``cage.to("cuda")``, ``cage.to(device=..., dtype=...)``). Index tensors stay int64."""
+        v = self.vertices.to(*args, **kwargs)
+        if not v.is_floating_point():
+            raise TypeError(f"a cage's vertices must stay floating point, got {v.dtype}")
+        dev = v.device
+        return Cage._trusted(v, self.triangles.to(dev), self.quads.to(dev), self.edges.to(dev))
+
+    @classmethod
+    def _trusted(cls, v: torch.Tensor, tri: torch.Tensor, quads: torch.Tensor, edges: torch.Tensor) -> Cage:
+        """Build without validation from parts already known to be valid."""
+        c = cls.__new__(cls)
+        c.vertices, c.triangles, c.quads, c.edges = v, tri, quads, edges
+        return c
+
+    # ------------------------------------------------------------------ validation
+    def _validate(self) -> None:
+        if self.dim == 3:
+            self._validate_3d()
+        else:
+            self._validate_2d()
+
+    def _check_indices(self, name: str, idx: torch.Tensor) -> None:
+        if idx.numel() == 0:
+            return
+        V = self.num_vertices
+        bad = (idx < 0) | (idx >= V)
+        if bool(bad.any()):
+            rows = torch.nonzero(bad.any(dim=1)).flatten()[:10].tolist()
+            raise CageError(f"{name} {rows} index vertices outside [0, {V - 1}]; the cage has {V} vertices")
+        s = idx.sort(dim=1).values
+        rep = (s[:, 1:] == s[:, :-1]).any(dim=1)
+        if bool(rep.any()):
+            rows = torch.nonzero(rep).flatten()[:10].tolist()
+            raise CageError(f"{name} {rows} repeat a vertex index; remove these degenerate {name}")
+
+    def _validate_3d(self) -> None:
+        tri, quads = self.triangles, self.quads
+        self._check_indices("triangles", tri)
+        self._check_indices("quads", quads)
+        v = self.vertices.to(torch.float64)
+        tol = DEGENERATE_TOLERANCE * self.scale**2
+        if tri.shape[0]:
+            p = v[tri]
+            area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
+            bad = torch.nonzero(area <= tol).flatten()
+            if bad.numel():
+                raise DegenerateFaceError(
+                    f"triangles {bad[:10].tolist()} have zero area (corners collinear or coincident); "
+                    "remove them or move their vertices apart"
+                )
+        if quads.shape[0]:
+            p = v[quads]
+            a1 = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
+            a2 = torch.linalg.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0], dim=-1).norm(dim=-1)
+            b1 = torch.linalg.cross(p[:, 2] - p[:, 1], p[:, 3] - p[:, 1], dim=-1).norm(dim=-1)
+            b2 = torch.linalg.cross(p[:, 3] - p[:, 1], p[:, 0] - p[:, 1], dim=-1).norm(dim=-1)
+            bad = torch.nonzero(torch.minimum(a1 + a2, b1 + b2) * 0.5 <= tol).flatten()
+            if bad.numel():
+                raise DegenerateFaceError(
+                    f"quads {bad[:10].tolist()} have zero area; remove them or move their vertices apart"
+                )
+        # Directed half-edges: face k contributes (f[i], f[i+1]).
+        polys = [tri, quads]
+        src, dst, owner = [], [], []
+        offset = 0
+        for f in polys:
+            if f.shape[0] == 0:
+                continue
+            src.append(f.reshape(-1))
+            dst.append(f.roll(-1, dims=1).reshape(-1))
+            owner.append(torch.arange(f.shape[0], device=f.device).repeat_interleave(f.shape[1]) + offset)
+            offset += f.shape[0]
+        s, d, o = torch.cat(src).cpu(), torch.cat(dst).cpu(), torch.cat(owner).cpu()
+        V = self.num_vertices
+        lo, hi = torch.minimum(s, d), torch.maximum(s, d)
+        key = lo * V + hi
+        uniq, inv, counts = torch.unique(key, return_inverse=True, return_counts=True)
+        if bool((counts != 2).any()):
+            bad = uniq[counts != 2]
+            cnt = counts[counts != 2]
+            pairs = [(int(k) // V, int(k) % V, int(c)) for k, c in zip(bad[:10], cnt[:10])]
+            kind = "open (boundary edges used by one face)" if bool((cnt == 1).any()) else "non-manifold"
+            desc = ", ".join(f"({a}, {b}) used by {c} face(s)" for a, b, c in pairs)
+            raise CageTopologyError(
+                f"the cage is {kind}: every edge must be shared by exactly two faces, but edges {desc}; "
+                "close holes and split non-manifold edges"
+            )
+        # Orientation: the two half-edges of each undirected edge must run in opposite directions.
+        dkey = s * V + d
+        same = torch.unique(dkey, return_counts=True)[1]
+        if bool((same > 1).any()):
+            order = torch.argsort(key, stable=True)
+            ks, ds, os_ = key[order], dkey[order], o[order]
+            clash = torch.nonzero((ks[0::2] == ks[1::2]) & (ds[0::2] == ds[1::2])).flatten()
+            fa, fb = int(os_[0::2][clash[0]]), int(os_[1::2][clash[0]])
+            e = int(ks[0::2][clash[0]])
+            names = self._face_names()
+            raise CageOrientationError(
+                f"faces are inconsistently oriented: {names[fa]} and {names[fb]} traverse the shared edge "
+                f"({e // V}, {e % V}) in the same direction ({len(clash)} such edges); "
+                "reverse the corner order of the wrongly oriented faces so that normals point outward"
+            )
+        vol = float(self.signed_volume())
+        if vol < 0:
+            warnings.warn(
+                "the cage is oriented inward (negative signed volume); its faces were flipped so that "
+                "normals point outward",
+                stacklevel=3,
+            )
+            self.triangles = self.triangles[:, [0, 2, 1]]
+            self.quads = self.quads[:, [0, 3, 2, 1]]
+
+    def _face_names(self) -> list[str]:
+        T = self.triangles.shape[0]
+        return [f"triangle {k}" for k in range(T)] + [f"quad {k}" for k in range(self.quads.shape[0])]
+
+    def _validate_2d(self) -> None:
+        e = self.edges
+        self._check_indices("edges", e)
+        v = self.vertices.to(torch.float64)
+        length = (v[e[:, 1]] - v[e[:, 0]]).norm(dim=1)
+        bad = torch.nonzero(length <= DEGENERATE_TOLERANCE * self.scale).flatten()
+        if bad.numel():
+            raise DegenerateFaceError(
+                f"edges {bad[:10].tolist()} have zero length (coincident vertices); remove duplicate vertices"
+            )
+        V = self.num_vertices
+        used = torch.zeros(V, dtype=torch.bool, device=e.device)
+        used[e.reshape(-1)] = True
+        outdeg = torch.bincount(e[:, 0].cpu(), minlength=V)
+        indeg = torch.bincount(e[:, 1].cpu(), minlength=V)
+        undirected = torch.bincount(e.reshape(-1).cpu(), minlength=V)
+        badv = torch.nonzero((undirected != 2) & used.cpu()).flatten()
+        if badv.numel():
+            raise CageTopologyError(
+                f"the polygon is open or non-manifold at vertices {badv[:10].tolist()}: every vertex "
+                "must lie on exactly two edges; close the polygon and remove dangling or branching edges"
+            )
+        badv = torch.nonzero((outdeg != indeg) | ((outdeg != 1) & used.cpu())).flatten()
+        if badv.numel():
+            k = int(badv[0])
+            ab = torch.nonzero((e[:, 0] == k) | (e[:, 1] == k)).flatten().tolist()
+            raise CageOrientationError(
+                f"edges {ab} meet at vertex {k} with inconsistent directions (both start or both end "
+                "there); give every closed polygon as a consistent loop (one edge in, one edge out)"
+            )
+        if float(self.signed_volume()) < 0:
+            warnings.warn(
+                "the 2D cage runs clockwise (negative signed area); its edges were reversed so that it runs "
+                "counter-clockwise (vertex order, and so the order of the coordinates, is unchanged)",
+                stacklevel=3,
+            )
+            self.edges = self.edges[:, [1, 0]]

@@ -1,0 +1,9 @@
+"""Functional API: pure, stateless coordinate kernels, chunked over points.
+
+Every function takes query points ``(*, D)`` and a :class:`~torchcage.Cage` and returns the
+coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
+"""
+
+from .mean_value import mean_value_coordinates
+
+__all__ = ["mean_value_coordinates"]

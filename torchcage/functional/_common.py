@@ -1,0 +1,90 @@
+"""Shared helpers of the functional kernels: input checks, dtype resolution and chunking."""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Callable, Iterator
+
+import torch
+
+from ..cage import Cage
+from ..errors import PointsError
+
+#: Points closer to the cage than this fraction of its bounding-box diagonal are treated as lying
+#: on it and get the interpolating values (the exact limit, up to rounding).
+ON_CAGE_TOLERANCE = 16 * torch.finfo(torch.float64).eps
+
+
+def check_points(points: torch.Tensor, cage: Cage) -> torch.Tensor:
+    """Validate query points against a cage and return them flattened to ``(N, D)``.
+
+    Raises:
+        TypeError: ``points`` is not a floating-point tensor.
+        PointsError: wrong last dimension, non-finite values, or a device other than the cage's.
+    """
+    if not isinstance(points, torch.Tensor):
+        points = torch.as_tensor(points)
+        if not points.is_floating_point():
+            points = points.to(torch.float64)
+    if not points.is_floating_point():
+        raise TypeError(f"points must be a floating-point tensor, got dtype {points.dtype}")
+    if points.ndim < 1 or points.shape[-1] != cage.dim:
+        raise PointsError(
+            f"points must have shape (..., {cage.dim}) for a {cage.dim}D cage, got {tuple(points.shape)}"
+        )
+    if points.device != cage.device:
+        raise PointsError(
+            f"points are on {points.device} but the cage is on {cage.device}; move one with .to(device)"
+        )
+    flat = points.reshape(-1, cage.dim)
+    bad = ~torch.isfinite(flat).all(dim=1)
+    if bool(bad.any()):
+        idx = torch.nonzero(bad).flatten()[:10].tolist()
+        raise PointsError(f"points contain NaN or inf (flattened indices {idx}); remove or fix them")
+    return flat
+
+
+def result_dtype(points: torch.Tensor, cage: Cage, dtype: torch.dtype | None) -> tuple[torch.dtype, torch.dtype]:
+    """(compute dtype, output dtype): compute in ``dtype`` (float64 by default); return in the
+    promoted dtype of the inputs unless ``dtype`` is given explicitly."""
+    compute = torch.float64 if dtype is None else dtype
+    if not compute.is_floating_point:
+        raise TypeError(f"dtype must be a floating-point dtype, got {compute}")
+    out = torch.promote_types(points.dtype, cage.dtype) if dtype is None else dtype
+    return compute, out
+
+
+def default_chunk(num_faces: int, target: int = 1 << 16) -> int:
+    """Points per chunk so that one ``(faces, chunk)`` temporary holds about ``target`` entries."""
+    return max(64, target // max(1, num_faces))
+
+
+def chunks(n: int, size: int, progress: bool | Callable[[int, int], None] = False, desc: str = "") -> Iterator[slice]:
+    """Yield slices of ``range(n)`` of length ``size``; report progress when asked.
+
+    ``progress`` may be ``True`` (a tqdm bar when tqdm is installed, else a line on stderr) or a
+    callable ``progress(done, total)``.
+    """
+    if size <= 0:
+        raise ValueError(f"chunk_size must be positive, got {size}")
+    total = max(1, math.ceil(n / size))
+    bar = None
+    if progress is True:
+        try:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=n, desc=desc or "points", unit="pt", unit_scale=True, leave=False)
+        except ImportError:  # pragma: no cover - tqdm is a dependency, but keep a fallback
+            bar = None
+    for k in range(total):
+        start, stop = k * size, min(n, (k + 1) * size)
+        yield slice(start, stop)
+        if bar is not None:
+            bar.update(stop - start)
+        elif callable(progress):
+            progress(stop, n)
+        elif progress is True:
+            print(f"\r{desc} {stop}/{n}", end="", file=sys.stderr)
+    if bar is not None:
+        bar.close()

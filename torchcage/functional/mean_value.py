@@ -1,0 +1,412 @@
+r"""Mean value coordinates for closed triangle cages (3D) and closed polygons (2D).
+
+3D (Floater, Kós, Reimers 2005; Ju, Schaefer, Warren 2005; vector form of Thiery et al. 2014,
+Sec. 2.2). For a triangle ``T`` with corners ``p_1, p_2, p_3`` and ``a_i = p_i - x``,
+
+.. math::
+    m^T = \sum_e \tfrac{\theta_e}{2} \frac{N_e}{|N_e|},\quad N_e = a_{e+1} \times a_{e+2},\quad
+    w_i^T = \frac{N_i \cdot m^T}{\det(a_1, a_2, a_3)},
+
+where :math:`\theta_e` is the angle between :math:`a_{e+1}` and :math:`a_{e+2}`. Evaluated as
+written, this is a ratio of two quantities that vanish on the face's support plane, and it loses
+all precision for points near the plane but outside the face (an error of about
+``eps * size / distance``). torchcage splits every cross product into its normal and in-plane
+parts, ``N_e = s_e n + h t_e`` (``h`` the distance to the plane, ``s_e`` twice the signed area of
+the foot point and edge ``e``, ``t_e`` a rotated edge vector), so that
+
+.. math::
+    w_i^T = \frac{s_i S + h^2 \sum_e \theta_e\, t_i\cdot t_e / |N_e|}{4 A h},\qquad
+    S = \sum_e \theta_e \frac{s_e}{|N_e|} = 2\pi\,\mathrm{wind} + h^2 \sum_e \sigma_e
+        \Big(\frac{\delta_e}{h^2} - \theta_e\frac{\varepsilon_e}{h^2}\Big),
+
+with :math:`\sigma_e = \mathrm{sign}(s_e)`, :math:`\theta_e = \theta_e^0 + \delta_e` (``\theta^0``
+the planar angle at the foot point, ``\delta`` computed from its sine and cosine, both
+:math:`O(h^2)` in closed form) and :math:`\varepsilon_e = 1 - |s_e|/|N_e|`. The winding number of
+the face around the foot point is exact, and every remaining term carries its power of ``h``
+explicitly, so a face's contribution is accurate to rounding at any distance from its plane; a
+point exactly on the plane outside the face gets exactly no contribution. This stable form is used
+for point–face pairs with ``|h| < 0.1 min_i |a_i|``; the cheaper direct form elsewhere.
+
+2D (Floater 2003; Hormann & Floater 2006): ``w_j = (tan(α_{j-1}/2) + tan(α_j/2)) / r_j`` with
+the half-angle tangent evaluated as ``sin α / (1 + cos α)`` or ``(1 - cos α) / sin α``, whichever
+does not cancel.
+
+Points on the cage (within ``ON_CAGE_TOLERANCE`` times the cage size) get the interpolating values:
+barycentric on the face, linear on the edge, Lagrange at a vertex.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from ..cage import Cage
+from ..errors import CageError, PointsError
+from ._common import ON_CAGE_TOLERANCE, check_points, chunks, default_chunk, result_dtype
+
+__all__ = ["mean_value_coordinates", "mean_value_weights"]
+
+#: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
+NEAR_PLANE = 0.1
+
+
+@dataclass(frozen=True)
+class _TriangleCageData:
+    """Per-face constants of a triangle cage, in the compute dtype. Shapes use T faces, V vertices."""
+
+    vertices: torch.Tensor  # (3, V)   coordinates, components first
+    tri: torch.Tensor  # (T, 3)   corners
+    normal: torch.Tensor  # (3, T, 1) unit outward normals
+    two_area: torch.Tensor  # (T, 1)   twice the face area
+    edge_len: torch.Tensor  # (3, T, 1) length of the edge opposite each corner
+    gram: torch.Tensor  # (T, 3, 3) E_i . E_e for the edges E_e = p_{e+1} - p_{e+2}
+    tol: float  # absolute on-cage tolerance
+
+
+def _triangle_cage_data(cage: Cage, dtype: torch.dtype) -> _TriangleCageData:
+    if cage.dim != 3:
+        raise CageError("expected a 3D cage")
+    if cage.has_quads:
+        raise CageError(
+            f"mean_value_coordinates needs a triangle cage, but this cage has {cage.quads.shape[0]} quads; "
+            "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated() to split quads"
+        )
+    v = cage.vertices.to(dtype)
+    tri = cage.triangles
+    p = v[tri]  # (T, 3 corners, 3)
+    cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    two_area = cross.norm(dim=-1)
+    normal = cross / two_area[:, None]
+    edges = p.roll(-1, dims=1) - p.roll(-2, dims=1)  # E_e = p_{e+1} - p_{e+2}, (T, 3, 3)
+    return _TriangleCageData(
+        vertices=v.T.contiguous(),
+        tri=tri,
+        normal=normal.T.contiguous()[:, :, None],
+        two_area=two_area[:, None],
+        edge_len=edges.norm(dim=-1).T.contiguous()[:, :, None],
+        gram=edges @ edges.transpose(1, 2),
+        tol=ON_CAGE_TOLERANCE * cage.scale,
+    )
+
+
+def _cross(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
+    ax, ay, az = a
+    bx, by, bz = b
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+
+
+def _dot(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _stable_face_weights(
+    h: torch.Tensor,
+    s: list[torch.Tensor],
+    dots: list[torch.Tensor],
+    R: list[torch.Tensor],
+    ell: list[torch.Tensor],
+    gram: torch.Tensor,
+    two_area: torch.Tensor,
+) -> list[torch.Tensor]:
+    """Face weights ``w_i^T`` in the stable split form, for pairs near the face's support plane.
+
+    All inputs are flat ``(M,)`` tensors over the selected point–face pairs, except ``gram``
+    ``(M, 3, 3)``. ``s[e]`` is ``n . N_e``, ``dots[e] = a_{e+1} . a_{e+2}``, ``R[i] = |a_i|``,
+    ``ell[e]`` the length of edge ``e``. Requires ``|h| < min R`` so that every foot distance
+    ``rho_i = sqrt(R_i^2 - h^2)`` is positive (points on a vertex are handled by the caller).
+    """
+    h2 = h * h
+    wind_angle = torch.zeros_like(h)
+    S_rest = torch.zeros_like(h)
+    theta_over_N = []
+    for e in range(3):
+        j, k = (e + 1) % 3, (e + 2) % 3
+        s_abs = s[e].abs()
+        sigma = torch.where(s[e] >= 0, 1.0, -1.0).to(h.dtype)
+        qq = dots[e] - h2  # q_j . q_k
+        N = torch.hypot(s[e], h * ell[e])  # |N_e| = |a_j x a_k|, consistent with s and h
+        theta0 = torch.atan2(s_abs, qq)  # planar angle at the foot point
+        wind_angle = wind_angle + sigma * theta0
+        Nps = N + s_abs
+        safe_Nps = torch.where(Nps > 0, Nps, 1.0)
+        X = qq * ell[e] ** 2 / safe_Nps - s_abs  # sin(delta) R_j R_k rho_j rho_k / h^2
+        Y = dots[e] * qq + N * s_abs  # cos(delta) R_j R_k rho_j rho_k
+        delta = torch.atan2(h2 * X, Y)
+        safe_h2 = torch.where(h2 > 0, h2, 1.0)
+        delta_h2 = torch.where(h2 > 0, delta / safe_h2, X / Y)  # delta / h^2
+        theta = theta0 + delta
+        safe_N = torch.where(N > 0, N, 1.0)
+        t_over_N = torch.where(N > 0, theta / safe_N, 1.0 / (R[j] * R[k]))  # theta / |N| (theta -> 0)
+        eps_h2 = ell[e] ** 2 / (safe_N * safe_Nps)  # epsilon_e / h^2
+        S_rest = S_rest + sigma * (delta_h2 - theta * eps_h2)
+        theta_over_N.append(t_over_N)
+    wind = torch.round(wind_angle / (2 * math.pi))
+    safe_h = torch.where(h != 0, h, 1.0)
+    inv4A = 1.0 / (2.0 * two_area)
+    out = []
+    for i in range(3):
+        B = s[i] * S_rest + sum(theta_over_N[e] * gram[:, i, e] for e in range(3))
+        w = h * B * inv4A
+        w = w + torch.where(wind != 0, s[i] * (2 * math.pi) * wind / safe_h * inv4A, 0.0)
+        out.append(torch.where(h != 0, w, torch.where(wind != 0, w, 0.0)))
+    return out
+
+
+def _mvc3d_chunk(x: torch.Tensor, data: _TriangleCageData) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unnormalised mean value weights of a chunk of points.
+
+    Args:
+        x: ``(n, 3)`` points.
+        data: the cage constants.
+
+    Returns:
+        ``(W, on_cage)``: weights ``(V, n)`` (not yet normalised) and, for points on the cage,
+        their interpolating coordinates already placed: ``on_cage`` is a ``(n,)`` bool mask and the
+        columns of ``W`` for those points hold the final coordinates.
+    """
+    V = data.vertices.shape[1]
+    T = data.tri.shape[0]
+    n = x.shape[0]
+    xt = x.T[:, None, :]  # (3, 1, n)
+    a_all = data.vertices[:, :, None] - xt  # (3, V, n)
+    R_all = torch.sqrt((a_all * a_all).sum(dim=0))  # (V, n)
+    tri = data.tri
+    a = [tuple(a_all[c].index_select(0, tri[:, i]) for c in range(3)) for i in range(3)]  # (T, n) comps
+    R = [R_all.index_select(0, tri[:, i]) for i in range(3)]
+    nrm = (data.normal[0], data.normal[1], data.normal[2])
+    h = _dot(a[0], nrm)  # signed distance to the support plane, > 0 on the inner side
+    N, Nn, dots, s = [], [], [], []
+    for e in range(3):
+        j, k = (e + 1) % 3, (e + 2) % 3
+        Ne = _cross(a[j], a[k])
+        N.append(Ne)
+        Nn.append(torch.sqrt(_dot(Ne, Ne)))
+        dots.append(_dot(a[j], a[k]))
+        s.append(_dot(Ne, nrm))
+    # Direct vector form (well conditioned away from the support plane).
+    mx = torch.zeros_like(h)
+    my = torch.zeros_like(h)
+    mz = torch.zeros_like(h)
+    for e in range(3):
+        j, k = (e + 1) % 3, (e + 2) % 3
+        theta = torch.atan2(Nn[e], dots[e])
+        safe = torch.where(Nn[e] > 0, Nn[e], 1.0)
+        g = torch.where(Nn[e] > 0, theta / safe, 1.0 / (R[j] * R[k])) * 0.5
+        mx = mx + g * N[e][0]
+        my = my + g * N[e][1]
+        mz = mz + g * N[e][2]
+    m = (mx, my, mz)
+    det = data.two_area * h
+    safe_det = torch.where(det != 0, det, 1.0)
+    w = [_dot(N[i], m) / safe_det for i in range(3)]
+
+    # Stable split form near the support planes.
+    Rmin = torch.minimum(torch.minimum(R[0], R[1]), R[2])
+    near = h.abs() < NEAR_PLANE * Rmin
+    if bool(near.any()):
+        idx = torch.nonzero(near.reshape(-1)).squeeze(1)
+        face = torch.div(idx, n, rounding_mode="floor")
+
+        def pick(t: torch.Tensor) -> torch.Tensor:
+            return t.reshape(-1).index_select(0, idx)
+
+        ws = _stable_face_weights(
+            pick(h),
+            [pick(t) for t in s],
+            [pick(t) for t in dots],
+            [pick(t) for t in R],
+            [data.edge_len[e, :, 0].index_select(0, face) for e in range(3)],
+            data.gram.index_select(0, face),
+            data.two_area[:, 0].index_select(0, face),
+        )
+        for i in range(3):
+            w[i] = w[i].reshape(-1).index_put((idx,), ws[i]).reshape(T, n)
+
+    W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
+    for i in range(3):
+        W.index_add_(0, tri[:, i], w[i])
+
+    # Points on the cage: barycentric coordinates in a face that contains them.
+    tol = data.tol
+    inside = (s[0] >= -tol * data.edge_len[0]) & (s[1] >= -tol * data.edge_len[1]) & (s[2] >= -tol * data.edge_len[2])
+    on_face = (h.abs() <= tol) & inside
+    on_face |= (Rmin <= tol)
+    on_cage = on_face.any(dim=0)
+    if bool(on_cage.any()):
+        cols = torch.nonzero(on_cage).squeeze(1)
+        f = on_face[:, cols].to(torch.int8).argmax(dim=0)  # first face holding each point
+        bary = torch.stack([s[i][f, cols] for i in range(3)]).clamp_min(0.0)  # (3, m)
+        near_vertex = torch.stack([R[i][f, cols] for i in range(3)]) <= tol
+        bary = torch.where(near_vertex.any(dim=0, keepdim=True), near_vertex.to(bary.dtype), bary)
+        bary = bary / bary.sum(dim=0, keepdim=True)
+        Wc = torch.zeros((V, cols.shape[0]), dtype=x.dtype, device=x.device)
+        Wc.scatter_(0, tri[f].T, bary)
+        W[:, cols] = Wc
+    return W, on_cage
+
+
+@dataclass(frozen=True)
+class _PolygonData:
+    vertices: torch.Tensor  # (2, V)
+    edges: torch.Tensor  # (E, 2)
+    edge_vec: torch.Tensor  # (2, E, 1)  p_k - p_j
+    edge_len2: torch.Tensor  # (E, 1)
+    tol: float
+
+
+def _polygon_data(cage: Cage, dtype: torch.dtype) -> _PolygonData:
+    v = cage.vertices.to(dtype)
+    e = cage.edges
+    d = v[e[:, 1]] - v[e[:, 0]]
+    return _PolygonData(
+        vertices=v.T.contiguous(),
+        edges=e,
+        edge_vec=d.T.contiguous()[:, :, None],
+        edge_len2=(d * d).sum(dim=1)[:, None],
+        tol=ON_CAGE_TOLERANCE * cage.scale,
+    )
+
+
+def _mvc2d_chunk(x: torch.Tensor, data: _PolygonData) -> tuple[torch.Tensor, torch.Tensor]:
+    """2D counterpart of :func:`_mvc3d_chunk`: ``x`` ``(n, 2)`` -> weights ``(V, n)`` and on-cage mask."""
+    V = data.vertices.shape[1]
+    n = x.shape[0]
+    a_all = data.vertices[:, :, None] - x.T[:, None, :]  # (2, V, n)
+    R_all = torch.sqrt((a_all * a_all).sum(dim=0))
+    j, k = data.edges[:, 0], data.edges[:, 1]
+    ajx, ajy = a_all[0].index_select(0, j), a_all[1].index_select(0, j)
+    akx, aky = a_all[0].index_select(0, k), a_all[1].index_select(0, k)
+    Rj, Rk = R_all.index_select(0, j), R_all.index_select(0, k)
+    ex, ey = data.edge_vec[0], data.edge_vec[1]
+    cross = ajx * ey - ajy * ex  # a_j ^ a_k = a_j ^ (p_k - p_j): twice the signed area (x, p_j, p_k)
+    dot = ajx * akx + ajy * aky
+    RR = Rj * Rk
+    safe_cross = torch.where(cross != 0, cross, 1.0)
+    tan_half = torch.where(dot >= 0, cross / (RR + dot), torch.where(cross != 0, (RR - dot) / safe_cross, 0.0))
+    W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
+    W.index_add_(0, j, tan_half / torch.where(Rj > 0, Rj, 1.0))
+    W.index_add_(0, k, tan_half / torch.where(Rk > 0, Rk, 1.0))
+    # Points on an edge (or a vertex): linear interpolation along the edge.
+    ell2 = data.edge_len2
+    t = -(ajx * ex + ajy * ey) / ell2  # projection parameter of x on the edge, 0 at p_j
+    dist = cross.abs() / torch.sqrt(ell2)
+    tol = data.tol
+    on_edge = (dist <= tol) & (t >= -tol / torch.sqrt(ell2)) & (t <= 1 + tol / torch.sqrt(ell2))
+    on_edge |= (Rj <= tol) | (Rk <= tol)
+    on_cage = on_edge.any(dim=0)
+    if bool(on_cage.any()):
+        cols = torch.nonzero(on_cage).squeeze(1)
+        f = on_edge[:, cols].to(torch.int8).argmax(dim=0)
+        tt = t[f, cols].clamp(0.0, 1.0)
+        tt = torch.where(Rj[f, cols] <= tol, 0.0, torch.where(Rk[f, cols] <= tol, 1.0, tt))
+        Wc = torch.zeros((V, cols.shape[0]), dtype=x.dtype, device=x.device)
+        Wc.scatter_add_(0, torch.stack([j[f], k[f]]), torch.stack([1.0 - tt, tt]))
+        W[:, cols] = Wc
+    return W, on_cage
+
+
+def mean_value_weights(
+    points: torch.Tensor,
+    cage: Cage,
+    *,
+    chunk_size: int | None = None,
+    dtype: torch.dtype | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unnormalised mean value weights and the on-cage mask.
+
+    Args:
+        points: ``(N, D)`` query points (already flattened and checked).
+        cage: a triangle cage (3D) or a polygon (2D).
+        chunk_size: points per chunk (default: about 65k point–face pairs per chunk).
+        dtype: compute dtype (default float64).
+        progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
+
+    Returns:
+        ``(W, on_cage)``: ``W`` ``(N, V)`` weights, except on rows where ``on_cage`` ``(N,)`` is
+        True, which already hold the interpolating coordinates.
+    """
+    compute = torch.float64 if dtype is None else dtype
+    x = points.to(compute)
+    if cage.dim == 3:
+        data3 = _triangle_cage_data(cage, compute)
+        nf = data3.tri.shape[0]
+
+        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return _mvc3d_chunk(c, data3)
+    else:
+        data2 = _polygon_data(cage, compute)
+        nf = data2.edges.shape[0]
+
+        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return _mvc2d_chunk(c, data2)
+
+    size = chunk_size if chunk_size is not None else default_chunk(nf)
+    N, V = x.shape[0], cage.num_vertices
+    W = torch.empty((N, V), dtype=compute, device=x.device)
+    on = torch.empty((N,), dtype=torch.bool, device=x.device)
+    for sl in chunks(N, size, progress, desc="mean value coordinates"):
+        Wc, onc = kernel(x[sl])
+        W[sl] = Wc.T
+        on[sl] = onc
+    return W, on
+
+
+def mean_value_coordinates(
+    points: torch.Tensor,
+    cage: Cage,
+    *,
+    chunk_size: int | None = None,
+    dtype: torch.dtype | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+) -> torch.Tensor:
+    """Mean value coordinates of points with respect to a closed triangle cage or a closed polygon.
+
+    The coordinates reproduce constants and linear functions (``W @ V = X``), interpolate linearly
+    on the cage (barycentric on faces, linearly on edges, Lagrange at vertices) and extend smoothly
+    to the whole space, outside the cage included. Each row sums to one.
+
+    Args:
+        points: ``(*, D)`` query points, ``D = cage.dim``.
+        cage: a closed triangle cage (3D) or a closed polygon (2D). Quad cages are refused: use
+            :func:`torchcage.functional.quad_mean_value_coordinates` or ``cage.triangulated()``.
+        chunk_size: points per chunk; peak memory grows with ``chunk_size x faces``. Default: about
+            65k point–face pairs per chunk.
+        dtype: compute dtype. Default: compute in float64 and return in the dtype of the inputs.
+        progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
+
+    Returns:
+        Coordinates of shape ``(*, V)``.
+
+    Raises:
+        CageError: a quad cage.
+        PointsError: points of the wrong dimension or device, NaN or inf in the points, or points
+            where the coordinates are undefined (outside the cage, where the total weight vanishes).
+
+    Example:
+        >>> import torch, torchcage
+        >>> from torchcage import functional as F
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+        >>> x = torch.tensor([[0.1, 0.2, -0.3], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        >>> w = F.mean_value_coordinates(x, cube)
+        >>> w.shape, torch.allclose(w.sum(-1), torch.ones(2, dtype=torch.float64))
+        (torch.Size([2, 8]), True)
+        >>> torch.allclose(w @ cube.vertices, x)
+        True
+    """
+    flat = check_points(points, cage)
+    compute, out_dtype = result_dtype(flat, cage, dtype)
+    W, on = mean_value_weights(flat, cage, chunk_size=chunk_size, dtype=compute, progress=progress)
+    total = W.sum(dim=1, keepdim=True)
+    lam = torch.where(on[:, None], W, W / total)
+    bad = ~torch.isfinite(lam).all(dim=1)
+    if bool(bad.any()):
+        idx = torch.nonzero(bad).flatten()[:10].tolist()
+        raise PointsError(
+            f"mean value coordinates are undefined at points {idx} (the total weight vanishes there, "
+            "which happens only outside the cage); move these points"
+        )
+    return lam.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)

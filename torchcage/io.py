@@ -1,0 +1,194 @@
+"""Reading and writing cages and meshes.
+
+Cages need their quads kept as quads, which trimesh does not do (it triangulates on load), so OBJ
+files are read by a small polygon-preserving reader here. Meshes in other formats go through
+trimesh, imported lazily (``pip install torchcage[mesh]``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .cage import Cage
+from .errors import CageError
+
+__all__ = ["read_obj", "load_cage", "save_cage", "load_mesh", "save_mesh"]
+
+PathLike = str | os.PathLike
+
+
+def read_obj(path: PathLike) -> tuple[np.ndarray, list[list[int]], list[list[int]]]:
+    """Read the vertices, polygon faces and polylines of an OBJ file, keeping polygons intact.
+
+    Understands ``v x y z [w]``, ``f`` with ``i``, ``i/t``, ``i//n`` and ``i/t/n`` corners, negative
+    (relative) indices, ``l`` polylines, comments and blank lines; other statements are ignored.
+
+    Args:
+        path: file to read.
+
+    Returns:
+        ``(vertices (V, 3) float64, faces, lines)``: faces and polylines as lists of 0-based
+        index lists.
+
+    Raises:
+        CageError: a malformed ``v``, ``f`` or ``l`` line, or an index out of range (with the line number).
+    """
+    vertices: list[list[float]] = []
+    faces: list[list[int]] = []
+    lines: list[list[int]] = []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for lineno, raw in enumerate(fh, 1):
+            parts = raw.split("#", 1)[0].split()
+            if not parts:
+                continue
+            tag = parts[0]
+            try:
+                if tag == "v":
+                    if len(parts) < 4:
+                        raise ValueError("a vertex needs three coordinates")
+                    vertices.append([float(parts[1]), float(parts[2]), float(parts[3])])
+                elif tag in ("f", "l"):
+                    idx = []
+                    for tok in parts[1:]:
+                        i = int(tok.split("/", 1)[0])
+                        if i == 0:
+                            raise ValueError("OBJ indices start at 1")
+                        idx.append(i - 1 if i > 0 else len(vertices) + i)
+                    if any(i < 0 or i >= len(vertices) for i in idx):
+                        raise ValueError(f"index out of range (only {len(vertices)} vertices defined so far)")
+                    (faces if tag == "f" else lines).append(idx)
+            except ValueError as err:
+                raise CageError(f"{path}:{lineno}: cannot read {raw.strip()!r}: {err}") from None
+    return np.asarray(vertices, dtype=np.float64).reshape(-1, 3), faces, lines
+
+
+def load_cage(path: PathLike, *, dim: int | None = None, dtype: torch.dtype = torch.float64) -> Cage:
+    """Load a cage from an OBJ file, keeping quads as quads.
+
+    A file with ``f`` faces is a 3D cage (triangles and quads). A file without faces is a 2D
+    polygon: its ``v`` lines, in order, are the polygon's vertices (z must be 0; ``l`` lines are
+    ignored). ``dim`` forces either reading.
+
+    Args:
+        path: an ``.obj`` file.
+        dim: 2 or 3, or ``None`` to decide from the file's content.
+        dtype: vertex dtype.
+
+    Returns:
+        A validated :class:`~torchcage.Cage`.
+
+    Raises:
+        CageError: a face with more than four corners, a 2D polygon with non-zero z, or any
+            validation error of :class:`~torchcage.Cage`.
+
+    Example:
+        >>> import torchcage
+        >>> cage = torchcage.load_cage(torchcage.data.path("bar_cage.obj"))
+        >>> cage.quads.shape
+        torch.Size([14, 4])
+    """
+    v, faces, _ = read_obj(path)
+    if dim is None:
+        dim = 3 if faces else 2
+    if dim == 2:
+        if np.abs(v[:, 2]).max(initial=0.0) > 0:
+            raise CageError(f"{path}: a 2D cage needs z = 0 on every vertex; pass dim=3 for a surface cage")
+        return Cage(torch.as_tensor(v[:, :2], dtype=dtype))
+    if dim != 3:
+        raise CageError(f"dim must be 2 or 3, got {dim}")
+    big = [k for k, f in enumerate(faces) if len(f) > 4]
+    if big:
+        raise CageError(
+            f"{path}: faces {big[:10]} have more than four corners; cages support triangles and quads only"
+        )
+    return Cage(torch.as_tensor(v, dtype=dtype), faces)
+
+
+def _format_rows(prefix: str, rows: np.ndarray, fmt: str) -> str:
+    if rows.size == 0:
+        return ""
+    line = prefix + " " + " ".join([fmt] * rows.shape[1]) + "\n"
+    return "".join(line % tuple(r) for r in rows.tolist())
+
+
+def save_cage(path: PathLike, cage: Cage, vertices: torch.Tensor | None = None) -> None:
+    """Write a cage as OBJ, quads kept as quads (2D cages as a polyline with z = 0).
+
+    Args:
+        path: output ``.obj`` file.
+        cage: the cage whose faces are written.
+        vertices: optional ``(V, D)`` positions to write instead of ``cage.vertices`` (a deformed pose).
+    """
+    v = (cage.vertices if vertices is None else vertices).detach().cpu().to(torch.float64).numpy()
+    if v.shape != tuple(cage.vertices.shape):
+        raise CageError(f"vertices must have shape {tuple(cage.vertices.shape)}, got {v.shape}")
+    if cage.dim == 2:
+        v = np.concatenate([v, np.zeros((v.shape[0], 1))], axis=1)
+    text = _format_rows("v", v, "%.17g")
+    if cage.dim == 3:
+        text += _format_rows("f", cage.triangles.cpu().numpy() + 1, "%d")
+        text += _format_rows("f", cage.quads.cpu().numpy() + 1, "%d")
+    else:
+        text += _format_rows("l", cage.edges.cpu().numpy() + 1, "%d")
+    Path(path).write_text(text)
+
+
+def _trimesh() -> Any:
+    try:
+        import trimesh
+    except ImportError as err:  # pragma: no cover - depends on the environment
+        raise ImportError("reading this mesh format needs trimesh: pip install 'torchcage[mesh]'") from err
+    return trimesh
+
+
+def load_mesh(path: PathLike, *, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+    """Load a triangle mesh.
+
+    OBJ files are read directly, keeping every vertex in file order (polygons are fan-triangulated);
+    other formats (PLY, STL, OFF, GLB, ...) go through trimesh without processing.
+
+    Args:
+        path: mesh file.
+        dtype: vertex dtype.
+
+    Returns:
+        ``(vertices (N, 3), faces (F, 3) int64)``.
+
+    Example:
+        >>> import torchcage
+        >>> v, f = torchcage.load_mesh(torchcage.data.path("bar.obj"))
+        >>> v.shape[1], f.shape[1]
+        (3, 3)
+    """
+    if str(path).lower().endswith(".obj"):
+        v, faces, _ = read_obj(path)
+        tris = [[f[0], f[k], f[k + 1]] for f in faces for k in range(1, len(f) - 1)]
+        return torch.as_tensor(v, dtype=dtype), torch.as_tensor(tris, dtype=torch.long).reshape(-1, 3)
+    mesh = _trimesh().load(path, process=False, force="mesh")
+    return (
+        torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype),
+        torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long).reshape(-1, 3),
+    )
+
+
+def save_mesh(path: PathLike, vertices: torch.Tensor, faces: torch.Tensor) -> None:
+    """Write a triangle (or quad) mesh: OBJ directly, other formats through trimesh.
+
+    Args:
+        path: output file; the extension picks the format.
+        vertices: ``(N, 3)`` positions.
+        faces: ``(F, 3)`` or ``(F, 4)`` int64 corners.
+    """
+    v = vertices.detach().cpu().to(torch.float64).numpy()
+    f = torch.as_tensor(faces).cpu().numpy()
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices must have shape (N, 3), got {v.shape}")
+    if str(path).lower().endswith(".obj"):
+        Path(path).write_text(_format_rows("v", v, "%.17g") + _format_rows("f", f + 1, "%d"))
+        return
+    _trimesh().Trimesh(vertices=v, faces=f, process=False).export(path)

@@ -1,0 +1,58 @@
+"""Shared base of the coordinate modules: precomputed weights as buffers, batched deformation."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..cage import Cage
+
+__all__ = ["CageModule"]
+
+
+class CageModule(nn.Module):
+    """Base class: holds the rest cage's vertices and the embedded points as buffers and checks
+    deformed vertices. Subclasses store their weights as buffers and implement ``forward``."""
+
+    rest_vertices: torch.Tensor
+    points: torch.Tensor
+
+    def __init__(self, cage: Cage, points: torch.Tensor) -> None:
+        super().__init__()
+        if not isinstance(cage, Cage):
+            raise TypeError(f"cage must be a torchcage.Cage, got {type(cage).__name__}")
+        self.cage = cage
+        self.register_buffer("rest_vertices", cage.vertices.detach().clone())
+        self.register_buffer("points", torch.as_tensor(points).detach().clone())
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.rest_vertices.shape[0])
+
+    @property
+    def dim(self) -> int:
+        return int(self.rest_vertices.shape[1])
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points.shape[0])
+
+    def _check_vertices(self, vertices: torch.Tensor, weights: torch.Tensor) -> None:
+        """Raise a clear error when deformed vertices do not fit this module."""
+        if not isinstance(vertices, torch.Tensor):
+            raise TypeError(f"vertices must be a tensor of shape (*, {self.num_vertices}, {self.dim})")
+        if not vertices.is_floating_point():
+            raise TypeError(f"vertices must be floating point (float32 or float64), got {vertices.dtype}")
+        if vertices.ndim < 2 or tuple(vertices.shape[-2:]) != (self.num_vertices, self.dim):
+            raise ValueError(
+                f"vertices must have shape (*, {self.num_vertices}, {self.dim}) for this cage, "
+                f"got {tuple(vertices.shape)}"
+            )
+        if vertices.device != weights.device:
+            raise ValueError(
+                f"vertices are on {vertices.device} but the module's weights are on {weights.device}; "
+                "call module.to(device) or move the vertices"
+            )
+
+    def extra_repr(self) -> str:
+        return f"points={self.num_points}, cage_vertices={self.num_vertices}, dim={self.dim}"
