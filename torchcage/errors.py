@@ -6,7 +6,7 @@ them with the builtin classes; the message names the problem and the way to fix 
 
 from __future__ import annotations
 
-__all__ = ["CageError", "CageTopologyError", "CageOrientationError", "DegenerateFaceError", "PointsError"]
+__all__ = ["CageError", "CageOrientationError", "CageTopologyError", "DegenerateFaceError", "PointsError"]
 
 
 class CageError(ValueError):

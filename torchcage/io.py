@@ -17,7 +17,7 @@ import torch
 from .cage import Cage
 from .errors import CageError
 
-__all__ = ["read_obj", "load_cage", "save_cage", "load_mesh", "save_mesh"]
+__all__ = ["load_cage", "load_mesh", "read_obj", "save_cage", "save_mesh"]
 
 PathLike = str | os.PathLike
 
@@ -103,9 +103,7 @@ def load_cage(path: PathLike, *, dim: int | None = None, dtype: torch.dtype = to
         raise CageError(f"dim must be 2 or 3, got {dim}")
     big = [k for k, f in enumerate(faces) if len(f) > 4]
     if big:
-        raise CageError(
-            f"{path}: faces {big[:10]} have more than four corners; cages support triangles and quads only"
-        )
+        raise CageError(f"{path}: faces {big[:10]} have more than four corners; cages support triangles and quads only")
     return Cage(torch.as_tensor(v, dtype=dtype), faces)
 
 

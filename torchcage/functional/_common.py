@@ -30,13 +30,9 @@ def check_points(points: torch.Tensor, cage: Cage) -> torch.Tensor:
     if not points.is_floating_point():
         raise TypeError(f"points must be a floating-point tensor, got dtype {points.dtype}")
     if points.ndim < 1 or points.shape[-1] != cage.dim:
-        raise PointsError(
-            f"points must have shape (..., {cage.dim}) for a {cage.dim}D cage, got {tuple(points.shape)}"
-        )
+        raise PointsError(f"points must have shape (..., {cage.dim}) for a {cage.dim}D cage, got {tuple(points.shape)}")
     if points.device != cage.device:
-        raise PointsError(
-            f"points are on {points.device} but the cage is on {cage.device}; move one with .to(device)"
-        )
+        raise PointsError(f"points are on {points.device} but the cage is on {cage.device}; move one with .to(device)")
     flat = points.reshape(-1, cage.dim)
     bad = ~torch.isfinite(flat).all(dim=1)
     if bool(bad.any()):

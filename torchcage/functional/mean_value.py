@@ -43,11 +43,12 @@ from dataclasses import dataclass
 
 import torch
 
+from .. import _native
 from ..cage import Cage
 from ..errors import CageError, PointsError
 from ._common import ON_CAGE_TOLERANCE, check_points, chunks, default_chunk, result_dtype
 
-__all__ = ["mean_value_coordinates", "mean_value_weights"]
+__all__ = ["mean_value_coordinates"]
 
 #: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
 NEAR_PLANE = 0.1
@@ -64,9 +65,10 @@ class _TriangleCageData:
     edge_len: torch.Tensor  # (3, T, 1) length of the edge opposite each corner
     gram: torch.Tensor  # (T, 3, 3) E_i . E_e for the edges E_e = p_{e+1} - p_{e+2}
     tol: float  # absolute on-cage tolerance
+    native: dict[str, torch.Tensor]  # contiguous row-major copies for the native kernel (or empty)
 
 
-def _triangle_cage_data(cage: Cage, dtype: torch.dtype) -> _TriangleCageData:
+def _triangle_cage_data(cage: Cage, dtype: torch.dtype, native: bool = False) -> _TriangleCageData:
     if cage.dim != 3:
         raise CageError("expected a 3D cage")
     if cage.has_quads:
@@ -89,7 +91,31 @@ def _triangle_cage_data(cage: Cage, dtype: torch.dtype) -> _TriangleCageData:
         edge_len=edges.norm(dim=-1).T.contiguous()[:, :, None],
         gram=edges @ edges.transpose(1, 2),
         tol=ON_CAGE_TOLERANCE * cage.scale,
+        native=_native_tables(v, tri, normal, two_area, edges) if native else {},
     )
+
+
+def _native_tables(
+    v: torch.Tensor, tri: torch.Tensor, normal: torch.Tensor, two_area: torch.Tensor, edges: torch.Tensor
+) -> dict[str, torch.Tensor]:
+    """Row-major tables for the native kernel: the unique edges ``(E, 2)`` and, for the edge
+    opposite each corner, its index ``face_edge`` ``(T, 3)`` and orientation ``face_sign`` (+1 when
+    stored as ``(t[i+1], t[i+2])``)."""
+    opp = torch.stack([tri.roll(-1, dims=1), tri.roll(-2, dims=1)], dim=-1)  # (T, 3, 2)
+    lo, hi = opp.min(dim=-1).values, opp.max(dim=-1).values
+    uniq, inv = torch.unique(torch.stack([lo, hi], dim=-1).reshape(-1, 2), dim=0, return_inverse=True)
+    sign = torch.where(opp[..., 0] == lo, 1.0, -1.0).to(v.dtype)
+    return {
+        "P": v.contiguous(),
+        "tri": tri.contiguous(),
+        "edges": uniq.contiguous(),
+        "face_edge": inv.reshape(-1, 3).contiguous(),
+        "face_sign": sign.contiguous(),
+        "normal": normal.contiguous(),
+        "two_area": two_area.contiguous(),
+        "ell": edges.norm(dim=-1).contiguous(),
+        "gram": (edges @ edges.transpose(1, 2)).contiguous(),
+    }
 
 
 def _cross(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
@@ -108,15 +134,15 @@ def _stable_face_weights(
     dots: list[torch.Tensor],
     R: list[torch.Tensor],
     ell: list[torch.Tensor],
-    gram: torch.Tensor,
+    gram: list[list[torch.Tensor]],
     two_area: torch.Tensor,
 ) -> list[torch.Tensor]:
     """Face weights ``w_i^T`` in the stable split form, for pairs near the face's support plane.
 
-    All inputs are flat ``(M,)`` tensors over the selected point–face pairs, except ``gram``
-    ``(M, 3, 3)``. ``s[e]`` is ``n . N_e``, ``dots[e] = a_{e+1} . a_{e+2}``, ``R[i] = |a_i|``,
-    ``ell[e]`` the length of edge ``e``. Requires ``|h| < min R`` so that every foot distance
-    ``rho_i = sqrt(R_i^2 - h^2)`` is positive (points on a vertex are handled by the caller).
+    All inputs are tensors of one broadcastable shape over point–face pairs (``(M,)`` for a
+    selection); ``gram[i][e] = E_i . E_e``, ``s[e] = n . N_e``, ``dots[e] = a_{e+1} . a_{e+2}``,
+    ``R[i] = |a_i|``, ``ell[e]`` the length of edge ``e``. Requires ``|h| < min R`` so that the
+    foot point of ``x`` is apart from every corner (points on a vertex are handled by the caller).
     """
     h2 = h * h
     wind_angle = torch.zeros_like(h)
@@ -148,36 +174,27 @@ def _stable_face_weights(
     inv4A = 1.0 / (2.0 * two_area)
     out = []
     for i in range(3):
-        B = s[i] * S_rest + sum(theta_over_N[e] * gram[:, i, e] for e in range(3))
+        B = s[i] * S_rest + theta_over_N[0] * gram[i][0] + theta_over_N[1] * gram[i][1] + theta_over_N[2] * gram[i][2]
         w = h * B * inv4A
         w = w + torch.where(wind != 0, s[i] * (2 * math.pi) * wind / safe_h * inv4A, 0.0)
         out.append(torch.where(h != 0, w, torch.where(wind != 0, w, 0.0)))
     return out
 
 
-def _mvc3d_chunk(x: torch.Tensor, data: _TriangleCageData) -> tuple[torch.Tensor, torch.Tensor]:
-    """Unnormalised mean value weights of a chunk of points.
+def _pair_terms(x: torch.Tensor, data: _TriangleCageData) -> dict[str, list[torch.Tensor] | torch.Tensor]:
+    """Per point–face quantities, each ``(T, n)`` (lists are indexed by corner or edge).
 
-    Args:
-        x: ``(n, 3)`` points.
-        data: the cage constants.
-
-    Returns:
-        ``(W, on_cage)``: weights ``(V, n)`` (not yet normalised) and, for points on the cage,
-        their interpolating coordinates already placed: ``on_cage`` is a ``(n,)`` bool mask and the
-        columns of ``W`` for those points hold the final coordinates.
+    ``a[i]`` = ``p_i - x`` as three component tensors, ``R[i] = |a_i|``, ``h = n . a_0`` (signed
+    distance to the support plane, positive on the inner side), ``N[e] = a_{e+1} x a_{e+2}``,
+    ``Nn[e] = |N_e|``, ``dots[e] = a_{e+1} . a_{e+2}``, ``s[e] = n . N_e``.
     """
-    V = data.vertices.shape[1]
-    T = data.tri.shape[0]
-    n = x.shape[0]
     xt = x.T[:, None, :]  # (3, 1, n)
     a_all = data.vertices[:, :, None] - xt  # (3, V, n)
     R_all = torch.sqrt((a_all * a_all).sum(dim=0))  # (V, n)
     tri = data.tri
-    a = [tuple(a_all[c].index_select(0, tri[:, i]) for c in range(3)) for i in range(3)]  # (T, n) comps
+    a = [tuple(a_all[c].index_select(0, tri[:, i]) for c in range(3)) for i in range(3)]
     R = [R_all.index_select(0, tri[:, i]) for i in range(3)]
     nrm = (data.normal[0], data.normal[1], data.normal[2])
-    h = _dot(a[0], nrm)  # signed distance to the support plane, > 0 on the inner side
     N, Nn, dots, s = [], [], [], []
     for e in range(3):
         j, k = (e + 1) % 3, (e + 2) % 3
@@ -186,26 +203,54 @@ def _mvc3d_chunk(x: torch.Tensor, data: _TriangleCageData) -> tuple[torch.Tensor
         Nn.append(torch.sqrt(_dot(Ne, Ne)))
         dots.append(_dot(a[j], a[k]))
         s.append(_dot(Ne, nrm))
-    # Direct vector form (well conditioned away from the support plane).
-    mx = torch.zeros_like(h)
-    my = torch.zeros_like(h)
-    mz = torch.zeros_like(h)
+    return {"R": R, "h": _dot(a[0], nrm), "N": N, "Nn": Nn, "dots": dots, "s": s}
+
+
+def _direct_face_weights(q: dict, two_area: torch.Tensor) -> list[torch.Tensor]:
+    """Face weights ``w_i^T = N_i . m / det`` in the direct vector form, ``(T, n)`` each."""
+    R, N, Nn, dots = q["R"], q["N"], q["Nn"], q["dots"]
+    m = [torch.zeros_like(q["h"]) for _ in range(3)]
     for e in range(3):
         j, k = (e + 1) % 3, (e + 2) % 3
         theta = torch.atan2(Nn[e], dots[e])
         safe = torch.where(Nn[e] > 0, Nn[e], 1.0)
         g = torch.where(Nn[e] > 0, theta / safe, 1.0 / (R[j] * R[k])) * 0.5
-        mx = mx + g * N[e][0]
-        my = my + g * N[e][1]
-        mz = mz + g * N[e][2]
-    m = (mx, my, mz)
-    det = data.two_area * h
+        for c in range(3):
+            m[c] = m[c] + g * N[e][c]
+    det = two_area * q["h"]
     safe_det = torch.where(det != 0, det, 1.0)
-    w = [_dot(N[i], m) / safe_det for i in range(3)]
+    return [_dot(N[i], m) / safe_det for i in range(3)]
 
-    # Stable split form near the support planes.
-    Rmin = torch.minimum(torch.minimum(R[0], R[1]), R[2])
-    near = h.abs() < NEAR_PLANE * Rmin
+
+def _near_plane(q: dict) -> torch.Tensor:
+    R = q["R"]
+    return q["h"].abs() < NEAR_PLANE * torch.minimum(torch.minimum(R[0], R[1]), R[2])
+
+
+def _on_cage(q: dict, data: _TriangleCageData) -> torch.Tensor:
+    """``(T, n)`` mask: the point lies on the (closed) face, within the on-cage tolerance."""
+    tol, s, R = data.tol, q["s"], q["R"]
+    inside = (s[0] >= -tol * data.edge_len[0]) & (s[1] >= -tol * data.edge_len[1]) & (s[2] >= -tol * data.edge_len[2])
+    near_vertex = torch.minimum(torch.minimum(R[0], R[1]), R[2]) <= tol
+    return ((q["h"].abs() <= tol) & inside) | near_vertex
+
+
+def _mvc3d_chunk(x: torch.Tensor, data: _TriangleCageData) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unnormalised mean value weights of a chunk of points (eager: the stable form is evaluated
+    only on the point–face pairs that need it).
+
+    Args:
+        x: ``(n, 3)`` points.
+        data: the cage constants.
+
+    Returns:
+        ``(W, on_cage)``: weights ``(V, n)`` (not yet normalised) and a ``(n,)`` bool mask of the
+        points on the cage, whose columns of ``W`` hold their final (interpolating) coordinates.
+    """
+    V, T, n = data.vertices.shape[1], data.tri.shape[0], x.shape[0]
+    q = _pair_terms(x, data)
+    w = _direct_face_weights(q, data.two_area)
+    near = _near_plane(q)
     if bool(near.any()):
         idx = torch.nonzero(near.reshape(-1)).squeeze(1)
         face = torch.div(idx, n, rounding_mode="floor")
@@ -213,37 +258,34 @@ def _mvc3d_chunk(x: torch.Tensor, data: _TriangleCageData) -> tuple[torch.Tensor
         def pick(t: torch.Tensor) -> torch.Tensor:
             return t.reshape(-1).index_select(0, idx)
 
+        gram = data.gram.index_select(0, face)
         ws = _stable_face_weights(
-            pick(h),
-            [pick(t) for t in s],
-            [pick(t) for t in dots],
-            [pick(t) for t in R],
+            pick(q["h"]),
+            [pick(t) for t in q["s"]],
+            [pick(t) for t in q["dots"]],
+            [pick(t) for t in q["R"]],
             [data.edge_len[e, :, 0].index_select(0, face) for e in range(3)],
-            data.gram.index_select(0, face),
+            [[gram[:, i, e] for e in range(3)] for i in range(3)],
             data.two_area[:, 0].index_select(0, face),
         )
         for i in range(3):
             w[i] = w[i].reshape(-1).index_put((idx,), ws[i]).reshape(T, n)
-
     W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
     for i in range(3):
-        W.index_add_(0, tri[:, i], w[i])
+        W.index_add_(0, data.tri[:, i], w[i])
 
     # Points on the cage: barycentric coordinates in a face that contains them.
-    tol = data.tol
-    inside = (s[0] >= -tol * data.edge_len[0]) & (s[1] >= -tol * data.edge_len[1]) & (s[2] >= -tol * data.edge_len[2])
-    on_face = (h.abs() <= tol) & inside
-    on_face |= (Rmin <= tol)
+    on_face = _on_cage(q, data)
     on_cage = on_face.any(dim=0)
     if bool(on_cage.any()):
         cols = torch.nonzero(on_cage).squeeze(1)
         f = on_face[:, cols].to(torch.int8).argmax(dim=0)  # first face holding each point
-        bary = torch.stack([s[i][f, cols] for i in range(3)]).clamp_min(0.0)  # (3, m)
-        near_vertex = torch.stack([R[i][f, cols] for i in range(3)]) <= tol
-        bary = torch.where(near_vertex.any(dim=0, keepdim=True), near_vertex.to(bary.dtype), bary)
+        bary = torch.stack([q["s"][i][f, cols] for i in range(3)]).clamp_min(0.0)  # (3, m)
+        at_vertex = torch.stack([q["R"][i][f, cols] for i in range(3)]) <= data.tol
+        bary = torch.where(at_vertex.any(dim=0, keepdim=True), at_vertex.to(bary.dtype), bary)
         bary = bary / bary.sum(dim=0, keepdim=True)
         Wc = torch.zeros((V, cols.shape[0]), dtype=x.dtype, device=x.device)
-        Wc.scatter_(0, tri[f].T, bary)
+        Wc.scatter_(0, data.tri[f].T, bary)
         W[:, cols] = Wc
     return W, on_cage
 
@@ -308,51 +350,90 @@ def _mvc2d_chunk(x: torch.Tensor, data: _PolygonData) -> tuple[torch.Tensor, tor
     return W, on_cage
 
 
-def mean_value_weights(
-    points: torch.Tensor,
+def _native_chunk(x: torch.Tensor, data: _TriangleCageData, lib: object, W: torch.Tensor) -> torch.Tensor:
+    """The native CPU kernel on a chunk: ``x`` ``(n, 3)`` float64 -> normalised coordinates written
+    into the contiguous ``W`` ``(n, V)``; returns the ``(n,)`` uint8 on-cage flags."""
+    x = x.contiguous()
+    n, V = x.shape[0], data.vertices.shape[1]
+    on = torch.empty((n,), dtype=torch.uint8)
+    nat = data.native
+    lib.tc_mvc3d(  # type: ignore[attr-defined]
+        nat["P"].data_ptr(),
+        V,
+        nat["tri"].data_ptr(),
+        data.tri.shape[0],
+        nat["edges"].data_ptr(),
+        nat["edges"].shape[0],
+        nat["face_edge"].data_ptr(),
+        nat["face_sign"].data_ptr(),
+        nat["normal"].data_ptr(),
+        nat["two_area"].data_ptr(),
+        nat["ell"].data_ptr(),
+        nat["gram"].data_ptr(),
+        x.data_ptr(),
+        n,
+        data.tol,
+        NEAR_PLANE,
+        torch.get_num_threads(),
+        W.data_ptr(),
+        on.data_ptr(),
+    )
+    return on
+
+
+def _use_native(backend: str, x: torch.Tensor, dim: int) -> object | None:
+    if backend not in ("auto", "native", "torch"):
+        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
+    if backend == "torch" or dim != 3:
+        return None
+    ok = x.device.type == "cpu" and x.dtype == torch.float64
+    lib = _native.library() if ok else None
+    if backend == "native" and lib is None:
+        raise RuntimeError(
+            "the native kernel needs float64 points on the CPU and a C compiler; use backend='torch' "
+            "(or 'auto', which falls back to it)"
+        )
+    return lib
+
+
+def _normalise(W: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
+    """Rows of ``W`` ``(n, V)`` divided by their sum, except rows on the cage (already final)."""
+    return torch.where(on[:, None], W, W / W.sum(dim=1, keepdim=True))
+
+
+def _coordinates_flat(
+    x: torch.Tensor,
     cage: Cage,
-    *,
-    chunk_size: int | None = None,
-    dtype: torch.dtype | None = None,
-    progress: bool | Callable[[int, int], None] = False,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Unnormalised mean value weights and the on-cage mask.
-
-    Args:
-        points: ``(N, D)`` query points (already flattened and checked).
-        cage: a triangle cage (3D) or a polygon (2D).
-        chunk_size: points per chunk (default: about 65k point–face pairs per chunk).
-        dtype: compute dtype (default float64).
-        progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
-
-    Returns:
-        ``(W, on_cage)``: ``W`` ``(N, V)`` weights, except on rows where ``on_cage`` ``(N,)`` is
-        True, which already hold the interpolating coordinates.
-    """
-    compute = torch.float64 if dtype is None else dtype
-    x = points.to(compute)
+    chunk_size: int | None,
+    progress: bool | Callable[[int, int], None],
+    backend: str,
+) -> torch.Tensor:
+    """Mean value coordinates ``(N, V)`` of checked points ``x`` ``(N, D)`` in their dtype."""
+    lib = _use_native(backend, x, cage.dim)
     if cage.dim == 3:
-        data3 = _triangle_cage_data(cage, compute)
+        data3 = _triangle_cage_data(cage, x.dtype, native=lib is not None)
         nf = data3.tri.shape[0]
 
-        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            return _mvc3d_chunk(c, data3)
+        def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
+            if lib is not None:
+                _native_chunk(c, data3, lib, out)
+                return
+            Wc, onc = _mvc3d_chunk(c, data3)
+            out.copy_(_normalise(Wc.T, onc))
     else:
-        data2 = _polygon_data(cage, compute)
+        data2 = _polygon_data(cage, x.dtype)
         nf = data2.edges.shape[0]
 
-        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            return _mvc2d_chunk(c, data2)
+        def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
+            Wc, onc = _mvc2d_chunk(c, data2)
+            out.copy_(_normalise(Wc.T, onc))
 
-    size = chunk_size if chunk_size is not None else default_chunk(nf)
-    N, V = x.shape[0], cage.num_vertices
-    W = torch.empty((N, V), dtype=compute, device=x.device)
-    on = torch.empty((N,), dtype=torch.bool, device=x.device)
-    for sl in chunks(N, size, progress, desc="mean value coordinates"):
-        Wc, onc = kernel(x[sl])
-        W[sl] = Wc.T
-        on[sl] = onc
-    return W, on
+    # The native kernel needs no temporaries beyond its output: chunks only pace the progress bar.
+    size = chunk_size if chunk_size is not None else default_chunk(nf, 1 << 23 if lib is not None else 1 << 16)
+    out = torch.empty((x.shape[0], cage.num_vertices), dtype=x.dtype, device=x.device)
+    for sl in chunks(x.shape[0], size, progress, desc="mean value coordinates"):
+        kernel(x[sl], out[sl])
+    return out
 
 
 def mean_value_coordinates(
@@ -362,6 +443,7 @@ def mean_value_coordinates(
     chunk_size: int | None = None,
     dtype: torch.dtype | None = None,
     progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
 ) -> torch.Tensor:
     """Mean value coordinates of points with respect to a closed triangle cage or a closed polygon.
 
@@ -377,6 +459,10 @@ def mean_value_coordinates(
             65k point–face pairs per chunk.
         dtype: compute dtype. Default: compute in float64 and return in the dtype of the inputs.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
+        backend: ``"auto"`` (default): for 3D float64 on the CPU, torchcage's native C kernel
+            (compiled on first use, about a second) when a C compiler is present, else the torch
+            kernel; ``"torch"`` forces the torch kernel (any device and dtype); ``"native"``
+            requires the native one.
 
     Returns:
         Coordinates of shape ``(*, V)``.
@@ -399,10 +485,8 @@ def mean_value_coordinates(
     """
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
-    W, on = mean_value_weights(flat, cage, chunk_size=chunk_size, dtype=compute, progress=progress)
-    total = W.sum(dim=1, keepdim=True)
-    lam = torch.where(on[:, None], W, W / total)
-    bad = ~torch.isfinite(lam).all(dim=1)
+    lam = _coordinates_flat(flat.to(compute), cage, chunk_size, progress, backend)
+    bad = ~torch.isfinite(lam.sum(dim=1))  # a row sum is finite iff every entry is
     if bool(bad.any()):
         idx = torch.nonzero(bad).flatten()[:10].tolist()
         raise PointsError(

@@ -1,0 +1,137 @@
+"""Optional native CPU kernels, compiled on first use with the system C compiler.
+
+The torch kernels in :mod:`torchcage.functional` run everywhere (CPU, GPU, any dtype). For the
+hot path on CPU in float64, a plain-C version of the same formulas, parallel over points with
+OpenMP, is about ten times faster. It is compiled once (about a second) into a cache folder
+(``$TORCHCAGE_CACHE``, else ``~/.cache/torchcage``) and loaded with :mod:`ctypes`. Without a C
+compiler, or with ``TORCHCAGE_NATIVE=0``, torchcage uses the torch kernels.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+__all__ = ["available", "library"]
+
+_SOURCES = ("mvc3d.c",)
+_lock = threading.Lock()
+_lib: ctypes.CDLL | None = None
+_failed: str | None = None
+
+
+def _compiler() -> str | None:
+    for cand in (os.environ.get("CC"), sysconfig.get_config_var("CC"), "cc", "gcc", "clang"):
+        if cand:
+            exe = shutil.which(cand.split()[0])
+            if exe:
+                return exe
+    return None
+
+
+def _x86_glibc() -> bool:
+    import platform
+
+    return platform.machine().lower() in ("x86_64", "amd64") and platform.libc_ver()[0] == "glibc"
+
+
+def _cpu_flags() -> str:
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("flags"):
+                    return "avx2" if " avx2" in line and " fma" in line else "base"
+    except OSError:
+        pass
+    return "base"
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("TORCHCAGE_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "torchcage")
+    return Path(root)
+
+
+def _build() -> ctypes.CDLL:
+    here = Path(__file__).parent
+    sources = [here / s for s in _SOURCES]
+    cc = _compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set CC)")
+    flags = ["-O3", "-fno-math-errno", "-fPIC", "-shared", "-fopenmp", "-std=c99"]
+    flags += os.environ.get("TORCHCAGE_CFLAGS", "").split()
+    # (compile flags, libraries): glibc's vector atan with AVX2, then SSE2, then plain scalar code.
+    variants: list[tuple[list[str], list[str]]] = [([], [])]
+    if _x86_glibc():
+        mvec = (["-DTC_LIBMVEC"], ["-lmvec"])
+        variants = [mvec, ([], [])]
+        if _cpu_flags() == "avx2":
+            variants.insert(0, (["-mavx2", "-mfma", "-DTC_LIBMVEC"], ["-lmvec"]))
+    digest = hashlib.sha256()
+    for src in sources:
+        digest.update(src.read_bytes())
+    digest.update(" ".join([cc, *flags, sys.platform, _cpu_flags()]).encode())
+    ext = ".dll" if sys.platform == "win32" else ".so"
+    target = _cache_dir() / f"torchcage_native_{digest.hexdigest()[:16]}{ext}"
+    if not target.exists():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        errors = []
+        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+            out = Path(tmp) / target.name
+            for cflags, libs in variants:
+                cmd = [cc, *flags, *cflags, *map(str, sources), "-o", str(out), *libs, "-lm"]
+                res = subprocess.run(cmd, capture_output=True, text=True)
+                if res.returncode == 0:
+                    break
+                errors.append(f"{' '.join(cmd)}:\n{res.stderr[-1000:]}")
+            else:
+                raise RuntimeError("\n".join(errors))
+            os.replace(out, target)  # atomic: concurrent builders never see a half-written library
+    lib = ctypes.CDLL(str(target))
+    d, i64, i32 = ctypes.c_void_p, ctypes.c_long, ctypes.c_int
+    f64 = ctypes.c_double
+    lib.tc_mvc3d.argtypes = [d, i64, d, i64, d, i64, d, d, d, d, d, d, d, i64, f64, f64, i32, d, d]
+    lib.tc_mvc3d.restype = None
+    return lib
+
+
+def library() -> ctypes.CDLL | None:
+    """The loaded native library, building it on first use; ``None`` where it cannot be built."""
+    global _lib, _failed
+    if _lib is not None or _failed is not None:
+        return _lib
+    with _lock:
+        if _lib is None and _failed is None:
+            if os.environ.get("TORCHCAGE_NATIVE", "1") == "0":
+                _failed = "disabled by TORCHCAGE_NATIVE=0"
+            else:
+                try:
+                    _lib = _build()
+                except Exception as err:  # no compiler, no OpenMP, read-only cache, ...
+                    _failed = str(err)
+                    warnings.warn(
+                        f"torchcage's native CPU kernels are unavailable ({err.__class__.__name__}); "
+                        "using the (slower) torch kernels",
+                        stacklevel=3,
+                    )
+    return _lib
+
+
+def available() -> bool:
+    """True when the native kernels can be used."""
+    return library() is not None
+
+
+def ptr(t: torch.Tensor) -> int:
+    """Address of a contiguous CPU tensor's data."""
+    return t.data_ptr()
