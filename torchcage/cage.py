@@ -320,11 +320,11 @@ class Cage:
         V = self.num_vertices
         lo, hi = torch.minimum(s, d), torch.maximum(s, d)
         key = lo * V + hi
-        uniq, inv, counts = torch.unique(key, return_inverse=True, return_counts=True)
+        uniq, counts = torch.unique(key, return_counts=True)
         if bool((counts != 2).any()):
             bad = uniq[counts != 2]
             cnt = counts[counts != 2]
-            pairs = [(int(k) // V, int(k) % V, int(c)) for k, c in zip(bad[:10], cnt[:10])]
+            pairs = [(int(k) // V, int(k) % V, int(c)) for k, c in zip(bad[:10], cnt[:10], strict=True)]
             kind = "open (boundary edges used by one face)" if bool((cnt == 1).any()) else "non-manifold"
             desc = ", ".join(f"({a}, {b}) used by {c} face(s)" for a, b, c in pairs)
             raise CageTopologyError(
