@@ -100,7 +100,33 @@ def _build() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(target))
     d, i64, i32 = ctypes.c_void_p, ctypes.c_long, ctypes.c_int
     f64 = ctypes.c_double
-    lib.tc_mvc3d.argtypes = [d, i64, d, i64, d, i64, d, d, d, d, d, d, d, i64, f64, f64, i32, d, d]
+    lib.tc_mvc3d.argtypes = [
+        d,
+        i64,
+        d,
+        i64,
+        d,
+        i64,
+        d,
+        d,
+        d,
+        d,
+        d,
+        d,
+        d,
+        d,
+        d,
+        i64,
+        f64,
+        f64,
+        d,
+        i64,
+        f64,
+        f64,
+        i32,
+        d,
+        d,
+    ]
     lib.tc_mvc3d.restype = None
     return lib
 

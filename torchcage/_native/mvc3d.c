@@ -65,11 +65,15 @@ static void stable_face(double h, const double *s, const double *dots, const dou
  * P: (V, 3) vertices; tri: (T, 3) corners; fe: (T, 3) index of the edge opposite each corner in
  * the edge list edges: (E, 2), stored as (t[i+1], t[i+2]) when fs = +1 and reversed when -1;
  * nrm: (T, 3) unit normals; two_area: (T,); ell: (T, 3) length of the edge opposite each corner;
- * gram: (T, 3, 3) E_i . E_e; X: (n, 3) points. Output W: (n, V) normalised coordinates (on[p] = 1
+ * gram: (T, 3, 3) E_i . E_e; far_nodes (T, Q, 3) and far_coef (T, Q, 3): the far-field rule,
+ * used for points whose face weights sum in absolute value to more than cancel_c times their total,
+ * on faces whose longest edge (longest: (T,)) is below far_c times the distance; X: (n, 3) points. Output W: (n, V) normalised coordinates (on[p] = 1
  * marks points on the cage, which get their interpolating values).
  */
 void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edges, long E, const long *fe,
               const double *fs, const double *nrm, const double *two_area, const double *ell, const double *gram,
+              const double *far_nodes, const double *far_coef, const double *longest, long Q, double far_c,
+              double cancel_c,
               const double *X, long n, double tol, double near_c, int nthreads, double *W, unsigned char *on) {
 #pragma omp parallel num_threads(nthreads)
     {
@@ -77,12 +81,14 @@ void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edge
         double *RA = (double *)malloc(sizeof(double) * (size_t)V);
         double *EN = (double *)malloc(sizeof(double) * 8 * (size_t)E); /* N(3), gN(3), |N|, a.b */
         double *ARG = (double *)malloc(sizeof(double) * (size_t)E);
+        double *FW = (double *)malloc(sizeof(double) * 3 * (size_t)T); /* this point's face weights */
 #pragma omp for schedule(dynamic, 64)
         for (long p = 0; p < n; ++p) {
             const double *x = X + 3 * p;
             double *w = W + p * V;
             memset(w, 0, sizeof(double) * (size_t)V);
             on[p] = 0;
+            double abs_sum = 0.0;
             for (long v = 0; v < V; ++v) {
                 double *av = A + 3 * v;
                 av[0] = P[3 * v] - x[0];
@@ -150,10 +156,40 @@ void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edge
                 w[t[0]] += wf[0];
                 w[t[1]] += wf[1];
                 w[t[2]] += wf[2];
+                FW[3 * f] = wf[0];
+                FW[3 * f + 1] = wf[1];
+                FW[3 * f + 2] = wf[2];
+                abs_sum += fabs(wf[0] + wf[1] + wf[2]);
+            }
+            double total = 0.0;
+            if (!on[p]) {
+                for (long v = 0; v < V; ++v) total += w[v];
+            }
+            if (!on[p] && abs_sum > cancel_c * fabs(total)) {
+                /* The face weights cancel (far outside): redo faces seen small by quadrature,
+                 * w_i = h * sum_q c_qi / |p_q - x|^4. */
+                for (long f = 0; f < T; ++f) {
+                    const long *t = tri + 3 * f;
+                    double rmin = fmin(fmin(RA[t[0]], RA[t[1]]), RA[t[2]]);
+                    if (!(longest[f] < far_c * rmin)) continue;
+                    const double *nq = far_nodes + 3 * Q * f, *cq = far_coef + 3 * Q * f;
+                    double acc0 = 0.0, acc1 = 0.0, acc2 = 0.0;
+                    for (long k = 0; k < Q; ++k) {
+                        double d0 = nq[3 * k] - x[0], d1 = nq[3 * k + 1] - x[1], d2 = nq[3 * k + 2] - x[2];
+                        double r2 = d0 * d0 + d1 * d1 + d2 * d2, inv = 1.0 / (r2 * r2);
+                        acc0 += cq[3 * k] * inv;
+                        acc1 += cq[3 * k + 1] * inv;
+                        acc2 += cq[3 * k + 2] * inv;
+                    }
+                    double h = dot3(A + 3 * t[0], nrm + 3 * f);
+                    w[t[0]] += h * acc0 - FW[3 * f];
+                    w[t[1]] += h * acc1 - FW[3 * f + 1];
+                    w[t[2]] += h * acc2 - FW[3 * f + 2];
+                }
+                total = 0.0;
+                for (long v = 0; v < V; ++v) total += w[v];
             }
             if (!on[p]) {
-                double total = 0.0;
-                for (long v = 0; v < V; ++v) total += w[v];
                 double inv = 1.0 / total;
                 for (long v = 0; v < V; ++v) w[v] *= inv;
             }
@@ -162,5 +198,6 @@ void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edge
         free(RA);
         free(EN);
         free(ARG);
+        free(FW);
     }
 }

@@ -25,7 +25,15 @@ the planar angle at the foot point, ``\delta`` computed from its sine and cosine
 the face around the foot point is exact, and every remaining term carries its power of ``h``
 explicitly, so a face's contribution is accurate to rounding at any distance from its plane; a
 point exactly on the plane outside the face gets exactly no contribution. This stable form is used
-for point–face pairs with ``|h| < 0.1 min_i |a_i|``; the cheaper direct form elsewhere.
+for point–face pairs with ``|h| < 0.1 min_i |a_i|``.
+
+Faces that are small seen from the point suffer a different cancellation in the vector form (a
+relative error of about ``eps (r / edge)^3``, worse for slivers). It is harmless where the face
+weights add up (inside the cage), but far outside the total weight is much smaller than its parts
+and the error is amplified. For points whose face weights cancel (absolute sum over four times the
+total), torchcage integrates the defining integral ``w_i^T = h \int_T \phi_i / |p - x|^4 dA``
+on every face whose longest edge is below a quarter of its distance, with a collapsed 8x8
+Gauss–Legendre rule (error about ``(edge / 4r)^16``). The direct form serves all other pairs.
 
 2D (Floater 2003; Hormann & Floater 2006): ``w_j = (tan(α_{j-1}/2) + tan(α_j/2)) / r_j`` with
 the half-angle tangent evaluated as ``sin α / (1 + cos α)`` or ``(1 - cos α) / sin α``, whichever
@@ -52,6 +60,14 @@ __all__ = ["mean_value_coordinates"]
 
 #: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
 NEAR_PLANE = 0.1
+#: Points whose face weights sum, in absolute value, to more than ``CANCELLATION`` times their
+#: total get the far-field rule on every face whose longest edge is below ``FAR_FIELD * min_i
+#: |p_i - x|``.
+CANCELLATION = 4.0
+FAR_FIELD = 1.0
+#: Gauss–Legendre order (per direction of the collapsed square) of the far-field rule: its error
+#: decays like ``(FAR_FIELD / 4)^(2 * order)``.
+FAR_FIELD_ORDER = 14
 
 
 @dataclass(frozen=True)
@@ -65,6 +81,9 @@ class _TriangleCageData:
     edge_len: torch.Tensor  # (3, T, 1) length of the edge opposite each corner
     gram: torch.Tensor  # (T, 3, 3) E_i . E_e for the edges E_e = p_{e+1} - p_{e+2}
     tol: float  # absolute on-cage tolerance
+    longest: torch.Tensor  # (T, 1)   longest edge
+    far_nodes: torch.Tensor  # (T, Q, 3) far-field quadrature nodes
+    far_coef: torch.Tensor  # (T, Q, 3) their weights times the corners' hat functions (area included)
     native: dict[str, torch.Tensor]  # contiguous row-major copies for the native kernel (or empty)
 
 
@@ -83,6 +102,9 @@ def _triangle_cage_data(cage: Cage, dtype: torch.dtype, native: bool = False) ->
     two_area = cross.norm(dim=-1)
     normal = cross / two_area[:, None]
     edges = p.roll(-1, dims=1) - p.roll(-2, dims=1)  # E_e = p_{e+1} - p_{e+2}, (T, 3, 3)
+    bary, qw = _collapsed_gauss(FAR_FIELD_ORDER, dtype, v.device)
+    far_nodes = torch.einsum("qi,tic->tqc", bary, p)
+    far_coef = (two_area[:, None, None] * qw[None, :, None]) * bary[None]
     return _TriangleCageData(
         vertices=v.T.contiguous(),
         tri=tri,
@@ -91,12 +113,40 @@ def _triangle_cage_data(cage: Cage, dtype: torch.dtype, native: bool = False) ->
         edge_len=edges.norm(dim=-1).T.contiguous()[:, :, None],
         gram=edges @ edges.transpose(1, 2),
         tol=ON_CAGE_TOLERANCE * cage.scale,
-        native=_native_tables(v, tri, normal, two_area, edges) if native else {},
+        longest=edges.norm(dim=-1).max(dim=1).values[:, None],
+        far_nodes=far_nodes,
+        far_coef=far_coef,
+        native=_native_tables(v, tri, normal, two_area, edges, far_nodes, far_coef) if native else {},
     )
 
 
+def _collapsed_gauss(order: int, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gauss–Legendre rule on the unit triangle by the collapsed square ``s = u, t = v (1 - u)``.
+
+    Returns:
+        ``(bary (Q, 3), weights (Q,))``: barycentric coordinates of the ``Q = order^2`` nodes and
+        weights summing to 1/2 (the reference triangle's area).
+    """
+    import numpy as np
+
+    g, w = np.polynomial.legendre.leggauss(order)
+    g, w = (g + 1) / 2, w / 2
+    u, v = np.meshgrid(g, g, indexing="ij")
+    wu, wv = np.meshgrid(w, w, indexing="ij")
+    s, t = u.ravel(), (v * (1 - u)).ravel()
+    weight = (wu * wv * (1 - u)).ravel()
+    bary = np.stack([1 - s - t, s, t], axis=1)
+    return torch.as_tensor(bary, dtype=dtype, device=device), torch.as_tensor(weight, dtype=dtype, device=device)
+
+
 def _native_tables(
-    v: torch.Tensor, tri: torch.Tensor, normal: torch.Tensor, two_area: torch.Tensor, edges: torch.Tensor
+    v: torch.Tensor,
+    tri: torch.Tensor,
+    normal: torch.Tensor,
+    two_area: torch.Tensor,
+    edges: torch.Tensor,
+    far_nodes: torch.Tensor,
+    far_coef: torch.Tensor,
 ) -> dict[str, torch.Tensor]:
     """Row-major tables for the native kernel: the unique edges ``(E, 2)`` and, for the edge
     opposite each corner, its index ``face_edge`` ``(T, 3)`` and orientation ``face_sign`` (+1 when
@@ -115,6 +165,9 @@ def _native_tables(
         "two_area": two_area.contiguous(),
         "ell": edges.norm(dim=-1).contiguous(),
         "gram": (edges @ edges.transpose(1, 2)).contiguous(),
+        "far_nodes": far_nodes.contiguous(),
+        "far_coef": far_coef.contiguous(),
+        "longest": edges.norm(dim=-1).max(dim=1).values.contiguous(),
     }
 
 
@@ -235,6 +288,20 @@ def _on_cage(q: dict, data: _TriangleCageData) -> torch.Tensor:
     return ((q["h"].abs() <= tol) & inside) | near_vertex
 
 
+def _far_field_weights(x: torch.Tensor, h: torch.Tensor, face: torch.Tensor, data: _TriangleCageData) -> torch.Tensor:
+    """Face weights ``h * sum_q c_qi / |p_q - x|^4`` by quadrature, for ``M`` point–face pairs.
+
+    Args:
+        x: ``(M, 3)`` points; h: ``(M,)`` their distances to the faces' planes; face: ``(M,)`` face ids.
+
+    Returns:
+        ``(M, 3)`` weights of the faces' corners.
+    """
+    d = data.far_nodes.index_select(0, face) - x[:, None, :]  # (M, Q, 3)
+    r2 = (d * d).sum(dim=-1)
+    return h[:, None] * torch.einsum("mq,mqi->mi", 1.0 / (r2 * r2), data.far_coef.index_select(0, face))
+
+
 def _mvc3d_chunk(x: torch.Tensor, data: _TriangleCageData) -> tuple[torch.Tensor, torch.Tensor]:
     """Unnormalised mean value weights of a chunk of points (eager: the stable form is evaluated
     only on the point–face pairs that need it).
@@ -270,6 +337,18 @@ def _mvc3d_chunk(x: torch.Tensor, data: _TriangleCageData) -> tuple[torch.Tensor
         )
         for i in range(3):
             w[i] = w[i].reshape(-1).index_put((idx,), ws[i]).reshape(T, n)
+    # Where the total weight is much smaller than its parts (far outside the cage), the rounding
+    # errors of the vector form on faces seen small are amplified: integrate those by quadrature.
+    total = w[0] + w[1] + w[2]
+    cancels = total.abs().sum(dim=0) > CANCELLATION * total.sum(dim=0).abs()
+    R = q["R"]
+    far = (data.longest < FAR_FIELD * torch.minimum(torch.minimum(R[0], R[1]), R[2])) & cancels
+    if bool(far.any()):
+        idx = torch.nonzero(far.reshape(-1)).squeeze(1)
+        face, col = torch.div(idx, n, rounding_mode="floor"), idx % n
+        wf = _far_field_weights(x.index_select(0, col), q["h"].reshape(-1).index_select(0, idx), face, data)
+        for i in range(3):
+            w[i] = w[i].reshape(-1).index_put((idx,), wf[:, i]).reshape(T, n)
     W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
     for i in range(3):
         W.index_add_(0, data.tri[:, i], w[i])
@@ -357,27 +436,14 @@ def _native_chunk(x: torch.Tensor, data: _TriangleCageData, lib: object, W: torc
     n, V = x.shape[0], data.vertices.shape[1]
     on = torch.empty((n,), dtype=torch.uint8)
     nat = data.native
-    lib.tc_mvc3d(  # type: ignore[attr-defined]
-        nat["P"].data_ptr(),
-        V,
-        nat["tri"].data_ptr(),
-        data.tri.shape[0],
-        nat["edges"].data_ptr(),
-        nat["edges"].shape[0],
-        nat["face_edge"].data_ptr(),
-        nat["face_sign"].data_ptr(),
-        nat["normal"].data_ptr(),
-        nat["two_area"].data_ptr(),
-        nat["ell"].data_ptr(),
-        nat["gram"].data_ptr(),
-        x.data_ptr(),
-        n,
-        data.tol,
+    args = [
+        nat["P"], V, nat["tri"], data.tri.shape[0], nat["edges"], nat["edges"].shape[0], nat["face_edge"],
+        nat["face_sign"], nat["normal"], nat["two_area"], nat["ell"], nat["gram"], nat["far_nodes"],
+        nat["far_coef"], nat["longest"], nat["far_nodes"].shape[1], FAR_FIELD, CANCELLATION, x, n, data.tol,
         NEAR_PLANE,
-        torch.get_num_threads(),
-        W.data_ptr(),
-        on.data_ptr(),
-    )
+        torch.get_num_threads(), W, on,
+    ]  # fmt: skip
+    lib.tc_mvc3d(*[a.data_ptr() if isinstance(a, torch.Tensor) else a for a in args])  # type: ignore[attr-defined]
     return on
 
 

@@ -1,0 +1,139 @@
+"""Shared fixtures: devices, dtypes, the shared data folder and a few hand-made cages."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchcage
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("TORCHCAGE_DATA", REPO.parent / "shared" / "data"))
+QMVC_MODELS = ["Beast", "Bench", "Cactus", "FireHydrant", "ManHead", "Ogre", "SpikyBox", "WireSphere"]
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> str:
+    return request.param
+
+
+@pytest.fixture(params=[torch.float32, torch.float64], ids=["float32", "float64"])
+def dtype(request) -> torch.dtype:
+    return request.param
+
+
+def data_path(*parts: str) -> Path:
+    """A file of the shared data set; skips the test cleanly when it is absent."""
+    p = DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared data not found: {p} (set TORCHCAGE_DATA)")
+    return p
+
+
+def box_cage(nx: int = 1, ny: int = 1, nz: int = 1, size=(2.0, 2.0, 2.0)) -> torchcage.Cage:
+    """A subdivided box of quads, centred at the origin, as a Cage (quads)."""
+    import itertools
+
+    verts, index = [], {}
+    gx, gy, gz = (torch.linspace(-s / 2, s / 2, n + 1).tolist() for s, n in zip(size, (nx, ny, nz), strict=True))
+    for i, j, k in itertools.product(range(nx + 1), range(ny + 1), range(nz + 1)):
+        if i in (0, nx) or j in (0, ny) or k in (0, nz):
+            index[(i, j, k)] = len(verts)
+            verts.append([gx[i], gy[j], gz[k]])
+    quads = []
+
+    def add(a, b, c, d, flip):
+        q = [index[a], index[b], index[c], index[d]]
+        quads.append(q[::-1] if flip else q)
+
+    for j in range(ny):
+        for k in range(nz):
+            add((0, j, k), (0, j + 1, k), (0, j + 1, k + 1), (0, j, k + 1), True)
+            add((nx, j, k), (nx, j + 1, k), (nx, j + 1, k + 1), (nx, j, k + 1), False)
+    for i in range(nx):
+        for k in range(nz):
+            add((i, 0, k), (i + 1, 0, k), (i + 1, 0, k + 1), (i, 0, k + 1), False)
+            add((i, ny, k), (i + 1, ny, k), (i + 1, ny, k + 1), (i, ny, k + 1), True)
+    for i in range(nx):
+        for j in range(ny):
+            add((i, j, 0), (i + 1, j, 0), (i + 1, j + 1, 0), (i, j + 1, 0), True)
+            add((i, j, nz), (i + 1, j, nz), (i + 1, j + 1, nz), (i, j + 1, nz), False)
+    return torchcage.Cage(torch.tensor(verts, dtype=torch.float64), quads)
+
+
+def cube() -> torchcage.Cage:
+    return box_cage().triangulated()
+
+
+def l_shape() -> torchcage.Cage:
+    """An L-shaped (non-convex) prism cage."""
+    return extruded_polygon([[-1, -1], [1, -1], [1, 0], [0, 0], [0, 1], [-1, 1]], height=1.0)
+
+
+def extruded_polygon(poly, height: float = 1.0, twist: float = 0.0, layers: int = 1) -> torchcage.Cage:
+    """Extrude a counter-clockwise polygon along z into a closed triangle cage (caps fan-free:
+    triangulated by ear clipping), optionally twisting the layers by ``twist`` radians in total."""
+    n = len(poly)
+    verts = []
+    for layer in range(layers + 1):
+        z = -height / 2 + height * layer / layers
+        a = twist * layer / layers
+        c, s = math.cos(a), math.sin(a)
+        verts += [[c * x - s * y, s * x + c * y, z] for x, y in poly]
+    tris = []
+    for layer in range(layers):
+        b0, b1 = layer * n, (layer + 1) * n
+        for i in range(n):
+            j = (i + 1) % n
+            tris += [[b0 + i, b0 + j, b1 + j], [b0 + i, b1 + j, b1 + i]]
+    cap = _ear_clip(poly)
+    top = layers * n
+    tris += [[c, b, a] for a, b, c in cap]  # bottom, facing -z
+    tris += [[top + a, top + b, top + c] for a, b, c in cap]
+    return torchcage.Cage(torch.tensor(verts, dtype=torch.float64), tris)
+
+
+def _ear_clip(poly):
+    idx = list(range(len(poly)))
+    out = []
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    while len(idx) > 3:
+        for k in range(len(idx)):
+            i, j, l = idx[k - 1], idx[k], idx[(k + 1) % len(idx)]
+            if cross(poly[i], poly[j], poly[l]) <= 0:
+                continue
+            if any(
+                cross(poly[i], poly[j], poly[m]) >= 0
+                and cross(poly[j], poly[l], poly[m]) >= 0
+                and cross(poly[l], poly[i], poly[m]) >= 0
+                for m in idx
+                if m not in (i, j, l)
+            ):
+                continue
+            out.append([i, j, l])
+            idx.pop(k)
+            break
+    out.append(idx)
+    return out
+
+
+def twisted_bar() -> torchcage.Cage:
+    return extruded_polygon([[-0.3, -0.3], [0.3, -0.3], [0.3, 0.3], [-0.3, 0.3]], height=2.0, twist=1.2, layers=4)
+
+
+def notched() -> torchcage.Cage:
+    """A box with a thin concave notch cut into one side (width 0.02)."""
+    poly = [[-1, -1], [1, -1], [1, 1], [0.01, 1], [0.01, -0.8], [-0.01, -0.8], [-0.01, 1], [-1, 1]]
+    return extruded_polygon(poly, height=1.0)
+
+
+HANDMADE = {"cube": cube, "l_shape": l_shape, "twisted_bar": twisted_bar, "notched": notched}
