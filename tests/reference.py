@@ -32,7 +32,7 @@ def mvc3d_reference(x, vertices, triangles) -> list:
     xv = _vec(x)
     P = [_vec(p) - xv for p in vertices.tolist()]
     r = [mp.sqrt(_dot(p, p)) for p in P]
-    e = [p / rr for p, rr in zip(P, r)]
+    e = [p / rr for p, rr in zip(P, r, strict=True)]
     w = [mp.mpf(0)] * len(P)
     for t in triangles.tolist():
         for c in range(3):
