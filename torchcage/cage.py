@@ -25,7 +25,10 @@ DEGENERATE_TOLERANCE = 1e-12
 
 
 def _as_vertices(vertices: Any) -> torch.Tensor:
-    v = torch.as_tensor(vertices)
+    if isinstance(vertices, torch.Tensor) or hasattr(vertices, "__array__"):
+        v = torch.as_tensor(vertices)
+    else:  # nested lists: float64, the library's working precision
+        v = torch.as_tensor(vertices, dtype=torch.float64)
     if not (v.is_floating_point()):
         if v.dtype.is_complex or v.dtype == torch.bool:
             raise TypeError(f"cage vertices must be real numbers, got dtype {v.dtype}")
@@ -87,7 +90,8 @@ class Cage:
     """A closed cage: a triangle/quad surface in 3D or a closed polygon in 2D.
 
     Args:
-        vertices: ``(V, 3)`` or ``(V, 2)`` vertex positions (any real dtype; integers become float64).
+        vertices: ``(V, 3)`` or ``(V, 2)`` vertex positions: a tensor or array keeps its floating
+            dtype (integers become float64); nested lists become float64.
         faces: in 3D, a LongTensor ``(F, 3)`` or ``(F, 4)``, or a list of index lists of length 3
             or 4 (a triquad cage). In 2D, the directed edges ``(E, 2)``, or ``None`` for one closed
             polygon whose vertices are given in order.
@@ -206,6 +210,15 @@ class Cage:
         q = self.quads
         split = torch.stack([q[:, [0, 1, 2]], q[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
         return Cage._trusted(self.vertices, torch.cat([self.triangles, split]), self.quads[:0], self.edges)
+
+    def unique_edges(self) -> torch.Tensor:
+        """The undirected edges of the faces as given (quad diagonals excluded), ``(E, 2)`` int64
+        with ``E[:, 0] < E[:, 1]``; in 2D, the polygon edges as directed."""
+        if self.dim == 2:
+            return self.edges
+        parts = [f for f in (self.triangles, self.quads) if f.shape[0]]
+        e = torch.cat([torch.stack([f, f.roll(-1, dims=1)], dim=-1).reshape(-1, 2) for f in parts])
+        return torch.unique(e.sort(dim=1).values, dim=0)
 
     def triangle_normals(self, unit: bool = True) -> torch.Tensor:
         """Outward normals of the triangles of :meth:`triangulated`, shape ``(T + 2Q, 3)``.

@@ -1,0 +1,123 @@
+"""Small software renderer for pictures of meshes and cages (Pillow + NumPy, no display needed).
+
+Flat-shaded triangles drawn back to front (painter's algorithm) in an orthographic view, with the
+cage's edges and vertices drawn on top. Good enough for the demo and the docs; not a 3D viewer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+__all__ = ["Panel", "render_panels", "view_rotation"]
+
+
+def view_rotation(azimuth: float = 35.0, elevation: float = 20.0) -> np.ndarray:
+    """Rotation ``(3, 3)`` that maps world coordinates (z up) to view coordinates (x right, y up,
+    z towards the viewer), for a camera at the given azimuth and elevation in degrees."""
+    a, e = np.radians(azimuth), np.radians(elevation)
+    # Turn z-up into y-up, then spin about the vertical and tilt.
+    to_y_up = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(e), -np.sin(e)], [0, np.sin(e), np.cos(e)]])
+    return rx @ ry @ to_y_up
+
+
+@dataclass
+class Panel:
+    """One picture in a row: a triangle mesh and optionally a cage.
+
+    Attributes:
+        vertices: ``(N, 3)`` mesh vertices.
+        faces: ``(F, 3)`` mesh triangles.
+        cage_vertices: ``(V, 3)`` cage vertices, or ``None``.
+        cage_edges: ``(E, 2)`` cage edges to draw (e.g. from quads), or ``None``.
+        title: caption drawn above the panel.
+        color: mesh RGB colour in ``[0, 1]``.
+    """
+
+    vertices: torch.Tensor | np.ndarray
+    faces: torch.Tensor | np.ndarray
+    cage_vertices: torch.Tensor | np.ndarray | None = None
+    cage_edges: torch.Tensor | np.ndarray | None = None
+    title: str = ""
+    color: Sequence[float] = field(default=(0.45, 0.62, 0.85))
+
+
+def _np(x: torch.Tensor | np.ndarray) -> np.ndarray:
+    return x.detach().cpu().double().numpy() if isinstance(x, torch.Tensor) else np.asarray(x, dtype=np.float64)
+
+
+def render_panels(
+    panels: Sequence[Panel],
+    *,
+    size: int = 480,
+    azimuth: float = 35.0,
+    elevation: float = 20.0,
+    background: tuple[int, int, int] = (255, 255, 255),
+):
+    """Render panels side by side into one image, all with the same view and scale.
+
+    Args:
+        panels: the pictures, left to right.
+        size: height (and width) of each panel in pixels.
+        azimuth: camera azimuth in degrees.
+        elevation: camera elevation in degrees.
+        background: RGB background colour.
+
+    Returns:
+        A ``PIL.Image.Image``; save it with ``.save("out.png")``.
+
+    Example:
+        >>> import torchcage
+        >>> from torchcage.viz import Panel, render_panels
+        >>> v, f = torchcage.load_mesh(torchcage.data.path("bar.obj"))
+        >>> render_panels([Panel(v, f, title="bar")], size=64).size
+        (64, 64)
+    """
+    from PIL import Image, ImageDraw
+
+    rot = view_rotation(azimuth, elevation)
+    pts = [(_np(p.vertices) @ rot.T) for p in panels]
+    cages = [None if p.cage_vertices is None else _np(p.cage_vertices) @ rot.T for p in panels]
+    allxy = np.concatenate([q[:, :2] for q in pts] + [c[:, :2] for c in cages if c is not None])
+    lo, hi = allxy.min(0), allxy.max(0)
+    centre_y = (lo[1] + hi[1]) / 2
+    span = max(float((hi - lo).max()), 1e-12)
+    scale = 0.82 * size / span
+    top = 24 if any(p.title for p in panels) else 0
+    image = Image.new("RGB", (size * len(panels), size + top), background)
+    draw = ImageDraw.Draw(image)
+    light = np.array([0.3, 0.5, 1.0])
+    light /= np.linalg.norm(light)
+    for k, (panel, p, c) in enumerate(zip(panels, pts, cages, strict=True)):
+        own = p if c is None else np.concatenate([p, c])
+        cx = (own[:, 0].min() + own[:, 0].max()) / 2
+
+        def to_px(q: np.ndarray, k: int = k, cx: float = cx) -> np.ndarray:
+            return np.stack([(q[:, 0] - cx) * scale + size * (k + 0.5), top + size / 2 - (q[:, 1] - centre_y) * scale], 1)
+
+        f = _np(panel.faces).astype(np.int64)
+        tri = p[f]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        shade = 0.25 + 0.75 * np.abs(n @ light)
+        order = np.argsort(tri[:, :, 2].mean(1))  # far to near
+        px = to_px(p)
+        base = np.asarray(panel.color)
+        for t in order:
+            col = tuple(int(255 * min(1.0, s)) for s in base * shade[t])
+            draw.polygon([tuple(px[i]) for i in f[t]], fill=col)
+        if c is not None:
+            cpx = to_px(c)
+            if panel.cage_edges is not None:
+                for a, b in _np(panel.cage_edges).astype(np.int64):
+                    draw.line([tuple(cpx[a]), tuple(cpx[b])], fill=(230, 120, 20), width=2)
+            for x, y in cpx:
+                draw.ellipse([x - 3.5, y - 3.5, x + 3.5, y + 3.5], fill=(200, 60, 10))
+        if panel.title:
+            draw.text((size * k + 8, 6), panel.title, fill=(30, 30, 30))
+    return image
