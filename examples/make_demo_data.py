@@ -31,7 +31,7 @@ def icosphere(level: int) -> tuple[torch.Tensor, torch.Tensor]:
     for _ in range(level):
         mid: dict[tuple[int, int], int] = {}
 
-        def midpoint(a: int, b: int) -> int:
+        def midpoint(a: int, b: int, mid: dict[tuple[int, int], int] = mid) -> int:
             key = (min(a, b), max(a, b))
             if key not in mid:
                 mid[key] = len(verts)

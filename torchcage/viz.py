@@ -98,7 +98,9 @@ def render_panels(
         cx = (own[:, 0].min() + own[:, 0].max()) / 2
 
         def to_px(q: np.ndarray, k: int = k, cx: float = cx) -> np.ndarray:
-            return np.stack([(q[:, 0] - cx) * scale + size * (k + 0.5), top + size / 2 - (q[:, 1] - centre_y) * scale], 1)
+            return np.stack(
+                [(q[:, 0] - cx) * scale + size * (k + 0.5), top + size / 2 - (q[:, 1] - centre_y) * scale], 1
+            )
 
         f = _np(panel.faces).astype(np.int64)
         tri = p[f]

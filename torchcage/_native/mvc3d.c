@@ -24,9 +24,19 @@ static inline void cross3(const double *a, const double *b, double *c) {
     c[2] = a[0] * b[1] - a[1] * b[0];
 }
 
+/* atan2(y, x) for y >= 0, through atan, which is cheaper than atan2 in glibc. */
+static inline double angle_of(double y, double x) {
+    if (x > 0) return atan(y / x);
+    if (y > 0) return M_PI / 2 - atan(x / y);
+    return x < 0 ? M_PI : 0.0;
+}
+
 static inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
-/* Stable split form of one face's weights (see _stable_face_weights in mean_value.py). */
+/* Stable split form of one face's weights (see _stable_face_weights in mean_value.py). The angle
+ * theta = theta0 + delta is rebuilt here from the planar angle theta0 and the small delta rather
+ * than taken from the edge pass: the terms delta / h^2 and theta * eps / h^2 cancel where x nears
+ * an edge's line, and only a theta consistent with delta keeps that cancellation exact. */
 static void stable_face(double h, const double *s, const double *dots, const double *R, const double *ell,
                         const double *gram, double two_area, double *w) {
     double h2 = h * h, wind_angle = 0.0, S_rest = 0.0, tN[3];
@@ -36,15 +46,15 @@ static void stable_face(double h, const double *s, const double *dots, const dou
         double sigma = s[e] >= 0 ? 1.0 : -1.0;
         double qq = dots[e] - h2;
         double N = sqrt(s[e] * s[e] + h2 * ell[e] * ell[e]);
-        double theta0 = qq > 0 ? atan(s_abs / qq) : M_PI / 2 - atan(qq / (s_abs > 0 ? s_abs : 1e-300));
-        wind_angle += sigma * theta0;
         double Nps = N + s_abs;
         double safe_Nps = Nps > 0 ? Nps : 1.0;
         double X = qq * ell[e] * ell[e] / safe_Nps - s_abs;
         double Y = dots[e] * qq + N * s_abs;
         double delta = Y > 0 ? atan(h2 * X / Y) : atan2(h2 * X, Y);
         double delta_h2 = h2 > 0 ? delta / h2 : X / Y;
+        double theta0 = angle_of(s_abs, qq);
         double theta = theta0 + delta;
+        wind_angle += sigma * theta0;
         double safe_N = N > 0 ? N : 1.0;
         tN[e] = N > 0 ? theta / safe_N : 1.0 / (R[j] * R[k]);
         double eps_h2 = ell[e] * ell[e] / (safe_N * safe_Nps);
@@ -62,142 +72,156 @@ static void stable_face(double h, const double *s, const double *dots, const dou
 }
 
 /*
- * P: (V, 3) vertices; tri: (T, 3) corners; fe: (T, 3) index of the edge opposite each corner in
- * the edge list edges: (E, 2), stored as (t[i+1], t[i+2]) when fs = +1 and reversed when -1;
- * nrm: (T, 3) unit normals; two_area: (T,); ell: (T, 3) length of the edge opposite each corner;
- * gram: (T, 3, 3) E_i . E_e; far_nodes (T, Q, 3) and far_coef (T, Q, 3): the far-field rule,
- * used for points whose face weights sum in absolute value to more than cancel_c times their total,
- * on faces whose longest edge (longest: (T,)) is below far_c times the distance; X: (n, 3) points. Output W: (n, V) normalised coordinates (on[p] = 1
- * marks points on the cage, which get their interpolating values).
+ * Layouts are structure-of-arrays so that the passes over vertices, edges and faces vectorise:
+ * P: (3, V) vertices; tri: (3, T) corners; edges: (2, E) unique edges; fe: (3, T) index of the
+ * edge opposite each corner, stored as (t[i+1], t[i+2]) when fs = +1 and reversed when -1;
+ * nrm: (3, T) unit normals; two_area: (T,); ell: (T, 3) length of the edge opposite each corner;
+ * gram: (T, 3, 3) E_i . E_e; far_nodes (T, Q, 3) and far_coef (T, Q, 3): the far-field rule, used
+ * for points whose face weights sum in absolute value to more than cancel_c times their total, on
+ * faces whose longest edge (longest: (T,)) is below far_c times the distance; X: (n, 3) points.
+ * Output W: (n, V) normalised coordinates (on[p] = 1 marks points on the cage, which get their
+ * interpolating values).
  */
 void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edges, long E, const long *fe,
               const double *fs, const double *nrm, const double *two_area, const double *ell, const double *gram,
               const double *far_nodes, const double *far_coef, const double *longest, long Q, double far_c,
-              double cancel_c,
-              const double *X, long n, double tol, double near_c, int nthreads, double *W, unsigned char *on) {
+              double cancel_c, const double *X, long n, double tol, double near_c, int nthreads, double *W,
+              unsigned char *on) {
+    const long *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
+    const long *e0 = edges, *e1 = edges + E;
+    const long *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
+    const double *s0 = fs, *s1 = fs + T, *s2 = fs + 2 * T;
+    const double *nx = nrm, *ny = nrm + T, *nz = nrm + 2 * T;
 #pragma omp parallel num_threads(nthreads)
     {
-        double *A = (double *)malloc(sizeof(double) * 3 * (size_t)V);
-        double *RA = (double *)malloc(sizeof(double) * (size_t)V);
-        double *EN = (double *)malloc(sizeof(double) * 8 * (size_t)E); /* N(3), gN(3), |N|, a.b */
-        double *ARG = (double *)malloc(sizeof(double) * (size_t)E);
-        double *FW = (double *)malloc(sizeof(double) * 3 * (size_t)T); /* this point's face weights */
+        /* Per-thread scratch: vertex (4V), edge (8E) and face (4T) arrays. */
+        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + 8 * (size_t)E + 5 * (size_t)T));
+        double *Ax = buf, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V;
+        double *Nx = RA + V, *Ny = Nx + E, *Nz = Ny + E, *Nn = Nz + E, *D = Nn + E, *Gx = D + E, *Gy = Gx + E,
+               *Gz = Gy + E;
+        double *W0 = Gz + E, *W1 = W0 + T, *W2 = W1 + T, *H = W2 + T, *RM = H + T;
 #pragma omp for schedule(dynamic, 64)
         for (long p = 0; p < n; ++p) {
-            const double *x = X + 3 * p;
+            const double x0 = X[3 * p], x1 = X[3 * p + 1], x2 = X[3 * p + 2];
             double *w = W + p * V;
-            memset(w, 0, sizeof(double) * (size_t)V);
             on[p] = 0;
-            double abs_sum = 0.0;
+#pragma omp simd
             for (long v = 0; v < V; ++v) {
-                double *av = A + 3 * v;
-                av[0] = P[3 * v] - x[0];
-                av[1] = P[3 * v + 1] - x[1];
-                av[2] = P[3 * v + 2] - x[2];
-                RA[v] = sqrt(dot3(av, av));
+                double ax = P[v] - x0, ay = P[V + v] - x1, az = P[2 * V + v] - x2;
+                Ax[v] = ax;
+                Ay[v] = ay;
+                Az[v] = az;
+                RA[v] = sqrt(ax * ax + ay * ay + az * az);
+                w[v] = 0.0;
             }
-            /* Edges in three passes so that the atan pass vectorises: N, |N|, a.b and the atan argument;
-             * atan; the scaled normal g N with g = theta / (2 |N|). */
+            /* Edges: N = a_j x a_k, |N|, a_j . a_k, and the half-angle tangent argument. */
+#pragma omp simd
             for (long q = 0; q < E; ++q) {
-                long j = edges[2 * q], k = edges[2 * q + 1];
-                double *en = EN + 8 * q;
-                cross3(A + 3 * j, A + 3 * k, en);
-                double Nn = sqrt(dot3(en, en)), d = dot3(A + 3 * j, A + 3 * k), RR = RA[j] * RA[k];
-                en[6] = Nn;
-                en[7] = d;
-                ARG[q] = d >= 0 ? Nn / (RR + d) : Nn / (RR - d);
+                long j = e0[q], k = e1[q];
+                double ajx = Ax[j], ajy = Ay[j], ajz = Az[j], akx = Ax[k], aky = Ay[k], akz = Az[k];
+                double cx = ajy * akz - ajz * aky, cy = ajz * akx - ajx * akz, cz = ajx * aky - ajy * akx;
+                double nn = sqrt(cx * cx + cy * cy + cz * cz), d = ajx * akx + ajy * aky + ajz * akz;
+                double rr = RA[j] * RA[k];
+                Nx[q] = cx;
+                Ny[q] = cy;
+                Nz[q] = cz;
+                Nn[q] = nn;
+                D[q] = d;
+                Gx[q] = nn / (rr + fabs(d)); /* tan of the half angle, or of its complement */
             }
 #pragma omp simd
-            for (long q = 0; q < E; ++q) ARG[q] = atan(ARG[q]);
+            for (long q = 0; q < E; ++q) Gx[q] = atan(Gx[q]);
+            /* g N with g = theta / (2 |N|), theta = 2 atan(.) or pi - 2 atan(.). */
+#pragma omp simd
             for (long q = 0; q < E; ++q) {
-                double *en = EN + 8 * q;
-                double Nn = en[6], th = en[7] >= 0 ? 2.0 * ARG[q] : M_PI - 2.0 * ARG[q];
-                double g = Nn > 0 ? 0.5 * th / Nn : 0.5 / (RA[edges[2 * q]] * RA[edges[2 * q + 1]]);
-                en[3] = g * en[0];
-                en[4] = g * en[1];
-                en[5] = g * en[2];
+                double th = D[q] >= 0 ? 2.0 * Gx[q] : M_PI - 2.0 * Gx[q];
+                double g = Nn[q] > 0 ? 0.5 * th / Nn[q] : 0.5 / (RA[e0[q]] * RA[e1[q]]);
+                Gx[q] = g * Nx[q];
+                Gy[q] = g * Ny[q];
+                Gz[q] = g * Nz[q];
             }
+            /* Faces, direct vector form for all; pairs near a support plane are redone below. */
+#pragma omp simd
             for (long f = 0; f < T; ++f) {
-                const long *t = tri + 3 * f;
-                double R[3] = {RA[t[0]], RA[t[1]], RA[t[2]]};
-                const double *nf = nrm + 3 * f;
-                const double *lf = ell + 3 * f;
-                const double *en[3] = {EN + 8 * fe[3 * f], EN + 8 * fe[3 * f + 1], EN + 8 * fe[3 * f + 2]};
-                const double *sg = fs + 3 * f;
-                double h = dot3(A + 3 * t[0], nf);
-                double rmin = fmin(fmin(R[0], R[1]), R[2]);
-                double wf[3];
-                if (fabs(h) >= near_c * rmin && rmin > tol) {
-                    /* Direct vector form: w_i = N_i . m / (2 A h), m = sum_e g_e N_e. */
-                    double m[3];
-                    for (int c = 0; c < 3; ++c) m[c] = sg[0] * en[0][3 + c] + sg[1] * en[1][3 + c] + sg[2] * en[2][3 + c];
-                    double inv_det = 1.0 / (two_area[f] * h);
-                    for (int i = 0; i < 3; ++i) wf[i] = sg[i] * dot3(en[i], m) * inv_det;
-                } else {
-                    double s[3], dots[3];
+                long a = f0[f], b = f1[f], c = f2[f];
+                double sa = s0[f], sb = s1[f], sc = s2[f];
+                double h = nx[f] * Ax[t0[f]] + ny[f] * Ay[t0[f]] + nz[f] * Az[t0[f]];
+                double mx = sa * Gx[a] + sb * Gx[b] + sc * Gx[c];
+                double my = sa * Gy[a] + sb * Gy[b] + sc * Gy[c];
+                double mz = sa * Gz[a] + sb * Gz[b] + sc * Gz[c];
+                double inv = 1.0 / (two_area[f] * h);
+                W0[f] = sa * (Nx[a] * mx + Ny[a] * my + Nz[a] * mz) * inv;
+                W1[f] = sb * (Nx[b] * mx + Ny[b] * my + Nz[b] * mz) * inv;
+                W2[f] = sc * (Nx[c] * mx + Ny[c] * my + Nz[c] * mz) * inv;
+                H[f] = h;
+                RM[f] = fmin(fmin(RA[t0[f]], RA[t1[f]]), RA[t2[f]]);
+            }
+            double abs_sum = 0.0;
+            for (long f = 0; f < T; ++f) {
+                const long t[3] = {t0[f], t1[f], t2[f]};
+                double h = H[f], rmin = RM[f];
+                if (!(fabs(h) >= near_c * rmin && rmin > tol)) {
+                    const long fq[3] = {f0[f], f1[f], f2[f]};
+                    const double sg[3] = {s0[f], s1[f], s2[f]};
+                    double R[3] = {RA[t[0]], RA[t[1]], RA[t[2]]}, s[3], dots[3];
                     for (int e = 0; e < 3; ++e) {
-                        s[e] = sg[e] * dot3(en[e], nf);
-                        dots[e] = en[e][7];
+                        long q = fq[e];
+                        s[e] = sg[e] * (Nx[q] * nx[f] + Ny[q] * ny[f] + Nz[q] * nz[f]);
+                        dots[e] = D[q];
                     }
+                    const double *lf = ell + 3 * f;
                     if ((fabs(h) <= tol && s[0] >= -tol * lf[0] && s[1] >= -tol * lf[1] && s[2] >= -tol * lf[2]) ||
                         rmin <= tol) {
                         /* On the face (or a vertex): barycentric (Lagrange) values, nothing else counts. */
-                        double b[3];
+                        double bc[3];
                         for (int i = 0; i < 3; ++i)
-                            b[i] = rmin <= tol ? (R[i] <= tol ? 1.0 : 0.0) : (s[i] > 0 ? s[i] : 0.0);
-                        double sum = b[0] + b[1] + b[2];
+                            bc[i] = rmin <= tol ? (R[i] <= tol ? 1.0 : 0.0) : (s[i] > 0 ? s[i] : 0.0);
+                        double sum = bc[0] + bc[1] + bc[2];
                         memset(w, 0, sizeof(double) * (size_t)V);
-                        for (int i = 0; i < 3; ++i) w[t[i]] += b[i] / sum;
+                        for (int i = 0; i < 3; ++i) w[t[i]] += bc[i] / sum;
                         on[p] = 1;
                         break;
                     }
+                    double wf[3];
                     stable_face(h, s, dots, R, lf, gram + 9 * f, two_area[f], wf);
+                    W0[f] = wf[0];
+                    W1[f] = wf[1];
+                    W2[f] = wf[2];
                 }
-                w[t[0]] += wf[0];
-                w[t[1]] += wf[1];
-                w[t[2]] += wf[2];
-                FW[3 * f] = wf[0];
-                FW[3 * f + 1] = wf[1];
-                FW[3 * f + 2] = wf[2];
-                abs_sum += fabs(wf[0] + wf[1] + wf[2]);
+                w[t[0]] += W0[f];
+                w[t[1]] += W1[f];
+                w[t[2]] += W2[f];
+                abs_sum += fabs(W0[f] + W1[f] + W2[f]);
             }
+            if (on[p]) continue;
             double total = 0.0;
-            if (!on[p]) {
-                for (long v = 0; v < V; ++v) total += w[v];
-            }
-            if (!on[p] && abs_sum > cancel_c * fabs(total)) {
+            for (long v = 0; v < V; ++v) total += w[v];
+            if (abs_sum > cancel_c * fabs(total)) {
                 /* The face weights cancel (far outside): redo faces seen small by quadrature,
                  * w_i = h * sum_q c_qi / |p_q - x|^4. */
                 for (long f = 0; f < T; ++f) {
-                    const long *t = tri + 3 * f;
-                    double rmin = fmin(fmin(RA[t[0]], RA[t[1]]), RA[t[2]]);
-                    if (!(longest[f] < far_c * rmin)) continue;
+                    if (!(longest[f] < far_c * RM[f])) continue;
                     const double *nq = far_nodes + 3 * Q * f, *cq = far_coef + 3 * Q * f;
                     double acc0 = 0.0, acc1 = 0.0, acc2 = 0.0;
+#pragma omp simd reduction(+ : acc0, acc1, acc2)
                     for (long k = 0; k < Q; ++k) {
-                        double d0 = nq[3 * k] - x[0], d1 = nq[3 * k + 1] - x[1], d2 = nq[3 * k + 2] - x[2];
+                        double d0 = nq[3 * k] - x0, d1 = nq[3 * k + 1] - x1, d2 = nq[3 * k + 2] - x2;
                         double r2 = d0 * d0 + d1 * d1 + d2 * d2, inv = 1.0 / (r2 * r2);
                         acc0 += cq[3 * k] * inv;
                         acc1 += cq[3 * k + 1] * inv;
                         acc2 += cq[3 * k + 2] * inv;
                     }
-                    double h = dot3(A + 3 * t[0], nrm + 3 * f);
-                    w[t[0]] += h * acc0 - FW[3 * f];
-                    w[t[1]] += h * acc1 - FW[3 * f + 1];
-                    w[t[2]] += h * acc2 - FW[3 * f + 2];
+                    double h = H[f];
+                    w[t0[f]] += h * acc0 - W0[f];
+                    w[t1[f]] += h * acc1 - W1[f];
+                    w[t2[f]] += h * acc2 - W2[f];
                 }
                 total = 0.0;
                 for (long v = 0; v < V; ++v) total += w[v];
             }
-            if (!on[p]) {
-                double inv = 1.0 / total;
-                for (long v = 0; v < V; ++v) w[v] *= inv;
-            }
+            double inv = 1.0 / total;
+            for (long v = 0; v < V; ++v) w[v] *= inv;
         }
-        free(A);
-        free(RA);
-        free(EN);
-        free(ARG);
-        free(FW);
+        free(buf);
     }
 }

@@ -34,10 +34,12 @@ def check_points(points: torch.Tensor, cage: Cage) -> torch.Tensor:
     if points.device != cage.device:
         raise PointsError(f"points are on {points.device} but the cage is on {cage.device}; move one with .to(device)")
     flat = points.reshape(-1, cage.dim)
-    bad = ~torch.isfinite(flat).all(dim=1)
-    if bool(bad.any()):
-        idx = torch.nonzero(bad).flatten()[:10].tolist()
-        raise PointsError(f"points contain NaN or inf (flattened indices {idx}); remove or fix them")
+    step = 1 << 20  # check in slices: no temporary grows with the number of points
+    for start in range(0, flat.shape[0], step):
+        bad = ~torch.isfinite(flat[start : start + step]).all(dim=1)
+        if bool(bad.any()):
+            idx = (torch.nonzero(bad).flatten()[:10] + start).tolist()
+            raise PointsError(f"points contain NaN or inf (flattened indices {idx}); remove or fix them")
     return flat
 
 

@@ -25,7 +25,8 @@ the planar angle at the foot point, ``\delta`` computed from its sine and cosine
 the face around the foot point is exact, and every remaining term carries its power of ``h``
 explicitly, so a face's contribution is accurate to rounding at any distance from its plane; a
 point exactly on the plane outside the face gets exactly no contribution. This stable form is used
-for point–face pairs with ``|h| < 0.1 min_i |a_i|``.
+for point–face pairs with ``|h| < 0.03 min_i |a_i|`` (where the direct form has lost less than
+two digits).
 
 Faces that are small seen from the point suffer a different cancellation in the vector form (a
 relative error of about ``eps (r / edge)^3``, worse for slivers). It is harmless where the face
@@ -59,7 +60,7 @@ from ._common import ON_CAGE_TOLERANCE, check_points, chunks, default_chunk, res
 __all__ = ["mean_value_coordinates"]
 
 #: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
-NEAR_PLANE = 0.1
+NEAR_PLANE = 0.03
 #: Points whose face weights sum, in absolute value, to more than ``CANCELLATION`` times their
 #: total get the far-field rule on every face whose longest edge is below ``FAR_FIELD * min_i
 #: |p_i - x|``.
@@ -155,13 +156,14 @@ def _native_tables(
     lo, hi = opp.min(dim=-1).values, opp.max(dim=-1).values
     uniq, inv = torch.unique(torch.stack([lo, hi], dim=-1).reshape(-1, 2), dim=0, return_inverse=True)
     sign = torch.where(opp[..., 0] == lo, 1.0, -1.0).to(v.dtype)
+    # Structure-of-arrays layouts, as the native kernel expects (see tc_mvc3d in mvc3d.c).
     return {
-        "P": v.contiguous(),
-        "tri": tri.contiguous(),
-        "edges": uniq.contiguous(),
-        "face_edge": inv.reshape(-1, 3).contiguous(),
-        "face_sign": sign.contiguous(),
-        "normal": normal.contiguous(),
+        "P": v.T.contiguous(),
+        "tri": tri.T.contiguous(),
+        "edges": uniq.T.contiguous(),
+        "face_edge": inv.reshape(-1, 3).T.contiguous(),
+        "face_sign": sign.T.contiguous(),
+        "normal": normal.T.contiguous(),
         "two_area": two_area.contiguous(),
         "ell": edges.norm(dim=-1).contiguous(),
         "gram": (edges @ edges.transpose(1, 2)).contiguous(),
@@ -437,7 +439,7 @@ def _native_chunk(x: torch.Tensor, data: _TriangleCageData, lib: object, W: torc
     on = torch.empty((n,), dtype=torch.uint8)
     nat = data.native
     args = [
-        nat["P"], V, nat["tri"], data.tri.shape[0], nat["edges"], nat["edges"].shape[0], nat["face_edge"],
+        nat["P"], V, nat["tri"], data.tri.shape[0], nat["edges"], nat["edges"].shape[1], nat["face_edge"],
         nat["face_sign"], nat["normal"], nat["two_area"], nat["ell"], nat["gram"], nat["far_nodes"],
         nat["far_coef"], nat["longest"], nat["far_nodes"].shape[1], FAR_FIELD, CANCELLATION, x, n, data.tol,
         NEAR_PLANE,
@@ -499,6 +501,13 @@ def _coordinates_flat(
     out = torch.empty((x.shape[0], cage.num_vertices), dtype=x.dtype, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="mean value coordinates"):
         kernel(x[sl], out[sl])
+        bad = ~torch.isfinite(out[sl].sum(dim=1))  # a row sum is finite iff every entry is
+        if bool(bad.any()):
+            idx = (torch.nonzero(bad).flatten()[:10] + sl.start).tolist()
+            raise PointsError(
+                f"mean value coordinates are undefined at points {idx} (the total weight vanishes there, "
+                "which happens only outside the cage); move these points"
+            )
     return out
 
 
@@ -552,11 +561,4 @@ def mean_value_coordinates(
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     lam = _coordinates_flat(flat.to(compute), cage, chunk_size, progress, backend)
-    bad = ~torch.isfinite(lam.sum(dim=1))  # a row sum is finite iff every entry is
-    if bool(bad.any()):
-        idx = torch.nonzero(bad).flatten()[:10].tolist()
-        raise PointsError(
-            f"mean value coordinates are undefined at points {idx} (the total weight vanishes there, "
-            "which happens only outside the cage); move these points"
-        )
     return lam.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
