@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from PIL import Image
 
 __all__ = ["Panel", "render_panels", "view_rotation"]
 
@@ -58,7 +59,7 @@ def render_panels(
     azimuth: float = 35.0,
     elevation: float = 20.0,
     background: tuple[int, int, int] = (255, 255, 255),
-):
+) -> Image.Image:
     """Render panels side by side into one image, all with the same view and scale.
 
     Args:
@@ -78,7 +79,7 @@ def render_panels(
         >>> render_panels([Panel(v, f, title="bar")], size=64).size
         (64, 64)
     """
-    from PIL import Image, ImageDraw
+    from PIL import ImageDraw
 
     rot = view_rotation(azimuth, elevation)
     pts = [(_np(p.vertices) @ rot.T) for p in panels]

@@ -135,7 +135,7 @@ void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edge
 #pragma omp simd
             for (long q = 0; q < E; ++q) {
                 double th = D[q] >= 0 ? 2.0 * Gx[q] : M_PI - 2.0 * Gx[q];
-                double g = Nn[q] > 0 ? 0.5 * th / Nn[q] : 0.5 / (RA[e0[q]] * RA[e1[q]]);
+                double g = 0.5 * th / fmax(Nn[q], 1e-300); /* any finite g will do where N = 0 */
                 Gx[q] = g * Nx[q];
                 Gy[q] = g * Ny[q];
                 Gz[q] = g * Nz[q];

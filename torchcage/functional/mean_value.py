@@ -25,7 +25,7 @@ the planar angle at the foot point, ``\delta`` computed from its sine and cosine
 the face around the foot point is exact, and every remaining term carries its power of ``h``
 explicitly, so a face's contribution is accurate to rounding at any distance from its plane; a
 point exactly on the plane outside the face gets exactly no contribution. This stable form is used
-for point–face pairs with ``|h| < 0.03 min_i |a_i|`` (where the direct form has lost less than
+for point–face pairs with ``|h| < 0.01 min_i |a_i|`` (where the direct form has lost less than
 two digits).
 
 Faces that are small seen from the point suffer a different cancellation in the vector form (a
@@ -60,7 +60,7 @@ from ._common import ON_CAGE_TOLERANCE, check_points, chunks, default_chunk, res
 __all__ = ["mean_value_coordinates"]
 
 #: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
-NEAR_PLANE = 0.03
+NEAR_PLANE = 0.01
 #: Points whose face weights sum, in absolute value, to more than ``CANCELLATION`` times their
 #: total get the far-field rule on every face whose longest edge is below ``FAR_FIELD * min_i
 #: |p_i - x|``.
