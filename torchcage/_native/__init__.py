@@ -26,6 +26,15 @@ import torch
 __all__ = ["available", "library"]
 
 _SOURCES = ("mvc3d.c",)
+
+#: Arguments of ``tc_mvc3d`` in mvc3d.c, in order (names as there; see its comment for layouts).
+TC_MVC3D_SIGNATURE = {
+    "P": "ptr", "V": "i64", "tri": "ptr", "T": "i64", "edges": "ptr", "E": "i64", "fe": "ptr",
+    "inc_ptr": "ptr", "inc_idx": "ptr", "fs": "ptr", "nrm": "ptr", "two_area": "ptr", "ell": "ptr",
+    "gram": "ptr", "far_nodes": "ptr", "far_coef": "ptr", "longest": "ptr", "Q": "i64", "far_c": "f64",
+    "cancel_c": "f64", "X": "ptr", "n": "i64", "tol": "f64", "near_c": "f64", "nthreads": "i32",
+    "W": "ptr", "on": "ptr",
+}  # fmt: skip
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
 _failed: str | None = None
@@ -98,35 +107,8 @@ def _build() -> ctypes.CDLL:
                 raise RuntimeError("\n".join(errors))
             os.replace(out, target)  # atomic: concurrent builders never see a half-written library
     lib = ctypes.CDLL(str(target))
-    d, i64, i32 = ctypes.c_void_p, ctypes.c_long, ctypes.c_int
-    f64 = ctypes.c_double
-    lib.tc_mvc3d.argtypes = [
-        d,
-        i64,
-        d,
-        i64,
-        d,
-        i64,
-        d,
-        d,
-        d,
-        d,
-        d,
-        d,
-        d,
-        d,
-        d,
-        i64,
-        f64,
-        f64,
-        d,
-        i64,
-        f64,
-        f64,
-        i32,
-        d,
-        d,
-    ]
+    kinds = {"ptr": ctypes.c_void_p, "i64": ctypes.c_long, "i32": ctypes.c_int, "f64": ctypes.c_double}
+    lib.tc_mvc3d.argtypes = [kinds[kind] for kind in TC_MVC3D_SIGNATURE.values()]
     lib.tc_mvc3d.restype = None
     return lib
 

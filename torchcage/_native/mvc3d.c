@@ -72,7 +72,8 @@ static void stable_face(double h, const double *s, const double *dots, const dou
 }
 
 /*
- * Layouts are structure-of-arrays so that the passes over vertices, edges and faces vectorise:
+ * inc_ptr (V + 1) and inc_idx (3T) list, for each vertex, its face corners as indices c * T + f
+ * (CSR). Indices are int32. Layouts are structure-of-arrays so that the passes over vertices, edges and faces vectorise:
  * P: (3, V) vertices; tri: (3, T) corners; edges: (2, E) unique edges; fe: (3, T) index of the
  * edge opposite each corner, stored as (t[i+1], t[i+2]) when fs = +1 and reversed when -1;
  * nrm: (3, T) unit normals; two_area: (T,); ell: (T, 3) length of the edge opposite each corner;
@@ -82,14 +83,15 @@ static void stable_face(double h, const double *s, const double *dots, const dou
  * Output W: (n, V) normalised coordinates (on[p] = 1 marks points on the cage, which get their
  * interpolating values).
  */
-void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edges, long E, const long *fe,
+void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,
+              const int *inc_ptr, const int *inc_idx,
               const double *fs, const double *nrm, const double *two_area, const double *ell, const double *gram,
               const double *far_nodes, const double *far_coef, const double *longest, long Q, double far_c,
               double cancel_c, const double *X, long n, double tol, double near_c, int nthreads, double *W,
               unsigned char *on) {
-    const long *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
-    const long *e0 = edges, *e1 = edges + E;
-    const long *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
+    const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
+    const int *e0 = edges, *e1 = edges + E;
+    const int *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
     const double *s0 = fs, *s1 = fs + T, *s2 = fs + 2 * T;
     const double *nx = nrm, *ny = nrm + T, *nz = nrm + 2 * T;
 #pragma omp parallel num_threads(nthreads)
@@ -117,7 +119,7 @@ void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edge
             /* Edges: N = a_j x a_k, |N|, a_j . a_k, and the half-angle tangent argument. */
 #pragma omp simd
             for (long q = 0; q < E; ++q) {
-                long j = e0[q], k = e1[q];
+                int j = e0[q], k = e1[q];
                 double ajx = Ax[j], ajy = Ay[j], ajz = Az[j], akx = Ax[k], aky = Ay[k], akz = Az[k];
                 double cx = ajy * akz - ajz * aky, cy = ajz * akx - ajx * akz, cz = ajx * aky - ajy * akx;
                 double nn = sqrt(cx * cx + cy * cy + cz * cz), d = ajx * akx + ajy * aky + ajz * akz;
@@ -134,8 +136,9 @@ void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edge
             /* g N with g = theta / (2 |N|), theta = 2 atan(.) or pi - 2 atan(.). */
 #pragma omp simd
             for (long q = 0; q < E; ++q) {
-                double th = D[q] >= 0 ? 2.0 * Gx[q] : M_PI - 2.0 * Gx[q];
-                double g = 0.5 * th / fmax(Nn[q], 1e-300); /* any finite g will do where N = 0 */
+                double obtuse = D[q] < 0 ? 1.0 : 0.0; /* branch-free, so that the loop vectorises */
+                double th = obtuse * M_PI + (1.0 - 2.0 * obtuse) * 2.0 * Gx[q];
+                double g = 0.5 * th / (Nn[q] > 1e-300 ? Nn[q] : 1e-300); /* any finite g will do where N = 0 */
                 Gx[q] = g * Nx[q];
                 Gy[q] = g * Ny[q];
                 Gz[q] = g * Nz[q];
@@ -143,9 +146,9 @@ void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edge
             /* Faces, direct vector form for all; pairs near a support plane are redone below. */
 #pragma omp simd
             for (long f = 0; f < T; ++f) {
-                long a = f0[f], b = f1[f], c = f2[f];
+                int a = f0[f], b = f1[f], c = f2[f], i0 = t0[f];
                 double sa = s0[f], sb = s1[f], sc = s2[f];
-                double h = nx[f] * Ax[t0[f]] + ny[f] * Ay[t0[f]] + nz[f] * Az[t0[f]];
+                double h = nx[f] * Ax[i0] + ny[f] * Ay[i0] + nz[f] * Az[i0];
                 double mx = sa * Gx[a] + sb * Gx[b] + sc * Gx[c];
                 double my = sa * Gy[a] + sb * Gy[b] + sc * Gy[c];
                 double mz = sa * Gz[a] + sb * Gz[b] + sc * Gz[c];
@@ -154,18 +157,19 @@ void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edge
                 W1[f] = sb * (Nx[b] * mx + Ny[b] * my + Nz[b] * mz) * inv;
                 W2[f] = sc * (Nx[c] * mx + Ny[c] * my + Nz[c] * mz) * inv;
                 H[f] = h;
-                RM[f] = fmin(fmin(RA[t0[f]], RA[t1[f]]), RA[t2[f]]);
+                double r0 = RA[i0], r1 = RA[t1[f]], r2 = RA[t2[f]]; /* no fmin: it blocks vectorisation */
+                double r01 = r0 < r1 ? r0 : r1;
+                RM[f] = r01 < r2 ? r01 : r2;
             }
-            double abs_sum = 0.0;
             for (long f = 0; f < T; ++f) {
-                const long t[3] = {t0[f], t1[f], t2[f]};
                 double h = H[f], rmin = RM[f];
                 if (!(fabs(h) >= near_c * rmin && rmin > tol)) {
-                    const long fq[3] = {f0[f], f1[f], f2[f]};
+                    const int t[3] = {t0[f], t1[f], t2[f]};
+                    const int fq[3] = {f0[f], f1[f], f2[f]};
                     const double sg[3] = {s0[f], s1[f], s2[f]};
                     double R[3] = {RA[t[0]], RA[t[1]], RA[t[2]]}, s[3], dots[3];
                     for (int e = 0; e < 3; ++e) {
-                        long q = fq[e];
+                        int q = fq[e];
                         s[e] = sg[e] * (Nx[q] * nx[f] + Ny[q] * ny[f] + Nz[q] * nz[f]);
                         dots[e] = D[q];
                     }
@@ -188,14 +192,18 @@ void tc_mvc3d(const double *P, long V, const long *tri, long T, const long *edge
                     W1[f] = wf[1];
                     W2[f] = wf[2];
                 }
-                w[t[0]] += W0[f];
-                w[t[1]] += W1[f];
-                w[t[2]] += W2[f];
-                abs_sum += fabs(W0[f] + W1[f] + W2[f]);
             }
             if (on[p]) continue;
-            double total = 0.0;
-            for (long v = 0; v < V; ++v) total += w[v];
+            /* Gather the face-corner weights (W0, W1, W2 are contiguous) into the vertices. */
+            double total = 0.0, abs_sum = 0.0;
+            for (long v = 0; v < V; ++v) {
+                double acc = 0.0;
+                for (int k = inc_ptr[v]; k < inc_ptr[v + 1]; ++k) acc += W0[inc_idx[k]];
+                w[v] = acc;
+                total += acc;
+            }
+#pragma omp simd reduction(+ : abs_sum)
+            for (long f = 0; f < T; ++f) abs_sum += fabs(W0[f] + W1[f] + W2[f]);
             if (abs_sum > cancel_c * fabs(total)) {
                 /* The face weights cancel (far outside): redo faces seen small by quadrature,
                  * w_i = h * sum_q c_qi / |p_q - x|^4. */

@@ -156,12 +156,19 @@ def _native_tables(
     lo, hi = opp.min(dim=-1).values, opp.max(dim=-1).values
     uniq, inv = torch.unique(torch.stack([lo, hi], dim=-1).reshape(-1, 2), dim=0, return_inverse=True)
     sign = torch.where(opp[..., 0] == lo, 1.0, -1.0).to(v.dtype)
+    # Vertex -> face corners (index c * T + f), as CSR, to gather the corner weights per vertex.
+    corner_vertex = tri.T.reshape(-1)
+    inc_idx = torch.argsort(corner_vertex, stable=True)
+    inc_ptr = torch.zeros(v.shape[0] + 1, dtype=torch.long)
+    inc_ptr[1:] = torch.cumsum(torch.bincount(corner_vertex, minlength=v.shape[0]), 0)
     # Structure-of-arrays layouts, as the native kernel expects (see tc_mvc3d in mvc3d.c).
     return {
         "P": v.T.contiguous(),
-        "tri": tri.T.contiguous(),
-        "edges": uniq.T.contiguous(),
-        "face_edge": inv.reshape(-1, 3).T.contiguous(),
+        "tri": tri.T.to(torch.int32).contiguous(),
+        "edges": uniq.T.to(torch.int32).contiguous(),
+        "face_edge": inv.reshape(-1, 3).T.to(torch.int32).contiguous(),
+        "inc_ptr": inc_ptr.to(torch.int32),
+        "inc_idx": inc_idx.to(torch.int32),
         "face_sign": sign.T.contiguous(),
         "normal": normal.T.contiguous(),
         "two_area": two_area.contiguous(),
@@ -440,6 +447,7 @@ def _native_chunk(x: torch.Tensor, data: _TriangleCageData, lib: object, W: torc
     nat = data.native
     args = [
         nat["P"], V, nat["tri"], data.tri.shape[0], nat["edges"], nat["edges"].shape[1], nat["face_edge"],
+        nat["inc_ptr"], nat["inc_idx"],
         nat["face_sign"], nat["normal"], nat["two_area"], nat["ell"], nat["gram"], nat["far_nodes"],
         nat["far_coef"], nat["longest"], nat["far_nodes"].shape[1], FAR_FIELD, CANCELLATION, x, n, data.tol,
         NEAR_PLANE,
