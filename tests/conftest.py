@@ -12,7 +12,20 @@ import torch
 import torchcage
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = Path(os.environ.get("TORCHCAGE_DATA", REPO.parent / "shared" / "data"))
+
+
+def _find_data() -> Path:
+    """``$TORCHCAGE_DATA``, else the first ``shared/data`` folder beside the repository or one of
+    its parents (the project's layout keeps it beside the checkout)."""
+    if "TORCHCAGE_DATA" in os.environ:
+        return Path(os.environ["TORCHCAGE_DATA"])
+    for parent in REPO.parents:
+        if (parent / "shared" / "data").is_dir():
+            return parent / "shared" / "data"
+    return REPO.parent / "shared" / "data"
+
+
+DATA = _find_data()
 QMVC_MODELS = ["Beast", "Bench", "Cactus", "FireHydrant", "ManHead", "Ogre", "SpikyBox", "WireSphere"]
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])

@@ -5,8 +5,9 @@ Example:
     >>> import torch, torchcage
     >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
     >>> mvc = torchcage.MeanValueCoordinates(cage, torch.zeros(1, 3, dtype=torch.float64))
-    >>> mvc(cage.vertices * 2).tolist()
-    [[0.0, 0.0, 0.0]]
+    >>> moved = mvc(cage.vertices * 2 + 1)          # scale the cage by 2, shift it by 1
+    >>> torch.allclose(moved, torch.ones(1, 3, dtype=torch.float64))
+    True
 """
 
 from . import data, functional

@@ -76,8 +76,8 @@ def render_panels(
         >>> import torchcage
         >>> from torchcage.viz import Panel, render_panels
         >>> v, f = torchcage.load_mesh(torchcage.data.path("bar.obj"))
-        >>> render_panels([Panel(v, f, title="bar")], size=64).size
-        (64, 64)
+        >>> render_panels([Panel(v, f), Panel(2 * v, f)], size=64).size   # two panels, no titles
+        (128, 64)
     """
     from PIL import ImageDraw
 

@@ -37,7 +37,7 @@ class MeanValueCoordinates(CageModule):
         >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
         >>> pts = torch.rand(100, 3, dtype=torch.float64) * 2 - 1
         >>> mvc = torchcage.MeanValueCoordinates(cage, pts)
-        >>> poses = cage.vertices * torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64).view(3, 1, 1, 1)
+        >>> poses = cage.vertices * torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64).view(3, 1, 1)
         >>> mvc(poses).shape                     # (3 poses, 100 points, 3)
         torch.Size([3, 100, 3])
         >>> torch.allclose(mvc(cage.vertices), pts)
