@@ -1,0 +1,76 @@
+"""Torch kernel of 2D mean value coordinates (closed polygons), chunk by chunk.
+
+Floater 2003; Hormann & Floater 2006: ``w_j = (tan(α_{j-1}/2) + tan(α_j/2)) / r_j`` with the
+half-angle tangent evaluated as ``sin α / (1 + cos α)`` or ``(1 - cos α) / sin α``, whichever does
+not cancel. Points on an edge (within ``ON_CAGE_TOLERANCE`` times the cage size) get the linear
+interpolation along it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..cage import Cage
+from ._common import ON_CAGE_TOLERANCE
+
+
+@dataclass(frozen=True)
+class PolygonData:
+    vertices: torch.Tensor  # (2, V)
+    edges: torch.Tensor  # (E, 2)
+    edge_vec: torch.Tensor  # (2, E, 1)  p_k - p_j
+    edge_len2: torch.Tensor  # (E, 1)
+    tol: float
+
+
+def polygon_data(cage: Cage, dtype: torch.dtype) -> PolygonData:
+    v = cage.vertices.to(dtype)
+    e = cage.edges
+    d = v[e[:, 1]] - v[e[:, 0]]
+    return PolygonData(
+        vertices=v.T.contiguous(),
+        edges=e,
+        edge_vec=d.T.contiguous()[:, :, None],
+        edge_len2=(d * d).sum(dim=1)[:, None],
+        tol=ON_CAGE_TOLERANCE * cage.scale,
+    )
+
+
+def mvc2d_chunk(x: torch.Tensor, data: PolygonData) -> tuple[torch.Tensor, torch.Tensor]:
+    """2D counterpart of :func:`mvc3d_chunk`: ``x`` ``(n, 2)`` -> weights ``(V, n)`` and on-cage mask."""
+    V = data.vertices.shape[1]
+    n = x.shape[0]
+    a_all = data.vertices[:, :, None] - x.T[:, None, :]  # (2, V, n)
+    R_all = torch.sqrt((a_all * a_all).sum(dim=0))
+    j, k = data.edges[:, 0], data.edges[:, 1]
+    ajx, ajy = a_all[0].index_select(0, j), a_all[1].index_select(0, j)
+    akx, aky = a_all[0].index_select(0, k), a_all[1].index_select(0, k)
+    Rj, Rk = R_all.index_select(0, j), R_all.index_select(0, k)
+    ex, ey = data.edge_vec[0], data.edge_vec[1]
+    cross = ajx * ey - ajy * ex  # a_j ^ a_k = a_j ^ (p_k - p_j): twice the signed area (x, p_j, p_k)
+    dot = ajx * akx + ajy * aky
+    RR = Rj * Rk
+    safe_cross = torch.where(cross != 0, cross, 1.0)
+    tan_half = torch.where(dot >= 0, cross / (RR + dot), torch.where(cross != 0, (RR - dot) / safe_cross, 0.0))
+    W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
+    W.index_add_(0, j, tan_half / torch.where(Rj > 0, Rj, 1.0))
+    W.index_add_(0, k, tan_half / torch.where(Rk > 0, Rk, 1.0))
+    # Points on an edge (or a vertex): linear interpolation along the edge.
+    ell2 = data.edge_len2
+    t = -(ajx * ex + ajy * ey) / ell2  # projection parameter of x on the edge, 0 at p_j
+    dist = cross.abs() / torch.sqrt(ell2)
+    tol = data.tol
+    on_edge = (dist <= tol) & (t >= -tol / torch.sqrt(ell2)) & (t <= 1 + tol / torch.sqrt(ell2))
+    on_edge |= (Rj <= tol) | (Rk <= tol)
+    on_cage = on_edge.any(dim=0)
+    if bool(on_cage.any()):
+        cols = torch.nonzero(on_cage).squeeze(1)
+        f = on_edge[:, cols].to(torch.int8).argmax(dim=0)
+        tt = t[f, cols].clamp(0.0, 1.0)
+        tt = torch.where(Rj[f, cols] <= tol, 0.0, torch.where(Rk[f, cols] <= tol, 1.0, tt))
+        Wc = torch.zeros((V, cols.shape[0]), dtype=x.dtype, device=x.device)
+        Wc.scatter_add_(0, torch.stack([j[f], k[f]]), torch.stack([1.0 - tt, tt]))
+        W[:, cols] = Wc
+    return W, on_cage

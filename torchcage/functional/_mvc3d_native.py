@@ -1,0 +1,79 @@
+"""Glue to the native CPU kernel of 3D mean value coordinates (``torchcage/_native/mvc3d.c``):
+its tables in the layouts it expects, and the call on a chunk of points."""
+
+from __future__ import annotations
+
+import torch
+
+from .. import _native
+from ._mvc3d import CANCELLATION, FAR_FIELD, NEAR_PLANE, TriangleCageData
+
+
+def native_tables(data: TriangleCageData) -> dict[str, torch.Tensor]:
+    """Tables for the native kernel, built once per cage: among them the unique edges and, for the
+    edge opposite each corner, its index ``face_edge`` and orientation ``face_sign`` (+1 when
+    stored as ``(t[i+1], t[i+2])``), and the vertex-to-corner incidence as CSR."""
+    tri = data.tri
+    V = data.vertices.shape[1]
+    opp = torch.stack([tri.roll(-1, dims=1), tri.roll(-2, dims=1)], dim=-1)  # (T, 3, 2)
+    lo, hi = opp.min(dim=-1).values, opp.max(dim=-1).values
+    uniq, inv = torch.unique(torch.stack([lo, hi], dim=-1).reshape(-1, 2), dim=0, return_inverse=True)
+    sign = torch.where(opp[..., 0] == lo, 1.0, -1.0).to(data.vertices.dtype)
+    # Vertex -> face corners (index c * T + f), as CSR, to gather the corner weights per vertex.
+    corner_vertex = tri.T.reshape(-1)
+    inc_idx = torch.argsort(corner_vertex, stable=True)
+    inc_ptr = torch.zeros(V + 1, dtype=torch.long)
+    inc_ptr[1:] = torch.cumsum(torch.bincount(corner_vertex, minlength=V), 0)
+    # Structure-of-arrays layouts, as the native kernel expects (see tc_mvc3d in mvc3d.c).
+    return {
+        "P": data.vertices.contiguous(),
+        "tri": tri.T.to(torch.int32).contiguous(),
+        "edges": uniq.T.to(torch.int32).contiguous(),
+        "face_edge": inv.reshape(-1, 3).T.to(torch.int32).contiguous(),
+        "inc_ptr": inc_ptr.to(torch.int32),
+        "inc_idx": inc_idx.to(torch.int32),
+        "face_sign": sign.T.contiguous(),
+        "normal": data.normal[:, :, 0].contiguous(),
+        "two_area": data.two_area[:, 0].contiguous(),
+        "ell": data.edge_len[:, :, 0].T.contiguous(),
+        "gram": data.gram.contiguous(),
+        "far_nodes": data.far_nodes.contiguous(),
+        "far_coef": data.far_coef.contiguous(),
+        "longest": data.longest[:, 0].contiguous(),
+    }
+
+
+def native_chunk(
+    x: torch.Tensor, data: TriangleCageData, tables: dict[str, torch.Tensor], lib: object, W: torch.Tensor
+) -> torch.Tensor:
+    """The native CPU kernel on a chunk: ``x`` ``(n, 3)`` float64 -> normalised coordinates written
+    into the contiguous ``W`` ``(n, V)``; returns the ``(n,)`` uint8 on-cage flags."""
+    x = x.contiguous()
+    n, V = x.shape[0], data.vertices.shape[1]
+    on = torch.empty((n,), dtype=torch.uint8)
+    nat = tables
+    args = [
+        nat["P"], V, nat["tri"], data.tri.shape[0], nat["edges"], nat["edges"].shape[1], nat["face_edge"],
+        nat["inc_ptr"], nat["inc_idx"],
+        nat["face_sign"], nat["normal"], nat["two_area"], nat["ell"], nat["gram"], nat["far_nodes"],
+        nat["far_coef"], nat["longest"], nat["far_nodes"].shape[1], FAR_FIELD, CANCELLATION, x, n, data.tol,
+        NEAR_PLANE,
+        torch.get_num_threads(), W, on,
+    ]  # fmt: skip
+    lib.tc_mvc3d(*[a.data_ptr() if isinstance(a, torch.Tensor) else a for a in args])  # type: ignore[attr-defined]
+    return on
+
+
+def use_native(backend: str, x: torch.Tensor, dim: int) -> object | None:
+    if backend not in ("auto", "native", "torch"):
+        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
+    if backend == "torch" or dim != 3:
+        return None
+    ok = x.device.type == "cpu" and x.dtype == torch.float64
+    lib = _native.library() if ok else None
+    if backend == "native" and lib is None:
+        raise RuntimeError(
+            "the native kernel needs float64 points on the CPU and a C compiler; use backend='torch' "
+            "(or 'auto', which falls back to it)"
+        )
+    return lib
