@@ -40,6 +40,13 @@ def test_quads_and_triangulation():
     assert torch.allclose(torch.nn.functional.normalize(corner[:, 0], dim=-1), tn)
 
 
+def test_unique_edges():
+    cage = box_cage(2, 1, 1)
+    e = cage.unique_edges()
+    assert e.shape == (20, 2) and bool((e[:, 0] < e[:, 1]).all())  # 12 vertices, 10 quads: E = V + F - 2
+    assert cage.triangulated().unique_edges().shape == (30, 2)  # the q0-q2 diagonals join in
+
+
 def test_triquad_list_faces():
     v = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 1]], dtype=torch.float64)
     faces = [[0, 3, 2, 1], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]]  # a square pyramid

@@ -162,6 +162,15 @@ def test_chunking_batching_and_dtype(dtype, device):
     assert low.dtype == torch.float32 and (low.double() - ref).abs().max() < 1e-4
 
 
+def test_progress_reporting(capsys):
+    cage = HANDMADE["cube"]()
+    x = sample_points(cage, 100)
+    calls = []
+    w = F.mean_value_coordinates(x, cage, chunk_size=30, progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(30, 100), (60, 100), (90, 100), (100, 100)]
+    assert torch.equal(w, F.mean_value_coordinates(x, cage, progress=True))
+
+
 def test_inputs_not_modified_and_errors():
     cage = torchcage.load_cage(torchcage.data.path("cube.obj"))
     x = torch.zeros(2, 3, dtype=torch.float64)

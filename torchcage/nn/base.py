@@ -21,7 +21,6 @@ class CageModule(nn.Module):
         super().__init__()
         if not isinstance(cage, Cage):
             raise TypeError(f"cage must be a torchcage.Cage, got {type(cage).__name__}")
-        self.cage = cage
         self.register_buffer("rest_vertices", cage.vertices.detach().clone())
         self.register_buffer("points", torch.as_tensor(points).detach().clone())
 
