@@ -33,8 +33,8 @@ relative error of about ``eps (r / edge)^3``, worse for slivers). It is harmless
 weights add up (inside the cage), but far outside the total weight is much smaller than its parts
 and the error is amplified. For points whose face weights cancel (absolute sum over four times the
 total), torchcage integrates the defining integral ``w_i^T = h \int_T \phi_i / |p - x|^4 dA``
-on every face whose longest edge is below a quarter of its distance, with a collapsed 8x8
-Gauss–Legendre rule (error about ``(edge / 4r)^16``). The direct form serves all other pairs.
+on every face whose longest edge is shorter than its distance, with a collapsed 14x14
+Gauss–Legendre rule (error about ``(edge / 4r)^28``). The direct form serves all other pairs.
 
 Points on the cage (within ``ON_CAGE_TOLERANCE`` times the cage size) get the interpolating values:
 barycentric on the face, linear on the edge, Lagrange at a vertex.
