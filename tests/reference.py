@@ -12,8 +12,12 @@ import torch
 mp.mp.dps = 60
 
 
+def _mpf(c):
+    return c if isinstance(c, mp.mpf) else mp.mpf(float(c))
+
+
 def _vec(p):
-    return mp.matrix([mp.mpf(float(c)) for c in p])
+    return mp.matrix([_mpf(c) for c in p])
 
 
 def _cross(a, b):

@@ -92,6 +92,24 @@ def test_agrees_with_mpmath(name, backend):
     assert worst < 1e-12, worst
 
 
+def test_support_plane_outside_face_contributes_nothing(backend):
+    """Points exactly in the plane of faces (outside them) against the 60-digit reference taken
+    1e-40 off the plane: the limit, where those faces contribute nothing."""
+    import mpmath as mp
+
+    cage = HANDMADE["l_shape"]()  # axis-aligned faces: planes x, y, z = const hold these points exactly
+    x = torch.tensor([[2.0, 0.3, 0.5], [0.25, 1.0, -0.5], [-1.5, -1.0, 0.1], [0.5, 0.5, 0.5]], dtype=torch.float64)
+    w = F.mean_value_coordinates(x, cage, backend=backend)
+    assert_linear_precision(w, cage.vertices, x, rtol=1e-12)
+    for i in range(x.shape[0]):
+        off = [mp.mpf(float(c)) for c in x[i]]
+        off[0] += mp.mpf("1e-40")
+        off[1] += mp.mpf("1e-40")
+        off[2] += mp.mpf("1e-40")
+        ref = to_tensor(mvc3d_reference(off, cage.vertices, cage.triangles))
+        assert (w[i] - ref).abs().max() < 1e-14
+
+
 def test_interpolation_on_cage(backend):
     cage = HANDMADE["l_shape"]()
     v, tri = cage.vertices, cage.triangles
