@@ -95,6 +95,11 @@ def test_degenerate_and_non_manifold():
     with pytest.raises(torchcage.CageTopologyError, match=r"\(1, 2\)"):
         Cage(v2, faces)
     assert issubclass(torchcage.CageTopologyError, ValueError)
+    # Two tetrahedra touching at vertex 0 only (a "bowtie"): every edge is fine, the vertex is not.
+    v3 = torch.cat([TET_V, -TET_V[1:]])
+    second = [[0, 4, 5], [0, 6, 4], [0, 5, 6], [4, 6, 5]]
+    with pytest.raises(torchcage.CageTopologyError, match="non-manifold at vertex 0"):
+        Cage(v3, [*TET_F, *second])
 
 
 def test_2d_polygon_and_orientation():

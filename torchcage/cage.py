@@ -359,6 +359,7 @@ class Cage:
                 f"({e // V}, {e % V}) in the same direction ({len(clash)} such edges); "
                 "reverse the corner order of the wrongly oriented faces so that normals point outward"
             )
+        self._check_vertex_fans(s, d, o)
         vol = float(self.signed_volume())
         if vol < 0:
             warnings.warn(
@@ -368,6 +369,34 @@ class Cage:
             )
             self.triangles = self.triangles[:, [0, 2, 1]]
             self.quads = self.quads[:, [0, 3, 2, 1]]
+
+    def _check_vertex_fans(self, src: torch.Tensor, dst: torch.Tensor, owner: torch.Tensor) -> None:
+        """Around every vertex the faces must form one fan (a single cycle): two surfaces touching at
+        a vertex only (a "bowtie") pass the edge checks but are not manifold there.
+
+        Walks around each vertex once through the half-edges (validation only, linear in the
+        number of corners)."""
+        s, d, o = src.tolist(), dst.tolist(), owner.tolist()
+        face_of = {(a, b): f for a, b, f in zip(s, d, o, strict=True)}
+        # For the corner of face f at vertex v: its outgoing half-edge (v, b) and incoming (a, v).
+        incoming = {(f, b): a for a, b, f in zip(s, d, o, strict=True)}
+        corners: dict[int, list[int]] = {}
+        for a, f in zip(s, o, strict=True):
+            corners.setdefault(a, []).append(f)
+        for v, faces in corners.items():
+            start = faces[0]
+            f, seen = start, 0
+            while True:
+                seen += 1
+                prev = incoming[(f, v)]  # face f enters v from prev; the next face leaves v towards prev
+                f = face_of[(v, prev)]
+                if f == start or seen > len(faces):
+                    break
+            if seen != len(faces):
+                raise CageTopologyError(
+                    f"the cage is non-manifold at vertex {v}: its {len(faces)} faces form more than one fan "
+                    f"(surfaces touching at a single vertex); give each fan its own copy of the vertex"
+                )
 
     def _face_names(self) -> list[str]:
         T = self.triangles.shape[0]
