@@ -36,3 +36,9 @@ def test_deform_user_files_and_errors(tmp_path, capsys):
     bad = ["deform", "--cage", str(d.path("bar_cage.obj")), "--deformed", str(d.path("cube.obj"))]
     assert main([*bad, "--mesh", str(d.path("bar.obj")), "--out", str(out)]) == 2
     assert "deformed cage" in capsys.readouterr().err
+
+
+def test_bench(capsys):
+    assert main(["bench", "--points", "2000", "--repeat", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "torch" in out and "Mpts/s" in out

@@ -1,4 +1,4 @@
-"""Command line: ``torchcage demo``, ``torchcage deform``.
+"""Command line: ``torchcage demo``, ``torchcage deform``, ``torchcage bench``.
 
 ``torchcage demo`` runs the main job on data bundled with the package: it embeds a mesh in its
 cage, deforms it with a bent and twisted pose of the cage, and writes the meshes, the cages and a
@@ -134,6 +134,30 @@ def _deform(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench(args: argparse.Namespace) -> int:
+    """Time mean value coordinates on this machine: bundled bar cage, random points inside."""
+    import torchcage
+    from torchcage import _native
+    from torchcage import functional as F
+
+    cage = torchcage.load_cage(torchcage.data.path("bar_cage.obj")).triangulated()
+    g = torch.Generator().manual_seed(0)
+    x = (torch.rand(args.points, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([1.1, 1.1, 3.2]).double()
+    backends = (["native"] if _native.available() else []) + ["torch"]
+    print(f"mean value coordinates, {args.points} points, {cage.triangles.shape[0]} triangles, float64, "
+          f"{torch.get_num_threads()} threads")  # fmt: skip
+    print(f"{'backend':<8}{'best ms':>10}{'Mpts/s':>9}")
+    for backend in backends:
+        F.mean_value_coordinates(x[:1000], cage, backend=backend)  # warm up (and build the native kernel)
+        best = float("inf")
+        for _ in range(args.repeat):
+            t = time.perf_counter()
+            F.mean_value_coordinates(x, cage, backend=backend)
+            best = min(best, time.perf_counter() - t)
+        print(f"{backend:<8}{1000 * best:>10.1f}{args.points / best / 1e6:>9.2f}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchcage`` command."""
     parser = argparse.ArgumentParser(prog="torchcage", description="Cage coordinates for deformation.")
@@ -150,6 +174,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     dfm.add_argument("--method", default="mvc", choices=METHODS)
     dfm.add_argument("--no-picture", action="store_true", help="skip the PNG picture")
     dfm.set_defaults(func=_deform)
+    bench = sub.add_parser("bench", help="time mean value coordinates on this machine (bundled cage)")
+    bench.add_argument("--points", type=int, default=100_000)
+    bench.add_argument("--repeat", type=int, default=3)
+    bench.set_defaults(func=_bench)
     args = parser.parse_args(argv)
     try:
         return args.func(args)
