@@ -1,0 +1,84 @@
+r"""Torch kernel of 2D Green coordinates (Lipman, Levin, Cohen-Or 2008) for closed polygons.
+
+Groundwork for conformal image warps: not yet exported (the public ``green_coordinates`` will
+cover triangle cages too). For a point :math:`\eta` inside a counter-clockwise polygon, Green's
+third identity applied to the coordinate functions gives
+
+.. math::
+    \eta = \sum_i \phi_i(\eta)\, v_i + \sum_j \psi_j(\eta)\, n_j,\qquad
+    \phi_i = \int \Gamma_i\, \partial_n G\, d\sigma,\quad \psi_j = -\int_{e_j} G\, d\sigma,
+
+with :math:`G(\xi, \eta) = \log\|\xi - \eta\| / 2\pi`, :math:`\Gamma_i` the hat functions on the
+edges and :math:`n_j` the outward unit normals. For the edge ``j`` from ``v_j`` to ``v_{j+1}``, with
+``a = v_{j+1} - v_j``, ``b = v_j - eta``, ``Q = a.a``, ``S = b.b``, ``R = 2 a.b``,
+``P(t) = Q t^2 + R t + S``, ``L0 = log S``, ``L1 = log(Q + R + S)``, ``c |a| = b x a`` (signed,
+positive on the inner side) and :math:`\theta` the angle the edge subtends at :math:`\eta`,
+the integrals are
+
+.. math::
+    \int_0^1 \log P = L_1 + \tfrac{R}{2Q}(L_1 - L_0) - 2 + \tfrac{2 |a \times b|}{Q}\theta,\quad
+    \int_0^1 \tfrac{dt}{P} = \tfrac{\theta}{|a \times b|},\quad
+    \int_0^1 \tfrac{t\,dt}{P} = \tfrac{L_1 - L_0}{2Q} - \tfrac{R\,\theta}{2Q\,|a\times b|}.
+
+Written with :math:`\theta = \mathrm{atan2}(2|a \times b|, 2\, b \cdot (b + a))` and the products
+``c |a| / |a x b| = ±1``, nothing cancels near an edge's line. Points on an edge get the limit from
+inside. Outside the polygon the identity gives 0, not :math:`\eta`: Green coordinates are defined
+inside (their extension outside is not implemented).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..cage import Cage
+from ..errors import CageError
+
+
+def green_coordinates_2d(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor, torch.Tensor]:
+    """2D Green coordinates of points inside a closed polygon.
+
+    Args:
+        points: ``(n, 2)`` points (inside the cage for the identity to hold).
+        cage: a 2D cage (counter-clockwise after validation).
+
+    Returns:
+        ``(phi (n, V), psi (n, E))`` in the points' dtype: ``phi @ V + psi @ normals = points``
+        inside, with ``normals = cage.edge_normals()`` (outward, unit).
+
+    Example:
+        >>> import torch, torchcage
+        >>> from torchcage.functional._green2d import green_coordinates_2d
+        >>> cage = torchcage.Cage([[0.0, 0], [2, 0], [2, 1], [0, 1]])
+        >>> x = torch.tensor([[0.5, 0.25], [1.5, 0.5]], dtype=torch.float64)
+        >>> phi, psi = green_coordinates_2d(x, cage)
+        >>> torch.allclose(phi @ cage.vertices + psi @ cage.edge_normals(), x)
+        True
+    """
+    if cage.dim != 2:
+        raise CageError("green_coordinates_2d needs a 2D cage")
+    v = cage.vertices.to(points.dtype)
+    j, k = cage.edges[:, 0], cage.edges[:, 1]
+    a = (v[k] - v[j])[None]  # (1, E, 2)
+    b = v[j][None] - points[:, None]  # (n, E, 2)
+    bp = v[k][None] - points[:, None]  # b + a, computed directly
+    Q = (a * a).sum(-1)
+    S = (b * b).sum(-1)
+    R = 2 * (a * b).sum(-1)
+    cross = b[..., 0] * a[..., 1] - b[..., 1] * a[..., 0]  # b x a = c |a|, > 0 on the inner side
+    abs_cross = cross.abs()
+    theta = torch.atan2(2 * (b[..., 0] * bp[..., 1] - b[..., 1] * bp[..., 0]).abs(), 2 * (b * bp).sum(-1))
+    L0 = torch.log(S)
+    L1 = torch.log((bp * bp).sum(-1))
+    L10 = L1 - L0
+    sigma = torch.where(cross >= 0, 1.0, -1.0).to(points.dtype)  # on an edge: the limit from inside
+    norm_a = torch.sqrt(Q)
+    psi = -(norm_a / (4 * math.pi)) * (L1 + R / (2 * Q) * L10 - 2 + 2 * abs_cross * theta / Q)
+    # phi_k gets c|a|/(2 pi) * int t/P, phi_j gets c|a|/(2 pi) * int (1 - t)/P, with c|a| / |a x b| = sigma.
+    int_t = cross * L10 / (2 * Q) - sigma * R * theta / (2 * Q)
+    int_1 = sigma * theta
+    phi = torch.zeros(points.shape[0], cage.num_vertices, dtype=points.dtype, device=points.device)
+    phi.index_add_(1, k, int_t / (2 * math.pi))
+    phi.index_add_(1, j, (int_1 - int_t) / (2 * math.pi))
+    return phi, psi
