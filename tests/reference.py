@@ -28,6 +28,7 @@ def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+@mp.workdps(60)
 def mvc3d_reference(x, vertices, triangles) -> list:
     """Mean value coordinates of one point (mpmath numbers), Floater-Kos-Reimers form:
     w_i += (beta_jk + beta_ij n_ij.n_jk + beta_ki n_ki.n_jk) / (2 e_i . n_jk) / r_i, with unit
@@ -56,6 +57,7 @@ def mvc3d_reference(x, vertices, triangles) -> list:
     return [wi / total for wi in w]
 
 
+@mp.workdps(60)
 def mvc2d_reference(x, vertices) -> list:
     """2D mean value coordinates of one point for a counter-clockwise polygon given in order."""
     xv = [mp.mpf(float(c)) for c in x]

@@ -58,8 +58,8 @@ def test_near_and_on_edges():
         assert (phi @ v + psi @ n - x).abs().max() < 1e-12
 
 
+@mp.workdps(30)
 def test_agrees_with_quadrature_of_the_definition():
-    mp.mp.dps = 30
     cage = blob()
     v = cage.vertices.tolist()
     E = len(v)

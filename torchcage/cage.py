@@ -187,7 +187,7 @@ class Cage:
     @property
     def scale(self) -> float:
         """Length of the bounding-box diagonal (the scale every tolerance is relative to)."""
-        v = self.vertices.to(torch.float64)
+        v = self.vertices.detach().to(torch.float64)
         return float((v.max(dim=0).values - v.min(dim=0).values).norm())
 
     def __repr__(self) -> str:

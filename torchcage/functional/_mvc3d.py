@@ -162,8 +162,10 @@ def _stable_face_weights(
     theta_over_N = []
     for e in range(3):
         j, k = (e + 1) % 3, (e + 2) % 3
-        s_abs = s[e].abs()
         sigma = torch.where(s[e] >= 0, 1.0, -1.0).to(h.dtype)
+        # |s| as sigma * s, not abs(): the weights are smooth where s crosses 0 (the foot point on
+        # an edge's line), and this keeps autograd's one-sided derivative there instead of 0.
+        s_abs = sigma * s[e] + 0.0  # + 0.0 turns -0.0 into +0.0 (atan2 tells them apart)
         qq = dots[e] - h2  # q_j . q_k
         N = torch.hypot(s[e], h * ell[e])  # |N_e| = |a_j x a_k|, consistent with s and h
         theta0 = torch.atan2(s_abs, qq)  # planar angle at the foot point

@@ -64,10 +64,21 @@ def native_chunk(
     return on
 
 
-def use_native(backend: str, x: torch.Tensor, dim: int) -> object | None:
+def use_native(backend: str, x: torch.Tensor, dim: int, needs_grad: bool = False) -> object | None:
+    """The native library when it should serve this call, else ``None`` (use the torch kernel).
+
+    ``"auto"`` takes it for 3D float64 CPU inputs that need no autograd graph; ``"native"``
+    insists (and raises where it cannot serve); ``"torch"`` never takes it."""
     if backend not in ("auto", "native", "torch"):
         raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
     if backend == "torch" or dim != 3:
+        return None
+    if needs_grad:
+        if backend == "native":
+            raise RuntimeError(
+                "the native kernel records no autograd graph; use backend='torch' (or 'auto') to "
+                "differentiate with respect to the points or the cage vertices"
+            )
         return None
     ok = x.device.type == "cpu" and x.dtype == torch.float64
     lib = _native.library() if ok else None

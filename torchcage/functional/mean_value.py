@@ -32,7 +32,8 @@ def _coordinates_flat(
     backend: str,
 ) -> torch.Tensor:
     """Mean value coordinates ``(N, V)`` of checked points ``x`` ``(N, D)`` in their dtype."""
-    lib = use_native(backend, x, cage.dim)
+    needs_grad = torch.is_grad_enabled() and (x.requires_grad or cage.vertices.requires_grad)
+    lib = use_native(backend, x, cage.dim, needs_grad)
     if cage.dim == 3:
         data3 = triangle_cage_data(cage, x.dtype)
         tables = native_tables(data3) if lib is not None else {}
@@ -91,9 +92,14 @@ def mean_value_coordinates(
         dtype: compute dtype. Default: compute in float64 and return in the dtype of the inputs.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): for 3D float64 on the CPU, torchcage's native C kernel
-            (compiled on first use, about a second) when a C compiler is present, else the torch
-            kernel; ``"torch"`` forces the torch kernel (any device and dtype); ``"native"``
-            requires the native one.
+            (compiled on first use, about a second) when a C compiler is present and no autograd
+            graph is needed, else the torch kernel; ``"torch"`` forces the torch kernel (any
+            device and dtype); ``"native"`` requires the native one.
+
+    Gradients: with the torch kernel, autograd differentiates the coordinates with respect to
+    the points and the cage's vertices (``gradcheck`` passes in float64 off the cage); ``"auto"``
+    picks it whenever either requires grad. Analytic derivative kernels are not part of this
+    function.
 
     Returns:
         Coordinates of shape ``(*, V)``.
