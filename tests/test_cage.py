@@ -6,7 +6,7 @@ import warnings
 
 import pytest
 import torch
-from conftest import box_cage
+from conftest import QMVC_MODELS, box_cage, data_path
 
 import torchcage
 from torchcage import Cage
@@ -140,3 +140,47 @@ def test_to_dtype_and_input_untouched(device):
 def test_integer_vertices_become_float64():
     cage = Cage([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], TET_F)
     assert cage.dtype == torch.float64
+
+
+def _valid_by_projection(q: torch.Tensor) -> bool:
+    """Definition 1 checked literally: project the quad onto each corner triangle's plane, build
+    2D coordinates in that plane, and require a convex, counter-clockwise (w.r.t. the plane's
+    normal) polygon."""
+    for i in range(4):
+        a, b, c = q[(i - 1) % 4], q[i], q[(i + 1) % 4]
+        n = torch.linalg.cross(b - a, c - b, dim=0)
+        n = n / n.norm()
+        u = (c - b) - ((c - b) @ n) * n
+        u = u / u.norm()
+        w = torch.linalg.cross(n, u, dim=0)
+        xy = torch.stack([(q - b) @ u, (q - b) @ w], dim=1)
+        for k in range(4):
+            p0, p1, p2 = xy[k], xy[(k + 1) % 4], xy[(k + 2) % 4]
+            turn = (p1[0] - p0[0]) * (p2[1] - p1[1]) - (p1[1] - p0[1]) * (p2[0] - p1[0])
+            if turn <= 0:
+                return False
+    return True
+
+
+def test_invalid_quads_against_the_definition():
+    g = torch.Generator().manual_seed(3)
+    square = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
+    agree, invalid = 0, 0
+    for _ in range(300):
+        q = square + 0.45 * torch.randn(4, 3, generator=g, dtype=torch.float64)
+        cage = Cage._trusted(q, torch.zeros(0, 3, dtype=torch.long), torch.arange(4)[None], torch.zeros(0, 2))
+        got = cage.invalid_quads().numel() == 0
+        assert got == _valid_by_projection(q)
+        agree += 1
+        invalid += not got
+    assert agree == 300 and 30 < invalid < 270  # both outcomes are exercised
+    dart = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0.3, 0.3, 0], [0, 1, 0]], dtype=torch.float64)
+    cage = Cage._trusted(dart, torch.zeros(0, 3, dtype=torch.long), torch.arange(4)[None], torch.zeros(0, 2))
+    assert cage.invalid_quads().tolist() == [0]
+    assert box_cage(2, 2, 3).invalid_quads().numel() == 0
+
+
+@pytest.mark.parametrize("model", QMVC_MODELS)
+def test_paper_cages_have_valid_quads(model):
+    cage = torchcage.load_cage(data_path("qmvc", f"{model}_Cage.obj"))
+    assert cage.has_quads and cage.invalid_quads().numel() == 0

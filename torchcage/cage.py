@@ -220,6 +220,37 @@ class Cage:
         e = torch.cat([torch.stack([f, f.roll(-1, dims=1)], dim=-1).reshape(-1, 2) for f in parts])
         return torch.unique(e.sort(dim=1).values, dim=0)
 
+    def invalid_quads(self) -> torch.Tensor:
+        """Indices of the quads that are not *valid* in the sense of quad mean value coordinates
+        (Thiery, Memari, Boubekeur 2018, Definition 1): a quad is valid when its orthogonal
+        projection onto each of the four planes of its corner triangles ``(q_{i-1}, q_i, q_{i+1})``
+        is a convex quad. For planar quads this is plain convexity; it rules out fold-overs of
+        the bilinear interpolant.
+
+        The projection onto the plane of corner ``i`` turns by ``(e_{k-1} x e_k) . c_i`` at corner
+        ``k`` (``e_k = q_{k+1} - q_k``, ``c_i = e_{i-1} x e_i``), so the test is that all pairwise
+        dot products of the four corner normals are positive (a relative margin of 1e-12 treats
+        numerically degenerate corners as invalid).
+
+        Returns:
+            ``(K,)`` int64 indices into ``cage.quads`` (empty when all are valid, or in 2D).
+
+        Example:
+            >>> import torch, torchcage
+            >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+            >>> cube.invalid_quads().tolist()
+            []
+        """
+        if self.dim == 2 or not self.has_quads:
+            return torch.zeros(0, dtype=torch.long, device=self.device)
+        p = self.vertices[self.quads].to(torch.float64)  # (Q, 4, 3)
+        e = p.roll(-1, dims=1) - p  # e_k = q_{k+1} - q_k
+        c = torch.linalg.cross(e.roll(1, dims=1), e, dim=-1)  # corner normals c_k = e_{k-1} x e_k
+        c = torch.nn.functional.normalize(c, dim=-1)
+        cosines = c @ c.transpose(1, 2)  # (Q, 4, 4)
+        bad = (cosines <= 1e-12).flatten(1).any(dim=1)
+        return torch.nonzero(bad).flatten()
+
     def triangle_normals(self, unit: bool = True) -> torch.Tensor:
         """Outward normals of the triangles of :meth:`triangulated`, shape ``(T + 2Q, 3)``.
 
