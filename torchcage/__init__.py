@@ -14,7 +14,7 @@ from . import data, functional
 from .cage import Cage
 from .errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError, PointsError
 from .io import load_cage, load_mesh, save_cage, save_mesh
-from .nn import MeanValueCoordinates
+from .nn import GreenCoordinates, MeanValueCoordinates
 
 __version__ = "0.1.0"
 
@@ -24,6 +24,7 @@ __all__ = [
     "CageOrientationError",
     "CageTopologyError",
     "DegenerateFaceError",
+    "GreenCoordinates",
     "MeanValueCoordinates",
     "PointsError",
     "__version__",

@@ -4,6 +4,7 @@ Every function takes query points ``(*, D)`` and a :class:`~torchcage.Cage` and 
 coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
 """
 
+from .green import green_coordinates
 from .mean_value import mean_value_coordinates
 
-__all__ = ["mean_value_coordinates"]
+__all__ = ["green_coordinates", "mean_value_coordinates"]

@@ -1,0 +1,171 @@
+r"""Torch kernel of 3D Green coordinates (Lipman, Levin, Cohen-Or 2008) for closed triangle cages.
+
+For :math:`\eta` inside the cage, Green's third identity applied to linear functions gives
+
+.. math::
+    \eta = \sum_i \phi_i(\eta)\, v_i + \sum_t \psi_t(\eta)\, n_t,\qquad
+    \phi_i = \frac{1}{4\pi}\sum_{t \ni v_i} \int_t \Gamma_i \frac{h}{r^3}\, dA,\quad
+    \psi_t = \frac{1}{4\pi}\int_t \frac{dA}{r},
+
+with :math:`r = \|\xi - \eta\|`, :math:`h = (\xi - \eta) \cdot n_t` (constant on the face,
+positive on the inner side) and :math:`\Gamma_i` the hat functions. Both integrals are written
+here without any ratio that vanishes on the face's plane (the published evaluation divides by a
+determinant that does). Writing :math:`\Gamma_i = \alpha_i + g_i \cdot (\rho - \rho_0)`, with
+:math:`\alpha_i` the barycentric coordinates of the foot point :math:`\rho_0` of :math:`\eta` on
+the plane and :math:`g_i` their in-plane gradients,
+
+.. math::
+    \int_t \Gamma_i \frac{h}{r^3} = \alpha_i \Omega_t + h\, g_i \cdot K,\quad
+    K = \int_t \frac{\rho - \rho_0}{r^3} = -\sum_e \hat m_e I_e,\quad
+    \int_t \frac{1}{r} = \sum_e d_e I_e - h\, \Omega_t,
+
+where :math:`\Omega_t` is the signed solid angle (Van Oosterom–Strackee), :math:`\hat m_e` the
+outward in-plane edge normals, :math:`d_e` the signed distances from the foot point to the edge
+lines (positive inside) and :math:`I_e = \int_e dl / r` (an ``asinh`` difference, evaluated in the
+form that does not cancel). The last two identities follow from the divergence theorem in the
+plane: :math:`\nabla \cdot ((\rho - \rho_0)/r) = 1/r + h^2/r^3` and
+:math:`\nabla (1/r) = -(\rho - \rho_0)/r^3`.
+
+Points on the cage get the limit from inside: faces through the point contribute their principal
+value (no solid angle) and the hat values :math:`\Gamma_i` enter with the weight
+:math:`1 - \omega / 4\pi`, :math:`\omega` the solid angle the rest of the cage subtends (the jump of
+the double layer potential: 1/2 on a face, more or less at edges and vertices). Outside the cage
+the identity gives 0 instead of :math:`\eta`: Green coordinates are defined inside.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..cage import Cage
+from ..errors import CageError
+from ._common import ON_CAGE_TOLERANCE
+
+
+@dataclass(frozen=True)
+class TriangleGreenData:
+    """Per-face constants, compute dtype: ``(T, ...)``."""
+
+    p: torch.Tensor  # (T, 3, 3) corners
+    normal: torch.Tensor  # (T, 3) unit outward normals
+    two_area: torch.Tensor  # (T,)
+    edge_dir: torch.Tensor  # (T, 3, 3) unit direction of the edge opposite each corner, p_{i+1} -> p_{i+2}
+    edge_out: torch.Tensor  # (T, 3, 3) outward in-plane unit normal of that edge
+    grad_bary: torch.Tensor  # (T, 3, 3) in-plane gradient of each corner's hat function
+    tri: torch.Tensor  # (T, 3) corners
+    tol: float
+
+
+def triangle_green_data(cage: Cage, dtype: torch.dtype) -> TriangleGreenData:
+    if cage.dim != 3:
+        raise CageError("expected a 3D cage")
+    if cage.has_quads:
+        raise CageError(
+            f"green_coordinates needs a triangle cage, but this cage has {cage.quads.shape[0]} quads; "
+            "triangulate it with cage.triangulated() (quad Green coordinates are a separate coordinate system)"
+        )
+    p = cage.vertices.to(dtype)[cage.triangles]
+    cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    two_area = cross.norm(dim=-1)
+    n = cross / two_area[:, None]
+    E = p.roll(-2, dims=1) - p.roll(-1, dims=1)  # edge opposite corner i: p_{i+1} -> p_{i+2}
+    ell = E.norm(dim=-1, keepdim=True)
+    edge_dir = E / ell
+    edge_out = torch.linalg.cross(edge_dir, n[:, None, :].expand_as(edge_dir), dim=-1)
+    grad_bary = -edge_out * (ell / two_area[:, None, None])  # |grad| = 1 / height, towards the corner
+    return TriangleGreenData(
+        p, n, two_area, edge_dir, edge_out, grad_bary, cage.triangles, ON_CAGE_TOLERANCE * cage.scale
+    )
+
+
+def _edge_integrals(a_j: torch.Tensor, a_k: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """``I = int_e dl / r`` along the edge from ``p_j`` to ``p_k`` (unit direction ``u``), with
+    ``a = p - eta``: ``asinh(l_k / R0) - asinh(l_j / R0)``, evaluated as a ratio of sums that
+    never cancel. Shapes ``(..., 3)`` -> ``(...)``."""
+    l_j, l_k = (a_j * u).sum(-1), (a_k * u).sum(-1)
+    R_j, R_k = a_j.norm(dim=-1), a_k.norm(dim=-1)
+    # Ahead of the edge (l >= 0): log((R_k + l_k) / (R_j + l_j)); behind it: log((R_j - l_j) / (R_k - l_k));
+    # straddling: (R_j + l_j) = R0^2 / (R_j - l_j) with R0^2 = R_j^2 - l_j^2 from the cross product.
+    R0sq = torch.linalg.cross(a_j, u.expand_as(a_j), dim=-1).square().sum(-1)
+    ahead = torch.log((R_k + l_k) / (R_j + l_j).clamp_min(1e-300))
+    behind = torch.log((R_j - l_j) / (R_k - l_k).clamp_min(1e-300))
+    straddle = torch.log((R_k + l_k) * (R_j - l_j) / R0sq.clamp_min(1e-300))
+    return torch.where(l_j >= 0, ahead, torch.where(l_k <= 0, behind, straddle))
+
+
+def green3d_chunk(x: torch.Tensor, data: TriangleGreenData) -> tuple[torch.Tensor, ...]:
+    """Per-face Green integrals of a chunk of points.
+
+    Args:
+        x: ``(n, 3)`` points.
+        data: the cage constants.
+
+    Returns:
+        ``(phi_face (n, T, 3), psi (n, T), omega (n, T), on_face (n, T), alpha (n, T, 3))``: each
+        face's contribution to its corners' ``phi``, ``psi``, the solid angles, whether the point
+        lies on the face, and the barycentric coordinates of its foot point.
+    """
+    a = data.p[None] - x[:, None, None, :]  # (n, T, 3 corners, 3)
+    n = data.normal[None]  # (1, T, 3)
+    h = (a[:, :, 0] * n).sum(-1)  # (n, T), > 0 on the inner side
+    R = a.norm(dim=-1)  # (n, T, 3)
+    # Edge integrals and signed foot-to-edge distances (positive inside).
+    I = torch.stack(
+        [_edge_integrals(a[..., (e + 1) % 3, :], a[..., (e + 2) % 3, :], data.edge_dir[None, :, e]) for e in range(3)],
+        dim=-1,
+    )  # (n, T, 3)
+    d = (a[..., [1, 2, 0], :] * data.edge_out[None]).sum(-1)  # (n, T, 3): edge e starts at corner e + 1
+    # Signed solid angle as a sum over edges (no ratio that vanishes near an edge or the plane):
+    # Omega = sign(h) sum_e [atan(d l_k / (R0^2 + |h| R_k)) - atan(d l_j / (R0^2 + |h| R_j))].
+    aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]
+    u = data.edge_dir[None]
+    l_j, l_k = (aj * u).sum(-1), (ak * u).sum(-1)
+    R_j, R_k = R[..., [1, 2, 0]], R[..., [2, 0, 1]]
+    habs = h.abs()[..., None]
+    R0sq = d * d + habs * habs
+    beta = torch.atan2(d * l_k, R0sq + habs * R_k) - torch.atan2(d * l_j, R0sq + habs * R_j)
+    omega = torch.where(h >= 0, 1.0, -1.0) * beta.sum(-1)
+    # Faces whose plane holds the point (within tol) contribute their principal value: no solid
+    # angle, no h-term; edges through the point have d = 0 and a log-singular I: their product is 0.
+    on_plane = h.abs() <= data.tol
+    omega = torch.where(on_plane, 0.0, omega)
+    alpha = _barycentric_of_foot(d, data)
+    K = -(data.edge_out[None] * torch.where(on_plane[..., None], 0.0, I)[..., None]).sum(-2)  # (n, T, 3)
+    gK = (data.grad_bary[None] * K[:, :, None, :]).sum(-1)  # (n, T, 3)
+    phi_face = (alpha * omega[..., None] + h[..., None] * gK) / (4 * math.pi)
+    dI = torch.where(d != 0, d * I, 0.0)
+    psi = (dI.sum(-1) - h * omega) / (4 * math.pi)
+    on_face = on_plane & (d >= -data.tol).all(dim=-1)
+    return phi_face, psi, omega, on_face, alpha
+
+
+def _barycentric_of_foot(d: torch.Tensor, data: TriangleGreenData) -> torch.Tensor:
+    """Barycentric coordinates of the foot point from its distances to the edge lines:
+    ``alpha_i = d_i * l_i / (2A)``, shapes ``(n, T, 3)``."""
+    ell = (data.grad_bary.norm(dim=-1) * data.two_area[:, None])[None]  # |grad| * 2A = edge length
+    return d * ell / data.two_area[None, :, None]
+
+
+def green3d_coordinates(
+    x: torch.Tensor, data: TriangleGreenData, num_vertices: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(phi (n, V), psi (n, T))`` of a chunk of points, on-cage points included."""
+    phi_face, psi, omega, on_face, alpha = green3d_chunk(x, data)
+    tri = data.tri
+    phi = torch.zeros(x.shape[0], num_vertices, dtype=x.dtype, device=x.device)
+    for i in range(3):
+        phi.index_add_(1, tri[:, i], phi_face[..., i])
+    on_cage = on_face.any(dim=1)
+    if bool(on_cage.any()):
+        rows = torch.nonzero(on_cage).squeeze(1)
+        f = on_face[rows].to(torch.int8).argmax(dim=1)
+        bary = alpha[rows, f].clamp_min(0.0)
+        bary = bary / bary.sum(dim=1, keepdim=True)
+        jump = 1 - omega[rows].sum(dim=1, keepdim=True) / (4 * math.pi)
+        hat = torch.zeros(rows.shape[0], num_vertices, dtype=x.dtype, device=x.device)
+        hat.scatter_add_(1, tri[f], bary)
+        phi[rows] = phi[rows] + jump * hat
+    return phi, psi

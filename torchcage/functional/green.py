@@ -1,0 +1,72 @@
+"""Green coordinates for closed triangle cages (3D): the public function.
+
+The closed forms and their numerical care are described in ``_green3d``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from ..cage import Cage
+from ..errors import CageError
+from ._common import check_points, chunks, default_chunk, result_dtype
+from ._green3d import green3d_coordinates, triangle_green_data
+
+__all__ = ["green_coordinates"]
+
+
+def green_coordinates(
+    points: torch.Tensor,
+    cage: Cage,
+    *,
+    chunk_size: int | None = None,
+    dtype: torch.dtype | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Green coordinates (Lipman, Levin, Cohen-Or 2008) of points inside a closed triangle cage.
+
+    At rest, ``phi @ cage.vertices + psi @ n = points`` for points inside the cage, with ``n`` the
+    unit outward triangle normals (``cage.triangle_normals()``); points on the cage get the limit
+    from inside. Outside the cage the same sums give 0: Green coordinates are defined inside.
+
+    Args:
+        points: ``(*, 3)`` query points.
+        cage: a closed triangle cage; quad cages are refused (use ``cage.triangulated()``).
+        chunk_size: points per chunk (default: about 130k point–face pairs).
+        dtype: compute dtype. Default: float64, returned in the dtype of the inputs.
+        progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
+
+    Returns:
+        ``(phi (*, V), psi (*, T))``.
+
+    Raises:
+        CageError: a 2D or quad cage.
+        PointsError: bad points (shape, device, NaN or inf).
+
+    Example:
+        >>> import torch, torchcage
+        >>> from torchcage import functional as F
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+        >>> x = torch.tensor([[0.1, 0.2, -0.3], [0.5, 0.5, 0.99]], dtype=torch.float64)
+        >>> phi, psi = F.green_coordinates(x, cube)
+        >>> phi.shape, psi.shape
+        (torch.Size([2, 8]), torch.Size([2, 12]))
+        >>> torch.allclose(phi @ cube.vertices + psi @ cube.triangle_normals(), x)
+        True
+    """
+    if cage.dim != 3:
+        raise CageError("green_coordinates is for 3D triangle cages; 2D Green coordinates are not exposed yet")
+    flat = check_points(points, cage)
+    compute, out_dtype = result_dtype(flat, cage, dtype)
+    x = flat.to(compute)
+    data = triangle_green_data(cage, compute)
+    T = data.tri.shape[0]
+    size = chunk_size if chunk_size is not None else default_chunk(T, 1 << 17)
+    phi = torch.empty(x.shape[0], cage.num_vertices, dtype=compute, device=x.device)
+    psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
+    for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
+        phi[sl], psi[sl] = green3d_coordinates(x[sl], data, cage.num_vertices)
+    lead = points.shape[:-1]
+    return phi.to(out_dtype).reshape(*lead, -1), psi.to(out_dtype).reshape(*lead, -1)

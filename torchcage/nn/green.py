@@ -1,0 +1,82 @@
+"""The Green coordinates module: quasi-conformal, detail-preserving cage deformation."""
+
+from __future__ import annotations
+
+import torch
+
+from ..cage import Cage
+from ..functional.green import green_coordinates
+from .base import CageModule
+
+__all__ = ["GreenCoordinates"]
+
+
+def triangle_frames(vertices: torch.Tensor, triangles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Edge vectors ``u = p1 - p0``, ``v = p2 - p0`` and unit normals of triangles, for vertices
+    ``(*, V, 3)`` and triangles ``(T, 3)``: each ``(*, T, 3)``."""
+    p = vertices[..., triangles, :]  # (*, T, 3, 3)
+    u, v = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]
+    n = torch.nn.functional.normalize(torch.linalg.cross(u, v, dim=-1), dim=-1)
+    return u, v, n
+
+
+class GreenCoordinates(CageModule):
+    """Deform points embedded in a closed triangle cage with Green coordinates.
+
+    ``phi`` ``(N, V)`` and ``psi`` ``(N, T)`` are computed once at rest (buffers in the
+    ``state_dict``). ``forward`` computes, from the deformed cage, the unit normals ``n'`` and
+    Lipman's stretch factors ``s_t = sqrt(|u'|^2 |v|^2 - 2 (u'.v')(u.v) + |v'|^2 |u|^2) / (sqrt(8) area_t)``
+    (``u, v`` two edges of the rest triangle, primes deformed), and returns
+    ``phi @ V' + psi @ (s * n')``. Everything is differentiable with respect to the deformed
+    vertices, normals and stretch included. Rotations, uniform scalings and translations of the
+    cage move the points by the same similarity.
+
+    Args:
+        cage: a closed triangle cage (triangulate quad cages with ``cage.triangulated()``).
+        points: ``(N, 3)`` points inside the cage.
+        chunk_size: points per chunk while computing the coordinates.
+        dtype: dtype of the stored coordinates (float64 by default).
+
+    Shape:
+        - Input: ``(*, V, 3)`` deformed cage vertices.
+        - Output: ``(*, N, 3)`` deformed points.
+
+    Example:
+        >>> import torch, torchcage
+        >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+        >>> pts = torch.rand(50, 3, dtype=torch.float64) * 1.8 - 0.9
+        >>> gc = torchcage.GreenCoordinates(cage, pts)
+        >>> torch.allclose(gc(cage.vertices), pts)
+        True
+        >>> torch.allclose(gc(3 * cage.vertices + 1), 3 * pts + 1)
+        True
+    """
+
+    phi: torch.Tensor
+    psi: torch.Tensor
+    triangles: torch.Tensor
+
+    def __init__(
+        self, cage: Cage, points: torch.Tensor, *, chunk_size: int | None = None, dtype: torch.dtype = torch.float64
+    ) -> None:
+        phi, psi = green_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype)
+        super().__init__(cage, torch.as_tensor(points).reshape(-1, 3))
+        self.register_buffer("phi", phi.reshape(-1, cage.num_vertices))
+        self.register_buffer("psi", psi.reshape(-1, cage.triangles.shape[0]))
+        self.register_buffer("triangles", cage.triangles.clone())
+
+    def forward(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Deformed points ``(*, N, 3)`` for deformed cage vertices ``(*, V, 3)``."""
+        self._check_vertices(vertices, self.phi)
+        u0, v0, _ = triangle_frames(self.rest_vertices.to(vertices.dtype), self.triangles)
+        u1, v1, n1 = triangle_frames(vertices, self.triangles)
+        area = 0.5 * torch.linalg.cross(u0, v0, dim=-1).norm(dim=-1)
+        stretch2 = (
+            u1.square().sum(-1) * v0.square().sum(-1)
+            - 2 * (u1 * v1).sum(-1) * (u0 * v0).sum(-1)
+            + v1.square().sum(-1) * u0.square().sum(-1)
+        )
+        stretch = torch.sqrt(stretch2.clamp_min(0.0)) / (8**0.5 * area)
+        return torch.matmul(self.phi.to(vertices.dtype), vertices) + torch.matmul(
+            self.psi.to(vertices.dtype), stretch[..., None] * n1
+        )
