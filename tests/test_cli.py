@@ -42,3 +42,13 @@ def test_bench(capsys):
     assert main(["bench", "--points", "2000", "--repeat", "1"]) == 0
     out = capsys.readouterr().out
     assert "torch" in out and "Mpts/s" in out
+
+
+def test_demo_with_green_coordinates(tmp_path):
+    assert main(["demo", "--out", str(tmp_path), "--method", "gc"]) == 0
+    rest, _ = torchcage.load_mesh(tmp_path / "rest_mesh.obj")
+    moved, _ = torchcage.load_mesh(tmp_path / "deformed_mesh.obj")
+    cage = torchcage.load_cage(tmp_path / "rest_cage.obj")
+    pose = torchcage.load_cage(tmp_path / "deformed_cage.obj")
+    expect = torchcage.GreenCoordinates(cage.triangulated(), rest)(pose.vertices)
+    assert torch.allclose(expect, moved, atol=1e-12)

@@ -17,7 +17,7 @@ import torch
 
 __all__ = ["main"]
 
-METHODS = ("mvc",)
+METHODS = ("mvc", "gc")
 
 
 class _Timer:
@@ -46,6 +46,8 @@ def _build_module(method: str, cage, points: torch.Tensor, progress: bool):
 
     if method == "mvc":
         return torchcage.MeanValueCoordinates(cage.triangulated(), points, progress=progress)
+    if method == "gc":
+        return torchcage.GreenCoordinates(cage.triangulated(), points)
     raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 
