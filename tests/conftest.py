@@ -150,3 +150,16 @@ def notched() -> torchcage.Cage:
 
 
 HANDMADE = {"cube": cube, "l_shape": l_shape, "twisted_bar": twisted_bar, "notched": notched}
+
+
+def centred_cube() -> torchcage.Cage:
+    """The cube [-1, 1]^3 with a vertex at each face centre (14 vertices, 24 triangles): mirror
+    symmetric in x, y and z, unlike a cube whose quads are split along one diagonal."""
+    box = box_cage()
+    v = box.vertices
+    tris, verts = [], v.tolist()
+    for q in box.quads.tolist():
+        c = len(verts)
+        verts.append(v[q].mean(0).tolist())
+        tris += [[q[k], q[(k + 1) % 4], c] for k in range(4)]
+    return torchcage.Cage(torch.tensor(verts, dtype=torch.float64), tris)
