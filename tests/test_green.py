@@ -132,3 +132,14 @@ def test_errors():
         )
     with pytest.raises(torchcage.CageError, match="3D"):
         F.green_coordinates(torch.zeros(1, 2, dtype=torch.float64), torchcage.Cage([[0.0, 0], [1, 0], [0, 1]]))
+
+
+def test_inside_points_on_the_planes_of_other_faces():
+    """Inside the L-shape, on and next to the planes of its inner walls (outside those faces)."""
+    cage = HANDMADE["l_shape"]()
+    pts = []
+    for d in [0.0, 1e-15, -1e-15, 1e-12, 1e-9, -1e-9, 1e-6]:
+        pts += [[d, -0.5, 0.1], [-0.5, d, -0.2], [0.5 + d, -0.5, 0.3], [-0.3, -0.7, d]]
+    x = torch.tensor(pts, dtype=torch.float64)
+    phi, psi = F.green_coordinates(x, cage)
+    assert (phi @ cage.vertices + psi @ cage.triangle_normals() - x).abs().max() < 1e-14
