@@ -130,8 +130,8 @@ def test_errors():
         F.green_coordinates(
             torch.zeros(1, 3, dtype=torch.float64), torchcage.load_cage(torchcage.data.path("cube.obj"))
         )
-    with pytest.raises(torchcage.CageError, match="3D"):
-        F.green_coordinates(torch.zeros(1, 2, dtype=torch.float64), torchcage.Cage([[0.0, 0], [1, 0], [0, 1]]))
+    with pytest.raises(torchcage.PointsError, match=r"\(\.\.\., 2\)"):
+        F.green_coordinates(torch.zeros(1, 3, dtype=torch.float64), torchcage.Cage([[0.0, 0], [1, 0], [0, 1]]))
 
 
 def test_inside_points_on_the_planes_of_other_faces():

@@ -46,16 +46,31 @@ def test_identity_inside_zero_outside_and_similarity():
     assert (out[inside] - (x[inside] @ rot.T * s + t)).abs().max() < 1e-12
 
 
+def test_public_function_and_module_2d():
+    cage = blob()
+    x = (torch.rand(500, 2, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 2 - 1) * 1.2
+    x = x[inside_polygon(x, cage.vertices)]
+    phi, psi = torchcage.functional.green_coordinates(x, cage)
+    assert phi.shape == (x.shape[0], cage.num_vertices) and psi.shape == (x.shape[0], cage.edges.shape[0])
+    gc = torchcage.GreenCoordinates(cage, x)
+    th, s, t = -1.1, 0.4, torch.tensor([2.0, 1.0], dtype=torch.float64)
+    rot = torch.tensor([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]], dtype=torch.float64)
+    assert (gc(cage.vertices @ rot.T * s + t) - (x @ rot.T * s + t)).abs().max() < 1e-12
+    v = cage.vertices.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(torchcage.GreenCoordinates(cage, x[:4]), (v,))
+
+
 def test_near_and_on_edges():
     cage = blob()
     v, e = cage.vertices, cage.edges
     n = cage.edge_normals()
     mid = 0.3 * v[e[:, 0]] + 0.7 * v[e[:, 1]]
     for d in [0.0, 1e-15, 1e-9, 1e-4]:
-        x = mid - d * n  # on the edges, then just inside
+        x = torch.cat([mid - d * n, v])  # on the edges, then just inside; and the vertices
         phi, psi = green_coordinates_2d(x, cage)
         assert torch.isfinite(phi).all() and torch.isfinite(psi).all()
         assert (phi @ v + psi @ n - x).abs().max() < 1e-12
+        assert (phi.sum(1) - 1).abs().max() < 1e-12
 
 
 @mp.workdps(30)

@@ -21,9 +21,11 @@ the integrals are
     \int_0^1 \tfrac{t\,dt}{P} = \tfrac{L_1 - L_0}{2Q} - \tfrac{R\,\theta}{2Q\,|a\times b|}.
 
 Written with :math:`\theta = \mathrm{atan2}(2|a \times b|, 2\, b \cdot (b + a))` and the products
-``c |a| / |a x b| = ±1``, nothing cancels near an edge's line. Points on an edge get the limit from
-inside. Outside the polygon the identity gives 0, not :math:`\eta`: Green coordinates are defined
-inside (their extension outside is not implemented).
+``c |a| / |a x b| = ±1``, nothing cancels near an edge's line. Points on the polygon get the limit
+from inside: edges through the point contribute their principal value and the hat values enter with
+the jump weight ``1 - omega / 2 pi`` (``omega`` the angle the rest of the polygon subtends).
+Outside the polygon the identity gives 0, not :math:`\eta`: Green coordinates are defined inside
+(their extension outside is not implemented).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import torch
 
 from ..cage import Cage
 from ..errors import CageError
+from ._common import ON_CAGE_TOLERANCE
 
 
 def green_coordinates_2d(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor, torch.Tensor]:
@@ -65,20 +68,38 @@ def green_coordinates_2d(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor
     bp = v[k][None] - points[:, None]  # b + a, computed directly
     Q = (a * a).sum(-1)
     S = (b * b).sum(-1)
+    Sp = (bp * bp).sum(-1)
     R = 2 * (a * b).sum(-1)
     cross = b[..., 0] * a[..., 1] - b[..., 1] * a[..., 0]  # b x a = c |a|, > 0 on the inner side
-    abs_cross = cross.abs()
-    theta = torch.atan2(2 * (b[..., 0] * bp[..., 1] - b[..., 1] * bp[..., 0]).abs(), 2 * (b * bp).sum(-1))
-    L0 = torch.log(S)
-    L1 = torch.log((bp * bp).sum(-1))
-    L10 = L1 - L0
-    sigma = torch.where(cross >= 0, 1.0, -1.0).to(points.dtype)  # on an edge: the limit from inside
     norm_a = torch.sqrt(Q)
-    psi = -(norm_a / (4 * math.pi)) * (L1 + R / (2 * Q) * L10 - 2 + 2 * abs_cross * theta / Q)
+    tol = ON_CAGE_TOLERANCE * cage.scale
+    # Edges whose line holds the point contribute their principal value (no angle term).
+    on_line = cross.abs() <= tol * norm_a
+    theta = torch.atan2(2 * (b[..., 0] * bp[..., 1] - b[..., 1] * bp[..., 0]).abs(), 2 * (b * bp).sum(-1))
+    theta = torch.where(on_line, 0.0, theta)
+    sigma = torch.where(cross >= 0, 1.0, -1.0).to(points.dtype)
+    # log P at the ends, each multiplied by a factor that vanishes where P does (the point on a vertex).
+    L0 = torch.log(torch.where(S > 0, S, 1.0))
+    L1 = torch.log(torch.where(Sp > 0, Sp, 1.0))
+    int_log = (2 * Q + R) / (2 * Q) * L1 - R / (2 * Q) * L0 - 2 + 2 * cross.abs() * theta / Q
+    psi = -(norm_a / (4 * math.pi)) * int_log
     # phi_k gets c|a|/(2 pi) * int t/P, phi_j gets c|a|/(2 pi) * int (1 - t)/P, with c|a| / |a x b| = sigma.
-    int_t = cross * L10 / (2 * Q) - sigma * R * theta / (2 * Q)
+    int_t = cross * (L1 - L0) / (2 * Q) - sigma * R * theta / (2 * Q)
     int_1 = sigma * theta
     phi = torch.zeros(points.shape[0], cage.num_vertices, dtype=points.dtype, device=points.device)
     phi.index_add_(1, k, int_t / (2 * math.pi))
     phi.index_add_(1, j, (int_1 - int_t) / (2 * math.pi))
+    # Points on the polygon: the hat values with the jump weight 1 - omega / (2 pi), omega the angle
+    # the rest of the polygon subtends (pi on an edge, the interior angle at a vertex).
+    t = -R / (2 * Q)  # projection parameter of the point on each edge
+    on_edge = on_line & (t >= -tol / norm_a) & (t <= 1 + tol / norm_a)
+    on_cage = on_edge.any(dim=1)
+    if bool(on_cage.any()):
+        rows = torch.nonzero(on_cage).squeeze(1)
+        e = on_edge[rows].to(torch.int8).argmax(dim=1)
+        tt = t[rows, e].clamp(0.0, 1.0)
+        omega = int_1[rows].sum(dim=1, keepdim=True)
+        hat = torch.zeros(rows.shape[0], cage.num_vertices, dtype=points.dtype, device=points.device)
+        hat.scatter_add_(1, torch.stack([j[e], k[e]], dim=1), torch.stack([1 - tt, tt], dim=1))
+        phi[rows] = phi[rows] + (1 - omega / (2 * math.pi)) * hat
     return phi, psi

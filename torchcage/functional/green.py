@@ -1,6 +1,6 @@
-"""Green coordinates for closed triangle cages (3D): the public function.
+"""Green coordinates for closed triangle cages (3D) and closed polygons (2D): the public function.
 
-The closed forms and their numerical care are described in ``_green3d``.
+The closed forms and their numerical care are described in ``_green3d`` and ``_green2d``.
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from collections.abc import Callable
 import torch
 
 from ..cage import Cage
-from ..errors import CageError
 from ._common import check_points, chunks, default_chunk, result_dtype
+from ._green2d import green_coordinates_2d
 from ._green3d import green3d_coordinates, triangle_green_data
 
 __all__ = ["green_coordinates"]
@@ -25,24 +25,27 @@ def green_coordinates(
     dtype: torch.dtype | None = None,
     progress: bool | Callable[[int, int], None] = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Green coordinates (Lipman, Levin, Cohen-Or 2008) of points inside a closed triangle cage.
+    """Green coordinates (Lipman, Levin, Cohen-Or 2008) of points inside a closed triangle cage
+    or a closed polygon.
 
     At rest, ``phi @ cage.vertices + psi @ n = points`` for points inside the cage, with ``n`` the
-    unit outward triangle normals (``cage.triangle_normals()``); points on the cage get the limit
-    from inside. Outside the cage the same sums give 0: Green coordinates are defined inside.
+    unit outward normals of the triangles (``cage.triangle_normals()``) or of the polygon's edges
+    (``cage.edge_normals()``); points on the cage get the limit from inside. Outside the cage the
+    same sums give 0: Green coordinates are defined inside.
 
     Args:
         points: ``(*, 3)`` query points.
-        cage: a closed triangle cage; quad cages are refused (use ``cage.triangulated()``).
+        cage: a closed triangle cage (quad cages are refused: use ``cage.triangulated()``) or a
+            closed polygon.
         chunk_size: points per chunk (default: about 130k point–face pairs).
         dtype: compute dtype. Default: float64, returned in the dtype of the inputs.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
 
     Returns:
-        ``(phi (*, V), psi (*, T))``.
+        ``(phi (*, V), psi (*, T))``, ``T`` the triangles, or the edges in 2D.
 
     Raises:
-        CageError: a 2D or quad cage.
+        CageError: a quad cage.
         PointsError: bad points (shape, device, NaN or inf).
 
     Example:
@@ -56,17 +59,26 @@ def green_coordinates(
         >>> torch.allclose(phi @ cube.vertices + psi @ cube.triangle_normals(), x)
         True
     """
-    if cage.dim != 3:
-        raise CageError("green_coordinates is for 3D triangle cages; 2D Green coordinates are not exposed yet")
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     x = flat.to(compute)
-    data = triangle_green_data(cage, compute)
-    T = data.tri.shape[0]
+    if cage.dim == 3:
+        data = triangle_green_data(cage, compute)
+        T = data.tri.shape[0]
+
+        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return green3d_coordinates(c, data, cage.num_vertices)
+    else:
+        T = cage.edges.shape[0]
+        poly = cage.to(compute)
+
+        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return green_coordinates_2d(c, poly)
+
     size = chunk_size if chunk_size is not None else default_chunk(T, 1 << 17)
     phi = torch.empty(x.shape[0], cage.num_vertices, dtype=compute, device=x.device)
     psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
-        phi[sl], psi[sl] = green3d_coordinates(x[sl], data, cage.num_vertices)
+        phi[sl], psi[sl] = kernel(x[sl])
     lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, -1), psi.to(out_dtype).reshape(*lead, -1)

@@ -21,7 +21,7 @@ def triangle_frames(vertices: torch.Tensor, triangles: torch.Tensor) -> tuple[to
 
 
 class GreenCoordinates(CageModule):
-    """Deform points embedded in a closed triangle cage with Green coordinates.
+    """Deform points embedded in a closed triangle cage (or a closed polygon) with Green coordinates.
 
     ``phi`` ``(N, V)`` and ``psi`` ``(N, T)`` are computed once at rest (buffers in the
     ``state_dict``). ``forward`` computes, from the deformed cage, the unit normals ``n'`` and
@@ -32,14 +32,15 @@ class GreenCoordinates(CageModule):
     cage move the points by the same similarity.
 
     Args:
-        cage: a closed triangle cage (triangulate quad cages with ``cage.triangulated()``).
-        points: ``(N, 3)`` points inside the cage.
+        cage: a closed triangle cage (triangulate quad cages with ``cage.triangulated()``), or a
+            closed polygon (then the stretch of an edge is ``|a'| / |a|`` and the warp is conformal).
+        points: ``(N, D)`` points inside the cage.
         chunk_size: points per chunk while computing the coordinates.
         dtype: dtype of the stored coordinates (float64 by default).
 
     Shape:
-        - Input: ``(*, V, 3)`` deformed cage vertices.
-        - Output: ``(*, N, 3)`` deformed points.
+        - Input: ``(*, V, D)`` deformed cage vertices.
+        - Output: ``(*, N, D)`` deformed points.
 
     Example:
         >>> import torch, torchcage
@@ -55,19 +56,27 @@ class GreenCoordinates(CageModule):
     phi: torch.Tensor
     psi: torch.Tensor
     triangles: torch.Tensor
+    edges: torch.Tensor
 
     def __init__(
         self, cage: Cage, points: torch.Tensor, *, chunk_size: int | None = None, dtype: torch.dtype = torch.float64
     ) -> None:
         phi, psi = green_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype)
-        super().__init__(cage, torch.as_tensor(points).reshape(-1, 3))
+        super().__init__(cage, torch.as_tensor(points).reshape(-1, cage.dim))
         self.register_buffer("phi", phi.reshape(-1, cage.num_vertices))
-        self.register_buffer("psi", psi.reshape(-1, cage.triangles.shape[0]))
+        self.register_buffer("psi", psi.reshape(phi.reshape(-1, cage.num_vertices).shape[0], -1))
         self.register_buffer("triangles", cage.triangles.clone())
+        self.register_buffer("edges", cage.edges.clone())
 
     def forward(self, vertices: torch.Tensor) -> torch.Tensor:
-        """Deformed points ``(*, N, 3)`` for deformed cage vertices ``(*, V, 3)``."""
+        """Deformed points ``(*, N, D)`` for deformed cage vertices ``(*, V, D)``."""
         self._check_vertices(vertices, self.phi)
+        if self.dim == 2:
+            # s_j n'_j = R(-90) a'_j / |a_j|: the stretch |a'| / |a| times the unit outward normal.
+            a0 = self.rest_vertices[self.edges[:, 1]] - self.rest_vertices[self.edges[:, 0]]
+            a1 = vertices[..., self.edges[:, 1], :] - vertices[..., self.edges[:, 0], :]
+            sn = torch.stack([a1[..., 1], -a1[..., 0]], dim=-1) / a0.norm(dim=-1).to(vertices.dtype)[:, None]
+            return torch.matmul(self.phi.to(vertices.dtype), vertices) + torch.matmul(self.psi.to(vertices.dtype), sn)
         u0, v0, _ = triangle_frames(self.rest_vertices.to(vertices.dtype), self.triangles)
         u1, v1, n1 = triangle_frames(vertices, self.triangles)
         area = 0.5 * torch.linalg.cross(u0, v0, dim=-1).norm(dim=-1)
