@@ -9,11 +9,28 @@ from collections.abc import Callable, Iterator
 import torch
 
 from ..cage import Cage
-from ..errors import PointsError
+from ..errors import CageError, PointsError
 
 #: Points closer to the cage than this fraction of its bounding-box diagonal are treated as lying
 #: on it and get the interpolating values (the exact limit, up to rounding).
 ON_CAGE_TOLERANCE = 16 * torch.finfo(torch.float64).eps
+
+
+def triangle_geometry(cage: Cage, dtype: torch.dtype, quad_hint: str) -> tuple[torch.Tensor, ...]:
+    """Corners ``(T, 3, 3)``, unit outward normals ``(T, 3)`` and twice the areas ``(T,)`` of a
+    triangle cage's faces, in ``dtype``.
+
+    Raises:
+        CageError: a 2D cage, or a cage with quads (the message ends with ``quad_hint``).
+    """
+    if cage.dim != 3:
+        raise CageError("expected a 3D cage")
+    if cage.has_quads:
+        raise CageError(f"this needs a triangle cage, but the cage has {cage.quads.shape[0]} quads; {quad_hint}")
+    p = cage.vertices.to(dtype)[cage.triangles]
+    cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    two_area = cross.norm(dim=-1)
+    return p, cross / two_area[:, None], two_area
 
 
 def check_points(points: torch.Tensor, cage: Cage) -> torch.Tensor:

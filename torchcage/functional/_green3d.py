@@ -41,8 +41,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ..errors import CageError
-from ._common import ON_CAGE_TOLERANCE
+from ._common import ON_CAGE_TOLERANCE, triangle_geometry
 
 
 @dataclass(frozen=True)
@@ -60,17 +59,9 @@ class TriangleGreenData:
 
 
 def triangle_green_data(cage: Cage, dtype: torch.dtype) -> TriangleGreenData:
-    if cage.dim != 3:
-        raise CageError("expected a 3D cage")
-    if cage.has_quads:
-        raise CageError(
-            f"green_coordinates needs a triangle cage, but this cage has {cage.quads.shape[0]} quads; "
-            "triangulate it with cage.triangulated() (quad Green coordinates are a separate coordinate system)"
-        )
-    p = cage.vertices.to(dtype)[cage.triangles]
-    cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
-    two_area = cross.norm(dim=-1)
-    n = cross / two_area[:, None]
+    p, n, two_area = triangle_geometry(
+        cage, dtype, "triangulate it with cage.triangulated() (quad Green coordinates are a separate system)"
+    )
     E = p.roll(-2, dims=1) - p.roll(-1, dims=1)  # edge opposite corner i: p_{i+1} -> p_{i+2}
     ell = E.norm(dim=-1, keepdim=True)
     edge_dir = E / ell

@@ -48,8 +48,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ..errors import CageError
-from ._common import ON_CAGE_TOLERANCE
+from ._common import ON_CAGE_TOLERANCE, triangle_geometry
 
 #: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
 NEAR_PLANE = 0.01
@@ -80,19 +79,11 @@ class TriangleCageData:
 
 
 def triangle_cage_data(cage: Cage, dtype: torch.dtype) -> TriangleCageData:
-    if cage.dim != 3:
-        raise CageError("expected a 3D cage")
-    if cage.has_quads:
-        raise CageError(
-            f"mean_value_coordinates needs a triangle cage, but this cage has {cage.quads.shape[0]} quads; "
-            "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated() to split quads"
-        )
+    p, normal, two_area = triangle_geometry(
+        cage, dtype, "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated() to split quads"
+    )
     v = cage.vertices.to(dtype)
     tri = cage.triangles
-    p = v[tri]  # (T, 3 corners, 3)
-    cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
-    two_area = cross.norm(dim=-1)
-    normal = cross / two_area[:, None]
     edges = p.roll(-1, dims=1) - p.roll(-2, dims=1)  # E_e = p_{e+1} - p_{e+2}, (T, 3, 3)
     bary, qw = _collapsed_gauss(FAR_FIELD_ORDER, dtype, v.device)
     far_nodes = torch.einsum("qi,tic->tqc", bary, p)
