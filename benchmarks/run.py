@@ -54,6 +54,11 @@ def run_one(data: str, model: str, backend: str, repeat: int) -> dict:
 
         def fn() -> torch.Tensor:
             return naive_mean_value_coordinates(x, cage.vertices, cage.triangles)
+    elif backend == "green":
+
+        def fn() -> torch.Tensor:  # the identity phi V + psi n = x, as one (N, V + T) weight matrix
+            phi, psi = F.green_coordinates(x, cage)
+            return torch.cat([phi, psi], dim=1)
     else:
 
         def fn() -> torch.Tensor:
@@ -64,7 +69,12 @@ def run_one(data: str, model: str, backend: str, repeat: int) -> dict:
     w = fn()
     first = time.perf_counter() - t
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - base  # KiB on Linux
-    err = (w @ cage.vertices - x).abs().max().item() / cage.scale
+    if backend == "green":  # Green coordinates hold inside only: measure there (sum of phi = 1)
+        inside = (w[:, : cage.num_vertices].sum(1) - 1).abs() < 1e-6
+        basis = torch.cat([cage.vertices, cage.triangle_normals()])
+        err = (w[inside] @ basis - x[inside]).abs().max().item() / cage.scale
+    else:
+        err = (w @ cage.vertices - x).abs().max().item() / cage.scale
     del w
     best = first
     for _ in range(repeat):
@@ -87,6 +97,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--models", nargs="*", default=MODELS)
     ap.add_argument("--no-baseline", action="store_true", help="skip the naive baseline (slow, memory hungry)")
+    ap.add_argument("--no-green", action="store_true", help="skip the Green coordinates rows")
     ap.add_argument("--large", type=int, default=0, help="also run this many random points (memory check)")
     ap.add_argument("--one", nargs=2, metavar=("MODEL", "BACKEND"), help=argparse.SUPPRESS)
     ap.add_argument("--large-one", nargs=3, help=argparse.SUPPRESS)
@@ -113,6 +124,7 @@ def main() -> None:
             print(f"{model:<12}  (absent from {args.data}/qmvc: skipped)")
             continue
         backends = (["native"] if native else []) + ["torch"] + ([] if args.no_baseline else ["naive"])
+        backends += [] if args.no_green else ["green"]
         for name in backends:
             r = measure(args.data, model, name, args.repeat if name != "naive" else 1)
             rate = r["points"] / r["best"] / 1e6
@@ -121,7 +133,9 @@ def main() -> None:
         print()
     print("first: first call in a fresh process (includes loading the native library);")
     print("best: best of the repeated calls; peak MB: peak resident memory of the process above its level")
-    print("before the first call; max |err|: linear precision, max |W V - X| / cage size.")
+    print("before the first call; max |err|: linear precision, max |W V - X| / cage size (for green: the")
+    print("identity phi V + psi n = X at the points inside the cage). native/torch/naive: mean value")
+    print("coordinates; green: Green coordinates (torch kernel).")
     if args.large:
         out_mb = args.large * 16 * 8 / 2**20
         print(f"\n{args.large} random points in the bar cage (16 vertices): the output alone is {out_mb:.0f} MB")
