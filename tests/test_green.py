@@ -143,3 +143,24 @@ def test_inside_points_on_the_planes_of_other_faces():
     x = torch.tensor(pts, dtype=torch.float64)
     phi, psi = F.green_coordinates(x, cage)
     assert (phi @ cage.vertices + psi @ cage.triangle_normals() - x).abs().max() < 1e-14
+
+
+def test_native_and_torch_kernels_agree():
+    from torchcage import _native
+
+    if not _native.available():
+        pytest.skip("native kernel unavailable")
+    cage = HANDMADE["notched"]()
+    p, tri = cage.vertices, cage.triangles
+    nrm = cage.triangle_normals()
+    centroids = p[tri].mean(1)
+    edges_mid = 0.5 * (p[tri[:, 0]] + p[tri[:, 1]])
+    x = torch.cat([inside_points(cage, 300, seed=6), centroids, edges_mid, p, centroids - 1e-9 * nrm])
+    a = F.green_coordinates(x, cage, backend="native")
+    b = F.green_coordinates(x, cage, backend="torch")
+    assert (a[0] - b[0]).abs().max() < 1e-12 and (a[1] - b[1]).abs().max() < 1e-12
+    xr = x[:3].clone().requires_grad_(True)
+    with pytest.raises(RuntimeError, match="autograd"):
+        F.green_coordinates(xr, cage, backend="native")
+    phi, _ = F.green_coordinates(xr, cage)  # auto: the torch kernel, differentiable
+    assert phi.requires_grad

@@ -25,7 +25,7 @@ import torch
 
 __all__ = ["available", "library"]
 
-_SOURCES = ("mvc3d.c",)
+_SOURCES = ("mvc3d.c", "gc3d.c")
 
 #: Arguments of ``tc_mvc3d`` in mvc3d.c, in order (names as there; see its comment for layouts).
 TC_MVC3D_SIGNATURE = {
@@ -34,6 +34,13 @@ TC_MVC3D_SIGNATURE = {
     "gram": "ptr", "far_nodes": "ptr", "far_coef": "ptr", "longest": "ptr", "Q": "i64", "far_c": "f64",
     "cancel_c": "f64", "X": "ptr", "n": "i64", "tol": "f64", "near_c": "f64", "nthreads": "i32",
     "W": "ptr", "on": "ptr",
+}  # fmt: skip
+
+#: Arguments of ``tc_gc3d`` in gc3d.c, in order.
+TC_GC3D_SIGNATURE = {
+    "P": "ptr", "nrm": "ptr", "two_area": "ptr", "ell": "ptr", "edir": "ptr", "eout": "ptr", "gbary": "ptr",
+    "tri": "ptr", "T": "i64", "V": "i64", "X": "ptr", "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr",
+    "PSI": "ptr",
 }  # fmt: skip
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
@@ -109,6 +116,8 @@ def _build() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(target))
     kinds = {"ptr": ctypes.c_void_p, "i64": ctypes.c_long, "i32": ctypes.c_int, "f64": ctypes.c_double}
     lib.tc_mvc3d.argtypes = [kinds[kind] for kind in TC_MVC3D_SIGNATURE.values()]
+    lib.tc_gc3d.argtypes = [kinds[kind] for kind in TC_GC3D_SIGNATURE.values()]
+    lib.tc_gc3d.restype = None
     lib.tc_mvc3d.restype = None
     return lib
 

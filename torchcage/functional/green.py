@@ -12,7 +12,8 @@ import torch
 from ..cage import Cage
 from ._common import check_points, chunks, default_chunk, result_dtype
 from ._green2d import green_coordinates_2d
-from ._green3d import green3d_coordinates, triangle_green_data
+from ._green3d import TriangleGreenData, green3d_coordinates, triangle_green_data
+from ._mvc3d_native import use_native
 
 __all__ = ["green_coordinates"]
 
@@ -24,6 +25,7 @@ def green_coordinates(
     chunk_size: int | None = None,
     dtype: torch.dtype | None = None,
     progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Green coordinates (Lipman, Levin, Cohen-Or 2008) of points inside a closed triangle cage
     or a closed polygon.
@@ -40,6 +42,8 @@ def green_coordinates(
         chunk_size: points per chunk (default: about 130k point–face pairs).
         dtype: compute dtype. Default: float64, returned in the dtype of the inputs.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
+        backend: ``"auto"`` (the native CPU kernel for 3D float64 on the CPU when it can be built
+            and no autograd graph is needed, else torch), ``"native"`` or ``"torch"``.
 
     Returns:
         ``(phi (*, V), psi (*, T))``, ``T`` the triangles, or the edges in 2D.
@@ -62,11 +66,16 @@ def green_coordinates(
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     x = flat.to(compute)
+    needs_grad = torch.is_grad_enabled() and (x.requires_grad or cage.vertices.requires_grad)
+    lib = use_native(backend, x, cage.dim, needs_grad)
     if cage.dim == 3:
         data = triangle_green_data(cage, compute)
         T = data.tri.shape[0]
+        tables = _native_tables(data) if lib is not None else {}
 
         def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            if lib is not None:
+                return _native_chunk(c, data, tables, lib, cage.num_vertices)
             return green3d_coordinates(c, data, cage.num_vertices)
     else:
         T = cage.edges.shape[0]
@@ -82,3 +91,32 @@ def green_coordinates(
         phi[sl], psi[sl] = kernel(x[sl])
     lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, -1), psi.to(out_dtype).reshape(*lead, -1)
+
+
+def _native_tables(data: TriangleGreenData) -> dict[str, torch.Tensor]:
+    """Contiguous row-major tables for ``tc_gc3d`` (see gc3d.c)."""
+    return {
+        "P": data.p.contiguous(),
+        "nrm": data.normal.contiguous(),
+        "two_area": data.two_area.contiguous(),
+        "ell": (data.grad_bary.norm(dim=-1) * data.two_area[:, None]).contiguous(),
+        "edir": data.edge_dir.contiguous(),
+        "eout": data.edge_out.contiguous(),
+        "gbary": data.grad_bary.contiguous(),
+        "tri": data.tri.to(torch.int32).contiguous(),
+    }
+
+
+def _native_chunk(
+    x: torch.Tensor, data: TriangleGreenData, tables: dict[str, torch.Tensor], lib: object, num_vertices: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The native kernel on a chunk: ``x`` ``(n, 3)`` float64 -> ``(phi (n, V), psi (n, T))``."""
+    x = x.contiguous()
+    n, T = x.shape[0], data.tri.shape[0]
+    phi = torch.empty(n, num_vertices, dtype=torch.float64)
+    psi = torch.empty(n, T, dtype=torch.float64)
+    t = tables
+    args = [t["P"], t["nrm"], t["two_area"], t["ell"], t["edir"], t["eout"], t["gbary"], t["tri"], T, num_vertices,
+            x, n, data.tol, torch.get_num_threads(), phi, psi]  # fmt: skip
+    lib.tc_gc3d(*[a.data_ptr() if isinstance(a, torch.Tensor) else a for a in args])  # type: ignore[attr-defined]
+    return phi, psi
