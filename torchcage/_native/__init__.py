@@ -3,8 +3,10 @@
 The torch kernels in :mod:`torchcage.functional` run everywhere (CPU, GPU, any dtype). For the
 hot path on CPU in float64, a plain-C version of the same formulas, parallel over points with
 OpenMP, is about ten times faster. It is compiled once (about a second) into a cache folder
-(``$TORCHCAGE_CACHE``, else ``~/.cache/torchcage``) and loaded with :mod:`ctypes`. Without a C
-compiler, or with ``TORCHCAGE_NATIVE=0``, torchcage uses the torch kernels.
+(``$TORCHCAGE_CACHE``, else ``~/.cache/torchcage``) and loaded with :mod:`ctypes`. Builds are
+tried from the fastest variant down (AVX2 with glibc's vector math, SSE2, plain C, and last
+without OpenMP, single-threaded). Without a C compiler, or with ``TORCHCAGE_NATIVE=0``, torchcage
+uses the torch kernels. Extra compiler flags: ``$TORCHCAGE_CFLAGS``.
 """
 
 from __future__ import annotations
@@ -93,6 +95,7 @@ def _build() -> ctypes.CDLL:
         variants = [mvec, ([], [])]
         if _cpu_flags() == "avx2":
             variants.insert(0, (["-mavx2", "-mfma", "-DTC_LIBMVEC"], ["-lmvec"]))
+    variants.append((["-fno-openmp"], []))  # a compiler without OpenMP: one thread, same results
     digest = hashlib.sha256()
     for src in sources:
         digest.update(src.read_bytes())
