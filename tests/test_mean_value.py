@@ -248,17 +248,17 @@ def star(n: int = 7) -> torchcage.Cage:
     return torchcage.Cage(torch.stack([r * torch.cos(ang), r * torch.sin(ang)], dim=1))
 
 
-def test_2d_properties_and_mpmath():
+def test_2d_properties_and_mpmath(backend):
     cage = star()
     x = sample_points(cage, 300, seed=1)
-    w = F.mean_value_coordinates(x, cage)
+    w = F.mean_value_coordinates(x, cage, backend=backend)
     assert_partition_of_unity(w, atol=1e-12)
     assert_linear_precision(w, cage.vertices, x, rtol=1e-10)
     worst = max(float((w[i] - to_tensor(mvc2d_reference(x[i], cage.vertices))).abs().max()) for i in range(40))
     assert worst < 1e-12
 
 
-def test_2d_interpolation_and_near_edges():
+def test_2d_interpolation_and_near_edges(backend):
     cage = star()
     v, e = cage.vertices, cage.edges
     V = cage.num_vertices
@@ -271,13 +271,21 @@ def test_2d_interpolation_and_near_edges():
     tt = t.repeat(e.shape[0])
     expected.index_put_((rows, j), 1 - tt, accumulate=True)
     expected.index_put_((rows, k), tt, accumulate=True)
-    assert_interpolates(F.mean_value_coordinates(pts, cage), expected, atol=1e-12)
+    assert_interpolates(F.mean_value_coordinates(pts, cage, backend=backend), expected, atol=1e-12)
     normal = cage.edge_normals()
     for d in [1e-15, 1e-9, 1e-4]:
         near = pts + d * normal.repeat_interleave(len(t), dim=0)
-        w = F.mean_value_coordinates(near, cage)
+        w = F.mean_value_coordinates(near, cage, backend=backend)
         assert torch.isfinite(w).all()
         assert_linear_precision(w, v, near, rtol=1e-10)
+
+
+def test_2d_backends_agree():
+    cage = star()
+    x = torch.cat([sample_points(cage, 2000, spread=2.0, seed=9), cage.vertices, cage.vertices + 1e-13])
+    a = F.mean_value_coordinates(x, cage, backend="torch")
+    b = F.mean_value_coordinates(x, cage)
+    assert (a - b).abs().max() < 1e-12
 
 
 @pytest.mark.parametrize("name", ["Gil_Gecko", "LBClogo", "cactus", "woody"])

@@ -27,7 +27,7 @@ import torch
 
 __all__ = ["available", "library"]
 
-_SOURCES = ("mvc3d.c", "gc3d.c")
+_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c")
 
 #: Arguments of ``tc_mvc3d`` in mvc3d.c, in order (names as there; see its comment for layouts).
 TC_MVC3D_SIGNATURE = {
@@ -35,6 +35,12 @@ TC_MVC3D_SIGNATURE = {
     "inc_ptr": "ptr", "inc_idx": "ptr", "fs": "ptr", "nrm": "ptr", "two_area": "ptr", "ell": "ptr",
     "gram": "ptr", "far_nodes": "ptr", "far_coef": "ptr", "longest": "ptr", "Q": "i64", "far_c": "f64",
     "cancel_c": "f64", "X": "ptr", "n": "i64", "tol": "f64", "near_c": "f64", "nthreads": "i32",
+    "W": "ptr", "on": "ptr",
+}  # fmt: skip
+
+#: Arguments of ``tc_mvc2d`` in mvc2d.c, in order.
+TC_MVC2D_SIGNATURE = {
+    "P": "ptr", "V": "i64", "edges": "ptr", "E": "i64", "X": "ptr", "n": "i64", "tol": "f64", "nthreads": "i32",
     "W": "ptr", "on": "ptr",
 }  # fmt: skip
 
@@ -120,6 +126,8 @@ def _build() -> ctypes.CDLL:
     kinds = {"ptr": ctypes.c_void_p, "i64": ctypes.c_long, "i32": ctypes.c_int, "f64": ctypes.c_double}
     lib.tc_mvc3d.argtypes = [kinds[kind] for kind in TC_MVC3D_SIGNATURE.values()]
     lib.tc_gc3d.argtypes = [kinds[kind] for kind in TC_GC3D_SIGNATURE.values()]
+    lib.tc_mvc2d.argtypes = [kinds[kind] for kind in TC_MVC2D_SIGNATURE.values()]
+    lib.tc_mvc2d.restype = None
     lib.tc_gc3d.restype = None
     lib.tc_mvc3d.restype = None
     return lib

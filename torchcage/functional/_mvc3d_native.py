@@ -64,14 +64,16 @@ def native_chunk(
     return on
 
 
-def use_native(backend: str, x: torch.Tensor, dim: int, needs_grad: bool = False) -> object | None:
+def use_native(
+    backend: str, x: torch.Tensor, dim: int, needs_grad: bool = False, dims: tuple[int, ...] = (3,)
+) -> object | None:
     """The native library when it should serve this call, else ``None`` (use the torch kernel).
 
-    ``"auto"`` takes it for 3D float64 CPU inputs that need no autograd graph; ``"native"``
-    insists (and raises where it cannot serve); ``"torch"`` never takes it."""
+    ``"auto"`` takes it for float64 CPU inputs of a dimension in ``dims`` that need no autograd
+    graph; ``"native"`` insists (and raises where it cannot serve); ``"torch"`` never takes it."""
     if backend not in ("auto", "native", "torch"):
         raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
-    if backend == "torch" or dim != 3:
+    if backend == "torch" or dim not in dims:
         return None
     if needs_grad:
         if backend == "native":

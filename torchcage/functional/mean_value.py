@@ -33,7 +33,7 @@ def _coordinates_flat(
 ) -> torch.Tensor:
     """Mean value coordinates ``(N, V)`` of checked points ``x`` ``(N, D)`` in their dtype."""
     needs_grad = torch.is_grad_enabled() and (x.requires_grad or cage.vertices.requires_grad)
-    lib = use_native(backend, x, cage.dim, needs_grad)
+    lib = use_native(backend, x, cage.dim, needs_grad, dims=(2, 3))
     if cage.dim == 3:
         data3 = triangle_cage_data(cage, x.dtype)
         tables = native_tables(data3) if lib is not None else {}
@@ -49,7 +49,17 @@ def _coordinates_flat(
         data2 = polygon_data(cage, x.dtype)
         nf = data2.edges.shape[0]
 
+        edges32 = cage.edges.to(torch.int32).contiguous()
+        verts = cage.vertices.to(x.dtype).contiguous()
+
         def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
+            if lib is not None:
+                c = c.contiguous()
+                on = torch.empty(c.shape[0], dtype=torch.uint8)
+                args = [verts, verts.shape[0], edges32, edges32.shape[0], c, c.shape[0], data2.tol,
+                        torch.get_num_threads(), out, on]  # fmt: skip
+                lib.tc_mvc2d(*[a.data_ptr() if isinstance(a, torch.Tensor) else a for a in args])  # type: ignore[attr-defined]
+                return
             Wc, onc = mvc2d_chunk(c, data2)
             out.copy_(_normalise(Wc.T, onc))
 
@@ -94,7 +104,7 @@ def mean_value_coordinates(
             130k (3D) or 260k (2D) point–face pairs per chunk in the torch kernel.
         dtype: compute dtype. Default: compute in float64 and return in the dtype of the inputs.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
-        backend: ``"auto"`` (default): for 3D float64 on the CPU, torchcage's native C kernel
+        backend: ``"auto"`` (default): for float64 on the CPU, torchcage's native C kernel
             (compiled on first use, about a second) when a C compiler is present and no autograd
             graph is needed, else the torch kernel; ``"torch"`` forces the torch kernel (any
             device and dtype); ``"native"`` requires the native one.
