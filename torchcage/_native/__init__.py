@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "library"]
+__all__ = ["available", "call", "library", "select"]
 
 _SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c")
 
@@ -160,6 +160,41 @@ def available() -> bool:
     return library() is not None
 
 
-def ptr(t: torch.Tensor) -> int:
-    """Address of a contiguous CPU tensor's data."""
-    return t.data_ptr()
+def select(
+    backend: str, points: torch.Tensor, cage_vertices: torch.Tensor, dims: tuple[int, ...] = (3,)
+) -> ctypes.CDLL | None:
+    """The native library when it should serve a call, else ``None`` (use the torch kernel).
+
+    ``"auto"`` takes it for float64 CPU points of a dimension in ``dims`` when no autograd graph is
+    needed (neither the points nor the cage vertices require grad); ``"native"`` insists and raises
+    where it cannot serve; ``"torch"`` never takes it.
+
+    Raises:
+        ValueError: an unknown backend.
+        RuntimeError: ``"native"`` where the native kernel cannot serve (the message says why).
+    """
+    if backend not in ("auto", "native", "torch"):
+        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
+    if backend == "torch" or points.shape[-1] not in dims:
+        return None
+    if torch.is_grad_enabled() and (points.requires_grad or cage_vertices.requires_grad):
+        if backend == "native":
+            raise RuntimeError(
+                "the native kernel records no autograd graph; use backend='torch' (or 'auto') to "
+                "differentiate with respect to the points or the cage vertices"
+            )
+        return None
+    ok = points.device.type == "cpu" and points.dtype == torch.float64
+    lib = library() if ok else None
+    if backend == "native" and lib is None:
+        raise RuntimeError(
+            "the native kernel needs float64 points on the CPU and a C compiler; use backend='torch' "
+            "(or 'auto', which falls back to it)"
+        )
+    return lib
+
+
+def call(fn: object, args: list) -> None:
+    """Call a native function with tensors passed as their data pointers (they must be contiguous
+    CPU tensors of the types the C signature expects) and other arguments as they are."""
+    fn(*[a.data_ptr() if isinstance(a, torch.Tensor) else a for a in args])  # type: ignore[operator]

@@ -60,33 +60,5 @@ def native_chunk(
         NEAR_PLANE,
         torch.get_num_threads(), W, on,
     ]  # fmt: skip
-    lib.tc_mvc3d(*[a.data_ptr() if isinstance(a, torch.Tensor) else a for a in args])  # type: ignore[attr-defined]
+    _native.call(lib.tc_mvc3d, args)  # type: ignore[attr-defined]
     return on
-
-
-def use_native(
-    backend: str, x: torch.Tensor, dim: int, needs_grad: bool = False, dims: tuple[int, ...] = (3,)
-) -> object | None:
-    """The native library when it should serve this call, else ``None`` (use the torch kernel).
-
-    ``"auto"`` takes it for float64 CPU inputs of a dimension in ``dims`` that need no autograd
-    graph; ``"native"`` insists (and raises where it cannot serve); ``"torch"`` never takes it."""
-    if backend not in ("auto", "native", "torch"):
-        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
-    if backend == "torch" or dim not in dims:
-        return None
-    if needs_grad:
-        if backend == "native":
-            raise RuntimeError(
-                "the native kernel records no autograd graph; use backend='torch' (or 'auto') to "
-                "differentiate with respect to the points or the cage vertices"
-            )
-        return None
-    ok = x.device.type == "cpu" and x.dtype == torch.float64
-    lib = _native.library() if ok else None
-    if backend == "native" and lib is None:
-        raise RuntimeError(
-            "the native kernel needs float64 points on the CPU and a C compiler; use backend='torch' "
-            "(or 'auto', which falls back to it)"
-        )
-    return lib

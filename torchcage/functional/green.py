@@ -9,11 +9,11 @@ from collections.abc import Callable
 
 import torch
 
+from .. import _native
 from ..cage import Cage
 from ._common import check_points, chunks, default_chunk, result_dtype
 from ._green2d import green_coordinates_2d
 from ._green3d import TriangleGreenData, green3d_coordinates, triangle_green_data
-from ._mvc3d_native import use_native
 
 __all__ = ["green_coordinates"]
 
@@ -66,8 +66,7 @@ def green_coordinates(
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     x = flat.to(compute)
-    needs_grad = torch.is_grad_enabled() and (x.requires_grad or cage.vertices.requires_grad)
-    lib = use_native(backend, x, cage.dim, needs_grad)
+    lib = _native.select(backend, x, cage.vertices)
     if cage.dim == 3:
         data = triangle_green_data(cage, compute)
         T = data.tri.shape[0]
@@ -118,5 +117,5 @@ def _native_chunk(
     t = tables
     args = [t["P"], t["nrm"], t["two_area"], t["ell"], t["edir"], t["eout"], t["gbary"], t["tri"], T, num_vertices,
             x, n, data.tol, torch.get_num_threads(), phi, psi]  # fmt: skip
-    lib.tc_gc3d(*[a.data_ptr() if isinstance(a, torch.Tensor) else a for a in args])  # type: ignore[attr-defined]
+    _native.call(lib.tc_gc3d, args)  # type: ignore[attr-defined]
     return phi, psi

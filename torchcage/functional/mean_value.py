@@ -9,12 +9,13 @@ from collections.abc import Callable
 
 import torch
 
+from .. import _native
 from ..cage import Cage
 from ..errors import PointsError
 from ._common import check_points, chunks, default_chunk, result_dtype
 from ._mvc2d import mvc2d_chunk, polygon_data
 from ._mvc3d import mvc3d_chunk, triangle_cage_data
-from ._mvc3d_native import native_chunk, native_tables, use_native
+from ._mvc3d_native import native_chunk, native_tables
 
 __all__ = ["mean_value_coordinates"]
 
@@ -32,8 +33,7 @@ def _coordinates_flat(
     backend: str,
 ) -> torch.Tensor:
     """Mean value coordinates ``(N, V)`` of checked points ``x`` ``(N, D)`` in their dtype."""
-    needs_grad = torch.is_grad_enabled() and (x.requires_grad or cage.vertices.requires_grad)
-    lib = use_native(backend, x, cage.dim, needs_grad, dims=(2, 3))
+    lib = _native.select(backend, x, cage.vertices, dims=(2, 3))
     if cage.dim == 3:
         data3 = triangle_cage_data(cage, x.dtype)
         tables = native_tables(data3) if lib is not None else {}
@@ -58,7 +58,7 @@ def _coordinates_flat(
                 on = torch.empty(c.shape[0], dtype=torch.uint8)
                 args = [verts, verts.shape[0], edges32, edges32.shape[0], c, c.shape[0], data2.tol,
                         torch.get_num_threads(), out, on]  # fmt: skip
-                lib.tc_mvc2d(*[a.data_ptr() if isinstance(a, torch.Tensor) else a for a in args])  # type: ignore[attr-defined]
+                _native.call(lib.tc_mvc2d, args)  # type: ignore[union-attr]
                 return
             Wc, onc = mvc2d_chunk(c, data2)
             out.copy_(_normalise(Wc.T, onc))
