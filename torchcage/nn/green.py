@@ -63,8 +63,9 @@ class GreenCoordinates(CageModule):
     ) -> None:
         phi, psi = green_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype)
         super().__init__(cage, torch.as_tensor(points).reshape(-1, cage.dim))
-        self.register_buffer("phi", phi.reshape(-1, cage.num_vertices))
-        self.register_buffer("psi", psi.reshape(phi.reshape(-1, cage.num_vertices).shape[0], -1))
+        phi = phi.reshape(-1, cage.num_vertices)
+        self.register_buffer("phi", phi)
+        self.register_buffer("psi", psi.reshape(phi.shape[0], -1))
         self.register_buffer("triangles", cage.triangles.clone())
         self.register_buffer("edges", cage.edges.clone())
 
