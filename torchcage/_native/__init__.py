@@ -27,7 +27,7 @@ import torch
 
 __all__ = ["available", "call", "library", "select"]
 
-_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c")
+_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c")
 
 #: Arguments of ``tc_mvc3d`` in mvc3d.c, in order (names as there; see its comment for layouts).
 TC_MVC3D_SIGNATURE = {
@@ -50,6 +50,12 @@ TC_GC3D_SIGNATURE = {
     "tri": "ptr", "T": "i64", "V": "i64", "X": "ptr", "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr",
     "PSI": "ptr",
 }  # fmt: skip
+#: Arguments of ``tc_raster2d`` in raster.c, in order.
+TC_RASTER2D_SIGNATURE = {
+    "P": "ptr", "B": "i64", "Nv": "i64", "tri": "ptr", "T": "i64", "H": "i64", "W": "i64", "S": "ptr", "C": "i64",
+    "nthreads": "i32", "out": "ptr", "val": "ptr",
+}  # fmt: skip
+
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
 _failed: str | None = None
@@ -127,7 +133,9 @@ def _build() -> ctypes.CDLL:
     lib.tc_mvc3d.argtypes = [kinds[kind] for kind in TC_MVC3D_SIGNATURE.values()]
     lib.tc_gc3d.argtypes = [kinds[kind] for kind in TC_GC3D_SIGNATURE.values()]
     lib.tc_mvc2d.argtypes = [kinds[kind] for kind in TC_MVC2D_SIGNATURE.values()]
+    lib.tc_raster2d.argtypes = [kinds[kind] for kind in TC_RASTER2D_SIGNATURE.values()]
     lib.tc_mvc2d.restype = None
+    lib.tc_raster2d.restype = None
     lib.tc_gc3d.restype = None
     lib.tc_mvc3d.restype = None
     return lib
