@@ -39,8 +39,8 @@ def rasterize_triangles(
         tensor([[ 0,  0,  0],
                 [ 0,  0,  0],
                 [ 0,  0, -1]])
-        >>> val[0, 1, 1].tolist()       # the positions themselves, interpolated at pixel (1, 1)
-        [1.0, 1.0]
+        >>> [round(v, 12) for v in val[0, 1, 2].tolist()]   # the positions themselves, at pixel (1, 2)
+        [2.0, 1.0]
     """
     P = positions.detach().to(torch.float64)
     S = values.detach().to(torch.float64)
