@@ -10,7 +10,8 @@ import torch
 
 import torchcage
 from torchcage._raster import _interpolate, _rasterize_one, rasterize_triangles
-from torchcage.image import CageWarp, inside_polygon, pixel_centres, warp_image
+from torchcage.geometry import inside_polygon
+from torchcage.image import CageWarp, pixel_centres, warp_image
 
 pytest.importorskip("kornia")
 

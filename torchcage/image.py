@@ -50,6 +50,7 @@ from .cage import Cage
 from .errors import CageError
 from .functional.green import green_coordinates
 from .functional.mean_value import mean_value_coordinates
+from .geometry import inside_polygon
 
 __all__ = ["CageWarp", "inside_polygon", "pixel_centres", "warp_image"]
 
@@ -91,38 +92,6 @@ def pixel_centres(
         torch.arange(height, dtype=dtype, device=device), torch.arange(width, dtype=dtype, device=device), indexing="ij"
     )
     return torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=1)
-
-
-def inside_polygon(points: torch.Tensor, vertices: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
-    """Whether points lie inside a closed polygon (even-odd crossing rule), chunked over points.
-
-    Args:
-        points: ``(N, 2)`` points.
-        vertices: ``(V, 2)`` polygon vertices.
-        edges: ``(E, 2)`` directed edges (any orientation).
-
-    Returns:
-        ``(N,)`` bool; points exactly on an edge may go either way.
-
-    Example:
-        >>> import torch
-        >>> sq = torch.tensor([[0.0, 0], [2, 0], [2, 2], [0, 2]])
-        >>> e = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 0]])
-        >>> inside_polygon(torch.tensor([[1.0, 1.0], [3.0, 1.0]]), sq, e)
-        tensor([ True, False])
-    """
-    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
-    dy = b[:, 1] - a[:, 1]
-    slope = (b[:, 0] - a[:, 0]) / torch.where(dy != 0, dy, 1.0)
-    out = torch.empty(points.shape[0], dtype=torch.bool, device=points.device)
-    step = max(1, (1 << 22) // max(1, edges.shape[0]))
-    for s in range(0, points.shape[0], step):
-        p = points[s : s + step]
-        y = p[:, 1:2]
-        spans = (a[:, 1] > y) != (b[:, 1] > y)
-        crosses = spans & (p[:, 0:1] < a[:, 0] + (y - a[:, 1]) * slope)
-        out[s : s + step] = crosses.sum(dim=1) % 2 == 1
-    return out
 
 
 def _as_cage(cage: Cage | torch.Tensor) -> Cage:

@@ -1,0 +1,1 @@
+"""Solvers behind the coordinates: domain meshing and the LBC ADMM solver."""
