@@ -40,7 +40,7 @@ import torch
 
 from .domain import Domain
 
-__all__ = ["LBCResult", "TAU", "geodesic_distances", "gradient_operator", "project_rows", "solve_lbc"]
+__all__ = ["TAU", "LBCResult", "geodesic_distances", "gradient_operator", "make_feasible", "project_rows", "solve_lbc"]
 
 #: The weighting functions tau of the paper's Eq. 11.
 TAU: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
@@ -143,15 +143,29 @@ def project_rows(W: torch.Tensor, K: torch.Tensor, B: torch.Tensor, support: tor
     return W + S * (sol @ K.T)
 
 
+def make_feasible(W: torch.Tensor, K: torch.Tensor, B: torch.Tensor, max_rounds: int = 30) -> torch.Tensor:
+    """Nearby rows that are non-negative and reproduce ``B`` exactly: negative entries are set to
+    zero and leave the support, and the rest of each row is corrected (least norm) until no entry
+    is negative (an active-set loop; the support only shrinks)."""
+    support = W > 0
+    for _ in range(max_rounds):
+        W = project_rows(W.clamp_min(0.0), K, B, support)
+        negative = W < 0
+        if not bool(negative.any()):
+            break
+        support &= ~negative
+    return W
+
+
 class _FactoredSolve:
     """``(G^T G + I)^{-1}`` applied to all right-hand sides: sparse LU on the CPU (scipy), factored once."""
 
-    def __init__(self, G: torch.Tensor) -> None:
+    def __init__(self, G: torch.Tensor, shift: float) -> None:
         from scipy.sparse import csr_matrix, identity
         from scipy.sparse.linalg import splu
 
         Gs = csr_matrix((G.values().numpy(), G.col_indices().numpy(), G.crow_indices().numpy()), shape=G.shape)
-        self.lu = splu((Gs.T @ Gs + identity(G.shape[1])).tocsc(), permc_spec="MMD_AT_PLUS_A")
+        self.lu = splu((Gs.T @ Gs + shift * identity(G.shape[1])).tocsc(), permc_spec="COLAMD")
 
     def __call__(self, rhs: torch.Tensor, guess: torch.Tensor) -> torch.Tensor:
         return torch.from_numpy(self.lu.solve(rhs.numpy()))
@@ -161,16 +175,17 @@ class _ConjugateGradient:
     """Jacobi-preconditioned conjugate gradient on ``G^T G + I`` for all right-hand sides at once,
     warm-started from the previous iterate (any device)."""
 
-    def __init__(self, G: torch.Tensor, tol: float = 1e-10, max_iter: int = 500) -> None:
+    def __init__(self, G: torch.Tensor, shift: float, tol: float = 1e-10, max_iter: int = 500) -> None:
         self.G, self.Gt = G, _csr(G.to_sparse_coo().t().coalesce())
         diag = torch.zeros(G.shape[1], dtype=G.dtype, device=G.device)
         coo = G.to_sparse_coo().coalesce()
         diag.index_add_(0, coo.indices()[1], coo.values() ** 2)
-        self.inv_diag = 1.0 / (diag + 1.0)
+        self.inv_diag = 1.0 / (diag + shift)
+        self.shift = shift
         self.tol, self.max_iter = tol, max_iter
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
-        return self.Gt @ (self.G @ x) + x
+        return self.Gt @ (self.G @ x) + self.shift * x
 
     def __call__(self, rhs: torch.Tensor, guess: torch.Tensor) -> torch.Tensor:
         x = guess.clone()
@@ -198,12 +213,14 @@ def solve_lbc(
     cage_vertices: torch.Tensor,
     *,
     weighting: str = "quadratic",
-    mu: float = 10.0,
+    mu: float | None = None,
+    mu_factor: float = 0.3,
     alpha: float = 1.65,
-    eps_primal: float = 1e-6,
+    eps_primal: float = 3e-7,
     eps_dual: float = 1e-5,
     max_iter: int = 20000,
-    adaptive: bool = True,
+    adaptive: bool = False,
+    w_scale: float = 1.0,
     balance_every: int = 10,
     linear_solver: str = "auto",
     report_every: int = 50,
@@ -219,7 +236,10 @@ def solve_lbc(
         cage_vertices: ``(V, D)`` the cage's vertices.
         weighting: ``"quadratic"`` (tau(x) = x², the paper's choice), ``"linear"``, ``"sqrt"`` or
             ``"constant"`` (plain total variation).
-        mu: initial penalty (the paper: 10).
+        mu: initial penalty. Default: ``mu_factor`` times the ratio of the mean weight ``phi A``
+            to the RMS gradient of the initial iterate (the paper's fixed ``mu = 10`` is orders of
+            magnitude above this scale and stops far from the optimum, see the module docstring).
+        mu_factor: scales the default penalty.
         alpha: over-relaxation in [1.5, 1.8] (the paper: 1.65).
         eps_primal: the primal tolerance per entry: stop when ``||r_p||_F <= eps_primal * N_p``
             and ``||r_d||_F <= eps_dual * N_d`` (the paper's rule and values, ``N`` the number of
@@ -280,17 +300,28 @@ def solve_lbc(
     phiA = TAU[weighting](at_cells) * vol[:, None]  # (C, V)
     C = domain.cells.shape[0]
 
+    # Scaling of the W = Y M + H constraint: the paper's weight 1 makes it thousands of times weaker
+    # than the gradient constraint (G's entries are ~1 / cell size), and the non-negativity of W
+    # then converges slowly; s^2 = the mean diagonal of G^T G balances the two (same solution).
+    ws = math.sqrt(float(G.values().square().sum()) / m) * w_scale if w_scale > 0 else 1.0
     if linear_solver == "cg":
-        solve: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = _ConjugateGradient(G)
+        solve: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = _ConjugateGradient(G, ws * ws)
     else:
-        solve = _FactoredSolve(G)
+        solve = _FactoredSolve(G, ws * ws)
 
+    if mu is None:
+        # The penalty's natural scale: the shrinkage threshold phi A / mu against the gradients'
+        # size (the initial iterate's, J = G H + E): a penalty far above it makes the weighted total
+        # variation a negligible pull per iteration and ADMM crawls towards the optimum.
+        grad0 = torch.sqrt(J.view(D, C, V).square().sum(dim=0))
+        mu = float(phiA.mean() / grad0.square().mean().sqrt().clamp_min(1e-300)) * mu_factor
     r = V - D - 1
     Y = torch.zeros((m, r), dtype=dt)
-    GYM = J * 0.0
-    YM = H * 0.0
-    u1 = torch.zeros_like(J)
-    u2 = torch.zeros_like(H)
+    P1, P2 = J.clone(), H.clone()  # G Y M + J and Y M + H, kept up to date
+    P1_new = torch.empty_like(J)
+    u1, u2 = torch.zeros_like(J), torch.zeros_like(H)  # multipliers scaled by 1 / mu
+    a, q = torch.empty_like(J), torch.empty_like(J)  # work buffers for the (D C, V) block
+    GtJ = Gt @ J
     Np, Nd = (D * C + m) * V, (D * C + m) * V
     tol_p, tol_d = eps_primal * Np, eps_dual * Nd
     history: list[tuple[int, float, float, float]] = []
@@ -301,26 +332,35 @@ def solve_lbc(
         bar = tqdm(total=max_iter, desc="LBC (ADMM)", leave=False)
     rp = rd = math.inf
     it = 0
+    # Every operation on the large (D C, V) block writes into a preallocated buffer: on a small CPU
+    # these passes over memory, not the arithmetic, set the time per iteration.
     for it in range(1, max_iter + 1):
-        a = (GYM + J - u1).reshape(D, C, V)
-        nrm = torch.sqrt(a.square().sum(dim=0))  # group soft-thresholding (Eq. 30)
-        shrink = (1 - phiA / (mu * nrm.clamp_min(1e-300))).clamp_min(0.0)
-        X = (a * shrink).reshape(D * C, V)
-        W = (YM + H - u2).clamp_min(0.0)
-        Xt = alpha * X - (alpha - 1) * (GYM + J)
-        Wt = alpha * W - (alpha - 1) * (YM + H)
-        rhs = (Gt @ (Xt - J + u1) + Wt - H + u2) @ M.T
-        Y_new = solve(rhs, Y)
-        YM_new = Y_new @ M
-        GYM_new = G @ YM_new
-        u1 += Xt - GYM_new - J
-        u2 += Wt - YM_new - H
+        # Step 1: group soft-thresholding of the gradients (Eq. 30), over-relaxed: q = X~ + u1.
+        torch.sub(P1, u1, out=a)
+        a3 = a.view(D, C, V)
+        norm = torch.sqrt((a3 * a3).sum(dim=0)).clamp_min_(1e-300)
+        shrink = torch.div(phiA, norm).mul_(-1.0 / mu).add_(1.0).clamp_min_(0.0)
+        torch.mul(a3, shrink, out=q.view(D, C, V))  # X
         check = it % report_every == 0 or it == max_iter or (adaptive and it % balance_every == 0)
         if check:
-            rp = math.sqrt(float((X - GYM_new - J).square().sum() + (W - YM_new - H).square().sum()))
-            dY = YM_new - YM
-            rd = mu * math.sqrt(float((GYM_new - GYM).square().sum() + dY.square().sum()))
-        Y, YM, GYM = Y_new, YM_new, GYM_new
+            X = q.clone()
+        torch.lerp(P1, q, alpha, out=q).add_(u1)
+        # ... and projection on W >= 0 (Eq. 31), over-relaxed: w = W~ + u2 / s.
+        W = (P2 - u2 / ws).clamp_min_(0.0)
+        w = torch.lerp(P2, W, alpha).add_(u2, alpha=1.0 / ws)
+        # Step 2: the Y step, one SPD solve for all right-hand sides.
+        rhs = torch.addmm(w - H, Gt, q, alpha=1.0 / (ws * ws)).sub_(GtJ, alpha=1.0 / (ws * ws)).mul_(ws * ws) @ M.T
+        Y_new = solve(rhs, Y)
+        P2_new = torch.addmm(H, Y_new, M)
+        torch.addmm(J, G, P2_new - H, out=P1_new)
+        # Step 3: multipliers.
+        torch.sub(q, P1_new, out=u1)
+        u2 = (w - P2_new) * ws
+        if check:
+            rp = math.sqrt(float((X - P1_new).square().sum() + (W - P2_new).square().sum()))
+            rd = mu * math.sqrt(float((P1_new - P1).square().sum() + (P2_new - P2).square().sum()))
+        P1, P1_new = P1_new, P1
+        Y, P2 = Y_new, P2_new
         if check:
             if it % report_every == 0 or it == max_iter:
                 history.append((it, rp, rd, mu))
@@ -332,9 +372,9 @@ def solve_lbc(
             if rp <= tol_p and rd <= tol_d:
                 break
             if adaptive and it % balance_every == 0:
-                if rp / tol_p > 10 * rd / tol_d:
+                if rp > 10 * rd:
                     mu, u1, u2 = mu * 2, u1 / 2, u2 / 2
-                elif rd / tol_d > 10 * rp / tol_p:
+                elif rd > 10 * rp:
                     mu, u1, u2 = mu / 2, u1 * 2, u2 * 2
     if bar is not None:
         bar.close()
@@ -347,9 +387,7 @@ def solve_lbc(
             stacklevel=2,
         )
     # Exact constraints (W = Y M + H), then non-negativity: clamp and re-project on the support.
-    Wi = YM + H
-    for _ in range(3):
-        Wi = project_rows(Wi.clamp_min(0.0), K, Bm, Wi > 0)
+    Wi = make_feasible(P2, K, Bm)
     weights = Wfull_b.clone()
     weights[interior] = Wi
     grads = torch.sqrt((Gfull @ weights).reshape(D, C, V).square().sum(dim=0))
