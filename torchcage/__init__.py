@@ -14,7 +14,7 @@ from . import data, functional
 from .cage import Cage
 from .errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError, PointsError
 from .io import load_cage, load_mesh, save_cage, save_mesh
-from .nn import GreenCoordinates, MeanValueCoordinates
+from .nn import GreenCoordinates, LocalBarycentricCoordinates, MeanValueCoordinates
 
 __version__ = "0.1.0"
 
@@ -25,6 +25,7 @@ __all__ = [
     "CageTopologyError",
     "DegenerateFaceError",
     "GreenCoordinates",
+    "LocalBarycentricCoordinates",
     "MeanValueCoordinates",
     "PointsError",
     "__version__",

@@ -2,6 +2,7 @@
 
 from .base import CageModule
 from .green import GreenCoordinates
+from .local_barycentric import LocalBarycentricCoordinates
 from .mean_value import MeanValueCoordinates
 
-__all__ = ["CageModule", "GreenCoordinates", "MeanValueCoordinates"]
+__all__ = ["CageModule", "GreenCoordinates", "LocalBarycentricCoordinates", "MeanValueCoordinates"]

@@ -67,7 +67,7 @@ class Domain:
 
 def _spacing(measure: float, target_cells: int, dim: int) -> float:
     # equilateral triangles: area 0.433 h^2; regular-ish tetrahedra of a jittered lattice: ~h^3 / 6
-    return math.sqrt(measure / (0.433 * target_cells)) if dim == 2 else (6 * measure / target_cells) ** (1 / 3)
+    return math.sqrt(measure / (0.433 * target_cells)) if dim == 2 else (10 * measure / target_cells) ** (1 / 3)
 
 
 def _segments(a: torch.Tensor, b: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -228,19 +228,29 @@ def _mesh_3d(cage: Cage, target_cells: int, seed: int) -> Domain:
     if lattice.shape[0]:
         d = torch.cdist(lattice, boundary_pts).amin(dim=1)
         lattice = lattice[d >= 0.5 * h]
-    allv = torch.cat([boundary_pts, lattice])
-    cells = torch.from_numpy(_delaunay(allv.numpy()))
-    cent = allv[cells].mean(dim=1)
-    cells = _orient(allv, cells[inside_cage(cent, cage)])
     nb = boundary_pts.shape[0]
-    faces = torch.cat([cells[:, [1, 2, 3]], cells[:, [0, 3, 2]], cells[:, [0, 1, 3]], cells[:, [0, 2, 1]]])
-    key = faces.sort(dim=1).values
-    uniq, counts = torch.unique(key, dim=0, return_counts=True)
-    exposed = uniq[counts == 1]
-    if bool((exposed >= nb).any()):
+    for _ in range(20):
+        allv = torch.cat([boundary_pts, lattice])
+        cells = torch.from_numpy(_delaunay(allv.numpy()))
+        cent = allv[cells].mean(dim=1)
+        cells = _orient(allv, cells[inside_cage(cent, cage)])
+        faces = torch.cat([cells[:, [1, 2, 3]], cells[:, [0, 3, 2]], cells[:, [0, 1, 3]], cells[:, [0, 2, 1]]])
+        uniq, counts = torch.unique(faces.sort(dim=1).values, dim=0, return_counts=True)
+        exposed = uniq[counts == 1]
+        bad = torch.unique(exposed[exposed >= nb])
+        used = torch.zeros(allv.shape[0], dtype=torch.bool)
+        used[cells.reshape(-1)] = True
+        if bad.numel() == 0 and bool(used[nb:].all()):
+            break
+        # Interior samples left on the mesh's surface (near a concave or curved part of the cage)
+        # or in no cell: drop them and triangulate again.
+        keep = used.clone()
+        keep[bad] = False
+        lattice = lattice[keep[nb:]]
+    else:
         raise CageError(
-            "the tetrahedral mesh of the cage's interior does not contain the cage's surface (an interior "
-            "sample is exposed); pass a larger target_cells, or your own mesh with domain=(vertices, cells)"
+            "the tetrahedral mesh of the cage's interior does not contain the cage's surface; pass a larger "
+            "target_cells, or your own mesh with domain=(vertices, cells)"
         )
     boundary = torch.arange(nb)
     bvalues = torch.cat([torch.eye(V, dtype=torch.float64), bval])

@@ -1,0 +1,95 @@
+"""The local barycentric coordinates module: sparse weights, deformation by sparse products."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ..cage import Cage
+from ..functional.local_barycentric import local_barycentric_coordinates, solve_local_barycentric
+from ..solvers.lbc import LBCResult
+from .base import CageModule
+
+__all__ = ["LocalBarycentricCoordinates"]
+
+
+class LocalBarycentricCoordinates(CageModule):
+    """Deform points inside a cage with local barycentric coordinates (sparse weights).
+
+    The weights are computed once (meshing and an ADMM solve, seconds) and stored as the buffers
+    ``weight_indices (2, nnz)`` and ``weight_values (nnz,)`` of a sparse ``(N, V)`` matrix, saved in
+    the ``state_dict``; ``forward`` is one sparse matrix product, differentiable with respect to the
+    deformed vertices. The solve's report (iterations, residuals, convergence, objective) is kept
+    in ``self.solution`` (not saved).
+
+    Args:
+        cage: a closed 2D polygon or 3D triquad cage.
+        points: ``(N, D)`` points inside the cage.
+        threshold: entries below it are dropped (default ``1e-3 / V``), rows corrected.
+        solution: reuse a solve of the same cage.
+        **options: passed to :func:`torchcage.functional.solve_local_barycentric`
+            (``target_cells``, ``domain``, ``weighting``, ``progress``, solver options).
+
+    Shape:
+        - Input: ``(*, V, D)`` deformed cage vertices.
+        - Output: ``(*, N, D)`` deformed points.
+
+    Example:
+        >>> import torch, torchcage
+        >>> cage = torchcage.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 2], [0, 2]], dtype=torch.float64))
+        >>> pts = torch.tensor([[0.5, 0.5], [1.0, 1.5]], dtype=torch.float64)
+        >>> lbc = torchcage.LocalBarycentricCoordinates(cage, pts, target_cells=200)
+        >>> torch.allclose(lbc(cage.vertices * 2 + 1), pts * 2 + 1)
+        True
+    """
+
+    weight_indices: torch.Tensor
+    weight_values: torch.Tensor
+
+    def __init__(
+        self,
+        cage: Cage,
+        points: torch.Tensor,
+        *,
+        threshold: float | None = None,
+        solution: LBCResult | None = None,
+        **options: Any,
+    ) -> None:
+        pts = torch.as_tensor(points).reshape(-1, cage.dim)
+        if solution is None:
+            solution = solve_local_barycentric(cage, **options)
+        W = local_barycentric_coordinates(pts, cage, threshold=threshold, solution=solution)
+        super().__init__(cage, pts)
+        self.solution = solution
+        self.register_buffer("weight_indices", W.indices().clone())
+        self.register_buffer("weight_values", W.values().to(torch.float64).clone())
+
+    @property
+    def weights(self) -> torch.Tensor:
+        """The sparse ``(N, V)`` weight matrix (COO)."""
+        return torch.sparse_coo_tensor(
+            self.weight_indices,
+            self.weight_values,
+            (self.num_points, self.num_vertices),
+            is_coalesced=True,
+            check_invariants=False,
+        )
+
+    def forward(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Deformed points ``(*, N, D)`` for deformed cage vertices ``(*, V, D)``."""
+        self._check_vertices(vertices, self.weight_values)
+        batch = vertices.shape[:-2]
+        flat = vertices.reshape(-1, self.num_vertices, self.dim).movedim(0, 1).reshape(self.num_vertices, -1)
+        W = torch.sparse_coo_tensor(
+            self.weight_indices,
+            self.weight_values.to(vertices.dtype),
+            (self.num_points, self.num_vertices),
+            is_coalesced=True,
+            check_invariants=False,
+        )
+        out = torch.sparse.mm(W, flat)  # (N, B * D)
+        return out.reshape(self.num_points, -1, self.dim).movedim(1, 0).reshape(*batch, self.num_points, self.dim)
+
+    def extra_repr(self) -> str:
+        return super().extra_repr() + f", nnz={self.weight_values.numel()}"
