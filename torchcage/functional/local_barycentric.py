@@ -168,7 +168,10 @@ def local_barycentric_coordinates(
             # the interpolated position of clamped points is their nearest mesh point
             target = torch.einsum("nk,nkd->nd", bary, result.domain.vertices[corners])
             B = torch.cat([target, torch.ones(xc.shape[0], 1, dtype=torch.float64)], 1)
-            w = make_feasible(w * (w >= thr), K, B)
+            cut = make_feasible(w * (w >= thr), K, B)
+            # rows whose remaining support cannot reproduce the point keep every entry
+            bad = ((cut @ K - B).abs().amax(dim=1) > 1e-12 * (1 + B.abs().amax(dim=1))) | (cut.amin(dim=1) < 0)
+            w = torch.where(bad[:, None], w, cut)
         r, c = torch.nonzero(w > 0, as_tuple=True)
         rows.append(r + s)
         cols.append(c)

@@ -232,9 +232,12 @@ def solve_lbc(
     eps_primal: float = 3e-7,
     eps_dual: float = 1e-5,
     max_iter: int = 20000,
-    adaptive: bool = False,
+    adaptive: bool = True,
     w_scale: float = 1.0,
-    balance_every: int = 10,
+    balance_every: int = 50,
+    balance_after: int = 500,
+    balance_ratio: float = 1e-2,
+    balance_step: float = 1.5,
     linear_solver: str = "auto",
     report_every: int = 50,
     progress: bool | Callable[[int, float, float], None] = False,
@@ -385,11 +388,13 @@ def solve_lbc(
                         progress(it, rp, rd)
                 if rp <= tol_p and rd <= tol_d:
                     break
-                if adaptive and it % balance_every == 0:
-                    if rp > 10 * rd:
-                        mu, u1, u2 = mu * 2, u1 / 2, u2 / 2
-                    elif rd > 10 * rp:
-                        mu, u1, u2 = mu / 2, u1 * 2, u2 * 2
+                if adaptive and it % balance_every == 0 and it >= balance_after:
+                    # Gentle balancing against the tolerances: raise the penalty only while the dual
+                    # residual is far inside its tolerance and the primal one is not.
+                    if rd / tol_d < balance_ratio * rp / tol_p and rp > tol_p:
+                        mu, u1, u2 = mu * balance_step, u1 / balance_step, u2 / balance_step
+                    elif rp / tol_p < balance_ratio * rd / tol_d and rd > tol_d:
+                        mu, u1, u2 = mu / balance_step, u1 * balance_step, u2 * balance_step
     if bar is not None:
         bar.close()
     converged = rp <= tol_p and rd <= tol_d
