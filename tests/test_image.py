@@ -40,7 +40,7 @@ def psnr(a: torch.Tensor, b: torch.Tensor, peak: float = 2.0) -> float:
     return math.inf if mse == 0 else 10 * math.log10(peak**2 / mse)
 
 
-CASES = [("mvc", "forward"), ("mvc", "backward"), ("green", "forward"), ("green", "backward")]
+CASES = [("mvc", "forward"), ("mvc", "backward"), ("green", "forward"), ("green", "backward"), ("lbc", "forward")]
 
 
 @pytest.mark.parametrize(("method", "mapping"), CASES)
@@ -91,7 +91,7 @@ def test_affine_and_similarity_motions(method, mapping):
     """MVC has linear precision: any affine cage motion gives the affine warp; Green coordinates
     reproduce similarities."""
     cage = star_cage()
-    moved, A, t = affine_pose(cage, similarity=method == "green")
+    moved, A, t = affine_pose(cage, similarity=method == "green")  # MVC and LBC: any affine map
     grid, inside = CageWarp(cage, H, W, method=method, mapping=mapping).sampling_grid(moved)
     y = pixel_centres(H, W).reshape(H, W, 2)
     expected = (y - t) @ torch.linalg.inv(A).T

@@ -213,7 +213,7 @@ def locality_statistics(
         >>> [round(p, 6) for p in P.tolist()], Q.tolist()
         ([0.5, 0.833333], [1.0, 1.0, 0.5, 0.0])
     """
-    w = (weights.to_dense() if weights.is_sparse else weights).abs()
+    w = (weights.to_dense() if weights.layout != torch.strided else weights).abs()
     N, V = w.shape
     mu = torch.ones(N, dtype=w.dtype) if measure is None else measure.to(w.dtype)
     mu = mu / mu.sum()

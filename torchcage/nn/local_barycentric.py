@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import torch
@@ -18,10 +19,13 @@ class LocalBarycentricCoordinates(CageModule):
     """Deform points inside a cage with local barycentric coordinates (sparse weights).
 
     The weights are computed once (meshing and an ADMM solve, seconds) and stored as the buffers
-    ``weight_indices (2, nnz)`` and ``weight_values (nnz,)`` of a sparse ``(N, V)`` matrix, saved in
-    the ``state_dict``; ``forward`` is one sparse matrix product, differentiable with respect to the
-    deformed vertices. The solve's report (iterations, residuals, convergence, objective) is kept
-    in ``self.solution`` (not saved).
+    ``weight_crow (N + 1,)``, ``weight_col (nnz,)`` (int32) and ``weight_values (nnz,)`` of a sparse
+    CSR ``(N, V)`` matrix, saved in the ``state_dict``: 12 bytes per entry instead of 8 per entry of
+    a dense matrix. ``forward`` is one sparse product (all poses of a batch at once), differentiable
+    with respect to the deformed vertices (measured on FireHydrant, 39k points, 48 cage vertices:
+    as fast as the dense mean value product for one pose, 2.6x faster for 16, half the memory).
+    The solve's report (iterations, residuals, convergence, objective) is kept in
+    ``self.solution`` (not saved).
 
     Args:
         cage: a closed 2D polygon or 3D triquad cage.
@@ -44,7 +48,8 @@ class LocalBarycentricCoordinates(CageModule):
         True
     """
 
-    weight_indices: torch.Tensor
+    weight_crow: torch.Tensor
+    weight_col: torch.Tensor
     weight_values: torch.Tensor
 
     def __init__(
@@ -62,33 +67,33 @@ class LocalBarycentricCoordinates(CageModule):
         W = local_barycentric_coordinates(pts, cage, threshold=threshold, solution=solution)
         super().__init__(cage, pts)
         self.solution = solution
-        self.register_buffer("weight_indices", W.indices().clone())
-        self.register_buffer("weight_values", W.values().to(torch.float64).clone())
+        csr = W.to(torch.float64).to_sparse_csr()
+        self.register_buffer("weight_crow", csr.crow_indices().to(torch.int32))
+        self.register_buffer("weight_col", csr.col_indices().to(torch.int32))
+        self.register_buffer("weight_values", csr.values().clone())
+
+    def _csr(self, dtype: torch.dtype) -> torch.Tensor:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            return torch.sparse_csr_tensor(
+                self.weight_crow,
+                self.weight_col,
+                self.weight_values.to(dtype),
+                (self.num_points, self.num_vertices),
+                check_invariants=False,
+            )
 
     @property
     def weights(self) -> torch.Tensor:
-        """The sparse ``(N, V)`` weight matrix (COO)."""
-        return torch.sparse_coo_tensor(
-            self.weight_indices,
-            self.weight_values,
-            (self.num_points, self.num_vertices),
-            is_coalesced=True,
-            check_invariants=False,
-        )
+        """The sparse CSR ``(N, V)`` weight matrix."""
+        return self._csr(self.weight_values.dtype)
 
     def forward(self, vertices: torch.Tensor) -> torch.Tensor:
         """Deformed points ``(*, N, D)`` for deformed cage vertices ``(*, V, D)``."""
         self._check_vertices(vertices, self.weight_values)
         batch = vertices.shape[:-2]
         flat = vertices.reshape(-1, self.num_vertices, self.dim).movedim(0, 1).reshape(self.num_vertices, -1)
-        W = torch.sparse_coo_tensor(
-            self.weight_indices,
-            self.weight_values.to(vertices.dtype),
-            (self.num_points, self.num_vertices),
-            is_coalesced=True,
-            check_invariants=False,
-        )
-        out = torch.sparse.mm(W, flat)  # (N, B * D)
+        out = self._csr(vertices.dtype) @ flat  # (N, B * D)
         return out.reshape(self.num_points, -1, self.dim).movedim(1, 0).reshape(*batch, self.num_points, self.dim)
 
     def extra_repr(self) -> str:
