@@ -39,8 +39,9 @@ def solve_row(name: str, cage: torchcage.Cage, cells: int, baseline_iters: int) 
     t = time.perf_counter()
     r = solve_lbc(d, cage.vertices)
     t_solve = time.perf_counter() - t
+    conv = "yes" if r.converged else "no"
     print(f"{name:<16}{d.vertices.shape[0]:>7}{d.cells.shape[0]:>7} | {'torchcage':<14}{t_mesh:>7.2f}"
-          f"{t_solve:>8.2f}{t_mesh + t_solve:>8.2f}{r.iterations:>7}{'yes' if r.converged else 'no':>5}{r.objective:>12.5g}")  # fmt: skip
+          f"{t_solve:>8.2f}{t_mesh + t_solve:>8.2f}{r.iterations:>7}{conv:>5}{r.objective:>12.5g}")  # fmt: skip
     if baseline_iters:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
