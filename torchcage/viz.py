@@ -38,6 +38,8 @@ class Panel:
         cage_edges: ``(E, 2)`` cage edges to draw (e.g. from quads), or ``None``.
         title: caption drawn above the panel.
         color: mesh RGB colour in ``[0, 1]``.
+        vertex_colors: ``(N, 3)`` per-vertex RGB colours in ``[0, 1]`` (faces get their mean),
+            overriding ``color``; or ``None``.
     """
 
     vertices: torch.Tensor | np.ndarray
@@ -46,6 +48,7 @@ class Panel:
     cage_edges: torch.Tensor | np.ndarray | None = None
     title: str = ""
     color: Sequence[float] = field(default=(0.45, 0.62, 0.85))
+    vertex_colors: torch.Tensor | np.ndarray | None = None
 
 
 def _np(x: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -110,9 +113,12 @@ def render_panels(
         shade = 0.25 + 0.75 * np.abs(n @ light)
         order = np.argsort(tri[:, :, 2].mean(1))  # far to near
         px = to_px(p)
-        base = np.asarray(panel.color)
+        if panel.vertex_colors is not None:
+            base = _np(panel.vertex_colors)[f].mean(axis=1)  # (F, 3)
+        else:
+            base = np.broadcast_to(np.asarray(panel.color, dtype=np.float64), (f.shape[0], 3))
         for t in order:
-            col = tuple(int(255 * min(1.0, s)) for s in base * shade[t])
+            col = tuple(int(255 * min(1.0, s)) for s in base[t] * shade[t])
             draw.polygon([tuple(px[i]) for i in f[t]], fill=col)
         if c is not None:
             cpx = to_px(c)
