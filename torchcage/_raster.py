@@ -39,7 +39,7 @@ def rasterize_triangles(
         tensor([[ 0,  0,  0],
                 [ 0,  0,  0],
                 [ 0,  0, -1]])
-        >>> [round(v, 12) for v in val[0, 1, 2].tolist()]   # the positions themselves, at pixel (1, 2)
+        >>> val[0, 1, 2].round(decimals=12).tolist()   # the positions themselves, at pixel (1, 2)
         [2.0, 1.0]
     """
     P = positions.detach().to(torch.float64)

@@ -58,7 +58,7 @@ def winding_number(points: torch.Tensor, vertices: torch.Tensor, triangles: torc
         >>> import torch, torchcage
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
         >>> w = winding_number(torch.tensor([[0.0, 0, 0], [3.0, 0, 0]]), cube.vertices.float(), cube.triangles)
-        >>> [round(float(v), 6) for v in w]
+        >>> w.double().round(decimals=6).tolist()
         [1.0, 0.0]
     """
     p = vertices[triangles]  # (T, 3, 3)

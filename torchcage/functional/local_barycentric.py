@@ -210,7 +210,7 @@ def locality_statistics(
         >>> import torch
         >>> w = torch.tensor([[1.0, 0.0, 0.0], [0.5, 0.5, 0.0]], dtype=torch.float64)
         >>> _, P, Q = locality_statistics(w, ts=torch.tensor([0.0, 0.6]))
-        >>> [round(p, 6) for p in P.tolist()], Q.tolist()
+        >>> P.round(decimals=6).tolist(), Q.tolist()
         ([0.5, 0.833333], [1.0, 1.0, 0.5, 0.0])
     """
     w = (weights.to_dense() if weights.layout != torch.strided else weights).abs()
