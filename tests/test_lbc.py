@@ -187,3 +187,16 @@ def test_sparse_deformation_is_cheaper_than_dense_mvc():
     x = random_inside(cage, 2000)
     W = F.local_barycentric_coordinates(x, cage, target_cells=1200)
     assert W.values().numel() < 0.3 * x.shape[0] * cage.num_vertices
+
+
+def test_conjugate_gradient_y_step_matches_the_factorisation():
+    """The torch CG Y step (any device) reaches the same solution as the sparse LU one."""
+    cage = l_shape()
+    d = mesh_domain(cage, 400)
+    lu = solve_lbc(d, cage.vertices, linear_solver="lu")
+    cg = solve_lbc(d, cage.vertices, linear_solver="cg")
+    assert cg.converged and abs(cg.iterations - lu.iterations) <= 100
+    assert float((cg.weights - lu.weights).abs().max()) <= 1e-6
+    assert abs(cg.objective - lu.objective) <= 1e-6 * lu.objective
+    with pytest.raises(ValueError, match="linear_solver must be"):
+        solve_lbc(d, cage.vertices, linear_solver="qr")

@@ -51,6 +51,7 @@ from .errors import CageError
 from .functional.green import green_coordinates
 from .functional.mean_value import mean_value_coordinates
 from .geometry import inside_polygon
+from .nn.green import stretched_normals
 
 __all__ = ["CageWarp", "inside_polygon", "pixel_centres", "warp_image"]
 
@@ -107,23 +108,6 @@ def _as_cage(cage: Cage | torch.Tensor) -> Cage:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return Cage(v.to(torch.float64) if not v.is_floating_point() else v)
-
-
-def stretched_normals(rest: torch.Tensor, deformed: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
-    """Outward edge normals of a deformed polygon scaled by the edge stretch ``|a'| / |a|``
-    (the 2D Green deformation's ``s_j n'_j``), differentiable in ``deformed``.
-
-    Args:
-        rest: ``(V, 2)`` rest vertices.
-        deformed: ``(*, V, 2)`` deformed vertices.
-        edges: ``(E, 2)`` counter-clockwise edges.
-
-    Returns:
-        ``(*, E, 2)``.
-    """
-    a0 = rest[edges[:, 1]] - rest[edges[:, 0]]
-    a1 = deformed[..., edges[:, 1], :] - deformed[..., edges[:, 0], :]
-    return torch.stack([a1[..., 1], -a1[..., 0]], dim=-1) / a0.norm(dim=-1).to(deformed.dtype)[:, None]
 
 
 def _coordinates(points: torch.Tensor, cage: Cage, method: str, options: dict[str, Any]) -> torch.Tensor:

@@ -8,7 +8,24 @@ from ..cage import Cage
 from ..functional.green import green_coordinates
 from .base import CageModule
 
-__all__ = ["GreenCoordinates"]
+__all__ = ["GreenCoordinates", "stretched_normals"]
+
+
+def stretched_normals(rest: torch.Tensor, deformed: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Outward edge normals of a deformed polygon scaled by the edge stretch ``|a'| / |a|``
+    (the 2D Green deformation's ``s_j n'_j``), differentiable in ``deformed``.
+
+    Args:
+        rest: ``(V, 2)`` rest vertices.
+        deformed: ``(*, V, 2)`` deformed vertices.
+        edges: ``(E, 2)`` counter-clockwise edges.
+
+    Returns:
+        ``(*, E, 2)``.
+    """
+    a0 = rest[edges[:, 1]] - rest[edges[:, 0]]
+    a1 = deformed[..., edges[:, 1], :] - deformed[..., edges[:, 0], :]
+    return torch.stack([a1[..., 1], -a1[..., 0]], dim=-1) / a0.norm(dim=-1).to(deformed.dtype)[:, None]
 
 
 def triangle_frames(vertices: torch.Tensor, triangles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -74,9 +91,7 @@ class GreenCoordinates(CageModule):
         self._check_vertices(vertices, self.phi)
         if self.dim == 2:
             # s_j n'_j = R(-90) a'_j / |a_j|: the stretch |a'| / |a| times the unit outward normal.
-            a0 = self.rest_vertices[self.edges[:, 1]] - self.rest_vertices[self.edges[:, 0]]
-            a1 = vertices[..., self.edges[:, 1], :] - vertices[..., self.edges[:, 0], :]
-            sn = torch.stack([a1[..., 1], -a1[..., 0]], dim=-1) / a0.norm(dim=-1).to(vertices.dtype)[:, None]
+            sn = stretched_normals(self.rest_vertices, vertices, self.edges)
             return torch.matmul(self.phi.to(vertices.dtype), vertices) + torch.matmul(self.psi.to(vertices.dtype), sn)
         u0, v0, _ = triangle_frames(self.rest_vertices.to(vertices.dtype), self.triangles)
         u1, v1, n1 = triangle_frames(vertices, self.triangles)

@@ -298,8 +298,6 @@ def solve_lbc(
     G = G.coalesce()
     Gt = _csr(G.t().coalesce())
     G = _csr(G)
-    bmap = torch.full((verts.shape[0],), -1, dtype=torch.int64)
-    bmap[boundary] = torch.arange(boundary.shape[0])
     Wfull_b = torch.zeros((verts.shape[0], V), dtype=dt)
     Wfull_b[boundary] = domain.boundary_values.to(dt)
     E = Gfull @ Wfull_b  # (DC, V) boundary contributions
