@@ -235,8 +235,12 @@ def _mesh_3d(cage: Cage, target_cells: int, seed: int) -> Domain:
         cent = allv[cells].mean(dim=1)
         cells = _orient(allv, cells[inside_cage(cent, cage)])
         faces = torch.cat([cells[:, [1, 2, 3]], cells[:, [0, 3, 2]], cells[:, [0, 1, 3]], cells[:, [0, 2, 1]]])
-        uniq, counts = torch.unique(faces.sort(dim=1).values, dim=0, return_counts=True)
-        exposed = uniq[counts == 1]
+        f = faces.sort(dim=1).values
+        n = allv.shape[0]
+        # one int64 key per face (exact below 2 million vertices): 1D unique is far faster than dim=0
+        keys, counts = torch.unique((f[:, 0] * n + f[:, 1]) * n + f[:, 2], return_counts=True)
+        k1 = keys[counts == 1]
+        exposed = torch.stack([k1 // (n * n), (k1 // n) % n, k1 % n], dim=1)
         bad = torch.unique(exposed[exposed >= nb])
         used = torch.zeros(allv.shape[0], dtype=torch.bool)
         used[cells.reshape(-1)] = True
