@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
 import torch
-from PIL import Image, ImageDraw
 
 import torchcage
 from torchcage import functional as F
+from torchcage.viz import render_field_2d
 
 
 def main(out: str = "mvc2d.png", vertex: int = 0, size: int = 400) -> None:
@@ -26,23 +25,8 @@ def main(out: str = "mvc2d.png", vertex: int = 0, size: int = 400) -> None:
     xs = torch.linspace(float(lo[0]), float(hi[0]), size, dtype=torch.float64)
     ys = torch.linspace(float(hi[1]), float(lo[1]), size, dtype=torch.float64)
     grid = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1)  # (size, size, 2), rows top to bottom
-    w = F.mean_value_coordinates(grid, cage)[..., vertex].numpy()
-    t = np.clip(w, -1, 1)
-    rgb = np.stack([1 - np.clip(-t, 0, 1), 1 - np.abs(t), 1 - np.clip(t, 0, 1)], -1)
-    bands = (np.floor(w * 10) % 2 == 0)[..., None]  # iso-bands every 0.1
-    image = Image.fromarray((255 * rgb * np.where(bands, 1.0, 0.93)).astype(np.uint8))
-    draw = ImageDraw.Draw(image)
-
-    def px(p: torch.Tensor) -> tuple[float, float]:
-        return (
-            float((p[0] - lo[0]) / (hi[0] - lo[0]) * (size - 1)),
-            float((hi[1] - p[1]) / (hi[1] - lo[1]) * (size - 1)),
-        )
-
-    for a, b in cage.edges.tolist():
-        draw.line([px(v[a]), px(v[b])], fill=(20, 20, 20), width=2)
-    x, y = px(v[vertex])
-    draw.ellipse([x - 6, y - 6, x + 6, y + 6], outline=(0, 0, 0), width=3)
+    w = F.mean_value_coordinates(grid, cage)[..., vertex]
+    image = render_field_2d(w, cage, lo.tolist(), hi.tolist(), vertex=vertex)
     image.save(out)
     print(f"wrote {out}")
 

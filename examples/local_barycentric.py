@@ -16,23 +16,13 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
-from PIL import Image, ImageDraw
+from PIL import Image
 
 import torchcage
 from torchcage import functional as F
 from torchcage.geometry import inside_cage
-from torchcage.viz import Panel, render_panels
-
-
-def field_panel(w: np.ndarray, inside: np.ndarray, size: int) -> Image.Image:
-    t = np.clip(w, -1, 1)
-    rgb = np.stack([1 - np.clip(-t, 0, 1), 1 - np.abs(t), 1 - np.clip(t, 0, 1)], -1)
-    bands = (np.floor(w * 10) % 2 == 0)[..., None]
-    rgb = rgb * np.where(bands, 1.0, 0.93)
-    rgb[~inside] = 0.85
-    return Image.fromarray((255 * rgb.reshape(size, size, 3)).astype(np.uint8))
+from torchcage.viz import Panel, render_field_2d, render_panels
 
 
 def picture_2d(out: Path, vertex: int = 2, size: int = 360) -> None:
@@ -49,21 +39,11 @@ def picture_2d(out: Path, vertex: int = 2, size: int = 360) -> None:
     mvc[inside] = F.mean_value_coordinates(grid[inside], cage)[:, vertex]
     panels = []
     for name, w in (("local barycentric", lbc), ("mean value", mvc)):
-        img = field_panel(w.numpy(), inside.numpy(), size)
-        draw = ImageDraw.Draw(img)
-
-        def px(p: torch.Tensor) -> tuple[float, float]:
-            return (
-                float((p[0] - lo[0]) / (hi[0] - lo[0]) * (size - 1)),
-                float((hi[1] - p[1]) / (hi[1] - lo[1]) * (size - 1)),
+        panels.append(
+            render_field_2d(
+                w, cage, lo.tolist(), hi.tolist(), mask=inside, vertex=vertex, title=f"{name}, vertex {vertex}"
             )
-
-        for a, b in cage.edges.tolist():
-            draw.line([px(v[a]), px(v[b])], fill=(20, 20, 20), width=2)
-        x, y = px(v[vertex])
-        draw.ellipse([x - 6, y - 6, x + 6, y + 6], outline=(0, 0, 0), width=3)
-        draw.text((6, 4), f"{name}, vertex {vertex}", fill=(0, 0, 0))
-        panels.append(img)
+        )
     row = Image.new("RGB", (2 * size + 8, size), "white")
     row.paste(panels[0], (0, 0))
     row.paste(panels[1], (size + 8, 0))

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
 from PIL import Image
 
-__all__ = ["Panel", "render_panels", "view_rotation"]
+__all__ = ["Panel", "render_field_2d", "render_panels", "view_rotation"]
 
 
 def view_rotation(azimuth: float = 35.0, elevation: float = 20.0) -> np.ndarray:
@@ -129,4 +130,65 @@ def render_panels(
                 draw.ellipse([x - 3.5, y - 3.5, x + 3.5, y + 3.5], fill=(200, 60, 10))
         if panel.title:
             draw.text((size * k + 8, 6), panel.title, fill=(30, 30, 30))
+    return image
+
+
+def render_field_2d(
+    values: torch.Tensor | np.ndarray,
+    cage: Any,
+    lo: Sequence[float],
+    hi: Sequence[float],
+    *,
+    mask: torch.Tensor | np.ndarray | None = None,
+    vertex: int | None = None,
+    title: str = "",
+) -> Image.Image:
+    """Picture of a scalar field sampled on a square grid over a 2D cage: red positive, blue
+    negative, white zero, iso-bands every 0.1, the polygon drawn over it.
+
+    Args:
+        values: ``(S * S,)`` or ``(S, S)`` samples, rows from top (``y = hi[1]``) to bottom, columns
+            from ``x = lo[0]`` to ``hi[0]``.
+        cage: the 2D :class:`torchcage.Cage` to draw.
+        lo: lower corner ``(x, y)`` of the grid.
+        hi: upper corner ``(x, y)`` of the grid.
+        mask: ``(S * S,)`` bool, samples to show (others are grey), or ``None`` for all.
+        vertex: a cage vertex to circle, or ``None``.
+        title: caption in the top-left corner.
+
+    Returns:
+        An ``S x S`` ``PIL.Image.Image``.
+
+    Example:
+        >>> import torch, torchcage
+        >>> cage = torchcage.load_cage(torchcage.data.path("blob2d.obj"))
+        >>> render_field_2d(torch.zeros(16, 16), cage, (-1.5, -1.5), (1.5, 1.5), vertex=0).size
+        (16, 16)
+    """
+    from PIL import ImageDraw
+
+    w = _np(torch.as_tensor(values)).reshape(-1)
+    size = round(w.shape[0] ** 0.5)
+    t = np.clip(w, -1, 1)
+    rgb = np.stack([1 - np.clip(-t, 0, 1), 1 - np.abs(t), 1 - np.clip(t, 0, 1)], -1)
+    rgb = rgb * np.where(np.floor(w * 10) % 2 == 0, 1.0, 0.93)[:, None]  # iso-bands every 0.1
+    if mask is not None:
+        rgb[~np.asarray(torch.as_tensor(mask).reshape(-1).cpu().numpy(), dtype=bool)] = 0.85
+    image = Image.fromarray((255 * rgb.reshape(size, size, 3)).astype(np.uint8))
+    draw = ImageDraw.Draw(image)
+    v = _np(cage.vertices)
+
+    def px(p: np.ndarray) -> tuple[float, float]:
+        return (
+            float((p[0] - lo[0]) / (hi[0] - lo[0]) * (size - 1)),
+            float((hi[1] - p[1]) / (hi[1] - lo[1]) * (size - 1)),
+        )
+
+    for a, b in cage.edges.tolist():
+        draw.line([px(v[a]), px(v[b])], fill=(20, 20, 20), width=2)
+    if vertex is not None:
+        x, y = px(v[vertex])
+        draw.ellipse([x - 6, y - 6, x + 6, y + 6], outline=(0, 0, 0), width=3)
+    if title:
+        draw.text((6, 4), title, fill=(0, 0, 0))
     return image
