@@ -27,7 +27,8 @@ import torch
 
 __all__ = ["available", "call", "library", "select"]
 
-_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c")
+_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c", "qmvc3d.c")
+_HEADERS = ("native.h",)
 
 #: Arguments of ``tc_mvc3d`` in mvc3d.c, in order (names as there; see its comment for layouts).
 TC_MVC3D_SIGNATURE = {
@@ -35,7 +36,13 @@ TC_MVC3D_SIGNATURE = {
     "inc_ptr": "ptr", "inc_idx": "ptr", "fs": "ptr", "nrm": "ptr", "two_area": "ptr", "ell": "ptr",
     "gram": "ptr", "far_nodes": "ptr", "far_coef": "ptr", "longest": "ptr", "Q": "i64", "far_c": "f64",
     "cancel_c": "f64", "X": "ptr", "n": "i64", "tol": "f64", "near_c": "f64", "nthreads": "i32",
-    "W": "ptr", "on": "ptr",
+    "W": "ptr", "on": "ptr", "normalize": "i32",
+}  # fmt: skip
+
+#: Arguments of ``tc_qmvc3d`` in qmvc3d.c, in order.
+TC_QMVC3D_SIGNATURE = {
+    "P": "ptr", "V": "i64", "quads": "ptr", "Q": "i64", "size": "ptr", "X": "ptr", "n": "i64", "tol": "f64",
+    "grid": "i32", "nthreads": "i32", "W": "ptr", "on": "ptr",
 }  # fmt: skip
 
 #: Arguments of ``tc_mvc2d`` in mvc2d.c, in order.
@@ -109,7 +116,7 @@ def _build() -> ctypes.CDLL:
             variants.insert(0, (["-mavx2", "-mfma", "-DTC_LIBMVEC"], ["-lmvec"]))
     variants.append((["-fno-openmp"], []))  # a compiler without OpenMP: one thread, same results
     digest = hashlib.sha256()
-    for src in sources:
+    for src in [*sources, *(here / h for h in _HEADERS)]:
         digest.update(src.read_bytes())
     digest.update(" ".join([cc, *flags, sys.platform, _cpu_flags()]).encode())
     ext = ".dll" if sys.platform == "win32" else ".so"
@@ -138,6 +145,8 @@ def _build() -> ctypes.CDLL:
     lib.tc_raster2d.restype = None
     lib.tc_gc3d.restype = None
     lib.tc_mvc3d.restype = None
+    lib.tc_qmvc3d.argtypes = [kinds[kind] for kind in TC_QMVC3D_SIGNATURE.values()]
+    lib.tc_qmvc3d.restype = None
     return lib
 
 

@@ -9,7 +9,7 @@
 
 #define FOUR_PI 12.566370614359172953850573533118
 
-static inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+#include "native.h"
 
 /* int_e dl / r along the edge from p_j to p_k, in the form that does not cancel. */
 static inline double edge_integral(double l_j, double l_k, double R_j, double R_k, double R0sq) {

@@ -11,18 +11,14 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "native.h"
+
 #define TWO_PI 6.283185307179586476925286766559
 
 #ifdef TC_LIBMVEC
 /* Let the compiler call glibc's vector atan (libmvec, max error 4 ulp) in the edge loop. */
 __attribute__((simd("notinbranch"))) double atan(double);
 #endif
-
-static inline void cross3(const double *a, const double *b, double *c) {
-    c[0] = a[1] * b[2] - a[2] * b[1];
-    c[1] = a[2] * b[0] - a[0] * b[2];
-    c[2] = a[0] * b[1] - a[1] * b[0];
-}
 
 /* atan2(y, x) for y >= 0, through atan, which is cheaper than atan2 in glibc. */
 static inline double angle_of(double y, double x) {
@@ -31,14 +27,12 @@ static inline double angle_of(double y, double x) {
     return x < 0 ? M_PI : 0.0;
 }
 
-static inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
-
 /* Stable split form of one face's weights (see _stable_face_weights in mean_value.py). The angle
  * theta = theta0 + delta is rebuilt here from the planar angle theta0 and the small delta rather
  * than taken from the edge pass: the terms delta / h^2 and theta * eps / h^2 cancel where x nears
  * an edge's line, and only a theta consistent with delta keeps that cancellation exact. */
-static void stable_face(double h, const double *s, const double *dots, const double *R, const double *ell,
-                        const double *gram, double two_area, double *w) {
+void tc_stable_face(double h, const double *s, const double *dots, const double *R, const double *ell,
+                    const double *gram, double two_area, double *w) {
     double h2 = h * h, wind_angle = 0.0, S_rest = 0.0, tN[3];
     for (int e = 0; e < 3; ++e) {
         int j = (e + 1) % 3, k = (e + 2) % 3;
@@ -80,15 +74,15 @@ static void stable_face(double h, const double *s, const double *dots, const dou
  * gram: (T, 3, 3) E_i . E_e; far_nodes (T, Q, 3) and far_coef (T, Q, 3): the far-field rule, used
  * for points whose face weights sum in absolute value to more than cancel_c times their total, on
  * faces whose longest edge (longest: (T,)) is below far_c times the distance; X: (n, 3) points.
- * Output W: (n, V) normalised coordinates (on[p] = 1 marks points on the cage, which get their
- * interpolating values).
+ * Output W: (n, V) coordinates, normalised when normalize != 0, else the raw weights (on[p] = 1
+ * marks points on the cage, whose rows hold their interpolating values either way).
  */
 void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,
               const int *inc_ptr, const int *inc_idx,
               const double *fs, const double *nrm, const double *two_area, const double *ell, const double *gram,
               const double *far_nodes, const double *far_coef, const double *longest, long Q, double far_c,
               double cancel_c, const double *X, long n, double tol, double near_c, int nthreads, double *W,
-              unsigned char *on) {
+              unsigned char *on, int normalize) {
     const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
     const int *e0 = edges, *e1 = edges + E;
     const int *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
@@ -187,7 +181,7 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
                         break;
                     }
                     double wf[3];
-                    stable_face(h, s, dots, R, lf, gram + 9 * f, two_area[f], wf);
+                    tc_stable_face(h, s, dots, R, lf, gram + 9 * f, two_area[f], wf);
                     W0[f] = wf[0];
                     W1[f] = wf[1];
                     W2[f] = wf[2];
@@ -227,6 +221,7 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
                 total = 0.0;
                 for (long v = 0; v < V; ++v) total += w[v];
             }
+            if (!normalize) continue;
             double inv = 1.0 / total;
             for (long v = 0; v < V; ++v) w[v] *= inv;
         }

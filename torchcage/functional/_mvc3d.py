@@ -79,13 +79,22 @@ class TriangleCageData:
 
 
 def triangle_cage_data(cage: Cage, dtype: torch.dtype) -> TriangleCageData:
-    p, normal, two_area = triangle_geometry(
+    triangle_geometry(  # checks: a 3D triangle cage
         cage, dtype, "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated() to split quads"
     )
-    v = cage.vertices.to(dtype)
-    tri = cage.triangles
+    return triangle_data(cage.vertices.to(dtype), cage.triangles, ON_CAGE_TOLERANCE * cage.scale)
+
+
+def triangle_data(v: torch.Tensor, tri: torch.Tensor, tol: float) -> TriangleCageData:
+    """Per-face constants of any set of triangles ``tri`` ``(T, 3)`` over vertices ``v`` ``(V, 3)``
+    (a whole cage, the triangles of a triquad cage, the faces of a quad's hull), in ``v.dtype``;
+    ``tol`` is the absolute on-face tolerance."""
+    p = v[tri]
+    cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    two_area = cross.norm(dim=-1)
+    normal = cross / two_area[:, None]
     edges = p.roll(-1, dims=1) - p.roll(-2, dims=1)  # E_e = p_{e+1} - p_{e+2}, (T, 3, 3)
-    bary, qw = _collapsed_gauss(FAR_FIELD_ORDER, dtype, v.device)
+    bary, qw = _collapsed_gauss(FAR_FIELD_ORDER, v.dtype, v.device)
     far_nodes = torch.einsum("qi,tic->tqc", bary, p)
     far_coef = (two_area[:, None, None] * qw[None, :, None]) * bary[None]
     return TriangleCageData(
@@ -95,7 +104,7 @@ def triangle_cage_data(cage: Cage, dtype: torch.dtype) -> TriangleCageData:
         two_area=two_area[:, None],
         edge_len=edges.norm(dim=-1).T.contiguous()[:, :, None],
         gram=edges @ edges.transpose(1, 2),
-        tol=ON_CAGE_TOLERANCE * cage.scale,
+        tol=tol,
         longest=edges.norm(dim=-1).max(dim=1).values[:, None],
         far_nodes=far_nodes,
         far_coef=far_coef,
@@ -254,19 +263,21 @@ def _far_field_weights(x: torch.Tensor, h: torch.Tensor, face: torch.Tensor, dat
     return h[:, None] * torch.einsum("mq,mqi->mi", 1.0 / (r2 * r2), data.far_coef.index_select(0, face))
 
 
-def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, torch.Tensor]:
-    """Unnormalised mean value weights of a chunk of points (eager: the stable form is evaluated
-    only on the point–face pairs that need it).
+def face_weights(x: torch.Tensor, data: TriangleCageData, far_field: bool = True) -> tuple[list[torch.Tensor], dict]:
+    """Per-face corner weights ``w_i^T`` of a chunk of points (eager: the stable form is evaluated
+    only on the point–face pairs that need it). Points on a face get non-finite values there: the
+    caller handles them (see :func:`on_face`).
 
     Args:
         x: ``(n, 3)`` points.
-        data: the cage constants.
+        data: the triangles' constants.
+        far_field: redo faces seen small by quadrature where the face weights cancel (only
+            meaningful when the triangles form a closed cage).
 
     Returns:
-        ``(W, on_cage)``: weights ``(V, n)`` (not yet normalised) and a ``(n,)`` bool mask of the
-        points on the cage, whose columns of ``W`` hold their final (interpolating) coordinates.
+        ``(w, q)``: three ``(T, n)`` tensors (corner ``i`` of every face) and the pair terms.
     """
-    V, T, n = data.vertices.shape[1], data.tri.shape[0], x.shape[0]
+    T, n = data.tri.shape[0], x.shape[0]
     q = _pair_terms(x, data)
     w = _direct_face_weights(q, data.two_area)
     near = _near_plane(q)
@@ -291,6 +302,8 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, 
             w[i] = w[i].reshape(-1).index_put((idx,), ws[i]).reshape(T, n)
     # Where the total weight is much smaller than its parts (far outside the cage), the rounding
     # errors of the vector form on faces seen small are amplified: integrate those by quadrature.
+    if not far_field:
+        return w, q
     total = w[0] + w[1] + w[2]
     cancels = total.abs().sum(dim=0) > CANCELLATION * total.sum(dim=0).abs()
     R = q["R"]
@@ -301,6 +314,22 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, 
         wf = _far_field_weights(x.index_select(0, col), q["h"].reshape(-1).index_select(0, idx), face, data)
         for i in range(3):
             w[i] = w[i].reshape(-1).index_put((idx,), wf[:, i]).reshape(T, n)
+    return w, q
+
+
+def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unnormalised mean value weights of a chunk of points.
+
+    Args:
+        x: ``(n, 3)`` points.
+        data: the cage constants.
+
+    Returns:
+        ``(W, on_cage)``: weights ``(V, n)`` (not yet normalised) and a ``(n,)`` bool mask of the
+        points on the cage, whose columns of ``W`` hold their final (interpolating) coordinates.
+    """
+    V, n = data.vertices.shape[1], x.shape[0]
+    w, q = face_weights(x, data)
     W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
     for i in range(3):
         W.index_add_(0, data.tri[:, i], w[i])

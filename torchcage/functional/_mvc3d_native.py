@@ -44,10 +44,16 @@ def native_tables(data: TriangleCageData) -> dict[str, torch.Tensor]:
 
 
 def native_chunk(
-    x: torch.Tensor, data: TriangleCageData, tables: dict[str, torch.Tensor], lib: object, W: torch.Tensor
+    x: torch.Tensor,
+    data: TriangleCageData,
+    tables: dict[str, torch.Tensor],
+    lib: object,
+    W: torch.Tensor,
+    normalize: bool = True,
 ) -> torch.Tensor:
-    """The native CPU kernel on a chunk: ``x`` ``(n, 3)`` float64 -> normalised coordinates written
-    into the contiguous ``W`` ``(n, V)``; returns the ``(n,)`` uint8 on-cage flags."""
+    """The native CPU kernel on a chunk: ``x`` ``(n, 3)`` float64 -> coordinates (raw weights with
+    ``normalize=False``) written into the contiguous ``W`` ``(n, V)``; returns the ``(n,)`` uint8
+    on-cage flags (rows on the cage hold their interpolating values)."""
     x = x.contiguous()
     n, V = x.shape[0], data.vertices.shape[1]
     on = torch.empty((n,), dtype=torch.uint8)
@@ -58,7 +64,7 @@ def native_chunk(
         nat["face_sign"], nat["normal"], nat["two_area"], nat["ell"], nat["gram"], nat["far_nodes"],
         nat["far_coef"], nat["longest"], nat["far_nodes"].shape[1], FAR_FIELD, CANCELLATION, x, n, data.tol,
         NEAR_PLANE,
-        torch.get_num_threads(), W, on,
+        torch.get_num_threads(), W, on, int(normalize),
     ]  # fmt: skip
     _native.call(lib.tc_mvc3d, args)  # type: ignore[attr-defined]
     return on

@@ -1,0 +1,300 @@
+/*
+ * Native CPU kernel of the quad part of torchcage's quad mean value coordinates (float64).
+ *
+ * The same steps and thresholds as torchcage/functional/_qmvc3d.py (see its docstring): per point
+ * and quad, the mean vector, the kernel kappa and least-norm solution (Cramer form plus one
+ * refinement step), the two-step smooth projection, the adaptive (2n+1)^2 Riemann sum and the
+ * norm-corrected lambda. One point per iteration, OpenMP over points. The tests check this kernel
+ * against the torch kernel.
+ */
+#define _GNU_SOURCE
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "native.h"
+
+#define NEAR_PLANE 0.01
+
+static const int HULL[4][3] = {{0, 1, 3}, {1, 2, 3}, {0, 2, 1}, {0, 3, 2}};
+
+/* Mean vector of the quad seen from the origin of p (Eq. 16); edges through it count nothing. */
+static void mean_vector(const double p[4][3], double *m) {
+    m[0] = m[1] = m[2] = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        const double *a = p[i], *b = p[(i + 1) & 3];
+        double c[3];
+        cross3(a, b, c);
+        double c2 = dot3(c, c);
+        if (!(c2 > 0)) continue;
+        double cn = sqrt(c2), g = 0.5 * atan2(cn, dot3(a, b)) / cn;
+        m[0] += g * c[0];
+        m[1] += g * c[1];
+        m[2] += g * c[2];
+    }
+}
+
+/* Mean value weights of the triangle (a0, a1, a2) (corners minus the point): direct vector form,
+ * the stable split form near its plane. */
+static void triangle_weights(const double *a0, const double *a1, const double *a2, double *w) {
+    const double *a[3] = {a0, a1, a2};
+    double E[3][3], N[3][3], nrm[3], R[3], dots[3], Nn[3];
+    for (int e = 0; e < 3; ++e) {
+        const double *j = a[(e + 1) % 3], *k = a[(e + 2) % 3];
+        for (int c = 0; c < 3; ++c) E[e][c] = j[c] - k[c];
+        cross3(j, k, N[e]);
+        Nn[e] = sqrt(dot3(N[e], N[e]));
+        dots[e] = dot3(j, k);
+        R[e] = sqrt(dot3(a[e], a[e]));
+    }
+    double cr[3], d1[3], d2[3];
+    for (int c = 0; c < 3; ++c) {
+        d1[c] = a1[c] - a0[c];
+        d2[c] = a2[c] - a0[c];
+    }
+    cross3(d1, d2, cr);
+    double two_area = sqrt(dot3(cr, cr));
+    for (int c = 0; c < 3; ++c) nrm[c] = cr[c] / two_area;
+    double h = dot3(nrm, a0);
+    double rmin = fmin(R[0], fmin(R[1], R[2]));
+    if (fabs(h) < NEAR_PLANE * rmin) {
+        double s[3], ell[3], gram[9];
+        for (int e = 0; e < 3; ++e) {
+            s[e] = dot3(N[e], nrm);
+            ell[e] = sqrt(dot3(E[e], E[e]));
+            for (int f = 0; f < 3; ++f) gram[3 * e + f] = dot3(E[e], E[f]);
+        }
+        tc_stable_face(h, s, dots, R, ell, gram, two_area, w);
+        return;
+    }
+    double m[3] = {0.0, 0.0, 0.0};
+    for (int e = 0; e < 3; ++e) {
+        if (!(Nn[e] > 0)) continue;
+        double g = 0.5 * atan2(Nn[e], dots[e]) / Nn[e];
+        for (int c = 0; c < 3; ++c) m[c] += g * N[e][c];
+    }
+    double inv = 1.0 / (two_area * h);
+    for (int i = 0; i < 3; ++i) w[i] = dot3(N[i], m) * inv;
+}
+
+/* Kernel kappa of A = [p0..p3] (Eq. 26) and the rows of |kappa|^2 A^+ (Cramer form, see
+ * kernel_and_pinv in _qmvc3d.py). */
+static double kernel_and_pinv(const double p[4][3], double *k, double rows[4][3]) {
+    double c[4][4][3];
+    for (int a = 0; a < 4; ++a)
+        for (int b = 0; b < 4; ++b) cross3(p[a], p[b], c[a][b]);
+    k[0] = dot3(p[1], c[2][3]);
+    k[1] = -dot3(p[2], c[3][0]);
+    k[2] = dot3(p[3], c[0][1]);
+    k[3] = -dot3(p[0], c[1][2]);
+    for (int i = 0; i < 4; ++i) {
+        rows[i][0] = rows[i][1] = rows[i][2] = 0.0;
+        for (int j = 0; j < 4; ++j) {
+            if (j == i) continue;
+            int cols[3], t = 0, pos = 0;
+            for (int q = 0; q < 4; ++q)
+                if (q != j) {
+                    if (q == i) pos = t;
+                    cols[t++] = q;
+                }
+            int y = cols[(pos + 1) % 3], z = cols[(pos + 2) % 3];
+            double s = (j & 1) ? -k[j] : k[j];
+            for (int d = 0; d < 3; ++d) rows[i][d] += s * c[y][z][d];
+        }
+    }
+    return k[0] * k[0] + k[1] * k[1] + k[2] * k[2] + k[3] * k[3];
+}
+
+static double badness(double r) { return (r < 0 ? -r : 0) + (r > 1 ? r - 1 : 0) + 1e-3 * fabs(r - 0.5); }
+
+/* (u, v) where the line through the origin of p along d meets the bilinear sheet (Appendix B). */
+static void intersect(const double p[4][3], const double *d, double *u_out, double *v_out) {
+    double A0[3], A1[3], B0[3], B1[3], t[3], t2[3];
+    for (int c = 0; c < 3; ++c) {
+        A0[c] = p[0][c];
+        A1[c] = p[3][c] - p[0][c];
+        B0[c] = p[1][c];
+        B1[c] = p[2][c] - p[1][c];
+    }
+    cross3(A0, B0, t);
+    double c0 = dot3(t, d);
+    cross3(A0, B1, t);
+    cross3(A1, B0, t2);
+    double c1 = dot3(t, d) + dot3(t2, d);
+    cross3(A1, B1, t);
+    double c2 = dot3(t, d);
+    double disc = c1 * c1 - 4 * c0 * c2;
+    double sq = disc > 0 ? sqrt(disc) : 0.0;
+    double qq = -0.5 * (c1 + (c1 >= 0 ? sq : -sq));
+    double r1 = c2 != 0 ? qq / c2 : 1e300, r2 = qq != 0 ? c0 / qq : 1e300;
+    double v = badness(r1) <= badness(r2) ? r1 : r2;
+    v = v < 0 ? 0 : (v > 1 ? 1 : v);
+    double a[3], e[3];
+    for (int c = 0; c < 3; ++c) {
+        a[c] = A0[c] + v * A1[c];
+        e[c] = B0[c] + v * B1[c] - a[c];
+    }
+    double d2 = dot3(d, d), inv = d2 > 0 ? 1.0 / d2 : 0.0;
+    double ed = dot3(e, d) * inv, ad = dot3(a, d) * inv, ep[3], ap[3];
+    for (int c = 0; c < 3; ++c) {
+        ep[c] = e[c] - ed * d[c];
+        ap[c] = a[c] - ad * d[c];
+    }
+    double ee = dot3(ep, ep);
+    double u = ee > 0 ? -dot3(ap, ep) / ee : 0.5;
+    *u_out = u < 0 ? 0 : (u > 1 ? 1 : u);
+    *v_out = v;
+}
+
+static void grid(double t, int n, double *nodes, double *len) {
+    int K = 2 * n + 1;
+    for (int k = 0; k < K; ++k) {
+        double s = (double)k / n;
+        nodes[k] = s <= 1 ? s * t : t + (s - 1) * (1 - t);
+    }
+    for (int k = 0; k < K; ++k) len[k] = (nodes[k + 1 < K ? k + 1 : K - 1] - nodes[k > 0 ? k - 1 : 0]) / 2;
+}
+
+/*
+ * P: (V, 3) vertices; quads: (Q, 4) int32; size: (Q,) longest edge or diagonal; X: (npts, 3) points;
+ * tol: absolute on-cage tolerance; n: grid parameter. W: (npts, V) in/out: the triangles' raw weights
+ * on entry (rows with on[p] = 1 are final); on exit the normalised coordinates, on[p] = 1 for the
+ * points on the cage.
+ */
+void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *X, long npts,
+               double tol, int n, int nthreads, double *W, unsigned char *on) {
+    const int K = 2 * n + 1;
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *un = (double *)malloc(sizeof(double) * 4 * (size_t)K), *ua = un + K, *vn = ua + K, *va = vn + K;
+#pragma omp for schedule(dynamic, 16)
+        for (long pt = 0; pt < npts; ++pt) {
+            double *w = W + pt * V;
+            if (on[pt]) continue;
+            const double *x = X + 3 * pt;
+            for (long q = 0; q < Q && !on[pt]; ++q) {
+                const int *qi = quads + 4 * q;
+                double p[4][3], R2[4];
+                int vertex = -1;
+                for (int i = 0; i < 4; ++i) {
+                    for (int c = 0; c < 3; ++c) p[i][c] = P[3 * qi[i] + c] - x[c];
+                    R2[i] = dot3(p[i], p[i]);
+                    if (R2[i] <= tol * tol && (vertex < 0 || R2[i] < R2[vertex])) vertex = i;
+                }
+                if (vertex >= 0) {
+                    memset(w, 0, sizeof(double) * (size_t)V);
+                    w[qi[vertex]] = 1.0;
+                    on[pt] = 1;
+                    break;
+                }
+                double m[3], k[4], rows[4][3];
+                mean_vector(p, m);
+                double D = kernel_and_pinv(p, k, rows);
+                double kabs = fabs(k[0]) + fabs(k[1]) + fabs(k[2]) + fabs(k[3]);
+                int flat = kabs <= tol * size[q] * size[q];
+                double alpha = k[0] + k[1] + k[2] + k[3], sgn = alpha >= 0 ? 1.0 : -1.0;
+                int inside = alpha != 0;
+                for (int i = 0; i < 4; ++i) inside = inside && (k[i] * sgn >= -1e-13 * kabs);
+                double b[3], cc[3], dd[3];
+                for (int c = 0; c < 3; ++c) {
+                    b[c] = p[1][c] - p[0][c];
+                    cc[c] = p[3][c] - p[0][c];
+                    dd[c] = p[0][c] - p[1][c] + p[2][c] - p[3][c];
+                }
+                double N0[3], Nu[3], Nv[3], nq[3];
+                cross3(b, cc, N0);
+                cross3(b, dd, Nu);
+                cross3(dd, cc, Nv);
+                for (int c = 0; c < 3; ++c) nq[c] = N0[c] + 0.5 * (Nu[c] + Nv[c]);
+                /* Projection (Algorithm 1). */
+                double pp[4][3], d[3], u, v;
+                memcpy(pp, p, sizeof(pp));
+                if (flat) {
+                    memcpy(d, nq, sizeof(d));
+                } else if (inside) {
+                    memcpy(d, m, sizeof(d));
+                } else {
+                    double num[3] = {0, 0, 0}, den = 0;
+                    for (int f = 0; f < 4; ++f) {
+                        const int *h = HULL[f];
+                        double wt[3];
+                        triangle_weights(p[h[0]], p[h[1]], p[h[2]], wt);
+                        for (int i = 0; i < 3; ++i) {
+                            double a = fabs(wt[i]);
+                            if (!isfinite(a)) a = 0.0;
+                            den += a;
+                            for (int c = 0; c < 3; ++c) num[c] += a * P[3 * qi[h[i]] + c];
+                        }
+                    }
+                    if (den > 0)
+                        for (int i = 0; i < 4; ++i)
+                            for (int c = 0; c < 3; ++c) pp[i][c] = P[3 * qi[i] + c] - num[c] / den;
+                    mean_vector(pp, d);
+                }
+                intersect(pp, d, &u, &v);
+                double xi[3];
+                for (int c = 0; c < 3; ++c) xi[c] = p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
+                if (dot3(xi, xi) <= tol * tol) {
+                    memset(w, 0, sizeof(double) * (size_t)V);
+                    w[qi[0]] += (1 - u) * (1 - v);
+                    w[qi[1]] += u * (1 - v);
+                    w[qi[2]] += u * v;
+                    w[qi[3]] += (1 - u) * v;
+                    on[pt] = 1;
+                    break;
+                }
+                if (flat) continue; /* a planar quad seen edge-on: no weight */
+                /* Least-norm solution, one refinement step (Eqs. 20, 28). */
+                double invD = 1.0 / D, wb[4], res[3];
+                for (int i = 0; i < 4; ++i) wb[i] = dot3(rows[i], m) * invD;
+                for (int c = 0; c < 3; ++c)
+                    res[c] = m[c] - (wb[0] * p[0][c] + wb[1] * p[1][c] + wb[2] * p[2][c] + wb[3] * p[3][c]);
+                for (int i = 0; i < 4; ++i) wb[i] += dot3(rows[i], res) * invD;
+                /* Riemann sum on the adaptive grid (Eqs. 22-23), separable in the bilinear basis. */
+                grid(u, n, un, ua);
+                grid(v, n, vn, va);
+                double S = 0, Su = 0, Sv = 0, Suv = 0;
+                for (int a = 0; a < K; ++a) {
+                    double Pu[3], Qu[3], Ru[3];
+                    for (int c = 0; c < 3; ++c) {
+                        Pu[c] = p[0][c] + un[a] * b[c];
+                        Qu[c] = cc[c] + un[a] * dd[c];
+                        Ru[c] = N0[c] + un[a] * Nu[c];
+                    }
+                    double acc0 = 0, acc1 = 0;
+#pragma omp simd reduction(+ : acc0, acc1)
+                    for (int l = 0; l < K; ++l) {
+                        double vv = vn[l];
+                        double d0 = Pu[0] + vv * Qu[0], d1 = Pu[1] + vv * Qu[1], d2 = Pu[2] + vv * Qu[2];
+                        double r2 = d0 * d0 + d1 * d1 + d2 * d2;
+                        double Nd = (Ru[0] + vv * Nv[0]) * d0 + (Ru[1] + vv * Nv[1]) * d1 + (Ru[2] + vv * Nv[2]) * d2;
+                        double f = Nd * va[l] / (r2 * r2);
+                        acc0 += f;
+                        acc1 += f * vv;
+                    }
+                    acc0 *= ua[a];
+                    acc1 *= ua[a];
+                    S += acc0;
+                    Sv += acc1;
+                    Su += un[a] * acc0;
+                    Suv += un[a] * acc1;
+                }
+                double om[4] = {S - Su - Sv + Suv, Su - Suv, Suv, Sv - Suv};
+                double ok = 0, ow = 0, ww = 0;
+                for (int i = 0; i < 4; ++i) {
+                    ok += om[i] * k[i];
+                    ow += om[i] * wb[i];
+                    ww += wb[i] * wb[i];
+                }
+                double lam = ow != 0 ? ok * invD * ww / ow : 0.0;
+                for (int i = 0; i < 4; ++i) w[qi[i]] += wb[i] + lam * k[i];
+            }
+            if (on[pt]) continue;
+            double total = 0;
+            for (long c = 0; c < V; ++c) total += w[c];
+            double inv = 1.0 / total;
+            for (long c = 0; c < V; ++c) w[c] *= inv;
+        }
+        free(un);
+    }
+}

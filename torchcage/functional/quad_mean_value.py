@@ -1,0 +1,183 @@
+r"""Quad mean value coordinates (QMVC) for quad and triquad cages: the public function. The torch
+kernel (any device, differentiable) is ``_qmvc3d``; ``_native/qmvc3d.c`` is the CPU float64 one."""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from collections.abc import Callable
+
+import torch
+
+from .. import _native
+from ..cage import Cage
+from ..errors import CageError, PointsError
+from ._common import ON_CAGE_TOLERANCE, check_points, chunks, result_dtype
+from ._mvc3d import TriangleCageData, mvc3d_chunk, triangle_data
+from ._mvc3d_native import native_chunk, native_tables
+from ._qmvc3d import QuadData, quad_data, quad_weights_chunk
+
+__all__ = ["check_quads", "quad_mean_value_coordinates"]
+
+
+def check_quads(cage: Cage, allow_invalid: bool) -> None:
+    """Refuse (or, with ``allow_invalid``, warn about) quads that fail the validity predicate.
+
+    Raises:
+        CageError: a 2D cage, or invalid quads when ``allow_invalid`` is False.
+    """
+    if cage.dim != 3:
+        raise CageError("quad mean value coordinates need a 3D cage; use mean_value_coordinates for polygons")
+    bad = cage.invalid_quads()
+    if bad.numel():
+        shown = bad[:10].tolist()
+        msg = (
+            f"{bad.numel()} quad(s) of the cage are not valid (Thiery et al. 2018, Definition 1: the "
+            f"projection of a quad onto the planes of its corner triangles must be convex), e.g. quads "
+            f"{shown} (indices into cage.quads)"
+        )
+        if not allow_invalid:
+            raise CageError(msg + "; fix the cage, split these quads, or pass allow_invalid=True to proceed")
+        warnings.warn(msg + "; proceeding as asked (allow_invalid=True): the projection may leave those quads",
+                      stacklevel=3)  # fmt: skip
+
+
+def quad_mean_value_coordinates(
+    points: torch.Tensor,
+    cage: Cage,
+    n: int = 4,
+    *,
+    chunk_size: int | None = None,
+    dtype: torch.dtype | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
+    allow_invalid: bool = False,
+) -> torch.Tensor:
+    """Quad mean value coordinates (Thiery, Memari, Boubekeur 2018) for quad and triquad cages.
+
+    Quads are treated as bilinear patches (not split into triangles): the coordinates reproduce
+    constants and linear functions exactly, interpolate bilinearly on quads (linearly on
+    triangles), respect the cage's symmetries, and equal :func:`mean_value_coordinates` on a
+    triangle-only cage. The part of a quad's weights that the mean value identity leaves free is
+    estimated by an adaptive Riemann sum on a ``(2n+1) x (2n+1)`` grid of the quad centred on the
+    point's smooth projection; ``n = 4`` is the paper's default.
+
+    Args:
+        points: ``(*, 3)`` query points.
+        cage: a closed 3D cage of triangles and/or quads, all quads valid (see
+            :meth:`Cage.invalid_quads`).
+        n: grid parameter, ``n >= 1``; the cost grows like ``(2n+1)^2`` per point and quad.
+        chunk_size: points per chunk (peak memory of the torch kernel grows with
+            ``chunk_size x quads x (2n+1)^2``).
+        dtype: compute dtype. Default: float64, returned in the dtype of the inputs.
+        progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
+        backend: ``"auto"`` (default): the native C kernel for float64 CPU points when no autograd
+            graph is needed, else the torch kernel; ``"torch"`` or ``"native"`` to force one.
+        allow_invalid: compute even if some quads are invalid (with a warning) instead of raising.
+
+    Gradients: the torch kernel is differentiable with respect to the points (the scheme is
+    smooth off the cage) and the cage vertices; ``"auto"`` picks it when either requires grad.
+
+    Returns:
+        Coordinates ``(*, V)``; rows sum to one.
+
+    Raises:
+        CageError: a 2D cage, or invalid quads (unless ``allow_invalid``).
+        PointsError: points of the wrong shape or device, NaN or inf, or points outside the cage
+            where the total weight vanishes.
+
+    Example:
+        >>> import torch, torchcage
+        >>> from torchcage import functional as F
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))   # 6 quads
+        >>> x = torch.tensor([[0.1, 0.2, -0.3], [0.0, 0.0, 2.0]], dtype=torch.float64)
+        >>> w = F.quad_mean_value_coordinates(x, cube)
+        >>> torch.allclose(w @ cube.vertices, x), torch.allclose(w.sum(-1), torch.ones(2, dtype=torch.float64))
+        (True, True)
+    """
+    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    flat = check_points(points, cage)
+    check_quads(cage, allow_invalid)
+    compute, out_dtype = result_dtype(flat, cage, dtype)
+    x = flat.to(compute)
+    lib = _native.select(backend, x, cage.vertices)
+    verts = cage.vertices.to(compute)
+    tol = ON_CAGE_TOLERANCE * cage.scale
+    T, Q = cage.triangles.shape[0], cage.quads.shape[0]
+    tdata = triangle_data(verts, cage.triangles, tol) if T else None
+    qdata = quad_data(verts, cage.quads, tol) if Q else None
+    if lib is not None:
+        kernel = _native_kernel(lib, verts, tdata, qdata, n)
+        size = chunk_size or 1 << 14
+    else:
+        kernel = functools.partial(_torch_chunk, V=cage.num_vertices, tdata=tdata, qdata=qdata, n=n)
+        size = chunk_size or max(16, (1 << 19) // (max(Q, 1) * (2 * n + 1) ** 2) + 1)
+    parts = [kernel(x[sl]) for sl in chunks(x.shape[0], size, progress, desc="quad mean value coordinates")]
+    out = torch.cat(parts) if parts else x.new_zeros((0, cage.num_vertices))
+    bad = ~torch.isfinite(out.detach().sum(dim=1))
+    if bool(bad.any()):
+        idx = torch.nonzero(bad).flatten()[:10].tolist()
+        raise PointsError(
+            f"quad mean value coordinates are undefined at points {idx} (the total weight vanishes there, "
+            "which happens only outside the cage); move these points"
+        )
+    return out.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
+
+
+def _torch_chunk(
+    c: torch.Tensor, V: int, tdata: TriangleCageData | None, qdata: QuadData | None, n: int
+) -> torch.Tensor:
+    """Normalised coordinates ``(m, V)`` of a chunk ``c`` ``(m, 3)`` with the torch kernels."""
+    m = c.shape[0]
+    if tdata is not None:
+        W, on = mvc3d_chunk(c, tdata)  # (V, m); columns on a triangle are final
+    else:
+        W = torch.zeros((V, m), dtype=c.dtype, device=c.device)
+        on = torch.zeros(m, dtype=torch.bool, device=c.device)
+    if qdata is None:
+        return torch.where(on[:, None], W.T, W.T / W.sum(dim=0)[:, None])
+    w, onq, u, v, vertex = quad_weights_chunk(c, qdata, n)
+    quads = qdata.quads
+    for i in range(4):
+        W = W.index_add(0, quads[:, i], torch.where(on[None, :], torch.zeros_like(w[i]), w[i]))
+    W = torch.where(on[:, None], W.T, W.T / W.sum(dim=0)[:, None])
+    onq = onq & ~on[None, :]
+    has = onq.any(dim=0)
+    if bool(has.any()):
+        # Points on a quad: the bilinear coordinates of their projection (Lagrange at a corner).
+        f = onq.to(torch.int8).argmax(dim=0)
+        cols = torch.arange(m, device=c.device)
+        uu, vv, vx = u[f, cols], v[f, cols], vertex[f, cols]
+        b = torch.stack([(1 - uu) * (1 - vv), uu * (1 - vv), uu * vv, (1 - uu) * vv], dim=1)
+        b = torch.where((vx >= 0)[:, None], torch.nn.functional.one_hot(vx.clamp_min(0), 4).to(b.dtype), b)
+        Wq = torch.zeros((m, V), dtype=c.dtype, device=c.device).scatter_add(1, quads[f], b)
+        W = torch.where(has[:, None], Wq, W)
+    return W
+
+
+def _native_kernel(
+    lib: object, verts: torch.Tensor, tdata: TriangleCageData | None, qdata: QuadData | None, n: int
+) -> Callable[[torch.Tensor], torch.Tensor]:
+    """The native kernels (triangles: tc_mvc3d, raw weights; quads: tc_qmvc3d) as a chunk function."""
+    V = verts.shape[0]
+    tables = native_tables(tdata) if tdata is not None else None
+    P = verts.contiguous()
+    if qdata is not None:
+        quads32 = qdata.quads.to(torch.int32).contiguous()
+        size = qdata.size[:, 0].contiguous()
+
+    def kernel(c: torch.Tensor) -> torch.Tensor:
+        c = c.contiguous()
+        m = c.shape[0]
+        out = torch.zeros((m, V), dtype=c.dtype)
+        if tdata is not None:
+            on = native_chunk(c, tdata, tables, lib, out, normalize=qdata is None)  # type: ignore[arg-type]
+        else:
+            on = torch.zeros(m, dtype=torch.uint8)
+        if qdata is not None:
+            args = [P, V, quads32, quads32.shape[0], size, c, m, qdata.tol, n, torch.get_num_threads(), out, on]
+            _native.call(lib.tc_qmvc3d, args)  # type: ignore[attr-defined]
+        return out
+
+    return kernel
