@@ -15,8 +15,17 @@
 #include "native.h"
 
 #define NEAR_PLANE 0.01
+#define REFINE 3       /* as REFINE in _qmvc3d.py */
+#define NEAR_FLAT 1e-3 /* as NEAR_FLAT in _qmvc3d.py */
 
 static const int HULL[4][3] = {{0, 1, 3}, {1, 2, 3}, {0, 2, 1}, {0, 3, 2}};
+
+/* Angle between a and b from |a x b| (cn), a . b (d) and |a| |b| (rr), through the half-angle
+ * tangent (accurate for all angles, and atan is cheaper than atan2). */
+static inline double angle3(double cn, double d, double rr) {
+    double t = cn / (rr + fabs(d));
+    return d < 0 ? M_PI - 2 * atan(t) : 2 * atan(t);
+}
 
 /* Mean vector of the quad seen from the origin of p (Eq. 16); edges through it count nothing. */
 static void mean_vector(const double p[4][3], double *m) {
@@ -27,7 +36,7 @@ static void mean_vector(const double p[4][3], double *m) {
         cross3(a, b, c);
         double c2 = dot3(c, c);
         if (!(c2 > 0)) continue;
-        double cn = sqrt(c2), g = 0.5 * atan2(cn, dot3(a, b)) / cn;
+        double cn = sqrt(c2), g = 0.5 * angle3(cn, dot3(a, b), sqrt(dot3(a, a) * dot3(b, b))) / cn;
         m[0] += g * c[0];
         m[1] += g * c[1];
         m[2] += g * c[2];
@@ -78,11 +87,14 @@ static void triangle_weights(const double *a0, const double *a1, const double *a
 }
 
 /* Kernel kappa of A = [p0..p3] (Eq. 26) and the rows of |kappa|^2 A^+ (Cramer form, see
- * kernel_and_pinv in _qmvc3d.py). */
-static double kernel_and_pinv(const double p[4][3], double *k, double rows[4][3]) {
-    double c[4][4][3];
+ * kernel_and_pinv in _qmvc3d.py), from the six cross products c[a][b] = p_a x p_b (a < b; the
+ * table holds c[b][a] = -c[a][b] too). */
+static double kernel_and_pinv(const double p[4][3], double c[4][4][3], double *k, double rows[4][3]) {
     for (int a = 0; a < 4; ++a)
-        for (int b = 0; b < 4; ++b) cross3(p[a], p[b], c[a][b]);
+        for (int b = a + 1; b < 4; ++b) {
+            cross3(p[a], p[b], c[a][b]);
+            for (int d = 0; d < 3; ++d) c[b][a][d] = -c[a][b][d];
+        }
     k[0] = dot3(p[1], c[2][3]);
     k[1] = -dot3(p[2], c[3][0]);
     k[2] = dot3(p[3], c[0][1]);
@@ -187,9 +199,21 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                     on[pt] = 1;
                     break;
                 }
-                double m[3], k[4], rows[4][3];
-                mean_vector(p, m);
-                double D = kernel_and_pinv(p, k, rows);
+                double m[3], k[4], rows[4][3], c[4][4][3], g[4][4], R[4];
+                double D = kernel_and_pinv(p, c, k, rows);
+                /* Edge terms theta_ab / (2 |p_a x p_b|) of the tetrahedron's six edges, shared by the
+                 * quad's mean vector (its four boundary edges) and the hull faces' weights. */
+                for (int i = 0; i < 4; ++i) R[i] = sqrt(R2[i]);
+                for (int a = 0; a < 4; ++a)
+                    for (int bb = a + 1; bb < 4; ++bb) {
+                        double c2 = dot3(c[a][bb], c[a][bb]), cn = sqrt(c2);
+                        g[a][bb] = g[bb][a] = c2 > 0 ? 0.5 * angle3(cn, dot3(p[a], p[bb]), R[a] * R[bb]) / cn : 0.0;
+                    }
+                for (int d = 0; d < 3; ++d) m[d] = 0.0;
+                for (int i = 0; i < 4; ++i) {
+                    int j = (i + 1) & 3;
+                    for (int d = 0; d < 3; ++d) m[d] += g[i][j] * c[i][j][d];
+                }
                 double kabs = fabs(k[0]) + fabs(k[1]) + fabs(k[2]) + fabs(k[3]);
                 int flat = kabs <= tol * size[q] * size[q];
                 double alpha = k[0] + k[1] + k[2] + k[3], sgn = alpha >= 0 ? 1.0 : -1.0;
@@ -218,12 +242,31 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                     for (int f = 0; f < 4; ++f) {
                         const int *h = HULL[f];
                         double wt[3];
-                        triangle_weights(p[h[0]], p[h[1]], p[h[2]], wt);
+                        /* The face's determinant is +-kappa of the corner it leaves out. */
+                        double det = dot3(p[h[0]], c[h[1]][h[2]]);
+                        double e1[3], e2[3], cr[3];
+                        for (int d = 0; d < 3; ++d) {
+                            e1[d] = p[h[1]][d] - p[h[0]][d];
+                            e2[d] = p[h[2]][d] - p[h[0]][d];
+                        }
+                        cross3(e1, e2, cr);
+                        double two_area = sqrt(dot3(cr, cr));
+                        double rmin = fmin(R[h[0]], fmin(R[h[1]], R[h[2]]));
+                        if (fabs(det) < NEAR_PLANE * rmin * two_area) {
+                            triangle_weights(p[h[0]], p[h[1]], p[h[2]], wt); /* stable form near the plane */
+                        } else {
+                            double mt[3] = {0, 0, 0};
+                            for (int e = 0; e < 3; ++e) {
+                                int j = h[(e + 1) % 3], l = h[(e + 2) % 3];
+                                for (int d = 0; d < 3; ++d) mt[d] += g[j][l] * c[j][l][d];
+                            }
+                            for (int i = 0; i < 3; ++i) wt[i] = dot3(c[h[(i + 1) % 3]][h[(i + 2) % 3]], mt) / det;
+                        }
                         for (int i = 0; i < 3; ++i) {
                             double a = fabs(wt[i]);
                             if (!isfinite(a)) a = 0.0;
                             den += a;
-                            for (int c = 0; c < 3; ++c) num[c] += a * P[3 * qi[h[i]] + c];
+                            for (int d = 0; d < 3; ++d) num[d] += a * P[3 * qi[h[i]] + d];
                         }
                     }
                     if (den > 0)
@@ -287,7 +330,51 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                     ww += wb[i] * wb[i];
                 }
                 double lam = ow != 0 ? ok * invD * ww / ow : 0.0;
-                for (int i = 0; i < 4; ++i) w[qi[i]] += wb[i] + lam * k[i];
+                double wq[4];
+                for (int i = 0; i < 4; ++i) wq[i] = wb[i] + lam * k[i];
+                double Rmax = fmax(fmax(R[0], R[1]), fmax(R[2], R[3]));
+                int near_flat = !inside && kabs < NEAR_FLAT * size[q] * size[q] * Rmax;
+                if (near_flat) {
+                    /* Near a flat quad's plane: least-norm solution from the split triangles' stable
+                     * weights (see _near_flat_weights in _qmvc3d.py). */
+                    double t1[3], t2[3], wp[4];
+                    triangle_weights(p[0], p[1], p[2], t1);
+                    triangle_weights(p[0], p[2], p[3], t2);
+                    wp[0] = t1[0] + t2[0];
+                    wp[1] = t1[1];
+                    wp[2] = t1[2] + t2[1];
+                    wp[3] = t2[2];
+                    if (isfinite(wp[0] + wp[1] + wp[2] + wp[3])) {
+                        double invn = 1.0 / sqrt(D), kh[4], pk = 0, okh = 0, ow2 = 0, ww2 = 0, wb2[4];
+                        for (int i = 0; i < 4; ++i) {
+                            kh[i] = k[i] * invn;
+                            pk += wp[i] * kh[i];
+                        }
+                        for (int i = 0; i < 4; ++i) {
+                            wb2[i] = wp[i] - pk * kh[i];
+                            okh += om[i] * kh[i];
+                            ow2 += om[i] * wb2[i];
+                            ww2 += wb2[i] * wb2[i];
+                        }
+                        double lam2 = ow2 != 0 ? okh * ww2 / ow2 : 0.0;
+                        for (int i = 0; i < 4; ++i) wq[i] = wb2[i] + lam2 * kh[i];
+                        for (int it = 0; it < REFINE; ++it) {
+                            for (int c = 0; c < 3; ++c)
+                                res[c] = (wp[0] - wq[0]) * p[0][c] + (wp[1] - wq[1]) * p[1][c] +
+                                         (wp[2] - wq[2]) * p[2][c] + (wp[3] - wq[3]) * p[3][c];
+                            for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
+                        }
+                        for (int i = 0; i < 4; ++i) w[qi[i]] += wq[i];
+                        continue;
+                    }
+                }
+                /* Restore A w = m (kappa's rounding error is amplified by a large lambda). */
+                for (int it = 0; it < REFINE; ++it) {
+                    for (int c = 0; c < 3; ++c)
+                        res[c] = m[c] - (wq[0] * p[0][c] + wq[1] * p[1][c] + wq[2] * p[2][c] + wq[3] * p[3][c]);
+                    for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
+                }
+                for (int i = 0; i < 4; ++i) w[qi[i]] += wq[i];
             }
             if (on[pt]) continue;
             double total = 0;

@@ -7,11 +7,13 @@ coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
 from .green import green_coordinates
 from .local_barycentric import local_barycentric_coordinates, locality_statistics, solve_local_barycentric
 from .mean_value import mean_value_coordinates
+from .quad_mean_value import quad_mean_value_coordinates
 
 __all__ = [
     "green_coordinates",
     "local_barycentric_coordinates",
     "locality_statistics",
     "mean_value_coordinates",
+    "quad_mean_value_coordinates",
     "solve_local_barycentric",
 ]

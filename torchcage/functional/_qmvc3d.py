@@ -47,9 +47,19 @@ class QuadData:
     quads: torch.Tensor  # (Q, 4) corner vertex ids
     corners: torch.Tensor  # (3, 4, Q, 1) corner coordinates, components first
     hull: TriangleCageData  # the 4Q triangles of the quads' tetrahedra (4 per quad, quad-major)
+    split: TriangleCageData  # the 2Q triangles (q0, q1, q2), (q0, q2, q3) (2 per quad, quad-major)
     size: torch.Tensor  # (Q, 1) longest edge or diagonal
     tol: float  # absolute on-cage tolerance
 
+
+#: Refinement steps restoring ``A w = m`` after the kernel term is added (each divides the residual
+#: by about ``distance / (eps |x - q|)``).
+REFINE = 3
+
+#: Below this ``|kappa|_1 / (size^2 max_i |p_i|)`` (a point near the plane of a nearly planar quad),
+#: the least-norm solution is taken from the split triangles' stable weights instead of Cramer's
+#: form, whose mean vector loses its small normal component to cancellation there.
+NEAR_FLAT = 1e-3
 
 #: Faces of a quad's tetrahedron, as corner indices (Algorithm 1, line 4).
 HULL_FACES = ((0, 1, 3), (1, 2, 3), (0, 2, 1), (0, 3, 2))
@@ -65,6 +75,7 @@ def quad_data(vertices: torch.Tensor, quads: torch.Tensor, tol: float) -> QuadDa
         quads=quads,
         corners=p.permute(2, 1, 0).contiguous()[..., None],
         hull=triangle_data(vertices, hull_tri, tol),
+        split=triangle_data(vertices, torch.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], dim=1).reshape(-1, 3), tol),
         size=size[:, None],
         tol=tol,
     )
@@ -153,8 +164,8 @@ def _solve_v(c0: torch.Tensor, c1: torch.Tensor, c2: torch.Tensor) -> torch.Tens
     okq = disc > 0
     qq = -0.5 * (c1 + sgn * torch.where(okq, torch.sqrt(_safe(disc, okq)), torch.zeros_like(disc)))
     ok1, ok2 = c2 != 0, qq != 0
-    r1 = torch.where(ok1, qq / _safe(c2, ok1), torch.full_like(qq, 1e300))
-    r2 = torch.where(ok2, c0 / _safe(qq, ok2), torch.full_like(qq, 1e300))
+    r1 = torch.where(ok1, qq / _safe(c2, ok1), torch.full_like(qq, float("inf")))
+    r2 = torch.where(ok2, c0 / _safe(qq, ok2), torch.full_like(qq, float("inf")))
 
     def badness(r: torch.Tensor) -> torch.Tensor:
         return (-r).clamp_min(0) + (r - 1).clamp_min(0) + 1e-3 * (r - 0.5).abs()
@@ -289,7 +300,18 @@ def quad_weights_chunk(
     ww = sum(wbar[i] * wbar[i] for i in range(4))
     ok_ow = ow != 0
     lam = torch.where(ok_ow & okD, ok_dot * invD * ww / _safe(ow, ok_ow), torch.zeros_like(ow))
-    w = [torch.where(okD, wbar[i] + lam * k[i], torch.zeros_like(wbar[i])) for i in range(4)]
+    w = [wbar[i] + lam * k[i] for i in range(4)]
+    # kappa carries a relative error of about eps |x - q| / distance(x, quad's corner planes), so
+    # A (lambda kappa) drifts off zero where lambda is large (near a quad): restore A w = m.
+    for _ in range(REFINE):
+        Aw = _add(_add(_scale(w[0], p[0]), _scale(w[1], p[1])), _add(_scale(w[2], p[2]), _scale(w[3], p[3])))
+        res = _sub(mvec, Aw)
+        w = [w[i] + _dot(rows[i], res) * invD for i in range(4)]
+    # Near a flat quad's plane the Cramer mean vector is the inaccurate part: use the split form.
+    near_flat = okD & ~inside & (kabs < NEAR_FLAT * data.size * data.size * R2.max(dim=0).values.sqrt())
+    if bool(near_flat.any()):
+        w = _near_flat_weights(x, data, near_flat, w, k, D, omega, p, rows)
+    w = [torch.where(okD, w[i], torch.zeros_like(w[i])) for i in range(4)]
     return w, on, u, v, vertex
 
 
@@ -312,3 +334,43 @@ def _hull_average(x: torch.Tensor, data: QuadData, outside: torch.Tensor, xp: li
     okd = outside & (den > 0)
     safe_den = _safe(den, okd)
     return [torch.where(okd, num[c] / safe_den, xp[c]) for c in range(3)]
+
+
+def _near_flat_weights(
+    x: torch.Tensor,
+    data: QuadData,
+    sel: torch.Tensor,
+    w: list[torch.Tensor],
+    k: list[torch.Tensor],
+    D: torch.Tensor,
+    omega: list[torch.Tensor],
+    p: list[Vec],
+    rows: list[Vec],
+) -> list[torch.Tensor]:
+    """Weights for the pairs in ``sel`` ``(Q, m)`` from a particular solution that stays accurate
+    near a flat quad's plane: the split triangles' mean value weights ``w_p`` (``A w_p = m``), made
+    least-norm by removing their ``kappa`` part, plus the estimated ``lambda kappa`` (Eq. 24)."""
+    Q, m = sel.shape
+    tw, _ = face_weights(x, data.split, far_field=False)  # three (2Q, m)
+    t = [a.reshape(Q, 2, m) for a in tw]
+    wp = [t[0][:, 0] + t[0][:, 1], t[1][:, 0], t[2][:, 0] + t[1][:, 1], t[2][:, 1]]
+    finite = torch.isfinite(wp[0] + wp[1] + wp[2] + wp[3])
+    use = sel & finite
+    wp = [torch.where(use, a, torch.zeros_like(a)) for a in wp]
+    invn = torch.where(use, torch.rsqrt(_safe(D, use)), torch.zeros_like(D))
+    kh = [a * invn for a in k]
+    pk = sum(wp[i] * kh[i] for i in range(4))
+    wbar = [wp[i] - pk * kh[i] for i in range(4)]
+    ok = sum(omega[i] * kh[i] for i in range(4))
+    ow = sum(omega[i] * wbar[i] for i in range(4))
+    ww = sum(wbar[i] * wbar[i] for i in range(4))
+    good = use & (ow != 0)
+    lam = torch.where(good, ok * ww / _safe(ow, good), torch.zeros_like(ow))
+    wn = [wbar[i] + lam * kh[i] for i in range(4)]
+    # As in the general case, restore A w = A w_p (= m) against kappa's rounding error.
+    invD = torch.where(use, 1.0 / _safe(D, use), torch.zeros_like(D))
+    for _ in range(REFINE):
+        d = [wp[i] - wn[i] for i in range(4)]
+        res = _add(_add(_scale(d[0], p[0]), _scale(d[1], p[1])), _add(_scale(d[2], p[2]), _scale(d[3], p[3])))
+        wn = [wn[i] + _dot(rows[i], res) * invD for i in range(4)]
+    return [torch.where(use, wn[i], w[i]) for i in range(4)]
