@@ -167,7 +167,8 @@ def _stable_face_weights(
         # an edge's line), and this keeps autograd's one-sided derivative there instead of 0.
         s_abs = sigma * s[e] + 0.0  # + 0.0 turns -0.0 into +0.0 (atan2 tells them apart)
         qq = dots[e] - h2  # q_j . q_k
-        N = torch.hypot(s[e], h * ell[e])  # |N_e| = |a_j x a_k|, consistent with s and h
+        N2 = s[e] * s[e] + (h * ell[e]) ** 2  # |N_e|^2 = |a_j x a_k|^2, consistent with s and h
+        N = torch.sqrt(torch.where(N2 > 0, N2, 1.0)) * (N2 > 0)  # (no NaN gradient where N = 0)
         theta0 = torch.atan2(s_abs, qq)  # planar angle at the foot point
         wind_angle = wind_angle + sigma * theta0
         Nps = N + s_abs
@@ -214,7 +215,8 @@ def _pair_terms(x: torch.Tensor, data: TriangleCageData) -> dict[str, list[torch
         j, k = (e + 1) % 3, (e + 2) % 3
         Ne = _cross(a[j], a[k])
         N.append(Ne)
-        Nn.append(torch.sqrt(_dot(Ne, Ne)))
+        Nn2 = _dot(Ne, Ne)
+        Nn.append(torch.sqrt(torch.where(Nn2 > 0, Nn2, 1.0)) * (Nn2 > 0))  # (no NaN gradient at 0)
         dots.append(_dot(a[j], a[k]))
         s.append(_dot(Ne, nrm))
     return {"R": R, "h": _dot(a[0], nrm), "N": N, "Nn": Nn, "dots": dots, "s": s}
