@@ -101,7 +101,8 @@ def dense_reference(cage: torchcage.Cage, x: torch.Tensor, m: int) -> torch.Tens
     pos = torch.einsum("gk,qkc->qgc", basis, v[q]).reshape(-1, 3)
     B = torch.zeros(q.shape[0], basis.shape[0], V, dtype=torch.float64)
     for k in range(4):
-        B.scatter_add_(2, q[:, k].view(-1, 1, 1).expand(-1, basis.shape[0], 1), basis[None, :, k : k + 1].expand(q.shape[0], -1, 1))
+        idx = q[:, k].view(-1, 1, 1).expand(-1, basis.shape[0], 1)
+        B.scatter_add_(2, idx, basis[None, :, k : k + 1].expand(q.shape[0], -1, 1))
     allpos, allB = torch.cat([v, pos]), torch.cat([torch.eye(V, dtype=torch.float64), B.reshape(-1, V)])
     key = torch.round(allpos * 1e9).long()
     _, inv = torch.unique(key, dim=0, return_inverse=True)
@@ -197,9 +198,9 @@ def test_cage_vertices_and_edges_interpolate(backend):
     cage = triquad()
     e = cage.unique_edges()
     x = torch.cat([cage.vertices, 0.3 * cage.vertices[e[:, 0]] + 0.7 * cage.vertices[e[:, 1]]])
-    expected = torch.cat([torch.eye(cage.num_vertices, dtype=torch.float64),
-                          torch.zeros(e.shape[0], cage.num_vertices, dtype=torch.float64)
-                          .scatter_add(1, e, torch.tensor([[0.3, 0.7]], dtype=torch.float64).expand(e.shape[0], 2))])  # fmt: skip
+    on_edges = torch.zeros(e.shape[0], cage.num_vertices, dtype=torch.float64)
+    on_edges.scatter_add_(1, e, torch.tensor([[0.3, 0.7]], dtype=torch.float64).expand(e.shape[0], 2))
+    expected = torch.cat([torch.eye(cage.num_vertices, dtype=torch.float64), on_edges])
     torch.testing.assert_close(F.quad_mean_value_coordinates(x, cage, backend=backend), expected, atol=1e-12, rtol=0)
 
 
@@ -316,3 +317,19 @@ def test_errors_and_inputs_untouched():
         F.quad_mean_value_coordinates(x, bad)
     with pytest.warns(UserWarning, match="allow_invalid"):
         F.quad_mean_value_coordinates(torch.zeros(1, 3, dtype=torch.float64), bad, allow_invalid=True)
+
+
+def test_module_matches_functional_and_batches():
+    cage = triquad()
+    x = box_points(cage, 40)
+    m = torchcage.QuadMeanValueCoordinates(cage, x)
+    torch.testing.assert_close(m(cage.vertices), x, atol=1e-12, rtol=0)
+    poses = torch.stack([cage.vertices * 1.5, cage.vertices + 1.0])
+    w = F.quad_mean_value_coordinates(x, cage)
+    torch.testing.assert_close(m(poses), w @ poses, atol=1e-12, rtol=0)
+    verts = (cage.vertices * 1.1).requires_grad_(True)
+    m(verts).sum().backward()
+    torch.testing.assert_close(verts.grad, w.sum(0)[:, None].expand(-1, 3), atol=1e-12, rtol=0)
+    m2 = torchcage.QuadMeanValueCoordinates(cage, torch.zeros(40, 3, dtype=torch.float64), n=1)
+    m2.load_state_dict(m.state_dict())
+    torch.testing.assert_close(m2(poses), m(poses))

@@ -14,7 +14,7 @@ from . import data, functional
 from .cage import Cage
 from .errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError, PointsError
 from .io import load_cage, load_mesh, save_cage, save_mesh
-from .nn import GreenCoordinates, LocalBarycentricCoordinates, MeanValueCoordinates
+from .nn import GreenCoordinates, LocalBarycentricCoordinates, MeanValueCoordinates, QuadMeanValueCoordinates
 
 __version__ = "0.1.0"
 
@@ -28,6 +28,7 @@ __all__ = [
     "LocalBarycentricCoordinates",
     "MeanValueCoordinates",
     "PointsError",
+    "QuadMeanValueCoordinates",
     "__version__",
     "data",
     "functional",

@@ -17,7 +17,7 @@ import torch
 
 __all__ = ["main"]
 
-METHODS = ("mvc", "gc")
+METHODS = ("mvc", "gc", "qmvc")
 
 
 class _Timer:
@@ -48,6 +48,8 @@ def _build_module(method: str, cage, points: torch.Tensor, progress: bool):
         return torchcage.MeanValueCoordinates(cage.triangulated(), points, progress=progress)
     if method == "gc":
         return torchcage.GreenCoordinates(cage.triangulated(), points)
+    if method == "qmvc":
+        return torchcage.QuadMeanValueCoordinates(cage, points, progress=progress)
     raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 

@@ -69,13 +69,14 @@ def quad_data(vertices: torch.Tensor, quads: torch.Tensor, tol: float) -> QuadDa
     """Constants of the quads ``(Q, 4)`` of a cage with vertices ``(V, 3)`` (in their dtype)."""
     p = vertices[quads]  # (Q, 4, 3)
     hull_tri = torch.stack([quads[:, list(f)] for f in HULL_FACES], dim=1).reshape(-1, 3)
+    split_tri = torch.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
     diff = p[:, :, None, :] - p[:, None, :, :]
     size = diff.norm(dim=-1).flatten(1).max(dim=1).values
     return QuadData(
         quads=quads,
         corners=p.permute(2, 1, 0).contiguous()[..., None],
         hull=triangle_data(vertices, hull_tri, tol),
-        split=triangle_data(vertices, torch.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], dim=1).reshape(-1, 3), tol),
+        split=triangle_data(vertices, split_tri, tol),
         size=size[:, None],
         tol=tol,
     )
@@ -99,6 +100,11 @@ def _sub(a: Vec, b: Vec) -> Vec:
 
 def _scale(s: torch.Tensor, a: Vec) -> Vec:
     return (s * a[0], s * a[1], s * a[2])
+
+
+def _combo(w: list[torch.Tensor], p: list[Vec]) -> Vec:
+    """``sum_i w_i p_i`` (``A w``)."""
+    return _add(_add(_scale(w[0], p[0]), _scale(w[1], p[1])), _add(_scale(w[2], p[2]), _scale(w[3], p[3])))
 
 
 def _safe(den: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
@@ -288,7 +294,7 @@ def quad_weights_chunk(
     okD = ~flat & ~on
     invD = torch.where(okD, 1.0 / _safe(D, okD), torch.zeros_like(D))
     wbar = [_dot(rows[i], mvec) * invD for i in range(4)]
-    res = _sub(mvec, _add(_add(_scale(wbar[0], p[0]), _scale(wbar[1], p[1])), _add(_scale(wbar[2], p[2]), _scale(wbar[3], p[3]))))
+    res = _sub(mvec, _combo(wbar, p))
     wbar = [wbar[i] + _dot(rows[i], res) * invD for i in range(4)]
     # Pairs on the quad are replaced by the caller; keep their samples away from the singularity.
     us = torch.where(okD, u, torch.full_like(u, 0.5))
@@ -304,8 +310,7 @@ def quad_weights_chunk(
     # kappa carries a relative error of about eps |x - q| / distance(x, quad's corner planes), so
     # A (lambda kappa) drifts off zero where lambda is large (near a quad): restore A w = m.
     for _ in range(REFINE):
-        Aw = _add(_add(_scale(w[0], p[0]), _scale(w[1], p[1])), _add(_scale(w[2], p[2]), _scale(w[3], p[3])))
-        res = _sub(mvec, Aw)
+        res = _sub(mvec, _combo(w, p))
         w = [w[i] + _dot(rows[i], res) * invD for i in range(4)]
     # Near a flat quad's plane the Cramer mean vector is the inaccurate part: use the split form.
     near_flat = okD & ~inside & (kabs < NEAR_FLAT * data.size * data.size * R2.max(dim=0).values.sqrt())
@@ -370,7 +375,6 @@ def _near_flat_weights(
     # As in the general case, restore A w = A w_p (= m) against kappa's rounding error.
     invD = torch.where(use, 1.0 / _safe(D, use), torch.zeros_like(D))
     for _ in range(REFINE):
-        d = [wp[i] - wn[i] for i in range(4)]
-        res = _add(_add(_scale(d[0], p[0]), _scale(d[1], p[1])), _add(_scale(d[2], p[2]), _scale(d[3], p[3])))
+        res = _combo([wp[i] - wn[i] for i in range(4)], p)
         wn = [wn[i] + _dot(rows[i], res) * invD for i in range(4)]
     return [torch.where(use, wn[i], w[i]) for i in range(4)]

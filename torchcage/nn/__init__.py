@@ -4,5 +4,12 @@ from .base import CageModule
 from .green import GreenCoordinates
 from .local_barycentric import LocalBarycentricCoordinates
 from .mean_value import MeanValueCoordinates
+from .quad_mean_value import QuadMeanValueCoordinates
 
-__all__ = ["CageModule", "GreenCoordinates", "LocalBarycentricCoordinates", "MeanValueCoordinates"]
+__all__ = [
+    "CageModule",
+    "GreenCoordinates",
+    "LocalBarycentricCoordinates",
+    "MeanValueCoordinates",
+    "QuadMeanValueCoordinates",
+]

@@ -1,0 +1,75 @@
+"""The quad mean value coordinates module."""
+
+from __future__ import annotations
+
+import torch
+
+from ..cage import Cage
+from ..functional.quad_mean_value import quad_mean_value_coordinates
+from .base import CageModule
+
+__all__ = ["QuadMeanValueCoordinates"]
+
+
+class QuadMeanValueCoordinates(CageModule):
+    """Deform points embedded in a quad or triquad cage with quad mean value coordinates.
+
+    Quads act as bilinear patches (Thiery, Memari, Boubekeur 2018), so a symmetric cage edit gives
+    a symmetric deformation, with no artefacts of a triangulation. The coordinates of ``points``
+    with respect to the rest ``cage`` are computed once (float64 by default) and stored as the
+    buffer ``weights`` ``(N, V)``; ``forward`` is one matrix product, differentiable with respect
+    to the deformed vertices. (For gradients with respect to the query points, call
+    :func:`torchcage.functional.quad_mean_value_coordinates` on points that require grad.)
+
+    Args:
+        cage: a closed 3D cage of triangles and/or valid quads.
+        points: ``(N, 3)`` points to embed.
+        n: grid parameter of the quad integrals (``(2n+1)^2`` samples per quad; 4 by default).
+        chunk_size: points per chunk while computing the weights.
+        dtype: dtype of the stored weights (float64 by default).
+        progress: show a progress bar while computing the weights.
+        allow_invalid: compute even if some quads fail the validity predicate (with a warning).
+
+    Shape:
+        - Input: ``(*, V, 3)`` deformed cage vertices, any leading batch shape.
+        - Output: ``(*, N, 3)`` deformed points.
+
+    Example:
+        >>> import torch, torchcage
+        >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj"))       # 6 quads
+        >>> pts = torch.rand(50, 3, dtype=torch.float64) * 2 - 1
+        >>> qmvc = torchcage.QuadMeanValueCoordinates(cage, pts)
+        >>> qmvc(torch.stack([cage.vertices, 2 * cage.vertices])).shape
+        torch.Size([2, 50, 3])
+        >>> torch.allclose(qmvc(cage.vertices), pts)
+        True
+    """
+
+    weights: torch.Tensor
+
+    def __init__(
+        self,
+        cage: Cage,
+        points: torch.Tensor,
+        n: int = 4,
+        *,
+        chunk_size: int | None = None,
+        dtype: torch.dtype = torch.float64,
+        progress: bool = False,
+        allow_invalid: bool = False,
+    ) -> None:
+        pts = torch.as_tensor(points).detach()
+        w = quad_mean_value_coordinates(
+            pts, cage, n, chunk_size=chunk_size, dtype=dtype, progress=progress, allow_invalid=allow_invalid
+        )
+        super().__init__(cage, pts.reshape(-1, cage.dim))
+        self.n = n
+        self.register_buffer("weights", w.reshape(-1, cage.num_vertices))
+
+    def forward(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Deformed points ``(*, N, 3)`` for deformed cage vertices ``(*, V, 3)``."""
+        self._check_vertices(vertices, self.weights)
+        return torch.matmul(self.weights.to(vertices.dtype), vertices)
+
+    def extra_repr(self) -> str:
+        return super().extra_repr() + f", n={self.n}"
