@@ -28,6 +28,20 @@ def _find_data() -> Path:
 DATA = _find_data()
 QMVC_MODELS = ["Beast", "Bench", "Cactus", "FireHydrant", "ManHead", "Ogre", "SpikyBox", "WireSphere"]
 
+#: Kernels of the functions that have a native CPU kernel beside the torch one.
+BACKENDS = ["native", "torch"]
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request) -> str:
+    if request.param == "native":
+        from torchcage import _native
+
+        if not _native.available():
+            pytest.skip("no C compiler: native kernel unavailable")
+    return request.param
+
+
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 

@@ -13,18 +13,6 @@ import torchcage
 from torchcage import functional as F
 from torchcage.testing import assert_interpolates, assert_linear_precision, assert_partition_of_unity
 
-BACKENDS = ["native", "torch"]
-
-
-@pytest.fixture(params=BACKENDS)
-def backend(request) -> str:
-    if request.param == "native":
-        from torchcage import _native
-
-        if not _native.available():
-            pytest.skip("no C compiler: native kernel unavailable")
-    return request.param
-
 
 def sample_points(cage: torchcage.Cage, n: int, spread: float = 1.5, seed: int = 0) -> torch.Tensor:
     """Points in a box ``spread`` times the cage's bounding box, inside and outside."""

@@ -11,18 +11,6 @@ import torchcage
 from torchcage import functional as F
 from torchcage.testing import assert_linear_precision, assert_partition_of_unity
 
-BACKENDS = ["native", "torch"]
-
-
-@pytest.fixture(params=BACKENDS)
-def backend(request) -> str:
-    if request.param == "native":
-        from torchcage import _native
-
-        if not _native.available():
-            pytest.skip("no C compiler: native kernel unavailable")
-    return request.param
-
 
 def bent_box() -> torchcage.Cage:
     """A 2x2x2-subdivided box bent symmetrically in x (z += 0.15 x^2 y): non-planar quads, mirror
@@ -307,6 +295,9 @@ def test_errors_and_inputs_untouched():
         F.quad_mean_value_coordinates(torch.tensor([[float("nan"), 0.0, 0.0]], dtype=torch.float64), cage)
     with pytest.raises(torchcage.PointsError, match="shape"):
         F.quad_mean_value_coordinates(x[:, :2], cage)
+    square = torchcage.Cage(torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=torch.float64))
+    with pytest.raises(torchcage.CageError, match="3D cage"):
+        F.quad_mean_value_coordinates(torch.full((1, 2), 0.5, dtype=torch.float64), square)
     # An invalid (folded) quad: refused by default, computed with a warning on request.
     v = box_cage().vertices.clone()
     q = box_cage().quads

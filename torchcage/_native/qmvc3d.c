@@ -79,7 +79,7 @@ static void triangle_weights(const double *a0, const double *a1, const double *a
     double m[3] = {0.0, 0.0, 0.0};
     for (int e = 0; e < 3; ++e) {
         if (!(Nn[e] > 0)) continue;
-        double g = 0.5 * atan2(Nn[e], dots[e]) / Nn[e];
+        double g = 0.5 * angle3(Nn[e], dots[e], R[(e + 1) % 3] * R[(e + 2) % 3]) / Nn[e];
         for (int c = 0; c < 3; ++c) m[c] += g * N[e][c];
     }
     double inv = 1.0 / (two_area * h);

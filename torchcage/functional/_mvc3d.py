@@ -268,7 +268,7 @@ def _far_field_weights(x: torch.Tensor, h: torch.Tensor, face: torch.Tensor, dat
 def face_weights(x: torch.Tensor, data: TriangleCageData, far_field: bool = True) -> tuple[list[torch.Tensor], dict]:
     """Per-face corner weights ``w_i^T`` of a chunk of points (eager: the stable form is evaluated
     only on the point–face pairs that need it). Points on a face get non-finite values there: the
-    caller handles them (see :func:`on_face`).
+    caller handles them (``mvc3d_chunk`` replaces them by the interpolating values).
 
     Args:
         x: ``(n, 3)`` points.

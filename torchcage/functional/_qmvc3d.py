@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ._mvc3d import TriangleCageData, face_weights, triangle_data
+from ._mvc3d import TriangleCageData, _cross, _dot, face_weights, triangle_data
 
 Vec = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -80,14 +80,6 @@ def quad_data(vertices: torch.Tensor, quads: torch.Tensor, tol: float) -> QuadDa
         size=size[:, None],
         tol=tol,
     )
-
-
-def _cross(a: Vec, b: Vec) -> Vec:
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _dot(a: Vec, b: Vec) -> torch.Tensor:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def _add(a: Vec, b: Vec) -> Vec:
@@ -138,7 +130,7 @@ def kernel_and_pinv(p: list[Vec]) -> tuple[list[torch.Tensor], list[Vec], torch.
     c = {(a, b): _cross(p[a], p[b]) for a in range(4) for b in range(4) if a < b}
 
     def cr(a: int, b: int) -> Vec:
-        return c[(a, b)] if a < b else _scale(-torch.ones_like(c[(b, a)][0]), c[(b, a)])
+        return c[(a, b)] if a < b else tuple(-t for t in c[(b, a)])  # type: ignore[return-value]
 
     k = [_dot(p[1], cr(2, 3)), -_dot(p[2], cr(3, 0)), _dot(p[3], cr(0, 1)), -_dot(p[0], cr(1, 2))]
     # Cramer's rule on [A; kappa^T] w = [m; 0] (Appendix A), each determinant expanded along the

@@ -17,7 +17,7 @@ from ._mvc3d import TriangleCageData, mvc3d_chunk, triangle_data
 from ._mvc3d_native import native_chunk, native_tables
 from ._qmvc3d import QuadData, quad_data, quad_weights_chunk
 
-__all__ = ["check_quads", "quad_mean_value_coordinates"]
+__all__ = ["quad_mean_value_coordinates"]
 
 
 def check_quads(cage: Cage, allow_invalid: bool) -> None:

@@ -7,7 +7,7 @@ from torch import nn
 
 from ..cage import Cage
 
-__all__ = ["CageModule"]
+__all__ = ["CageModule", "DenseWeightsModule"]
 
 
 class CageModule(nn.Module):
@@ -55,3 +55,15 @@ class CageModule(nn.Module):
 
     def extra_repr(self) -> str:
         return f"points={self.num_points}, cage_vertices={self.num_vertices}, dim={self.dim}"
+
+
+class DenseWeightsModule(CageModule):
+    """Base of the modules whose deformation is one dense product ``weights @ vertices``: the
+    subclass stores its coordinates ``(N, V)`` in the buffer ``weights``."""
+
+    weights: torch.Tensor
+
+    def forward(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Deformed points ``(*, N, D)`` for deformed cage vertices ``(*, V, D)``."""
+        self._check_vertices(vertices, self.weights)
+        return torch.matmul(self.weights.to(vertices.dtype), vertices)

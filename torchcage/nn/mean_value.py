@@ -6,12 +6,12 @@ import torch
 
 from ..cage import Cage
 from ..functional.mean_value import mean_value_coordinates
-from .base import CageModule
+from .base import DenseWeightsModule
 
 __all__ = ["MeanValueCoordinates"]
 
 
-class MeanValueCoordinates(CageModule):
+class MeanValueCoordinates(DenseWeightsModule):
     """Deform points embedded in a cage with mean value coordinates.
 
     The coordinates of ``points`` with respect to the rest ``cage`` are computed once (in float64
@@ -44,8 +44,6 @@ class MeanValueCoordinates(CageModule):
         True
     """
 
-    weights: torch.Tensor
-
     def __init__(
         self,
         cage: Cage,
@@ -58,8 +56,3 @@ class MeanValueCoordinates(CageModule):
         w = mean_value_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress)
         super().__init__(cage, torch.as_tensor(points).reshape(-1, cage.dim))
         self.register_buffer("weights", w.reshape(-1, cage.num_vertices))
-
-    def forward(self, vertices: torch.Tensor) -> torch.Tensor:
-        """Deformed points ``(*, N, D)`` for deformed cage vertices ``(*, V, D)``."""
-        self._check_vertices(vertices, self.weights)
-        return torch.matmul(self.weights.to(vertices.dtype), vertices)

@@ -6,12 +6,12 @@ import torch
 
 from ..cage import Cage
 from ..functional.quad_mean_value import quad_mean_value_coordinates
-from .base import CageModule
+from .base import DenseWeightsModule
 
 __all__ = ["QuadMeanValueCoordinates"]
 
 
-class QuadMeanValueCoordinates(CageModule):
+class QuadMeanValueCoordinates(DenseWeightsModule):
     """Deform points embedded in a quad or triquad cage with quad mean value coordinates.
 
     Quads act as bilinear patches (Thiery, Memari, Boubekeur 2018), so a symmetric cage edit gives
@@ -45,8 +45,6 @@ class QuadMeanValueCoordinates(CageModule):
         True
     """
 
-    weights: torch.Tensor
-
     def __init__(
         self,
         cage: Cage,
@@ -65,11 +63,6 @@ class QuadMeanValueCoordinates(CageModule):
         super().__init__(cage, pts.reshape(-1, cage.dim))
         self.n = n
         self.register_buffer("weights", w.reshape(-1, cage.num_vertices))
-
-    def forward(self, vertices: torch.Tensor) -> torch.Tensor:
-        """Deformed points ``(*, N, 3)`` for deformed cage vertices ``(*, V, 3)``."""
-        self._check_vertices(vertices, self.weights)
-        return torch.matmul(self.weights.to(vertices.dtype), vertices)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", n={self.n}"
