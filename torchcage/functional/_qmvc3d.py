@@ -233,21 +233,32 @@ def riemann_sums(p0: Vec, b: Vec, c: Vec, dd: Vec, u: torch.Tensor, v: torch.Ten
     return [S - Su - Sv + Suv, Su - Suv, Suv, Sv - Suv]
 
 
-def quad_weights_chunk(
-    x: torch.Tensor, data: QuadData, n: int
-) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Unnormalised QMVC weights of every quad corner for a chunk of points.
+@dataclass
+class Projection:
+    """Per point–quad quantities of a chunk, each ``(Q, m)`` (lists by corner, ``Vec`` by component)."""
 
-    Args:
-        x: ``(m, 3)`` points.
-        data: the quads' constants.
-        n: grid parameter (``(2n+1)^2`` samples per quad).
+    p: list[Vec]  # corners minus the point
+    R2: torch.Tensor  # (4, Q, m) squared distances to the corners
+    vertex: torch.Tensor  # the corner the point sits on, or -1
+    mvec: Vec  # the quad's mean vector at the point (Eq. 16)
+    k: list[torch.Tensor]  # kernel kappa of A (Eq. 26)
+    rows: list[Vec]  # rows of |kappa|^2 A^+
+    D: torch.Tensor  # |kappa|^2
+    kabs: torch.Tensor  # |kappa|_1
+    flat: torch.Tensor  # a planar quad and a point on its plane (kappa vanishes)
+    inside: torch.Tensor  # the point is inside the quad's tetrahedron
+    b: Vec  # q1 - q0: the sheet is xi - x = p0 + u b + v c + u v dd
+    c: Vec  # q3 - q0
+    dd: Vec  # q0 - q1 + q2 - q3
+    nq: Vec  # normal of the sheet at its centre
+    u: torch.Tensor  # projection of the point onto the quad (Algorithm 1)
+    v: torch.Tensor
+    on: torch.Tensor  # the point lies on the quad (or a corner)
 
-    Returns:
-        ``(w, on, u, v, vertex)``: ``w`` four ``(Q, m)`` corner weights (zero where the pair is on
-        the quad); ``on`` ``(Q, m)`` bool, the point lies on the quad; ``u, v`` ``(Q, m)`` its
-        projection's parameters; ``vertex`` ``(Q, m)`` the corner the point sits on, or -1.
-    """
+
+def project(x: torch.Tensor, data: QuadData) -> Projection:
+    """The smooth projection of every point onto every quad (Algorithm 1) and the per-pair
+    quantities it needs (mean vector, kernel); ``x`` is ``(m, 3)``."""
     Q, m = data.quads.shape[0], x.shape[0]
     cq = data.corners  # (3, 4, Q, 1)
     xt = x.T[:, None, :]  # (3, 1, m)
@@ -265,7 +276,7 @@ def quad_weights_chunk(
     sgn = torch.where(alpha >= 0, 1.0, -1.0).to(x.dtype)
     inside = (alpha != 0) & (torch.stack(k) * sgn >= -1e-13 * kabs).all(dim=0)
 
-    # --- Projection (Algorithm 1): x' = x inside the tetrahedron, else the |MVC| average. ---
+    # x' = x inside the tetrahedron, else the |MVC| average over its faces.
     outside = ~inside & ~flat & (vertex < 0)
     xp: list[torch.Tensor] = [xt[c].expand(Q, m) for c in range(3)]
     if bool(outside.any()):
@@ -281,6 +292,28 @@ def quad_weights_chunk(
     # On the quad: the bilinear coordinates of the projection reproduce the point.
     xi = _add(_add(p[0], _scale(u, b)), _add(_scale(v, c), _scale(u * v, dd)))
     on = (_dot(xi, xi) <= tol * tol) | (vertex >= 0)
+    return Projection(p, R2, vertex, mvec, k, rows, D, kabs, flat, inside, b, c, dd, nq, u, v, on)  # type: ignore[arg-type]
+
+
+def quad_weights_chunk(
+    x: torch.Tensor, data: QuadData, n: int
+) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Unnormalised QMVC weights of every quad corner for a chunk of points.
+
+    Args:
+        x: ``(m, 3)`` points.
+        data: the quads' constants.
+        n: grid parameter (``(2n+1)^2`` samples per quad).
+
+    Returns:
+        ``(w, on, u, v, vertex)``: ``w`` four ``(Q, m)`` corner weights (zero where the pair is on
+        the quad); ``on`` ``(Q, m)`` bool, the point lies on the quad; ``u, v`` ``(Q, m)`` its
+        projection's parameters; ``vertex`` ``(Q, m)`` the corner the point sits on, or -1.
+    """
+    pr = project(x, data)
+    p, R2, mvec, k, rows, D, kabs = pr.p, pr.R2, pr.mvec, pr.k, pr.rows, pr.D, pr.kabs
+    flat, inside, b, c, dd, nq, u, v, on = pr.flat, pr.inside, pr.b, pr.c, pr.dd, pr.nq, pr.u, pr.v, pr.on
+    vertex = pr.vertex
 
     # --- General case: w = w_bar + lambda kappa (Eqs. 20-24). ---
     okD = ~flat & ~on
