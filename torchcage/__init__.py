@@ -14,7 +14,13 @@ from . import data, functional
 from .cage import Cage
 from .errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError, PointsError
 from .io import load_cage, load_mesh, save_cage, save_mesh
-from .nn import GreenCoordinates, LocalBarycentricCoordinates, MeanValueCoordinates, QuadMeanValueCoordinates
+from .nn import (
+    GreenCoordinates,
+    LocalBarycentricCoordinates,
+    MeanValueCoordinates,
+    QuadGreenCoordinates,
+    QuadMeanValueCoordinates,
+)
 
 __version__ = "0.1.0"
 
@@ -28,6 +34,7 @@ __all__ = [
     "LocalBarycentricCoordinates",
     "MeanValueCoordinates",
     "PointsError",
+    "QuadGreenCoordinates",
     "QuadMeanValueCoordinates",
     "__version__",
     "data",

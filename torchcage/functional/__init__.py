@@ -7,6 +7,7 @@ coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
 from .green import green_coordinates
 from .local_barycentric import local_barycentric_coordinates, locality_statistics, solve_local_barycentric
 from .mean_value import mean_value_coordinates
+from .quad_green import quad_green_coordinates
 from .quad_mean_value import quad_mean_value_coordinates
 
 __all__ = [
@@ -14,6 +15,7 @@ __all__ = [
     "local_barycentric_coordinates",
     "locality_statistics",
     "mean_value_coordinates",
+    "quad_green_coordinates",
     "quad_mean_value_coordinates",
     "solve_local_barycentric",
 ]

@@ -62,14 +62,28 @@ def triangle_green_data(cage: Cage, dtype: torch.dtype) -> TriangleGreenData:
     p, n, two_area = triangle_geometry(
         cage, dtype, "triangulate it with cage.triangulated() (quad Green coordinates are a separate system)"
     )
-    E = p.roll(-2, dims=1) - p.roll(-1, dims=1)  # edge opposite corner i: p_{i+1} -> p_{i+2}
-    ell = E.norm(dim=-1, keepdim=True)
-    edge_dir = E / ell
-    edge_out = torch.linalg.cross(edge_dir, n[:, None, :].expand_as(edge_dir), dim=-1)
-    grad_bary = -edge_out * (ell / two_area[:, None, None])  # |grad| = 1 / height, towards the corner
+    _, _, edge_dir, edge_out, grad_bary = triangle_frame(p)
     return TriangleGreenData(
         p, n, two_area, edge_dir, edge_out, grad_bary, cage.triangles, ON_CAGE_TOLERANCE * cage.scale
     )
+
+
+def triangle_frame(p: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """``(normal (..., 3), two_area (...), edge_dir, edge_out, grad_bary (..., 3, 3))`` of triangles
+    with corners ``p`` ``(..., 3, 3)``: unit normal, twice the area, and for the edge opposite each
+    corner (``p_{i+1} -> p_{i+2}``) its unit direction, its outward in-plane unit normal and the
+    in-plane gradient of the corner's hat function. Degenerate triangles get finite placeholders
+    (normal (0, 0, 1), zero gradients) and ``two_area = 0``: callers weight them by their area."""
+    cross = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
+    two_area = cross.norm(dim=-1)
+    ok = two_area > 0
+    n = torch.where(ok[..., None], cross / torch.where(ok, two_area, 1.0)[..., None], cross.new_tensor([0.0, 0.0, 1.0]))
+    E = p.roll(-2, dims=-2) - p.roll(-1, dims=-2)  # edge opposite corner i: p_{i+1} -> p_{i+2}
+    ell = E.norm(dim=-1, keepdim=True)
+    edge_dir = E / torch.where(ell > 0, ell, 1.0)
+    edge_out = torch.linalg.cross(edge_dir, n[..., None, :].expand_as(edge_dir), dim=-1)
+    grad_bary = -edge_out * (ell / torch.where(ok, two_area, 1.0)[..., None, None]) * ok[..., None, None]
+    return n, two_area, edge_dir, edge_out, grad_bary
 
 
 def _edge_integrals(a_j: torch.Tensor, a_k: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -100,20 +114,25 @@ def green3d_chunk(x: torch.Tensor, data: TriangleGreenData) -> tuple[torch.Tenso
         lies on the face, and the barycentric coordinates of its foot point.
     """
     a = data.p[None] - x[:, None, None, :]  # (n, T, 3 corners, 3)
-    n = data.normal[None]  # (1, T, 3)
-    h = (a[:, :, 0] * n).sum(-1)  # (n, T), > 0 on the inner side
-    R = a.norm(dim=-1)  # (n, T, 3)
+    geometry = (data.normal[None], data.two_area[None], data.edge_dir[None], data.edge_out[None], data.grad_bary[None])
+    return triangle_integrals(a, geometry, data.tol)
+
+
+def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol: float) -> tuple[torch.Tensor, ...]:
+    """Green integrals of triangles seen from points: ``a`` ``(..., 3, 3)`` holds the corners
+    minus the point, ``geometry`` is :func:`triangle_frame` of the corners (broadcastable to
+    ``a``'s leading shape). Returns ``(phi_face (..., 3), psi (...), omega (...), on_face (...),
+    alpha (..., 3))`` as :func:`green3d_chunk`."""
+    normal, two_area, edge_dir, edge_out, grad_bary = geometry
+    h = (a[..., 0, :] * normal).sum(-1)  # > 0 on the inner side
+    R = a.norm(dim=-1)  # (..., 3)
+    aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]  # edge e runs from corner e + 1 to e + 2
     # Edge integrals and signed foot-to-edge distances (positive inside).
-    I = torch.stack(
-        [_edge_integrals(a[..., (e + 1) % 3, :], a[..., (e + 2) % 3, :], data.edge_dir[None, :, e]) for e in range(3)],
-        dim=-1,
-    )  # (n, T, 3)
-    d = (a[..., [1, 2, 0], :] * data.edge_out[None]).sum(-1)  # (n, T, 3): edge e starts at corner e + 1
+    I = _edge_integrals(aj, ak, edge_dir)  # (..., 3)
+    d = (aj * edge_out).sum(-1)
     # Signed solid angle as a sum over edges (no ratio that vanishes near an edge or the plane):
     # Omega = sign(h) sum_e [atan(d l_k / (R0^2 + |h| R_k)) - atan(d l_j / (R0^2 + |h| R_j))].
-    aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]
-    u = data.edge_dir[None]
-    l_j, l_k = (aj * u).sum(-1), (ak * u).sum(-1)
+    l_j, l_k = (aj * edge_dir).sum(-1), (ak * edge_dir).sum(-1)
     R_j, R_k = R[..., [1, 2, 0]], R[..., [2, 0, 1]]
     habs = h.abs()[..., None]
     R0sq = d * d + habs * habs
@@ -121,23 +140,17 @@ def green3d_chunk(x: torch.Tensor, data: TriangleGreenData) -> tuple[torch.Tenso
     omega = torch.where(h >= 0, 1.0, -1.0) * beta.sum(-1)
     # Faces whose plane holds the point (within tol) contribute their principal value: no solid
     # angle, no h-term; edges through the point have d = 0 and a log-singular I: their product is 0.
-    on_plane = h.abs() <= data.tol
+    on_plane = h.abs() <= tol
     omega = torch.where(on_plane, 0.0, omega)
-    alpha = _barycentric_of_foot(d, data)
-    K = -(data.edge_out[None] * torch.where(on_plane[..., None], 0.0, I)[..., None]).sum(-2)  # (n, T, 3)
-    gK = (data.grad_bary[None] * K[:, :, None, :]).sum(-1)  # (n, T, 3)
+    ell = grad_bary.norm(dim=-1) * two_area[..., None]  # |grad| * 2A = edge length
+    alpha = d * ell / torch.where(two_area > 0, two_area, 1.0)[..., None]  # barycentric coords of the foot
+    K = -(edge_out * torch.where(on_plane[..., None], 0.0, I)[..., None]).sum(-2)  # (..., 3)
+    gK = (grad_bary * K[..., None, :]).sum(-1)  # (..., 3)
     phi_face = (alpha * omega[..., None] + h[..., None] * gK) / (4 * math.pi)
     dI = torch.where(d != 0, d * I, 0.0)
     psi = (dI.sum(-1) - h * omega) / (4 * math.pi)
-    on_face = on_plane & (d >= -data.tol).all(dim=-1)
+    on_face = on_plane & (d >= -tol).all(dim=-1)
     return phi_face, psi, omega, on_face, alpha
-
-
-def _barycentric_of_foot(d: torch.Tensor, data: TriangleGreenData) -> torch.Tensor:
-    """Barycentric coordinates of the foot point from its distances to the edge lines:
-    ``alpha_i = d_i * l_i / (2A)``, shapes ``(n, T, 3)``."""
-    ell = (data.grad_bary.norm(dim=-1) * data.two_area[:, None])[None]  # |grad| * 2A = edge length
-    return d * ell / data.two_area[None, :, None]
 
 
 def green3d_coordinates(

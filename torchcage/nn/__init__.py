@@ -4,6 +4,7 @@ from .base import CageModule
 from .green import GreenCoordinates
 from .local_barycentric import LocalBarycentricCoordinates
 from .mean_value import MeanValueCoordinates
+from .quad_green import QuadGreenCoordinates
 from .quad_mean_value import QuadMeanValueCoordinates
 
 __all__ = [
@@ -11,5 +12,6 @@ __all__ = [
     "GreenCoordinates",
     "LocalBarycentricCoordinates",
     "MeanValueCoordinates",
+    "QuadGreenCoordinates",
     "QuadMeanValueCoordinates",
 ]

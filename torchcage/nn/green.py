@@ -8,7 +8,7 @@ from ..cage import Cage
 from ..functional.green import green_coordinates
 from .base import CageModule
 
-__all__ = ["GreenCoordinates", "stretched_normals"]
+__all__ = ["GreenCoordinates", "conformal_stretch", "stretched_normals", "stretched_triangle_normals"]
 
 
 def stretched_normals(rest: torch.Tensor, deformed: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
@@ -35,6 +35,26 @@ def triangle_frames(vertices: torch.Tensor, triangles: torch.Tensor) -> tuple[to
     u, v = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]
     n = torch.nn.functional.normalize(torch.linalg.cross(u, v, dim=-1), dim=-1)
     return u, v, n
+
+
+def conformal_stretch(u0: torch.Tensor, v0: torch.Tensor, u1: torch.Tensor, v1: torch.Tensor) -> torch.Tensor:
+    """Lipman's stretch factor of the linear map taking the tangent pair ``(u0, v0)`` to ``(u1, v1)``
+    (all ``(..., 3)``): ``sqrt(|u1|^2 |v0|^2 - 2 (u1.v1)(u0.v0) + |v1|^2 |u0|^2) / (sqrt(2) |u0 x v0|)``,
+    the root mean square of its two singular values (``s`` for a similarity of scale ``s``)."""
+    s2 = (
+        u1.square().sum(-1) * v0.square().sum(-1)
+        - 2 * (u1 * v1).sum(-1) * (u0 * v0).sum(-1)
+        + v1.square().sum(-1) * u0.square().sum(-1)
+    )
+    return torch.sqrt(s2.clamp_min(0.0)) / (2**0.5 * torch.linalg.cross(u0, v0, dim=-1).norm(dim=-1))
+
+
+def stretched_triangle_normals(rest: torch.Tensor, deformed: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
+    """Unit outward normals of deformed triangles times Lipman's stretch factors (the 3D Green
+    deformation's ``s_t n'_t``), ``(*, T, 3)`` for vertices ``(V, 3)`` / ``(*, V, 3)``."""
+    u0, v0, _ = triangle_frames(rest.to(deformed.dtype), triangles)
+    u1, v1, n1 = triangle_frames(deformed, triangles)
+    return conformal_stretch(u0, v0, u1, v1)[..., None] * n1
 
 
 class GreenCoordinates(CageModule):
@@ -92,16 +112,6 @@ class GreenCoordinates(CageModule):
         if self.dim == 2:
             # s_j n'_j = R(-90) a'_j / |a_j|: the stretch |a'| / |a| times the unit outward normal.
             sn = stretched_normals(self.rest_vertices, vertices, self.edges)
-            return torch.matmul(self.phi.to(vertices.dtype), vertices) + torch.matmul(self.psi.to(vertices.dtype), sn)
-        u0, v0, _ = triangle_frames(self.rest_vertices.to(vertices.dtype), self.triangles)
-        u1, v1, n1 = triangle_frames(vertices, self.triangles)
-        area = 0.5 * torch.linalg.cross(u0, v0, dim=-1).norm(dim=-1)
-        stretch2 = (
-            u1.square().sum(-1) * v0.square().sum(-1)
-            - 2 * (u1 * v1).sum(-1) * (u0 * v0).sum(-1)
-            + v1.square().sum(-1) * u0.square().sum(-1)
-        )
-        stretch = torch.sqrt(stretch2.clamp_min(0.0)) / (8**0.5 * area)
-        return torch.matmul(self.phi.to(vertices.dtype), vertices) + torch.matmul(
-            self.psi.to(vertices.dtype), stretch[..., None] * n1
-        )
+        else:
+            sn = stretched_triangle_normals(self.rest_vertices, vertices, self.triangles)
+        return torch.matmul(self.phi.to(vertices.dtype), vertices) + torch.matmul(self.psi.to(vertices.dtype), sn)
