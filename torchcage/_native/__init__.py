@@ -27,7 +27,7 @@ import torch
 
 __all__ = ["available", "call", "library", "select"]
 
-_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c", "qmvc3d.c")
+_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c", "qmvc3d.c", "qgc3d.c")
 _HEADERS = ("native.h",)
 
 #: Arguments of ``tc_mvc3d`` in mvc3d.c, in order (names as there; see its comment for layouts).
@@ -43,6 +43,13 @@ TC_MVC3D_SIGNATURE = {
 TC_QMVC3D_SIGNATURE = {
     "P": "ptr", "V": "i64", "quads": "ptr", "Q": "i64", "size": "ptr", "X": "ptr", "n": "i64", "tol": "f64",
     "grid": "i32", "nthreads": "i32", "W": "ptr", "on": "ptr",
+}  # fmt: skip
+
+#: Arguments of ``tc_qgc3d`` in qgc3d.c, in order.
+TC_QGC3D_SIGNATURE = {
+    "P": "ptr", "V": "i64", "quads": "ptr", "Q": "i64", "size": "ptr", "pinv": "ptr", "null": "ptr", "origin": "ptr",
+    "pattern": "ptr", "Pn": "i64", "K": "i32", "X": "ptr", "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr",
+    "PSIQ": "ptr", "ONQ": "ptr", "UV": "ptr",
 }  # fmt: skip
 
 #: Arguments of ``tc_mvc2d`` in mvc2d.c, in order.
@@ -147,6 +154,8 @@ def _build() -> ctypes.CDLL:
     lib.tc_mvc3d.restype = None
     lib.tc_qmvc3d.argtypes = [kinds[kind] for kind in TC_QMVC3D_SIGNATURE.values()]
     lib.tc_qmvc3d.restype = None
+    lib.tc_qgc3d.argtypes = [kinds[kind] for kind in TC_QGC3D_SIGNATURE.values()]
+    lib.tc_qgc3d.restype = None
     return lib
 
 

@@ -18,6 +18,67 @@ static inline double edge_integral(double l_j, double l_k, double R_j, double R_
     return log((R_k + l_k) * (R_j - l_j) / fmax(R0sq, 1e-300));
 }
 
+/* Green integrals of one triangle seen from a point (see triangle_integrals in _green3d.py):
+ * a: corners minus the point; nf: unit normal; two_area; ell: (3,) length of the edge opposite each
+ * corner; edir, eout, gbary: (3, 3) that edge's unit direction (p_{i+1} -> p_{i+2}), outward in-plane
+ * normal and the corner's hat-function gradient. Outputs phi (3,) (may be NULL), psi, omega; alpha
+ * (3,), the barycentric coordinates of the foot point; returns 1 when the point is on the face. */
+int tc_tri_green(const double a[3][3], const double *nf, double two_area, const double *ell, const double *edir,
+                 const double *eout, const double *gbary, double tol, double *phi, double *psi, double *omega,
+                 double *alpha) {
+    double R[3];
+    for (int i = 0; i < 3; ++i) R[i] = sqrt(dot3(a[i], a[i]));
+    double h = dot3(a[0], nf), habs = fabs(h);
+    int on_plane = habs <= tol, inside = 1;
+    double d[3], I[3], beta = 0.0;
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        const double *u = edir + 3 * e, *m = eout + 3 * e;
+        d[e] = dot3(a[j], m);
+        double l_j = dot3(a[j], u), l_k = dot3(a[k], u), R0sq = d[e] * d[e] + h * h;
+        beta += atan2(d[e] * l_k, R0sq + habs * R[k]) - atan2(d[e] * l_j, R0sq + habs * R[j]);
+        I[e] = edge_integral(l_j, l_k, R[j], R[k], R0sq);
+        inside &= d[e] >= -tol;
+    }
+    double om = on_plane ? 0.0 : (h >= 0 ? beta : -beta);
+    double K[3] = {0.0, 0.0, 0.0}, dI = 0.0;
+    for (int e = 0; e < 3; ++e) {
+        if (!on_plane)
+            for (int c = 0; c < 3; ++c) K[c] -= eout[3 * e + c] * I[e];
+        if (d[e] != 0) dI += d[e] * I[e];
+    }
+    for (int i = 0; i < 3; ++i) {
+        alpha[i] = two_area > 0 ? d[i] * ell[i] / two_area : 0.0;
+        if (phi) phi[i] = (alpha[i] * om + h * dot3(gbary + 3 * i, K)) / FOUR_PI;
+    }
+    *psi = (dI - h * om) / FOUR_PI;
+    *omega = om;
+    return on_plane && inside;
+}
+
+/* The per-face constants tc_tri_green expects, for a triangle with corners a (any common origin):
+ * nf (3), ell (3), edir, eout, gbary (3, 3); returns twice the area (0 for a degenerate triangle,
+ * whose constants are then finite placeholders and its integrals zero). */
+double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir, double *eout, double *gbary) {
+    double e1[3], e2[3], cr[3];
+    for (int c = 0; c < 3; ++c) {
+        e1[c] = a[1][c] - a[0][c];
+        e2[c] = a[2][c] - a[0][c];
+    }
+    cross3(e1, e2, cr);
+    double two_area = sqrt(dot3(cr, cr));
+    for (int c = 0; c < 3; ++c) nf[c] = two_area > 0 ? cr[c] / two_area : (c == 2 ? 1.0 : 0.0);
+    for (int i = 0; i < 3; ++i) {
+        const double *pj = a[(i + 1) % 3], *pk = a[(i + 2) % 3];
+        double E[3] = {pk[0] - pj[0], pk[1] - pj[1], pk[2] - pj[2]};
+        ell[i] = sqrt(dot3(E, E));
+        for (int c = 0; c < 3; ++c) edir[3 * i + c] = ell[i] > 0 ? E[c] / ell[i] : 0.0;
+        cross3(edir + 3 * i, nf, eout + 3 * i);
+        for (int c = 0; c < 3; ++c) gbary[3 * i + c] = two_area > 0 ? -eout[3 * i + c] * ell[i] / two_area : 0.0;
+    }
+    return two_area;
+}
+
 /*
  * P: (T, 3, 3) corners; nrm: (T, 3) unit normals; two_area: (T,); ell: (T, 3) length of the edge
  * opposite each corner; edir, eout, gbary: (T, 3, 3) unit direction p_{i+1} -> p_{i+2} of that
@@ -35,40 +96,15 @@ void tc_gc3d(const double *P, const double *nrm, const double *two_area, const d
         double omega_sum = 0.0, on_alpha[3] = {0.0, 0.0, 0.0};
         long on_face = -1;
         for (long f = 0; f < T; ++f) {
-            const double *pf = P + 9 * f, *nf = nrm + 3 * f;
-            double a[3][3], R[3];
-            for (int i = 0; i < 3; ++i) {
+            const double *pf = P + 9 * f;
+            double a[3][3], ph[3], alpha[3], omega;
+            for (int i = 0; i < 3; ++i)
                 for (int c = 0; c < 3; ++c) a[i][c] = pf[3 * i + c] - x[c];
-                R[i] = sqrt(dot3(a[i], a[i]));
-            }
-            double h = dot3(a[0], nf), habs = fabs(h);
-            int on_plane = habs <= tol, inside = 1;
-            double d[3], I[3], beta = 0.0;
-            for (int e = 0; e < 3; ++e) {
-                int j = (e + 1) % 3, k = (e + 2) % 3;
-                const double *u = edir + 9 * f + 3 * e, *m = eout + 9 * f + 3 * e;
-                d[e] = dot3(a[j], m);
-                double l_j = dot3(a[j], u), l_k = dot3(a[k], u), R0sq = d[e] * d[e] + h * h;
-                beta += atan2(d[e] * l_k, R0sq + habs * R[k]) - atan2(d[e] * l_j, R0sq + habs * R[j]);
-                I[e] = edge_integral(l_j, l_k, R[j], R[k], R0sq);
-                inside &= d[e] >= -tol;
-            }
-            double omega = on_plane ? 0.0 : (h >= 0 ? beta : -beta);
-            double K[3] = {0.0, 0.0, 0.0}, dI = 0.0;
-            for (int e = 0; e < 3; ++e) {
-                if (!on_plane)
-                    for (int c = 0; c < 3; ++c) K[c] -= eout[9 * f + 3 * e + c] * I[e];
-                if (d[e] != 0) dI += d[e] * I[e];
-            }
-            double alpha[3];
-            for (int i = 0; i < 3; ++i) {
-                alpha[i] = d[i] * ell[3 * f + i] / two_area[f];
-                double gK = dot3(gbary + 9 * f + 3 * i, K);
-                phi[tri[3 * f + i]] += (alpha[i] * omega + h * gK) / FOUR_PI;
-            }
-            psi[f] = (dI - h * omega) / FOUR_PI;
+            int on = tc_tri_green(a, nrm + 3 * f, two_area[f], ell + 3 * f, edir + 9 * f, eout + 9 * f, gbary + 9 * f,
+                                  tol, ph, psi + f, &omega, alpha);
+            for (int i = 0; i < 3; ++i) phi[tri[3 * f + i]] += ph[i];
             omega_sum += omega;
-            if (on_plane && inside && on_face < 0) {
+            if (on && on_face < 0) {
                 on_face = f;
                 for (int i = 0; i < 3; ++i) on_alpha[i] = alpha[i] > 0 ? alpha[i] : 0.0;
             }

@@ -14,4 +14,18 @@ static inline double dot3(const double *a, const double *b) { return a[0] * b[0]
 void tc_stable_face(double h, const double *s, const double *dots, const double *R, const double *ell,
                     const double *gram, double two_area, double *w);
 
+/* Green integrals of one triangle, and its per-face constants (gc3d.c). */
+int tc_tri_green(const double a[3][3], const double *nf, double two_area, const double *ell, const double *edir,
+                 const double *eout, const double *gbary, double tol, double *phi, double *psi, double *omega,
+                 double *alpha);
+double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir, double *eout, double *gbary);
+
+/* Per point-quad quantities of quad mean value and quad Green coordinates (qmvc3d.c). */
+typedef struct {
+    double p[4][3], R[4], m[3], k[4], rows[4][3], b[3], cc[3], dd[3], N0[3], Nu[3], Nv[3];
+    double D, kabs, u, v;
+    int flat, inside, vertex, on;
+} quad_pair;
+void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, quad_pair *qp);
+
 #endif

@@ -167,6 +167,121 @@ static void grid(double t, int n, double *nodes, double *len) {
     for (int k = 0; k < K; ++k) len[k] = (nodes[k + 1 < K ? k + 1 : K - 1] - nodes[k > 0 ? k - 1 : 0]) / 2;
 }
 
+/* Per point-quad quantities shared by QMVC and QGC: the corners minus the point, the kernel
+ * kappa and pseudo-inverse rows, the mean vector, the tetrahedron's edge terms, the sheet's
+ * parametrisation, and the smooth projection (u, v) of Algorithm 1 (see project in _qmvc3d.py). */
+void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, quad_pair *qp) {
+    double p[4][3], R2[4];
+    int vertex = -1;
+    for (int i = 0; i < 4; ++i) {
+        for (int c = 0; c < 3; ++c) p[i][c] = P[3 * qi[i] + c] - x[c];
+        R2[i] = dot3(p[i], p[i]);
+        if (R2[i] <= tol * tol && (vertex < 0 || R2[i] < R2[vertex])) vertex = i;
+    }
+    if (vertex >= 0) {
+        qp->vertex = vertex;
+        qp->on = 1;
+        return;
+    }
+    double m[3], k[4], rows[4][3], c[4][4][3], g[4][4], R[4];
+    double D = kernel_and_pinv(p, c, k, rows);
+    /* Edge terms theta_ab / (2 |p_a x p_b|) of the tetrahedron's six edges, shared by the
+     * quad's mean vector (its four boundary edges) and the hull faces' weights. */
+    for (int i = 0; i < 4; ++i) R[i] = sqrt(R2[i]);
+    for (int a = 0; a < 4; ++a)
+        for (int bb = a + 1; bb < 4; ++bb) {
+            double c2 = dot3(c[a][bb], c[a][bb]), cn = sqrt(c2);
+            g[a][bb] = g[bb][a] = c2 > 0 ? 0.5 * angle3(cn, dot3(p[a], p[bb]), R[a] * R[bb]) / cn : 0.0;
+        }
+    for (int d = 0; d < 3; ++d) m[d] = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        int j = (i + 1) & 3;
+        for (int d = 0; d < 3; ++d) m[d] += g[i][j] * c[i][j][d];
+    }
+    double kabs = fabs(k[0]) + fabs(k[1]) + fabs(k[2]) + fabs(k[3]);
+    int flat = kabs <= tol * size * size;
+    double alpha = k[0] + k[1] + k[2] + k[3], sgn = alpha >= 0 ? 1.0 : -1.0;
+    int inside = alpha != 0;
+    for (int i = 0; i < 4; ++i) inside = inside && (k[i] * sgn >= -1e-13 * kabs);
+    double b[3], cc[3], dd[3];
+    for (int c = 0; c < 3; ++c) {
+        b[c] = p[1][c] - p[0][c];
+        cc[c] = p[3][c] - p[0][c];
+        dd[c] = p[0][c] - p[1][c] + p[2][c] - p[3][c];
+    }
+    double N0[3], Nu[3], Nv[3], nq[3];
+    cross3(b, cc, N0);
+    cross3(b, dd, Nu);
+    cross3(dd, cc, Nv);
+    for (int c = 0; c < 3; ++c) nq[c] = N0[c] + 0.5 * (Nu[c] + Nv[c]);
+    /* Projection (Algorithm 1). */
+    double pp[4][3], d[3], u, v;
+    memcpy(pp, p, sizeof(pp));
+    if (flat) {
+        memcpy(d, nq, sizeof(d));
+    } else if (inside) {
+        memcpy(d, m, sizeof(d));
+    } else {
+        double num[3] = {0, 0, 0}, den = 0;
+        for (int f = 0; f < 4; ++f) {
+            const int *h = HULL[f];
+            double wt[3];
+            /* The face's determinant is +-kappa of the corner it leaves out. */
+            double det = dot3(p[h[0]], c[h[1]][h[2]]);
+            double e1[3], e2[3], cr[3];
+            for (int d = 0; d < 3; ++d) {
+                e1[d] = p[h[1]][d] - p[h[0]][d];
+                e2[d] = p[h[2]][d] - p[h[0]][d];
+            }
+            cross3(e1, e2, cr);
+            double two_area = sqrt(dot3(cr, cr));
+            double rmin = fmin(R[h[0]], fmin(R[h[1]], R[h[2]]));
+            if (fabs(det) < NEAR_PLANE * rmin * two_area) {
+                triangle_weights(p[h[0]], p[h[1]], p[h[2]], wt); /* stable form near the plane */
+            } else {
+                double mt[3] = {0, 0, 0};
+                for (int e = 0; e < 3; ++e) {
+                    int j = h[(e + 1) % 3], l = h[(e + 2) % 3];
+                    for (int d = 0; d < 3; ++d) mt[d] += g[j][l] * c[j][l][d];
+                }
+                for (int i = 0; i < 3; ++i) wt[i] = dot3(c[h[(i + 1) % 3]][h[(i + 2) % 3]], mt) / det;
+            }
+            for (int i = 0; i < 3; ++i) {
+                double a = fabs(wt[i]);
+                if (!isfinite(a)) a = 0.0;
+                den += a;
+                for (int d = 0; d < 3; ++d) num[d] += a * P[3 * qi[h[i]] + d];
+            }
+        }
+        if (den > 0)
+            for (int i = 0; i < 4; ++i)
+                for (int c = 0; c < 3; ++c) pp[i][c] = P[3 * qi[i] + c] - num[c] / den;
+        mean_vector(pp, d);
+    }
+    intersect(pp, d, &u, &v);
+    double xi[3];
+    for (int c = 0; c < 3; ++c) xi[c] = p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
+    memcpy(qp->p, p, sizeof(p));
+    memcpy(qp->R, R, sizeof(R));
+    memcpy(qp->m, m, sizeof(m));
+    memcpy(qp->k, k, sizeof(k));
+    memcpy(qp->rows, rows, sizeof(rows));
+    memcpy(qp->b, b, sizeof(b));
+    memcpy(qp->cc, cc, sizeof(cc));
+    memcpy(qp->dd, dd, sizeof(dd));
+    memcpy(qp->N0, N0, sizeof(N0));
+    memcpy(qp->Nu, Nu, sizeof(Nu));
+    memcpy(qp->Nv, Nv, sizeof(Nv));
+    qp->D = D;
+    qp->kabs = kabs;
+    qp->flat = flat;
+    qp->inside = inside;
+    qp->u = u;
+    qp->v = v;
+    qp->vertex = -1;
+    qp->on = dot3(xi, xi) <= tol * tol;
+}
+
 /*
  * P: (V, 3) vertices; quads: (Q, 4) int32; size: (Q,) longest edge or diagonal; X: (npts, 3) points;
  * tol: absolute on-cage tolerance; n: grid parameter. W: (npts, V) in/out: the triangles' raw weights
@@ -186,98 +301,19 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
             const double *x = X + 3 * pt;
             for (long q = 0; q < Q && !on[pt]; ++q) {
                 const int *qi = quads + 4 * q;
-                double p[4][3], R2[4];
-                int vertex = -1;
-                for (int i = 0; i < 4; ++i) {
-                    for (int c = 0; c < 3; ++c) p[i][c] = P[3 * qi[i] + c] - x[c];
-                    R2[i] = dot3(p[i], p[i]);
-                    if (R2[i] <= tol * tol && (vertex < 0 || R2[i] < R2[vertex])) vertex = i;
-                }
-                if (vertex >= 0) {
+                quad_pair qp;
+                tc_quad_pair(P, qi, x, size[q], tol, &qp);
+                if (qp.vertex >= 0) {
                     memset(w, 0, sizeof(double) * (size_t)V);
-                    w[qi[vertex]] = 1.0;
+                    w[qi[qp.vertex]] = 1.0;
                     on[pt] = 1;
                     break;
                 }
-                double m[3], k[4], rows[4][3], c[4][4][3], g[4][4], R[4];
-                double D = kernel_and_pinv(p, c, k, rows);
-                /* Edge terms theta_ab / (2 |p_a x p_b|) of the tetrahedron's six edges, shared by the
-                 * quad's mean vector (its four boundary edges) and the hull faces' weights. */
-                for (int i = 0; i < 4; ++i) R[i] = sqrt(R2[i]);
-                for (int a = 0; a < 4; ++a)
-                    for (int bb = a + 1; bb < 4; ++bb) {
-                        double c2 = dot3(c[a][bb], c[a][bb]), cn = sqrt(c2);
-                        g[a][bb] = g[bb][a] = c2 > 0 ? 0.5 * angle3(cn, dot3(p[a], p[bb]), R[a] * R[bb]) / cn : 0.0;
-                    }
-                for (int d = 0; d < 3; ++d) m[d] = 0.0;
-                for (int i = 0; i < 4; ++i) {
-                    int j = (i + 1) & 3;
-                    for (int d = 0; d < 3; ++d) m[d] += g[i][j] * c[i][j][d];
-                }
-                double kabs = fabs(k[0]) + fabs(k[1]) + fabs(k[2]) + fabs(k[3]);
-                int flat = kabs <= tol * size[q] * size[q];
-                double alpha = k[0] + k[1] + k[2] + k[3], sgn = alpha >= 0 ? 1.0 : -1.0;
-                int inside = alpha != 0;
-                for (int i = 0; i < 4; ++i) inside = inside && (k[i] * sgn >= -1e-13 * kabs);
-                double b[3], cc[3], dd[3];
-                for (int c = 0; c < 3; ++c) {
-                    b[c] = p[1][c] - p[0][c];
-                    cc[c] = p[3][c] - p[0][c];
-                    dd[c] = p[0][c] - p[1][c] + p[2][c] - p[3][c];
-                }
-                double N0[3], Nu[3], Nv[3], nq[3];
-                cross3(b, cc, N0);
-                cross3(b, dd, Nu);
-                cross3(dd, cc, Nv);
-                for (int c = 0; c < 3; ++c) nq[c] = N0[c] + 0.5 * (Nu[c] + Nv[c]);
-                /* Projection (Algorithm 1). */
-                double pp[4][3], d[3], u, v;
-                memcpy(pp, p, sizeof(pp));
-                if (flat) {
-                    memcpy(d, nq, sizeof(d));
-                } else if (inside) {
-                    memcpy(d, m, sizeof(d));
-                } else {
-                    double num[3] = {0, 0, 0}, den = 0;
-                    for (int f = 0; f < 4; ++f) {
-                        const int *h = HULL[f];
-                        double wt[3];
-                        /* The face's determinant is +-kappa of the corner it leaves out. */
-                        double det = dot3(p[h[0]], c[h[1]][h[2]]);
-                        double e1[3], e2[3], cr[3];
-                        for (int d = 0; d < 3; ++d) {
-                            e1[d] = p[h[1]][d] - p[h[0]][d];
-                            e2[d] = p[h[2]][d] - p[h[0]][d];
-                        }
-                        cross3(e1, e2, cr);
-                        double two_area = sqrt(dot3(cr, cr));
-                        double rmin = fmin(R[h[0]], fmin(R[h[1]], R[h[2]]));
-                        if (fabs(det) < NEAR_PLANE * rmin * two_area) {
-                            triangle_weights(p[h[0]], p[h[1]], p[h[2]], wt); /* stable form near the plane */
-                        } else {
-                            double mt[3] = {0, 0, 0};
-                            for (int e = 0; e < 3; ++e) {
-                                int j = h[(e + 1) % 3], l = h[(e + 2) % 3];
-                                for (int d = 0; d < 3; ++d) mt[d] += g[j][l] * c[j][l][d];
-                            }
-                            for (int i = 0; i < 3; ++i) wt[i] = dot3(c[h[(i + 1) % 3]][h[(i + 2) % 3]], mt) / det;
-                        }
-                        for (int i = 0; i < 3; ++i) {
-                            double a = fabs(wt[i]);
-                            if (!isfinite(a)) a = 0.0;
-                            den += a;
-                            for (int d = 0; d < 3; ++d) num[d] += a * P[3 * qi[h[i]] + d];
-                        }
-                    }
-                    if (den > 0)
-                        for (int i = 0; i < 4; ++i)
-                            for (int c = 0; c < 3; ++c) pp[i][c] = P[3 * qi[i] + c] - num[c] / den;
-                    mean_vector(pp, d);
-                }
-                intersect(pp, d, &u, &v);
-                double xi[3];
-                for (int c = 0; c < 3; ++c) xi[c] = p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
-                if (dot3(xi, xi) <= tol * tol) {
+                double(*p)[3] = qp.p, (*rows)[3] = qp.rows, *m = qp.m, *k = qp.k, *R = qp.R;
+                double *b = qp.b, *cc = qp.cc, *dd = qp.dd, *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
+                double D = qp.D, kabs = qp.kabs, u = qp.u, v = qp.v;
+                int flat = qp.flat, inside = qp.inside;
+                if (qp.on) {
                     memset(w, 0, sizeof(double) * (size_t)V);
                     w[qi[0]] += (1 - u) * (1 - v);
                     w[qi[1]] += u * (1 - v);

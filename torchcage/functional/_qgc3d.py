@@ -174,4 +174,6 @@ def quad_green_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor
     ok = eb != 0
     scale = torch.where(ok, bb / torch.where(ok, eb, 1.0), 0.0)
     Phi = phi_bar + torch.einsum("qij,qmj->qmi", data.null, coef * scale[..., None])
-    return Phi, pr.on, _bilinear(u, v)
+    hat = _bilinear(u, v)
+    corner = torch.nn.functional.one_hot(pr.vertex.clamp_min(0), 4).to(hat.dtype)
+    return Phi, pr.on, torch.where((pr.vertex >= 0)[..., None], corner, hat)

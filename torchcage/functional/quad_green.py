@@ -2,10 +2,12 @@ r"""Green coordinates for triquad cages (QGC): the public function. The kernel i
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
 
+from .. import _native
 from ..cage import Cage
 from ._common import ON_CAGE_TOLERANCE, check_points, chunks, result_dtype
 from ._green3d import triangle_frame, triangle_integrals
@@ -15,48 +17,78 @@ from .quad_mean_value import check_quads
 __all__ = ["quad_green_coordinates"]
 
 
-def _chunk(
-    x: torch.Tensor, tri_p: torch.Tensor, tri_geometry: tuple, triangles: torch.Tensor, qdata: QuadGreenData | None,
-    V: int, tol: float,
-) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """``(phi (m, V), psi (m, T + 4Q))`` of a chunk ``x`` ``(m, 3)``."""
-    m, T = x.shape[0], triangles.shape[0]
-    Q = 0 if qdata is None else qdata.quads.shape[0]
+def _quad_part_torch(x: torch.Tensor, qdata: QuadGreenData, V: int) -> tuple[torch.Tensor, ...]:
+    """Quads' ``phi`` ``(m, V)`` and ``psi`` ``(m, 4Q)``, the first quad each point lies on (or -1)
+    and the interpolating values ``(m, V)`` there, with the torch kernel."""
+    m = x.shape[0]
+    Phi, on_q, b = quad_green_chunk(x, qdata)  # (Q, m, 8), (Q, m), (Q, m, 4)
+    quads = qdata.quads
     phi = torch.zeros(m, V, dtype=x.dtype, device=x.device)
-    psi = torch.zeros(m, T + 4 * Q, dtype=x.dtype, device=x.device)
+    for k in range(4):
+        phi = phi.index_add(1, quads[:, k], Phi[..., k].T)
+    psi = Phi[..., 4:].permute(1, 0, 2).reshape(m, -1)
+    f = on_q.to(torch.int8).argmax(dim=0)
+    onq = torch.where(on_q.any(dim=0), f, -1)
+    hat = torch.zeros(m, V, dtype=x.dtype, device=x.device).scatter_add(
+        1, quads[f], b[f, torch.arange(m, device=x.device)]
+    )
+    return phi, psi, onq, hat
+
+
+def _quad_part_native(x: torch.Tensor, qdata: QuadGreenData, V: int, verts: torch.Tensor, lib: object) -> tuple:
+    """As :func:`_quad_part_torch`, with the native kernel (float64, CPU)."""
+    x = x.contiguous()
+    m, Q = x.shape[0], qdata.quads.shape[0]
+    phi = torch.zeros(m, V, dtype=x.dtype)
+    psi = torch.empty(m, 4 * Q, dtype=x.dtype)
+    onq = torch.empty(m, dtype=torch.int32)
+    uv = torch.zeros(m, 2, dtype=x.dtype)
+    args = [
+        verts.contiguous(), V, qdata.quads.to(torch.int32).contiguous(), Q, qdata.proj.size[:, 0].contiguous(),
+        qdata.pinv.contiguous(), qdata.null.contiguous(), qdata.origin.contiguous(),
+        qdata.pattern.to(torch.int32).contiguous(), qdata.pattern.shape[0], qdata.K, x, m, qdata.tol,
+        torch.get_num_threads(), phi, psi, onq, uv,
+    ]  # fmt: skip
+    _native.call(lib.tc_qgc3d, args)  # type: ignore[attr-defined]
+    onq = onq.long()
+    u, v = uv[:, 0:1], uv[:, 1:2]
+    b = torch.cat([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=1)
+    hat = torch.zeros(m, V, dtype=x.dtype).scatter_add(1, qdata.quads[onq.clamp_min(0)], b)
+    return phi, psi, onq, hat
+
+
+def _chunk(
+    x: torch.Tensor, tri_p: torch.Tensor, tri_geometry: tuple, triangles: torch.Tensor, quad_part, V: int, tol: float
+) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """``(phi (m, V), psi (m, T + 4Q))`` of a chunk ``x`` ``(m, 3)``; ``quad_part(x)`` computes the
+    quads' share (or is None for a triangle cage)."""
+    m, T = x.shape[0], triangles.shape[0]
+    phi = torch.zeros(m, V, dtype=x.dtype, device=x.device)
+    psis = []
     on = torch.zeros(m, dtype=torch.bool, device=x.device)
     hat = torch.zeros(m, V, dtype=x.dtype, device=x.device)
     if T:
         a = tri_p[None] - x[:, None, None, :]  # (m, T, 3, 3)
         phi_face, psi_t, _, on_face, alpha = triangle_integrals(a, tuple(g[None] for g in tri_geometry), tol)
         for i in range(3):
-            phi.index_add_(1, triangles[:, i], phi_face[..., i])
-        psi[:, :T] = psi_t
-        on_t = on_face.any(dim=1)
-        if bool(on_t.any()):
-            f = on_face.to(torch.int8).argmax(dim=1)
-            bary = alpha[torch.arange(m, device=x.device), f].clamp_min(0.0)
-            bary = bary / bary.sum(dim=1, keepdim=True).clamp_min(1e-300)
-            hat = torch.where(on_t[:, None], hat.scatter_add(1, triangles[f], bary), hat)
-            on = on | on_t
-    if qdata is not None:
-        Phi, on_q, b = quad_green_chunk(x, qdata)  # (Q, m, 8), (Q, m), (Q, m, 4)
-        quads = qdata.quads
-        for k in range(4):
-            phi.index_add_(1, quads[:, k], Phi[..., k].T)
-        psi[:, T:] = Phi[..., 4:].permute(1, 0, 2).reshape(m, 4 * Q)
-        has = on_q.any(dim=0) & ~on
-        if bool(has.any()):
-            f = on_q.to(torch.int8).argmax(dim=0)
-            bq = b[f, torch.arange(m, device=x.device)]
-            hq = torch.zeros(m, V, dtype=x.dtype, device=x.device).scatter_add(1, quads[f], bq)
-            hat = torch.where(has[:, None], hq, hat)
-            on = on | has
+            phi = phi.index_add(1, triangles[:, i], phi_face[..., i])
+        psis.append(psi_t)
+        on = on_face.any(dim=1)
+        f = on_face.to(torch.int8).argmax(dim=1)
+        bary = alpha[torch.arange(m, device=x.device), f].clamp_min(0.0)
+        bary = bary / bary.sum(dim=1, keepdim=True).clamp_min(1e-300)
+        hat = hat.scatter_add(1, triangles[f], bary)
+    if quad_part is not None:
+        phi_q, psi_q, onq, hat_q = quad_part(x)
+        phi = phi + phi_q
+        psis.append(psi_q)
+        hat = torch.where(on[:, None], hat, hat_q)
+        on = on | (onq >= 0)
     if bool(on.any()):
         # On the cage: the principal values plus the jump of the double layer, 1 - sum(phi), on the
         # interpolating basis functions of the point (the limit from inside).
         phi = phi + torch.where(on[:, None], (1 - phi.sum(dim=1, keepdim=True)) * hat, 0.0)
-    return phi, psi
+    return phi, torch.cat(psis, dim=1)
 
 
 def quad_green_coordinates(
@@ -67,6 +99,7 @@ def quad_green_coordinates(
     chunk_size: int | None = None,
     dtype: torch.dtype | None = None,
     progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
     allow_invalid: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Green coordinates for triquad cages (Thiery and Boubekeur 2022).
@@ -88,9 +121,12 @@ def quad_green_coordinates(
         chunk_size: points per chunk (memory grows with ``chunk_size x quads x (n+1)^2``).
         dtype: compute dtype. Default: float64, returned in the dtype of the inputs.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
+        backend: ``"auto"`` (default): the native C kernel for the quads with float64 CPU points
+            when no autograd graph is needed, else the torch kernel; ``"torch"`` or ``"native"``.
         allow_invalid: compute even if some quads fail the validity predicate (with a warning).
 
-    Gradients: differentiable with respect to the points and the cage vertices (torch kernel).
+    Gradients: the torch kernel is differentiable with respect to the points and the cage
+    vertices; ``"auto"`` picks it when either requires grad.
 
     Returns:
         ``(phi, psi)``: ``(*, V)`` and ``(*, T + 4Q)``; column ``T + 4q + k`` of ``psi`` belongs to
@@ -124,10 +160,20 @@ def quad_green_coordinates(
     tri_p = verts[cage.triangles]
     tri_geometry = triangle_frame(tri_p)
     qdata = quad_green_data(verts, cage.quads, tol, n) if Q else None
-    size = chunk_size or max(8, (1 << 17) // (max(Q, 1) * 4 * (n + 1) ** 2 + T))
+    lib = _native.select(backend, x, cage.vertices)
+    quad_part = None
+    if qdata is not None:
+        if lib is not None:
+            quad_part = functools.partial(_quad_part_native, qdata=qdata, V=V, verts=verts, lib=lib)
+        else:
+            quad_part = functools.partial(_quad_part_torch, qdata=qdata, V=V)
+    if lib is not None:
+        size = chunk_size or 1 << 14
+    else:
+        size = chunk_size or max(8, (1 << 17) // (max(Q, 1) * 4 * (n + 1) ** 2 + T))
     phis, psis = [], []
     for sl in chunks(x.shape[0], size, progress, desc="quad Green coordinates"):
-        ph, ps = _chunk(x[sl], tri_p, tri_geometry, cage.triangles, qdata, V, tol)
+        ph, ps = _chunk(x[sl], tri_p, tri_geometry, cage.triangles, quad_part, V, tol)
         phis.append(ph)
         psis.append(ps)
     phi = torch.cat(phis) if phis else x.new_zeros((0, V))
