@@ -26,6 +26,14 @@ static inline double edge_integral(double l_j, double l_k, double R_j, double R_
 int tc_tri_green(const double a[3][3], const double *nf, double two_area, const double *ell, const double *edir,
                  const double *eout, const double *gbary, double tol, double *phi, double *psi, double *omega,
                  double *alpha) {
+    if (!(two_area > 0)) { /* a degenerate triangle integrates to nothing */
+        for (int i = 0; i < 3; ++i) {
+            alpha[i] = 0.0;
+            if (phi) phi[i] = 0.0;
+        }
+        *psi = *omega = 0.0;
+        return 0;
+    }
     double R[3];
     for (int i = 0; i < 3; ++i) R[i] = sqrt(dot3(a[i], a[i]));
     double h = dot3(a[0], nf), habs = fabs(h);

@@ -178,11 +178,6 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
         R2[i] = dot3(p[i], p[i]);
         if (R2[i] <= tol * tol && (vertex < 0 || R2[i] < R2[vertex])) vertex = i;
     }
-    if (vertex >= 0) {
-        qp->vertex = vertex;
-        qp->on = 1;
-        return;
-    }
     double m[3], k[4], rows[4][3], c[4][4][3], g[4][4], R[4];
     double D = kernel_and_pinv(p, c, k, rows);
     /* Edge terms theta_ab / (2 |p_a x p_b|) of the tetrahedron's six edges, shared by the
@@ -219,7 +214,7 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     memcpy(pp, p, sizeof(pp));
     if (flat) {
         memcpy(d, nq, sizeof(d));
-    } else if (inside) {
+    } else if (inside || vertex >= 0) {
         memcpy(d, m, sizeof(d));
     } else {
         double num[3] = {0, 0, 0}, den = 0;
@@ -258,7 +253,12 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
                 for (int c = 0; c < 3; ++c) pp[i][c] = P[3 * qi[i] + c] - num[c] / den;
         mean_vector(pp, d);
     }
-    intersect(pp, d, &u, &v);
+    if (vertex >= 0) { /* on a corner: its parameters */
+        u = (vertex == 1 || vertex == 2) ? 1.0 : 0.0;
+        v = vertex >= 2 ? 1.0 : 0.0;
+    } else {
+        intersect(pp, d, &u, &v);
+    }
     double xi[3];
     for (int c = 0; c < 3; ++c) xi[c] = p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
     memcpy(qp->p, p, sizeof(p));
@@ -278,8 +278,8 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     qp->inside = inside;
     qp->u = u;
     qp->v = v;
-    qp->vertex = -1;
-    qp->on = dot3(xi, xi) <= tol * tol;
+    qp->vertex = vertex;
+    qp->on = vertex >= 0 || dot3(xi, xi) <= tol * tol;
 }
 
 /*

@@ -81,7 +81,7 @@ def triangle_frame(p: torch.Tensor) -> tuple[torch.Tensor, ...]:
     E = p.roll(-2, dims=-2) - p.roll(-1, dims=-2)  # edge opposite corner i: p_{i+1} -> p_{i+2}
     ell = E.norm(dim=-1, keepdim=True)
     edge_dir = E / torch.where(ell > 0, ell, 1.0)
-    edge_out = torch.linalg.cross(edge_dir, n[..., None, :].expand_as(edge_dir), dim=-1)
+    edge_out = torch.linalg.cross(edge_dir, n[..., None, :].expand_as(edge_dir), dim=-1) * ok[..., None, None]
     grad_bary = -edge_out * (ell / torch.where(ok, two_area, 1.0)[..., None, None]) * ok[..., None, None]
     return n, two_area, edge_dir, edge_out, grad_bary
 
@@ -128,7 +128,8 @@ def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol:
     R = a.norm(dim=-1)  # (..., 3)
     aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]  # edge e runs from corner e + 1 to e + 2
     # Edge integrals and signed foot-to-edge distances (positive inside).
-    I = _edge_integrals(aj, ak, edge_dir)  # (..., 3)
+    ok = two_area > 0  # a degenerate triangle integrates to nothing
+    I = torch.where(ok[..., None], _edge_integrals(aj, ak, edge_dir), 0.0)  # (..., 3)
     d = (aj * edge_out).sum(-1)
     # Signed solid angle as a sum over edges (no ratio that vanishes near an edge or the plane):
     # Omega = sign(h) sum_e [atan(d l_k / (R0^2 + |h| R_k)) - atan(d l_j / (R0^2 + |h| R_j))].
@@ -149,8 +150,9 @@ def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol:
     phi_face = (alpha * omega[..., None] + h[..., None] * gK) / (4 * math.pi)
     dI = torch.where(d != 0, d * I, 0.0)
     psi = (dI.sum(-1) - h * omega) / (4 * math.pi)
-    on_face = on_plane & (d >= -tol).all(dim=-1)
-    return phi_face, psi, omega, on_face, alpha
+    on_face = on_plane & (d >= -tol).all(dim=-1) & ok
+    psi, omega = torch.where(ok, psi, 0.0), torch.where(ok, omega, 0.0)
+    return torch.where(ok[..., None], phi_face, 0.0), psi, omega, on_face, alpha
 
 
 def green3d_coordinates(

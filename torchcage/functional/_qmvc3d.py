@@ -288,6 +288,11 @@ def project(x: torch.Tensor, data: QuadData) -> Projection:
     nq = _add(_cross(b, c), _scale(torch.full_like(b[0], 0.5), _add(_cross(b, dd), _cross(dd, c))))
     d = tuple(torch.where(flat, nq[i], torch.where(outside, mp[i], mvec[i])) for i in range(3))
     u, v = intersect(pp, d)  # type: ignore[arg-type]
+    # On a corner: its parameters.
+    at = vertex >= 0
+    corner_u = torch.tensor([0.0, 1.0, 1.0, 0.0], dtype=u.dtype, device=u.device)[vertex.clamp_min(0)]
+    corner_v = torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=u.dtype, device=u.device)[vertex.clamp_min(0)]
+    u, v = torch.where(at, corner_u, u), torch.where(at, corner_v, v)
 
     # On the quad: the bilinear coordinates of the projection reproduce the point.
     xi = _add(_add(p[0], _scale(u, b)), _add(_scale(v, c), _scale(u * v, dd)))
