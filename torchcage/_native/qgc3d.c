@@ -26,7 +26,7 @@ static inline double edge_log(double l_j, double l_k, double R_j, double R_k, do
 }
 
 /* Solid angle and single-layer integral of a Riemann sub-triangle (corners minus the point). */
-static void tri_estimate(const double a[3][3], double *psi, double *omega) {
+static void tri_estimate(const double a[3][3], double tol, double *psi, double *omega) {
     double e1[3], e2[3], cr[3], R[3];
     for (int c = 0; c < 3; ++c) {
         e1[c] = a[1][c] - a[0][c];
@@ -43,8 +43,9 @@ static void tri_estimate(const double a[3][3], double *psi, double *omega) {
     cross3(a[1], a[2], c12);
     double det = dot3(a[0], c12); /* = h 2A, positive on the inner side */
     double den = R[0] * R[1] * R[2] + dot3(a[0], a[1]) * R[2] + dot3(a[0], a[2]) * R[1] + dot3(a[1], a[2]) * R[0];
-    double om = 2.0 * atan2(det, den);
     double h = det / two_area, dI = 0.0;
+    /* A point on the plane gets the principal value (no solid angle), as in tc_tri_green. */
+    double om = fabs(h) <= tol ? 0.0 : 2.0 * atan2(det, den);
     for (int e = 0; e < 3; ++e) {
         const double *pj = a[(e + 1) % 3], *pk = a[(e + 2) % 3];
         double E[3] = {pk[0] - pj[0], pk[1] - pj[1], pk[2] - pj[2]}, ell = sqrt(dot3(E, E));
@@ -144,7 +145,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     }
                     uc /= 3;
                     vc /= 3;
-                    tri_estimate(a, &ps, &om);
+                    tri_estimate(a, tol, &ps, &om);
                     double Nc[3];
                     for (int c = 0; c < 3; ++c) Nc[c] = qp.N0[c] + uc * qp.Nu[c] + vc * qp.Nv[c];
                     double Nn = sqrt(dot3(Nc, Nc)), sp = Nn > 0 ? ps / Nn : 0.0, so = om / FOUR_PI;
