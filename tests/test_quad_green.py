@@ -11,7 +11,6 @@ from test_quad_mean_value import bent_box, box_points, quad_adversarial_points, 
 
 import torchcage
 from torchcage import functional as F
-from torchcage.geometry import inside_cage
 from torchcage.nn.green import triangle_frames
 
 
@@ -220,7 +219,8 @@ def test_backends_agree():
     for n in (1, 2):
         a = F.quad_green_coordinates(x, cage, n, backend="native")
         b = F.quad_green_coordinates(x, cage, n, backend="torch")
-        for u, w in zip(a, b):  # (the native Riemann sum takes Van Oosterom's solid angle: measured <= 2e-11)
+        # (the native Riemann sum takes Van Oosterom's solid angle: measured <= 2e-11)
+        for u, w in zip(a, b, strict=True):
             torch.testing.assert_close(u, w, atol=1e-10, rtol=0)
 
 
