@@ -48,6 +48,8 @@ def test_demo_with_green_coordinates(tmp_path):
     assert main(["demo", "--out", str(tmp_path), "--method", "gc"]) == 0
     assert main(["demo", "--out", str(tmp_path / "q"), "--method", "qmvc"]) == 0
     assert (tmp_path / "q" / "deformed_mesh.obj").exists()
+    assert main(["demo", "--out", str(tmp_path / "g"), "--method", "qgc"]) == 0
+    assert (tmp_path / "g" / "deformed_mesh.obj").exists()
     rest, _ = torchcage.load_mesh(tmp_path / "rest_mesh.obj")
     moved, _ = torchcage.load_mesh(tmp_path / "deformed_mesh.obj")
     cage = torchcage.load_cage(tmp_path / "rest_cage.obj")

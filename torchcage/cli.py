@@ -17,7 +17,7 @@ import torch
 
 __all__ = ["main"]
 
-METHODS = ("mvc", "gc", "qmvc")
+METHODS = ("mvc", "gc", "qmvc", "qgc")
 
 
 class _Timer:
@@ -50,6 +50,8 @@ def _build_module(method: str, cage, points: torch.Tensor, progress: bool):
         return torchcage.GreenCoordinates(cage.triangulated(), points)
     if method == "qmvc":
         return torchcage.QuadMeanValueCoordinates(cage, points, progress=progress)
+    if method == "qgc":
+        return torchcage.QuadGreenCoordinates(cage, points)
     raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 
