@@ -58,7 +58,8 @@ def main(out_dir: str = ".") -> None:
     for name, module, shown in models:
         x = module(pose).detach()
         ratio = torch.log2(face_areas(x) / rest_area)  # per face; vertices take the mean of their faces
-        vc = torch.zeros(verts.shape[0], dtype=torch.float64).index_add_(0, faces.reshape(-1), ratio.repeat_interleave(3))
+        vc = torch.zeros(verts.shape[0], dtype=torch.float64)
+        vc.index_add_(0, faces.reshape(-1), ratio.repeat_interleave(3))
         vc = vc / torch.bincount(faces.reshape(-1), minlength=verts.shape[0]).clamp_min(1)
         vc = vc - vc.median()  # relative to the typical stretch: how uneven the deformation is
         s = ((vc + 0.5) / 1.0).clamp(0, 1)[:, None]  # -0.5 .. 0.5 (log2) -> blue .. red

@@ -1,0 +1,67 @@
+"""Benchmark of Green coordinates for triquad cages (QGC) on the data set of the QMVC paper.
+
+For each model (mesh vertices as points, triquad cage; native kernels, float64): Green coordinates
+on the triangulated cage (GC) and quad mean value coordinates (QMVC, n = 4) as baselines in the same
+run, then QGC for the requested n, with its cost relative to QMVC (the issue's target: at most 3x)
+and the linear precision of the result on the points inside the cage (sum(phi) = 1).
+
+Usage: ``python benchmarks/qgc.py [--data ../shared/data] [--models FireHydrant Beast] [--n 1 2]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+import torchcage
+from torchcage import functional as F
+
+
+def timed(fn) -> tuple[float, object]:
+    t = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t, out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
+    ap.add_argument("--models", nargs="*", default=["FireHydrant", "Beast"])
+    ap.add_argument("--n", nargs="*", type=int, default=[1, 2])
+    args = ap.parse_args()
+    root = Path(args.data) / "qmvc"
+    if not root.exists():
+        raise SystemExit(f"data folder {root} not found (pass --data)")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, float64, native kernels")
+    head = f"{'model':<12} {'points':>7} | {'GC tri.':>7} {'QMVC n=4':>8} |"
+    head += "".join(f" {'QGC n=' + str(n):>9} {'/QMVC':>6}" for n in args.n) + " | lin. prec."
+    print(head)
+    print("-" * len(head))
+    for model in args.models:
+        cage = torchcage.load_cage(root / f"{model}_Cage.obj")
+        x = torchcage.load_mesh(root / f"{model}.obj")[0].to(torch.float64)
+        F.quad_green_coordinates(x[:8], cage)  # build the native library outside the timings
+        t_gc, _ = timed(lambda x=x, c=cage: F.green_coordinates(x, c.triangulated()))
+        t_q, _ = timed(lambda x=x, c=cage: F.quad_mean_value_coordinates(x, c))
+        row = f"{model:<12} {x.shape[0]:>7} | {t_gc:>6.2f}s {t_q:>7.2f}s |"
+        lin = 0.0
+        N = torch.cat(
+            [
+                cage.triangle_normals()[: cage.triangles.shape[0]].to(torch.float64),
+                cage.quad_corner_normals().reshape(-1, 3),
+            ]
+        )
+        for n in args.n:
+            t, (phi, psi) = timed(lambda n=n, x=x, c=cage: F.quad_green_coordinates(x, c, n))
+            row += f" {t:>8.2f}s {t / t_q:>5.1f}x"
+            inside = (phi.sum(1) - 1).abs() < 1e-6
+            err = (phi @ cage.vertices.to(torch.float64) + psi @ N - x)[inside].abs().max() / cage.scale
+            lin = max(lin, float(err))
+        print(row + f" | {lin:.1e}")
+
+
+if __name__ == "__main__":
+    main()
