@@ -8,6 +8,7 @@
 #include <string.h>
 
 #define FOUR_PI 12.566370614359172953850573533118
+#define GC_NEAR_PLANE 0.01 /* pairs closer to a face plane than this x min R: edge-sum solid angle */
 
 #include "native.h"
 
@@ -38,15 +39,25 @@ int tc_tri_green(const double a[3][3], const double *nf, double two_area, const 
     for (int i = 0; i < 3; ++i) R[i] = sqrt(dot3(a[i], a[i]));
     double h = dot3(a[0], nf), habs = fabs(h);
     int on_plane = habs <= tol, inside = 1;
+    /* Away from the plane (|h| >= NEAR_PLANE min R) the solid angle takes Van Oosterom and
+     * Strackee's one-atan2 form; near it, the edge sum below, which does not cancel there. */
+    int far = habs >= GC_NEAR_PLANE * fmin(R[0], fmin(R[1], R[2]));
     double d[3], I[3], beta = 0.0;
     for (int e = 0; e < 3; ++e) {
         int j = (e + 1) % 3, k = (e + 2) % 3;
         const double *u = edir + 3 * e, *m = eout + 3 * e;
         d[e] = dot3(a[j], m);
         double l_j = dot3(a[j], u), l_k = dot3(a[k], u), R0sq = d[e] * d[e] + h * h;
-        beta += atan2(d[e] * l_k, R0sq + habs * R[k]) - atan2(d[e] * l_j, R0sq + habs * R[j]);
+        if (!far) beta += atan2(d[e] * l_k, R0sq + habs * R[k]) - atan2(d[e] * l_j, R0sq + habs * R[j]);
         I[e] = edge_integral(l_j, l_k, R[j], R[k], R0sq);
         inside &= d[e] >= -tol;
+    }
+    if (far) {
+        double c12[3];
+        cross3(a[1], a[2], c12);
+        double den = R[0] * R[1] * R[2] + dot3(a[0], a[1]) * R[2] + dot3(a[0], a[2]) * R[1] + dot3(a[1], a[2]) * R[0];
+        beta = 2.0 * atan2(dot3(a[0], c12), den); /* already signed like h */
+        beta = h >= 0 ? beta : -beta;
     }
     double om = on_plane ? 0.0 : (h >= 0 ? beta : -beta);
     double K[3] = {0.0, 0.0, 0.0}, dI = 0.0;

@@ -25,40 +25,21 @@ static inline double edge_log(double l_j, double l_k, double R_j, double R_k, do
     return log((R_k + l_k) * (R_j - l_j) / fmax(R0sq, 1e-300));
 }
 
-/* Solid angle and single-layer integral of a Riemann sub-triangle (corners minus the point). */
-static void tri_estimate(const double a[3][3], double tol, double *psi, double *omega) {
-    double e1[3], e2[3], cr[3], R[3];
-    for (int c = 0; c < 3; ++c) {
-        e1[c] = a[1][c] - a[0][c];
-        e2[c] = a[2][c] - a[0][c];
-    }
-    cross3(e1, e2, cr);
-    double two_area = sqrt(dot3(cr, cr));
-    if (!(two_area > 0)) {
-        *psi = *omega = 0.0;
-        return;
-    }
-    for (int i = 0; i < 3; ++i) R[i] = sqrt(dot3(a[i], a[i]));
-    double c12[3];
-    cross3(a[1], a[2], c12);
-    double det = dot3(a[0], c12); /* = h 2A, positive on the inner side */
-    double den = R[0] * R[1] * R[2] + dot3(a[0], a[1]) * R[2] + dot3(a[0], a[2]) * R[1] + dot3(a[1], a[2]) * R[0];
-    double h = det / two_area, dI = 0.0;
-    /* A point on the plane gets the principal value (no solid angle), as in tc_tri_green. */
-    double om = fabs(h) <= tol ? 0.0 : 2.0 * atan2(det, den);
-    for (int e = 0; e < 3; ++e) {
-        const double *pj = a[(e + 1) % 3], *pk = a[(e + 2) % 3];
-        double E[3] = {pk[0] - pj[0], pk[1] - pj[1], pk[2] - pj[2]}, ell = sqrt(dot3(E, E));
-        if (!(ell > 0)) continue;
-        double u[3] = {E[0] / ell, E[1] / ell, E[2] / ell}, m[3];
-        cross3(u, cr, m); /* outward in-plane normal times 2A */
-        double d = dot3(pj, m) / two_area;
-        if (d == 0) continue;
-        double l_j = dot3(pj, u), l_k = dot3(pk, u);
-        dI += d * edge_log(l_j, l_k, R[(e + 1) % 3], R[(e + 2) % 3], d * d + h * h);
-    }
-    *omega = om;
-    *psi = (dI - h * om) / FOUR_PI;
+/* d * int_e dl / r for the edge from aj to ak of a sub-triangle with normal cr (length 2A = two_area,
+ * inv2A its inverse), at distance h from its plane (as edge_integral in gc3d.c). */
+static inline double edge_term(double ajx, double ajy, double ajz, double akx, double aky, double akz, double Rj,
+                               double Rk, double crx, double cry, double crz, double inv2A, double h) {
+    double Ex = akx - ajx, Ey = aky - ajy, Ez = akz - ajz;
+    double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
+    double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
+    double mx = uy * crz - uz * cry, my = uz * crx - ux * crz, mz = ux * cry - uy * crx; /* outward x 2A */
+    double d = (ajx * mx + ajy * my + ajz * mz) * inv2A;
+    double lj = ajx * ux + ajy * uy + ajz * uz, lk = akx * ux + aky * uy + akz * uz, R0sq = d * d + h * h;
+    double ahead = (Rk + lk) / fmax(Rj + lj, 1e-300), behind = (Rj - lj) / fmax(Rk - lk, 1e-300);
+    double straddle = (Rk + lk) * (Rj - lj) / fmax(R0sq, 1e-300);
+    double arg = lj >= 0 ? ahead : (lk <= 0 ? behind : straddle);
+    double I = log(fmax(arg, 1e-300));
+    return d != 0 ? d * I : 0.0;
 }
 
 /* Eq. 19 (m = 3): 2K + 1 nodes in [0, 1] concentrated around t. */
@@ -89,8 +70,15 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     const int G = 2 * K + 1;
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = (double *)malloc(sizeof(double) * (2 * (size_t)G + 3 * (size_t)G * G));
-        double *un = buf, *vn = un + G, *S = vn + G;
+        double *buf = (double *)malloc(sizeof(double) * (2 * (size_t)G + 4 * (size_t)G * G));
+        double *un = buf, *vn = un + G, *Sx = vn + G, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
+        /* Sub-triangle corners as flat grid-node indices, and their u and v indices. */
+        int *node = (int *)malloc(sizeof(int) * 9 * (size_t)Pn), *iu = node + 3 * Pn, *iv = iu + 3 * Pn;
+        for (long t = 0; t < 3 * Pn; ++t) {
+            iu[t] = pattern[2 * t];
+            iv[t] = pattern[2 * t + 1];
+            node[t] = iu[t] * G + iv[t];
+        }
 #pragma omp for schedule(dynamic, 16)
         for (long pt = 0; pt < n; ++pt) {
             const double *x = X + 3 * pt;
@@ -110,11 +98,20 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 /* Invariants on the fan from the projection to the four edges. */
                 double apex[3], rhs[4] = {0, 0, 0, 0};
                 for (int c = 0; c < 3; ++c) apex[c] = qp.p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
-                for (int e = 0; e < 4; ++e) {
+                /* Outside the quad's tetrahedron the point cannot lie between the sheet and the split
+                 * (q0 q1 q2), (q0 q2 q3): those two triangles give the same invariants more cheaply. */
+                int split = !qp.inside && !qp.on;
+                for (int e = 0; e < (split ? 2 : 4); ++e) {
                     double a[3][3], nf[3], ell[3], edir[9], eout[9], gbary[9], ph[3], ps, om, al[3];
-                    memcpy(a[0], qp.p[e], sizeof(a[0]));
-                    memcpy(a[1], qp.p[(e + 1) & 3], sizeof(a[1]));
-                    memcpy(a[2], apex, sizeof(a[2]));
+                    if (split) {
+                        memcpy(a[0], qp.p[0], sizeof(a[0]));
+                        memcpy(a[1], qp.p[e + 1], sizeof(a[1]));
+                        memcpy(a[2], qp.p[e + 2], sizeof(a[2]));
+                    } else {
+                        memcpy(a[0], qp.p[e], sizeof(a[0]));
+                        memcpy(a[1], qp.p[(e + 1) & 3], sizeof(a[1]));
+                        memcpy(a[2], apex, sizeof(a[2]));
+                    }
                     double two_area = tc_tri_frame(a, nf, ell, edir, eout, gbary);
                     tc_tri_green(a, nf, two_area, ell, edir, eout, gbary, tol, ph, &ps, &om, al);
                     for (int i = 0; i < 3; ++i) {
@@ -124,37 +121,58 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     for (int c = 0; c < 3; ++c) rhs[c] += ps * nf[c];
                 }
                 const double *Ap = pinv + 32 * q, *Nl = null + 32 * q;
-                double bar[8], est[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+                double bar[8];
                 for (int i = 0; i < 8; ++i)
                     bar[i] = Ap[4 * i] * rhs[0] + Ap[4 * i + 1] * rhs[1] + Ap[4 * i + 2] * rhs[2] + Ap[4 * i + 3] * rhs[3];
                 /* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18). */
                 grid19(u, K, un);
                 grid19(v, K, vn);
                 for (int i = 0; i < G; ++i)
-                    for (int j = 0; j < G; ++j)
-                        for (int c = 0; c < 3; ++c)
-                            S[3 * (i * G + j) + c] = qp.p[0][c] + un[i] * b[c] + vn[j] * cc[c] + un[i] * vn[j] * dd[c];
+                    for (int j = 0; j < G; ++j) {
+                        int g = i * G + j;
+                        Sx[g] = qp.p[0][0] + un[i] * b[0] + vn[j] * cc[0] + un[i] * vn[j] * dd[0];
+                        Sy[g] = qp.p[0][1] + un[i] * b[1] + vn[j] * cc[1] + un[i] * vn[j] * dd[1];
+                        Sz[g] = qp.p[0][2] + un[i] * b[2] + vn[j] * cc[2] + un[i] * vn[j] * dd[2];
+                        SR[g] = sqrt(Sx[g] * Sx[g] + Sy[g] * Sy[g] + Sz[g] * Sz[g]);
+                    }
+                double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
+                const double *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
                 for (long t = 0; t < Pn; ++t) {
-                    const int *pt3 = pattern + 6 * t;
-                    double a[3][3], uc = 0, vc = 0, ps, om;
-                    for (int r = 0; r < 3; ++r) {
-                        int iu = pt3[2 * r], iv = pt3[2 * r + 1];
-                        memcpy(a[r], S + 3 * (iu * G + iv), sizeof(a[r]));
-                        uc += un[iu];
-                        vc += vn[iv];
-                    }
-                    uc /= 3;
-                    vc /= 3;
-                    tri_estimate(a, tol, &ps, &om);
-                    double Nc[3];
-                    for (int c = 0; c < 3; ++c) Nc[c] = qp.N0[c] + uc * qp.Nu[c] + vc * qp.Nv[c];
-                    double Nn = sqrt(dot3(Nc, Nc)), sp = Nn > 0 ? ps / Nn : 0.0, so = om / FOUR_PI;
-                    double bc[4] = {(1 - uc) * (1 - vc), uc * (1 - vc), uc * vc, (1 - uc) * vc};
-                    for (int k = 0; k < 4; ++k) {
-                        est[k] += bc[k] * so;
-                        est[4 + k] += bc[k] * sp;
-                    }
+                    int i0 = node[3 * t], i1 = node[3 * t + 1], i2 = node[3 * t + 2];
+                    double a0x = Sx[i0], a0y = Sy[i0], a0z = Sz[i0], R0 = SR[i0];
+                    double a1x = Sx[i1], a1y = Sy[i1], a1z = Sz[i1], R1 = SR[i1];
+                    double a2x = Sx[i2], a2y = Sy[i2], a2z = Sz[i2], R2 = SR[i2];
+                    double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
+                    double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
+                    double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
+                    double two_area = sqrt(crx * crx + cry * cry + crz * crz);
+                    double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
+                    /* Van Oosterom-Strackee: tan(omega / 2) = det / den; det = h 2A. */
+                    double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
+                    double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
+                                 (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+                    double h = det * inv2A;
+                    double om = (fabs(h) <= tol || two_area == 0) ? 0.0 : 2.0 * atan2(det, den);
+                    double dI = edge_term(a1x, a1y, a1z, a2x, a2y, a2z, R1, R2, crx, cry, crz, inv2A, h) +
+                                edge_term(a2x, a2y, a2z, a0x, a0y, a0z, R2, R0, crx, cry, crz, inv2A, h) +
+                                edge_term(a0x, a0y, a0z, a1x, a1y, a1z, R0, R1, crx, cry, crz, inv2A, h);
+                    double ps = two_area > 0 ? (dI - h * om) / FOUR_PI : 0.0;
+                    double uc = (un[iu[3 * t]] + un[iu[3 * t + 1]] + un[iu[3 * t + 2]]) / 3;
+                    double vc = (vn[iv[3 * t]] + vn[iv[3 * t + 1]] + vn[iv[3 * t + 2]]) / 3;
+                    double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
+                    double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
+                    double sp = Nn > 0 ? ps / Nn : 0.0, so = om / FOUR_PI;
+                    double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
+                    e0 += b0 * so;
+                    e1 += b1 * so;
+                    e2 += b2 * so;
+                    e3 += b3 * so;
+                    e4 += b0 * sp;
+                    e5 += b1 * sp;
+                    e6 += b2 * sp;
+                    e7 += b3 * sp;
                 }
+                double est[8] = {e0, e1, e2, e3, e4, e5, e6, e7};
                 /* Phi = Phi_bar + sum_i lambda_i kappa_i with the norm correction. */
                 double eb = 0, bb = 0, coef[4];
                 for (int i = 0; i < 8; ++i) {
@@ -178,5 +196,6 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             }
         }
         free(buf);
+        free(node);
     }
 }
