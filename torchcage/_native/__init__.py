@@ -60,9 +60,9 @@ TC_MVC2D_SIGNATURE = {
 
 #: Arguments of ``tc_gc3d`` in gc3d.c, in order.
 TC_GC3D_SIGNATURE = {
-    "P": "ptr", "nrm": "ptr", "two_area": "ptr", "ell": "ptr", "edir": "ptr", "eout": "ptr", "gbary": "ptr",
-    "tri": "ptr", "T": "i64", "V": "i64", "X": "ptr", "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr",
-    "PSI": "ptr",
+    "Pv": "ptr", "V": "i64", "tri": "ptr", "T": "i64", "edges": "ptr", "E": "i64", "eu": "ptr", "fe": "ptr",
+    "nrm": "ptr", "two_area": "ptr", "ell": "ptr", "edir": "ptr", "eout": "ptr", "gbary": "ptr", "X": "ptr",
+    "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr", "PSI": "ptr",
 }  # fmt: skip
 #: Arguments of ``tc_raster2d`` in raster.c, in order.
 TC_RASTER2D_SIGNATURE = {

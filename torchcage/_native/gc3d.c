@@ -5,6 +5,7 @@
  */
 #define _GNU_SOURCE
 #include <math.h>
+#include <stdlib.h>
 #include <string.h>
 
 #define FOUR_PI 12.566370614359172953850573533118
@@ -17,6 +18,25 @@ static inline double edge_integral(double l_j, double l_k, double R_j, double R_
     if (l_j >= 0) return log((R_k + l_k) / fmax(R_j + l_j, 1e-300));
     if (l_k <= 0) return log((R_j - l_j) / fmax(R_k - l_k, 1e-300));
     return log((R_k + l_k) * (R_j - l_j) / fmax(R0sq, 1e-300));
+}
+
+/* The Green integrals of a face from its distance h to the point, solid angle om, the signed
+ * distances d (3,) of the foot point to the edge lines and the edge integrals I (3,): phi (3,) (may
+ * be NULL), psi and the foot point's barycentric coordinates alpha (3,). */
+static inline void face_finish(double h, double om, int on_plane, const double *d, const double *I, const double *ell,
+                               const double *eout, const double *gbary, double two_area, double *phi, double *psi,
+                               double *alpha) {
+    double K[3] = {0.0, 0.0, 0.0}, dI = 0.0;
+    for (int e = 0; e < 3; ++e) {
+        if (!on_plane)
+            for (int c = 0; c < 3; ++c) K[c] -= eout[3 * e + c] * I[e];
+        if (d[e] != 0) dI += d[e] * I[e];
+    }
+    for (int i = 0; i < 3; ++i) {
+        alpha[i] = two_area > 0 ? d[i] * ell[i] / two_area : 0.0;
+        if (phi) phi[i] = (alpha[i] * om + h * dot3(gbary + 3 * i, K)) / FOUR_PI;
+    }
+    *psi = (dI - h * om) / FOUR_PI;
 }
 
 /* Green integrals of one triangle seen from a point (see triangle_integrals in _green3d.py):
@@ -60,17 +80,7 @@ int tc_tri_green(const double a[3][3], const double *nf, double two_area, const 
         beta = h >= 0 ? beta : -beta;
     }
     double om = on_plane ? 0.0 : (h >= 0 ? beta : -beta);
-    double K[3] = {0.0, 0.0, 0.0}, dI = 0.0;
-    for (int e = 0; e < 3; ++e) {
-        if (!on_plane)
-            for (int c = 0; c < 3; ++c) K[c] -= eout[3 * e + c] * I[e];
-        if (d[e] != 0) dI += d[e] * I[e];
-    }
-    for (int i = 0; i < 3; ++i) {
-        alpha[i] = two_area > 0 ? d[i] * ell[i] / two_area : 0.0;
-        if (phi) phi[i] = (alpha[i] * om + h * dot3(gbary + 3 * i, K)) / FOUR_PI;
-    }
-    *psi = (dI - h * om) / FOUR_PI;
+    face_finish(h, om, on_plane, d, I, ell, eout, gbary, two_area, phi, psi, alpha);
     *omega = om;
     return on_plane && inside;
 }
@@ -99,38 +109,90 @@ double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir,
 }
 
 /*
- * P: (T, 3, 3) corners; nrm: (T, 3) unit normals; two_area: (T,); ell: (T, 3) length of the edge
- * opposite each corner; edir, eout, gbary: (T, 3, 3) unit direction p_{i+1} -> p_{i+2} of that
- * edge, its outward in-plane normal, the in-plane gradient of corner i's hat function; tri: (T, 3)
- * int32 corners; X: (n, 3). Outputs PHI: (n, V), PSI: (n, T).
+ * Layouts: Pv (3, V) vertices; tri (3, T) int32 corners; edges (2, E) int32 unique edges and eu
+ * (3, E) their unit directions; fe (3, T) int32 the edge opposite each corner; nrm (T, 3) unit
+ * normals; two_area (T,); ell (T, 3) length of the edge opposite each corner; edir, eout, gbary
+ * (T, 3, 3) its unit direction p_{i+1} -> p_{i+2}, outward in-plane normal, and the in-plane gradient
+ * of corner i's hat function; X (n, 3). Outputs PHI (n, V), PSI (n, T). Per point: one pass over
+ * vertices, one over unique edges (the edge integrals, shared by the two faces of an edge), one
+ * over faces (see triangle_integrals in _green3d.py).
  */
-void tc_gc3d(const double *P, const double *nrm, const double *two_area, const double *ell, const double *edir,
-             const double *eout, const double *gbary, const int *tri, long T, long V, const double *X, long n,
-             double tol, int nthreads, double *PHI, double *PSI) {
-#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 16)
-    for (long p = 0; p < n; ++p) {
-        const double *x = X + 3 * p;
-        double *phi = PHI + p * V, *psi = PSI + p * T;
-        memset(phi, 0, sizeof(double) * (size_t)V);
-        double omega_sum = 0.0, on_alpha[3] = {0.0, 0.0, 0.0};
-        long on_face = -1;
-        for (long f = 0; f < T; ++f) {
-            const double *pf = P + 9 * f;
-            double a[3][3], ph[3], alpha[3], omega;
-            for (int i = 0; i < 3; ++i)
-                for (int c = 0; c < 3; ++c) a[i][c] = pf[3 * i + c] - x[c];
-            int on = tc_tri_green(a, nrm + 3 * f, two_area[f], ell + 3 * f, edir + 9 * f, eout + 9 * f, gbary + 9 * f,
-                                  tol, ph, psi + f, &omega, alpha);
-            for (int i = 0; i < 3; ++i) phi[tri[3 * f + i]] += ph[i];
-            omega_sum += omega;
-            if (on && on_face < 0) {
-                on_face = f;
-                for (int i = 0; i < 3; ++i) on_alpha[i] = alpha[i] > 0 ? alpha[i] : 0.0;
+void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges, long E, const double *eu,
+             const int *fe, const double *nrm, const double *two_area, const double *ell, const double *edir,
+             const double *eout, const double *gbary, const double *X, long n, double tol, int nthreads, double *PHI,
+             double *PSI) {
+    const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
+    const int *e0 = edges, *e1 = edges + E;
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + (size_t)E));
+        double *Ax = buf, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V, *IE = RA + V;
+#pragma omp for schedule(dynamic, 16)
+        for (long p = 0; p < n; ++p) {
+            const double *x = X + 3 * p;
+            double *phi = PHI + p * V, *psi = PSI + p * T;
+            memset(phi, 0, sizeof(double) * (size_t)V);
+#pragma omp simd
+            for (long v = 0; v < V; ++v) {
+                double ax = Pv[v] - x[0], ay = Pv[V + v] - x[1], az = Pv[2 * V + v] - x[2];
+                Ax[v] = ax;
+                Ay[v] = ay;
+                Az[v] = az;
+                RA[v] = sqrt(ax * ax + ay * ay + az * az);
+            }
+            for (long q = 0; q < E; ++q) {
+                int j = e0[q], k = e1[q];
+                double ux = eu[q], uy = eu[E + q], uz = eu[2 * E + q];
+                double l_j = Ax[j] * ux + Ay[j] * uy + Az[j] * uz, l_k = Ax[k] * ux + Ay[k] * uy + Az[k] * uz;
+                double cx = Ay[j] * uz - Az[j] * uy, cy = Az[j] * ux - Ax[j] * uz, cz = Ax[j] * uy - Ay[j] * ux;
+                IE[q] = edge_integral(l_j, l_k, RA[j], RA[k], cx * cx + cy * cy + cz * cz);
+            }
+            double omega_sum = 0.0, on_alpha[3] = {0.0, 0.0, 0.0};
+            long on_face = -1;
+            for (long f = 0; f < T; ++f) {
+                const int c3[3] = {t0[f], t1[f], t2[f]};
+                double a[3][3], R[3];
+                for (int i = 0; i < 3; ++i) {
+                    a[i][0] = Ax[c3[i]];
+                    a[i][1] = Ay[c3[i]];
+                    a[i][2] = Az[c3[i]];
+                    R[i] = RA[c3[i]];
+                }
+                const double *nf = nrm + 3 * f, *ed = edir + 9 * f, *eo = eout + 9 * f;
+                double h = dot3(a[0], nf), habs = fabs(h), d[3], I[3], om, beta = 0.0;
+                int on_plane = habs <= tol, inside = 1;
+                for (int e = 0; e < 3; ++e) {
+                    d[e] = dot3(a[(e + 1) % 3], eo + 3 * e);
+                    I[e] = IE[fe[e * T + f]];
+                    inside &= d[e] >= -tol;
+                }
+                if (habs >= GC_NEAR_PLANE * fmin(R[0], fmin(R[1], R[2]))) {
+                    double den = R[0] * R[1] * R[2] + dot3(a[0], a[1]) * R[2] + dot3(a[0], a[2]) * R[1] +
+                                 dot3(a[1], a[2]) * R[0];
+                    om = 2.0 * atan2(h * two_area[f], den); /* Van Oosterom-Strackee */
+                } else {
+                    for (int e = 0; e < 3; ++e) {
+                        int j = (e + 1) % 3, k = (e + 2) % 3;
+                        double l_j = dot3(a[j], ed + 3 * e), l_k = dot3(a[k], ed + 3 * e), R0sq = d[e] * d[e] + h * h;
+                        beta += atan2(d[e] * l_k, R0sq + habs * R[k]) - atan2(d[e] * l_j, R0sq + habs * R[j]);
+                    }
+                    om = h >= 0 ? beta : -beta;
+                }
+                if (on_plane) om = 0.0;
+                double ph[3], alpha[3];
+                face_finish(h, om, on_plane, d, I, ell + 3 * f, eo, gbary + 9 * f, two_area[f], ph, psi + f, alpha);
+                for (int i = 0; i < 3; ++i) phi[c3[i]] += ph[i];
+                omega_sum += om;
+                if (on_plane && inside && on_face < 0) {
+                    on_face = f;
+                    for (int i = 0; i < 3; ++i) on_alpha[i] = alpha[i] > 0 ? alpha[i] : 0.0;
+                }
+            }
+            if (on_face >= 0) { /* the limit from inside: hat values with the jump weight */
+                double sum = on_alpha[0] + on_alpha[1] + on_alpha[2], jump = 1.0 - omega_sum / FOUR_PI;
+                for (int i = 0; i < 3; ++i) phi[tri[i * T + on_face]] += jump * on_alpha[i] / sum;
             }
         }
-        if (on_face >= 0) { /* the limit from inside: hat values with the jump weight */
-            double sum = on_alpha[0] + on_alpha[1] + on_alpha[2], jump = 1.0 - omega_sum / FOUR_PI;
-            for (int i = 0; i < 3; ++i) phi[tri[3 * on_face + i]] += jump * on_alpha[i] / sum;
-        }
+        free(buf);
     }
 }

@@ -70,7 +70,7 @@ def green_coordinates(
     if cage.dim == 3:
         data = triangle_green_data(cage, compute)
         T = data.tri.shape[0]
-        tables = _native_tables(data) if lib is not None else {}
+        tables = _native_tables(data, cage.vertices.to(compute)) if lib is not None else {}
 
         def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             if lib is not None:
@@ -92,17 +92,28 @@ def green_coordinates(
     return phi.to(out_dtype).reshape(*lead, -1), psi.to(out_dtype).reshape(*lead, -1)
 
 
-def _native_tables(data: TriangleGreenData) -> dict[str, torch.Tensor]:
-    """Contiguous row-major tables for ``tc_gc3d`` (see gc3d.c)."""
+def _native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Tables for ``tc_gc3d`` (layouts in gc3d.c): among them the unique edges with their unit
+    directions and, for each face, the edge opposite each corner."""
+    tri = data.tri
+    opp = torch.stack([tri.roll(-1, dims=1), tri.roll(-2, dims=1)], dim=-1)  # (T, 3, 2)
+    lo, hi = opp.min(dim=-1).values, opp.max(dim=-1).values
+    key = lo * vertices.shape[0] + hi  # 1D keys: torch.unique over rows is slow
+    uniq, inv = torch.unique(key.reshape(-1), return_inverse=True)
+    edges = torch.stack([uniq // vertices.shape[0], uniq % vertices.shape[0]])  # (2, E)
+    direction = vertices[edges[1]] - vertices[edges[0]]
     return {
-        "P": data.p.contiguous(),
+        "Pv": vertices.T.contiguous(),
+        "tri": tri.T.to(torch.int32).contiguous(),
+        "edges": edges.to(torch.int32).contiguous(),
+        "eu": (direction / direction.norm(dim=1, keepdim=True)).T.contiguous(),
+        "fe": inv.reshape(-1, 3).T.to(torch.int32).contiguous(),
         "nrm": data.normal.contiguous(),
         "two_area": data.two_area.contiguous(),
         "ell": (data.grad_bary.norm(dim=-1) * data.two_area[:, None]).contiguous(),
         "edir": data.edge_dir.contiguous(),
         "eout": data.edge_out.contiguous(),
         "gbary": data.grad_bary.contiguous(),
-        "tri": data.tri.to(torch.int32).contiguous(),
     }
 
 
@@ -115,7 +126,8 @@ def _native_chunk(
     phi = torch.empty(n, num_vertices, dtype=torch.float64)
     psi = torch.empty(n, T, dtype=torch.float64)
     t = tables
-    args = [t["P"], t["nrm"], t["two_area"], t["ell"], t["edir"], t["eout"], t["gbary"], t["tri"], T, num_vertices,
-            x, n, data.tol, torch.get_num_threads(), phi, psi]  # fmt: skip
+    args = [t["Pv"], num_vertices, t["tri"], T, t["edges"], t["edges"].shape[1], t["eu"], t["fe"], t["nrm"],
+            t["two_area"], t["ell"], t["edir"], t["eout"], t["gbary"], x, n, data.tol, torch.get_num_threads(), phi,
+            psi]  # fmt: skip
     _native.call(lib.tc_gc3d, args)  # type: ignore[attr-defined]
     return phi, psi
