@@ -9,10 +9,10 @@ import torch
 
 from .. import _native
 from ..cage import Cage
-from ._common import ON_CAGE_TOLERANCE, check_points, chunks, result_dtype
+from ._common import chunks
 from ._green3d import triangle_frame, triangle_integrals
 from ._qgc3d import QuadGreenData, quad_green_chunk, quad_green_data
-from .quad_mean_value import check_quads
+from .quad_mean_value import prepare_quad_call
 
 __all__ = ["quad_green_coordinates"]
 
@@ -148,14 +148,7 @@ def quad_green_coordinates(
         >>> torch.allclose(phi @ cube.vertices + psi @ N, x)
         True
     """
-    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
-        raise ValueError(f"n must be a positive integer, got {n!r}")
-    flat = check_points(points, cage)
-    check_quads(cage, allow_invalid)
-    compute, out_dtype = result_dtype(flat, cage, dtype)
-    x = flat.to(compute)
-    verts = cage.vertices.to(compute)
-    tol = ON_CAGE_TOLERANCE * cage.scale
+    x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
     T, Q, V = cage.triangles.shape[0], cage.quads.shape[0], cage.num_vertices
     tri_p = verts[cage.triangles]
     tri_geometry = triangle_frame(tri_p)

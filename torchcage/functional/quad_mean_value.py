@@ -42,6 +42,23 @@ def check_quads(cage: Cage, allow_invalid: bool) -> None:
                       stacklevel=3)  # fmt: skip
 
 
+def prepare_quad_call(
+    points: torch.Tensor, cage: Cage, n: int, dtype: torch.dtype | None, allow_invalid: bool
+) -> tuple[torch.Tensor, torch.dtype, torch.Tensor, float]:
+    """Shared checks of the quad coordinate functions: ``n``, the points, the quads' validity.
+
+    Returns:
+        ``(x (N, 3), out_dtype, vertices (V, 3), tol)``: the flattened points and the cage's
+        vertices in the compute dtype, the dtype to return, and the absolute on-cage tolerance.
+    """
+    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    flat = check_points(points, cage)
+    check_quads(cage, allow_invalid)
+    compute, out_dtype = result_dtype(flat, cage, dtype)
+    return flat.to(compute), out_dtype, cage.vertices.to(compute), ON_CAGE_TOLERANCE * cage.scale
+
+
 def quad_mean_value_coordinates(
     points: torch.Tensor,
     cage: Cage,
@@ -95,15 +112,8 @@ def quad_mean_value_coordinates(
         >>> torch.allclose(w @ cube.vertices, x), torch.allclose(w.sum(-1), torch.ones(2, dtype=torch.float64))
         (True, True)
     """
-    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
-        raise ValueError(f"n must be a positive integer, got {n!r}")
-    flat = check_points(points, cage)
-    check_quads(cage, allow_invalid)
-    compute, out_dtype = result_dtype(flat, cage, dtype)
-    x = flat.to(compute)
+    x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
     lib = _native.select(backend, x, cage.vertices)
-    verts = cage.vertices.to(compute)
-    tol = ON_CAGE_TOLERANCE * cage.scale
     T, Q = cage.triangles.shape[0], cage.quads.shape[0]
     tdata = triangle_data(verts, cage.triangles, tol) if T else None
     qdata = quad_data(verts, cage.quads, tol) if Q else None
