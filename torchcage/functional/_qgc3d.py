@@ -144,8 +144,9 @@ def quad_green_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor
     fan = torch.stack(
         [torch.stack([corners[..., k, :], corners[..., (k + 1) % 4, :], apex], dim=-2) for k in range(4)], dim=-3
     )  # (Q, m, 4 triangles, 3 corners, 3)
-    phi_f, psi_f, _, _, _ = triangle_integrals(fan, triangle_frame(fan), tol)
-    normal_f = triangle_frame(fan)[0]
+    frame = triangle_frame(fan)
+    phi_f, psi_f, _, _, _ = triangle_integrals(fan, frame, tol)
+    normal_f = frame[0]
     xo = (x - data.origin)[None, :, None, None, :]  # positions relative to the cage centre
     rhs_pos = (phi_f[..., None] * (fan + xo)).sum(dim=(-2, -3)) + (psi_f[..., None] * normal_f).sum(dim=-2)
     rhs = torch.cat([rhs_pos, phi_f.sum(dim=(-1, -2))[..., None]], dim=-1)  # (Q, m, 4)
