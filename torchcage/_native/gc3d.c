@@ -13,6 +13,12 @@
 
 #include "native.h"
 
+#ifdef TC_LIBMVEC
+/* Let the compiler call glibc's vector log and atan2 (libmvec) in the plain loops below. */
+__attribute__((simd("notinbranch"))) double log(double);
+__attribute__((simd("notinbranch"))) double atan2(double, double);
+#endif
+
 /* int_e dl / r along the edge from p_j to p_k, in the form that does not cancel. */
 static inline double edge_integral(double l_j, double l_k, double R_j, double R_k, double R0sq) {
     if (l_j >= 0) return log((R_k + l_k) / fmax(R_j + l_j, 1e-300));
@@ -125,8 +131,8 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
     const int *e0 = edges, *e1 = edges + E;
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + (size_t)E));
-        double *Ax = buf, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V, *IE = RA + V;
+        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + (size_t)E + 2 * (size_t)T));
+        double *Ax = buf, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V, *IE = RA + V, *DET = IE + E, *DEN = DET + T;
 #pragma omp for schedule(dynamic, 16)
         for (long p = 0; p < n; ++p) {
             const double *x = X + 3 * p;
@@ -140,13 +146,35 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
                 Az[v] = az;
                 RA[v] = sqrt(ax * ax + ay * ay + az * az);
             }
+            /* Edge integrals: the argument of the log first (edge_integral's three cases), then
+             * the logs in a plain loop that vectorises. */
             for (long q = 0; q < E; ++q) {
                 int j = e0[q], k = e1[q];
                 double ux = eu[q], uy = eu[E + q], uz = eu[2 * E + q];
                 double l_j = Ax[j] * ux + Ay[j] * uy + Az[j] * uz, l_k = Ax[k] * ux + Ay[k] * uy + Az[k] * uz;
                 double cx = Ay[j] * uz - Az[j] * uy, cy = Az[j] * ux - Ax[j] * uz, cz = Ax[j] * uy - Ay[j] * ux;
-                IE[q] = edge_integral(l_j, l_k, RA[j], RA[k], cx * cx + cy * cy + cz * cz);
+                double Rj = RA[j], Rk = RA[k];
+                if (l_j >= 0)
+                    IE[q] = (Rk + l_k) / fmax(Rj + l_j, 1e-300);
+                else if (l_k <= 0)
+                    IE[q] = (Rj - l_j) / fmax(Rk - l_k, 1e-300);
+                else
+                    IE[q] = (Rk + l_k) * (Rj - l_j) / fmax(cx * cx + cy * cy + cz * cz, 1e-300);
             }
+#pragma omp simd
+            for (long q = 0; q < E; ++q) IE[q] = log(IE[q]);
+            /* Solid angles away from the planes (Van Oosterom-Strackee), in the same way. */
+            for (long f = 0; f < T; ++f) {
+                int i0 = t0[f], i1 = t1[f], i2 = t2[f];
+                double a0x = Ax[i0], a0y = Ay[i0], a0z = Az[i0], a1x = Ax[i1], a1y = Ay[i1], a1z = Az[i1];
+                double a2x = Ax[i2], a2y = Ay[i2], a2z = Az[i2], R0 = RA[i0], R1 = RA[i1], R2 = RA[i2];
+                const double *nf = nrm + 3 * f;
+                DET[f] = (a0x * nf[0] + a0y * nf[1] + a0z * nf[2]) * two_area[f];
+                DEN[f] = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 + (a0x * a2x + a0y * a2y + a0z * a2z) * R1 +
+                         (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+            }
+#pragma omp simd
+            for (long f = 0; f < T; ++f) DET[f] = 2.0 * atan2(DET[f], DEN[f]);
             double omega_sum = 0.0, on_alpha[3] = {0.0, 0.0, 0.0};
             long on_face = -1;
             for (long f = 0; f < T; ++f) {
@@ -167,9 +195,7 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
                     inside &= d[e] >= -tol;
                 }
                 if (habs >= GC_NEAR_PLANE * fmin(R[0], fmin(R[1], R[2]))) {
-                    double den = R[0] * R[1] * R[2] + dot3(a[0], a[1]) * R[2] + dot3(a[0], a[2]) * R[1] +
-                                 dot3(a[1], a[2]) * R[0];
-                    om = 2.0 * atan2(h * two_area[f], den); /* Van Oosterom-Strackee */
+                    om = DET[f]; /* Van Oosterom-Strackee, from the loop above */
                 } else {
                     for (int e = 0; e < 3; ++e) {
                         int j = (e + 1) % 3, k = (e + 2) % 3;
