@@ -83,7 +83,8 @@ def green_coordinates(
         def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             return green_coordinates_2d(c, poly)
 
-    size = chunk_size if chunk_size is not None else default_chunk(T, 1 << 17)
+    # The native kernel needs no temporaries beyond its outputs: chunks only pace the progress bar.
+    size = chunk_size if chunk_size is not None else default_chunk(T, 1 << 23 if lib is not None else 1 << 17)
     phi = torch.empty(x.shape[0], cage.num_vertices, dtype=compute, device=x.device)
     psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
