@@ -16,6 +16,12 @@
 
 #include "native.h"
 
+#ifdef TC_LIBMVEC
+/* Let the compiler call glibc's vector log and atan2 (libmvec) in the plain loops below. */
+__attribute__((simd("notinbranch"))) double log(double);
+__attribute__((simd("notinbranch"))) double atan2(double, double);
+#endif
+
 #define FOUR_PI 12.566370614359172953850573533118
 
 /* int_e dl / r along an edge (as edge_integral in gc3d.c, without the stored constants). */
@@ -25,21 +31,27 @@ static inline double edge_log(double l_j, double l_k, double R_j, double R_k, do
     return log((R_k + l_k) * (R_j - l_j) / fmax(R0sq, 1e-300));
 }
 
-/* d * int_e dl / r for the edge from aj to ak of a sub-triangle with normal cr (length 2A = two_area,
- * inv2A its inverse), at distance h from its plane (as edge_integral in gc3d.c). */
-static inline double edge_term(double ajx, double ajy, double ajz, double akx, double aky, double akz, double Rj,
-                               double Rk, double crx, double cry, double crz, double inv2A, double h) {
+/* For the edge from aj to ak of a sub-triangle with normal cr (length 2A, inv2A its inverse), at
+ * distance h from its plane: the signed distance d of the foot point to the edge line and the
+ * argument of the log in int_e dl / r (as edge_integral in gc3d.c). */
+static inline void edge_arg(double ajx, double ajy, double ajz, double akx, double aky, double akz, double Rj,
+                            double Rk, double crx, double cry, double crz, double inv2A, double h, double *d_out,
+                            double *arg_out) {
     double Ex = akx - ajx, Ey = aky - ajy, Ez = akz - ajz;
     double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
     double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
     double mx = uy * crz - uz * cry, my = uz * crx - ux * crz, mz = ux * cry - uy * crx; /* outward x 2A */
     double d = (ajx * mx + ajy * my + ajz * mz) * inv2A;
     double lj = ajx * ux + ajy * uy + ajz * uz, lk = akx * ux + aky * uy + akz * uz, R0sq = d * d + h * h;
-    double ahead = (Rk + lk) / fmax(Rj + lj, 1e-300), behind = (Rj - lj) / fmax(Rk - lk, 1e-300);
-    double straddle = (Rk + lk) * (Rj - lj) / fmax(R0sq, 1e-300);
-    double arg = lj >= 0 ? ahead : (lk <= 0 ? behind : straddle);
-    double I = log(fmax(arg, 1e-300));
-    return d != 0 ? d * I : 0.0;
+    double arg;
+    if (lj >= 0)
+        arg = (Rk + lk) / fmax(Rj + lj, 1e-300);
+    else if (lk <= 0)
+        arg = (Rj - lj) / fmax(Rk - lk, 1e-300);
+    else
+        arg = (Rk + lk) * (Rj - lj) / fmax(R0sq, 1e-300);
+    *d_out = d;
+    *arg_out = fmax(arg, 1e-300);
 }
 
 /* Eq. 19 (m = 3): 2K + 1 nodes in [0, 1] concentrated around t. */
@@ -70,8 +82,9 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     const int G = 2 * K + 1;
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = (double *)malloc(sizeof(double) * (2 * (size_t)G + 4 * (size_t)G * G));
+        double *buf = (double *)malloc(sizeof(double) * (2 * (size_t)G + 4 * (size_t)G * G + 10 * (size_t)Pn));
         double *un = buf, *vn = un + G, *Sx = vn + G, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
+        double *TH = SR + G * G, *TA = TH + Pn, *TDET = TA + Pn, *TDEN = TDET + Pn, *TD = TDEN + Pn, *TL = TD + 3 * Pn;
         /* Sub-triangle corners as flat grid-node indices, and their u and v indices. */
         int *node = (int *)malloc(sizeof(int) * 9 * (size_t)Pn), *iu = node + 3 * Pn, *iv = iu + 3 * Pn;
         for (long t = 0; t < 3 * Pn; ++t) {
@@ -135,8 +148,9 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                         Sz[g] = qp.p[0][2] + un[i] * b[2] + vn[j] * cc[2] + un[i] * vn[j] * dd[2];
                         SR[g] = sqrt(Sx[g] * Sx[g] + Sy[g] * Sy[g] + Sz[g] * Sz[g]);
                     }
-                double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
                 const double *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
+                /* Sub-triangles in three passes: geometry and the arguments of the logs and atan2s,
+                 * then the logs and atan2s in plain loops (vectorised with libmvec), then the sums. */
                 for (long t = 0; t < Pn; ++t) {
                     int i0 = node[3 * t], i1 = node[3 * t + 1], i2 = node[3 * t + 2];
                     double a0x = Sx[i0], a0y = Sy[i0], a0z = Sz[i0], R0 = SR[i0];
@@ -149,13 +163,29 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
                     /* Van Oosterom-Strackee: tan(omega / 2) = det / den; det = h 2A. */
                     double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
-                    double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
-                                 (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
                     double h = det * inv2A;
-                    double om = (fabs(h) <= tol || two_area == 0) ? 0.0 : 2.0 * atan2(det, den);
-                    double dI = edge_term(a1x, a1y, a1z, a2x, a2y, a2z, R1, R2, crx, cry, crz, inv2A, h) +
-                                edge_term(a2x, a2y, a2z, a0x, a0y, a0z, R2, R0, crx, cry, crz, inv2A, h) +
-                                edge_term(a0x, a0y, a0z, a1x, a1y, a1z, R0, R1, crx, cry, crz, inv2A, h);
+                    TH[t] = h;
+                    TA[t] = two_area;
+                    TDET[t] = det;
+                    TDEN[t] = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
+                              (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+                    edge_arg(a1x, a1y, a1z, a2x, a2y, a2z, R1, R2, crx, cry, crz, inv2A, h, TD + 3 * t, TL + 3 * t);
+                    edge_arg(a2x, a2y, a2z, a0x, a0y, a0z, R2, R0, crx, cry, crz, inv2A, h, TD + 3 * t + 1, TL + 3 * t + 1);
+                    edge_arg(a0x, a0y, a0z, a1x, a1y, a1z, R0, R1, crx, cry, crz, inv2A, h, TD + 3 * t + 2, TL + 3 * t + 2);
+                }
+#pragma omp simd
+                for (long i = 0; i < 3 * Pn; ++i) TL[i] = log(TL[i]);
+#pragma omp simd
+                for (long t = 0; t < Pn; ++t) TDET[t] = 2.0 * atan2(TDET[t], TDEN[t]);
+                double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
+                for (long t = 0; t < Pn; ++t) {
+                    double h = TH[t], two_area = TA[t];
+                    double om = (fabs(h) <= tol || two_area == 0) ? 0.0 : TDET[t];
+                    double dI = 0.0;
+                    for (int e = 0; e < 3; ++e) {
+                        double d = TD[3 * t + e];
+                        dI += d != 0 ? d * TL[3 * t + e] : 0.0;
+                    }
                     double ps = two_area > 0 ? (dI - h * om) / FOUR_PI : 0.0;
                     double uc = (un[iu[3 * t]] + un[iu[3 * t + 1]] + un[iu[3 * t + 2]]) / 3;
                     double vc = (vn[iv[3 * t]] + vn[iv[3 * t + 1]] + vn[iv[3 * t + 2]]) / 3;
