@@ -75,3 +75,37 @@ def mvc2d_reference(x, vertices) -> list:
 
 def to_tensor(values) -> torch.Tensor:
     return torch.tensor([float(v) for v in values], dtype=torch.float64)
+
+
+@mp.workdps(60)
+def mvc_derivatives_reference(x, coordinates, scale: float) -> tuple[list, list]:
+    """Gradients ``[i][c]`` and Hessians ``[i][c][d]`` (floats) of ``coordinates(x)`` (a function
+    returning a list of mpmath numbers, e.g. a closure over :func:`mvc3d_reference`) by central
+    differences in 60-digit arithmetic with the step ``1e-12 * scale``: truncation error about
+    ``1e-24`` relative to the scale on which the coordinates vary, rounding about ``1e-36``."""
+    D = len(x)
+    x0 = [mp.mpf(float(c)) for c in x]
+    step = mp.mpf(scale) * mp.mpf("1e-12")
+
+    def f(offsets):
+        y = list(x0)
+        for c, s in offsets:
+            y[c] += s * step
+        return coordinates(y)
+
+    f0 = f([])
+    plus = [f([(c, 1)]) for c in range(D)]
+    minus = [f([(c, -1)]) for c in range(D)]
+    V = len(f0)
+    grad = [[float((plus[c][i] - minus[c][i]) / (2 * step)) for c in range(D)] for i in range(V)]
+    hess = [[[0.0] * D for _ in range(D)] for _ in range(V)]
+    for c in range(D):
+        for i in range(V):
+            hess[i][c][c] = float((plus[c][i] - 2 * f0[i] + minus[c][i]) / step**2)
+        for d in range(c + 1, D):
+            pp, pm = f([(c, 1), (d, 1)]), f([(c, 1), (d, -1)])
+            mp_, mm = f([(c, -1), (d, 1)]), f([(c, -1), (d, -1)])
+            for i in range(V):
+                val = float((pp[i] - pm[i] - mp_[i] + mm[i]) / (4 * step**2))
+                hess[i][c][d] = hess[i][d][c] = val
+    return grad, hess

@@ -25,10 +25,10 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "call", "library", "select"]
+__all__ = ["available", "call", "failure_reason", "library", "select"]
 
-_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c", "qmvc3d.c", "qgc3d.c")
-_HEADERS = ("native.h",)
+_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c", "qmvc3d.c", "qgc3d.c", "mvcd3d.c", "mvcd2d.c")
+_HEADERS = ("native.h", "jet.h")
 
 #: Arguments of ``tc_mvc3d`` in mvc3d.c, in order (names as there; see its comment for layouts).
 TC_MVC3D_SIGNATURE = {
@@ -64,6 +64,20 @@ TC_GC3D_SIGNATURE = {
     "nrm": "ptr", "two_area": "ptr", "ell": "ptr", "edir": "ptr", "eout": "ptr", "gbary": "ptr", "X": "ptr",
     "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr", "PSI": "ptr",
 }  # fmt: skip
+#: Arguments of ``tc_mvcd3d`` in mvcd3d.c (mean value coordinates with their derivatives), in order.
+TC_MVCD3D_SIGNATURE = {
+    "P": "ptr", "V": "i64", "tri": "ptr", "T": "i64", "E": "ptr", "nrm": "ptr", "two_area": "ptr", "ell": "ptr",
+    "gram": "ptr", "longest": "ptr", "far_nodes": "ptr", "far_coef": "ptr", "Q": "i64", "far_c": "f64",
+    "near_c": "f64", "gl_y": "ptr", "gl_w": "ptr", "ng": "i32", "X": "ptr", "n": "i64", "tol": "f64", "order": "i32",
+    "nthreads": "i32", "L": "ptr", "G": "ptr", "H": "ptr", "on": "ptr",
+}  # fmt: skip
+
+#: Arguments of ``tc_mvcd2d`` in mvcd2d.c, in order.
+TC_MVCD2D_SIGNATURE = {
+    "P": "ptr", "V": "i64", "edges": "ptr", "E": "i64", "X": "ptr", "n": "i64", "tol": "f64", "order": "i32",
+    "nthreads": "i32", "L": "ptr", "G": "ptr", "H": "ptr", "on": "ptr",
+}  # fmt: skip
+
 #: Arguments of ``tc_raster2d`` in raster.c, in order.
 TC_RASTER2D_SIGNATURE = {
     "P": "ptr", "B": "i64", "Nv": "i64", "tri": "ptr", "T": "i64", "H": "i64", "W": "i64", "S": "ptr", "C": "i64",
@@ -156,6 +170,10 @@ def _build() -> ctypes.CDLL:
     lib.tc_qmvc3d.restype = None
     lib.tc_qgc3d.argtypes = [kinds[kind] for kind in TC_QGC3D_SIGNATURE.values()]
     lib.tc_qgc3d.restype = None
+    for name, sig in (("tc_mvcd3d", TC_MVCD3D_SIGNATURE), ("tc_mvcd2d", TC_MVCD2D_SIGNATURE)):
+        fn = getattr(lib, name)
+        fn.argtypes = [kinds[kind] for kind in sig.values()]
+        fn.restype = None
     return lib
 
 
@@ -179,6 +197,11 @@ def library() -> ctypes.CDLL | None:
                         stacklevel=3,
                     )
     return _lib
+
+
+def failure_reason() -> str:
+    """Why the native library is unavailable (empty when it is loaded or not yet tried)."""
+    return _failed or ""
 
 
 def available() -> bool:

@@ -1,0 +1,92 @@
+/* Analytic gradients and Hessians of 2D mean value coordinates (closed polygons).
+ *
+ * Edge (j, k) adds t / r_j to w_j and t / r_k to w_k, t = tan(alpha / 2) of the signed angle at x
+ * between a_j = p_j - x and a_k = p_k - x. With c = a_j x a_k (affine in x), d = a_j.a_k and
+ * r = |a|, t = c / (r_j r_k + d) when d >= 0 and (r_j r_k - d) / c otherwise: both forms are free
+ * of cancellation, so t is exact to rounding everywhere off the edge, its support line included
+ * (where t = 0 smoothly). Every quantity is evaluated as a jet (value, gradient, Hessian; jet.h),
+ * the 2D case using the first two gradient entries and Hessian entries xx, yy, xy (slots 0, 1, 3).
+ * Normalisation as in mvcd3d.c. Points on the polygon (within tol) are flagged in `on`.
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "jet.h"
+
+static inline jet j2(double v, double gx, double gy, double hxx, double hyy, double hxy) {
+    jet r = {v, {gx, gy, 0}, {hxx, hyy, 0, hxy, 0, 0}};
+    return r;
+}
+
+/* P (V, 2); edges (E, 2) int32; X (n, 2). Writes L (n, V), G (n, V, 2), H (n, V, 2, 2) (order 2). */
+void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double *X, long n, double tol, int order,
+               int nthreads, double *L, double *G, double *H, unsigned char *on) {
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *acc = (double *)malloc(sizeof(double) * 6 * V);
+#pragma omp for schedule(dynamic, 64)
+        for (long p = 0; p < n; p++) {
+            const double x0 = X[2 * p], x1 = X[2 * p + 1];
+            memset(acc, 0, sizeof(double) * 6 * V);
+            int flag = 0;
+            for (long e = 0; e < NE; e++) {
+                int j = edges[2 * e], k = edges[2 * e + 1];
+                double aj0 = P[2 * j] - x0, aj1 = P[2 * j + 1] - x1, ak0 = P[2 * k] - x0, ak1 = P[2 * k + 1] - x1;
+                double E0 = P[2 * j] - P[2 * k], E1 = P[2 * j + 1] - P[2 * k + 1];
+                double ell = sqrt(E0 * E0 + E1 * E1);
+                jet c = j2(aj0 * ak1 - aj1 * ak0, E1, -E0, 0, 0, 0);
+                jet d = j2(aj0 * ak0 + aj1 * ak1, -(aj0 + ak0), -(aj1 + ak1), 2, 2, 0);
+                jet rj = j_sqrt(j2(aj0 * aj0 + aj1 * aj1, -2 * aj0, -2 * aj1, 2, 2, 0));
+                jet rk = j_sqrt(j2(ak0 * ak0 + ak1 * ak1, -2 * ak0, -2 * ak1, 2, 2, 0));
+                if (rj.v <= tol || rk.v <= tol || (fabs(c.v) <= tol * ell && d.v <= 0)) {
+                    flag = 1;
+                    break;
+                }
+                jet rr = j_mul(rj, rk);
+                jet t = d.v >= 0 ? j_div(c, j_add(rr, d)) : j_div(j_sub(rr, d), c);
+                jet wj = j_div(t, rj), wk = j_div(t, rk);
+                const jet *ws[2] = {&wj, &wk};
+                int vs[2] = {j, k};
+                for (int s = 0; s < 2; s++) {
+                    double *ac = acc + 6 * vs[s];
+                    ac[0] += ws[s]->v;
+                    ac[1] += ws[s]->g[0], ac[2] += ws[s]->g[1];
+                    ac[3] += ws[s]->h[0], ac[4] += ws[s]->h[1], ac[5] += ws[s]->h[3];
+                }
+            }
+            on[p] = (unsigned char)flag;
+            if (flag) continue;
+            double W = 0, gW[2] = {0, 0}, HW[3] = {0, 0, 0};
+            for (long v = 0; v < V; v++) {
+                W += acc[6 * v];
+                gW[0] += acc[6 * v + 1], gW[1] += acc[6 * v + 2];
+                HW[0] += acc[6 * v + 3], HW[1] += acc[6 * v + 4], HW[2] += acc[6 * v + 5];
+            }
+            if (!(W != 0.0) || !isfinite(W)) {
+                on[p] = 2;
+                continue;
+            }
+            double iW = 1.0 / W;
+            static const int HI[3] = {0, 1, 0}, HJ[3] = {0, 1, 1};
+            for (long v = 0; v < V; v++) {
+                const double *ac = acc + 6 * v;
+                double lam = ac[0] * iW, gl[2];
+                L[p * V + v] = lam;
+                for (int c = 0; c < 2; c++) {
+                    gl[c] = (ac[1 + c] - lam * gW[c]) * iW;
+                    G[(p * V + v) * 2 + c] = gl[c];
+                }
+                if (order < 2) continue;
+                double *Hp = H + (p * V + v) * 4;
+                for (int k = 0; k < 3; k++) {
+                    int a = HI[k], b = HJ[k];
+                    double val = (ac[3 + k] - lam * HW[k] - gl[a] * gW[b] - gW[a] * gl[b]) * iW;
+                    Hp[2 * a + b] = val;
+                    Hp[2 * b + a] = val;
+                }
+            }
+        }
+        free(acc);
+    }
+}

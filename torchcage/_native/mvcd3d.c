@@ -1,0 +1,313 @@
+/* Analytic gradients and Hessians of 3D mean value coordinates (closed triangle cages).
+ *
+ * For each point x and face T with corners p_1..p_3 (a_i = p_i - x), the face weights
+ * w_i^T (Ju et al.; vector form of Thiery et al. 2014, Sec. 2.2) and their first and second
+ * derivatives are summed per vertex, then normalised: with W = sum w,
+ *   lam = w / W,  grad lam = (grad w - lam grad W) / W,
+ *   H lam = (H w - lam H W - grad lam grad W^T - grad W grad lam^T) / W.
+ * Three evaluations of a face, chosen per pair (see functional/mean_value_derivatives.py):
+ *
+ * 1. direct (default). From sum_j w_j a_j = m (m = sum_e g_e N_e, N_e = a_{e+1} x a_{e+2},
+ *    g_e = theta_e / (2 |N_e|)) and da_j/dx = -I:
+ *        U dw/dx_c = dm/dx_c + W e_c,   U d2w/dx_c dx_d = d2m/dx_c dx_d + dW/dx_d e_c + dW/dx_c e_d,
+ *    with U = [a_1 a_2 a_3] and U^-1 = rows N_i / det (det = 2 area h). N_e is affine in x
+ *    (dN_e/dx_c = e_c x E_e, E_e = p_{e+1} - p_{e+2}), so only the scalars g_e need jets: g is a
+ *    function of u = |N|^2 and v = a_{e+1}.a_{e+2}, g = G(u / v^2) / (2 v) with
+ *    G(t) = atan(sqrt t)/sqrt t = int_0^1 dy / (1 + t y^2) (Gauss-Legendre, exact to rounding for
+ *    t <= 1) while the angle is below 45 degrees, else atan2(sqrt u, v) / (2 sqrt u).
+ * 2. near the face's support plane (|h| < near_c min |a_i|, not on the face): the split form of
+ *    mvc3d.c (h, s_e = n.N_e, q_j.q_k are polynomials in x), every term carrying its power of h
+ *    explicitly, evaluated with jets. For an edge seen under a small angle (q_j.q_k > 0 and
+ *    s^2 < 0.64 (q_j.q_k)^2) the two O(1/|N|) terms of the split form cancel; there the
+ *    difference is rewritten as
+ *        (theta |s| / N - theta_0) / (|s| h^2) = -G(U)/(d qq) + G[U, u] (l^2 qq^2 - 2 s^2 qq - s^2 h^2) / (d^2 qq^3)
+ *    (U = N^2/d^2, u = s^2/qq^2, d = a_j.a_k, qq = d - h^2, G[U, u] the divided difference
+ *    -int_0^1 y^2 / ((1 + U y^2)(1 + u y^2)) dy), smooth through the edge's support line.
+ * 3. far field (longest edge <= far_c min |a_i|): w_i^T = int_T phi_i h / |p - x|^4 dA by a
+ *    collapsed Gauss rule, differentiated under the integral.
+ * Points on a face (within tol) have no derivatives: they are flagged in `on`.
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "jet.h"
+#include "native.h"
+
+#define TC_PI 3.14159265358979323846
+
+/* G(t), G'(t), G''(t) for G(t) = int_0^1 dy / (1 + t y^2), 0 <= t <= 1. */
+static void g_fun(double t, const double *gy, const double *gw, int ng, double *G) {
+    double a = 0, b = 0, c = 0;
+    for (int q = 0; q < ng; q++) {
+        double y2 = gy[q] * gy[q], r = 1.0 / (1.0 + t * y2), wr = gw[q] * r;
+        a += wr;
+        b -= wr * y2 * r;
+        c += 2.0 * wr * y2 * y2 * r * r;
+    }
+    G[0] = a, G[1] = b, G[2] = c;
+}
+
+/* The divided difference D(U, u) = (G(U) - G(u)) / (U - u) and its partials
+ * D, D_U, D_u, D_UU, D_Uu, D_uu. */
+static void g_divdiff(double U, double u, const double *gy, const double *gw, int ng, double *D) {
+    memset(D, 0, 6 * sizeof(double));
+    for (int q = 0; q < ng; q++) {
+        double y2 = gy[q] * gy[q], a = 1.0 / (1.0 + U * y2), b = 1.0 / (1.0 + u * y2), w = gw[q];
+        double y4 = y2 * y2, y6 = y4 * y2;
+        D[0] -= w * y2 * a * b;
+        D[1] += w * y4 * a * a * b;
+        D[2] += w * y4 * a * b * b;
+        D[3] -= 2.0 * w * y6 * a * a * a * b;
+        D[4] -= w * y6 * a * a * b * b;
+        D[5] -= 2.0 * w * y6 * a * b * b * b;
+    }
+}
+
+/* g = theta / (2 |N|) as a jet, from the jets of u = |N|^2 and v = a_j.a_k. */
+static jet half_angle_over_norm(jet u, jet v, const double *gy, const double *gw, int ng) {
+    if (v.v > 0 && u.v <= v.v * v.v) {
+        double t = u.v / (v.v * v.v), G[3];
+        g_fun(t, gy, gw, ng, G);
+        double iv = 1.0 / v.v, tu = iv * iv, tv = -2.0 * t * iv, tuv = -2.0 * tu * iv, tvv = 6.0 * t * iv * iv;
+        double h2 = 0.5 * iv;
+        double f = G[0] * h2;
+        double fu = G[1] * tu * h2;
+        double fv = G[1] * tv * h2 - G[0] * h2 * iv;
+        double fuu = G[2] * tu * tu * h2;
+        double fuv = (G[2] * tu * tv + G[1] * tuv) * h2 - G[1] * tu * h2 * iv;
+        double fvv = (G[2] * tv * tv + G[1] * tvv) * h2 - 2.0 * G[1] * tv * h2 * iv + G[0] * iv * iv * iv;
+        return j_f2(u, v, f, fu, fv, fuu, fuv, fvv);
+    }
+    jet s = j_sqrt(u);
+    return j_mul(j_atan2(s, v), j_recip(j_scale(s, 2.0)));
+}
+
+/* Direct evaluation: weights, gradients and (order 2) Hessians of the three corners. */
+static void face_direct(const double a[3][3], const double E[3][3], double two_area, double h, int order,
+                        const double *gy, const double *gw, int ng, double *w, double g[3][3], double H[3][6]) {
+    double N[3][3], m[3] = {0, 0, 0};
+    jet phi[3];
+    for (int e = 0; e < 3; e++) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        cross3(a[j], a[k], N[e]);
+        double EN[3];
+        cross3(E[e], N[e], EN);
+        double E2 = dot3(E[e], E[e]);
+        jet u = {dot3(N[e], N[e]), {2 * EN[0], 2 * EN[1], 2 * EN[2]},
+                 {2 * (E2 - E[e][0] * E[e][0]), 2 * (E2 - E[e][1] * E[e][1]), 2 * (E2 - E[e][2] * E[e][2]),
+                  -2 * E[e][0] * E[e][1], -2 * E[e][0] * E[e][2], -2 * E[e][1] * E[e][2]}};
+        jet v = {dot3(a[j], a[k]), {-(a[j][0] + a[k][0]), -(a[j][1] + a[k][1]), -(a[j][2] + a[k][2])}, {2, 2, 2, 0, 0, 0}};
+        phi[e] = half_angle_over_norm(u, v, gy, gw, ng);
+        for (int c = 0; c < 3; c++) m[c] += phi[e].v * N[e][c];
+    }
+    double det = two_area * h, idet = 1.0 / det, NN[3][3], C[3][3][3];  // C[i][e] = E_e x N_i
+    for (int i = 0; i < 3; i++)
+        for (int e = 0; e < 3; e++) {
+            NN[i][e] = dot3(N[i], N[e]);
+            cross3(E[e], N[i], C[i][e]);
+        }
+    double W = 0, gW[3] = {0, 0, 0};
+    for (int i = 0; i < 3; i++) {
+        w[i] = dot3(N[i], m) * idet;
+        W += w[i];
+    }
+    for (int i = 0; i < 3; i++)
+        for (int c = 0; c < 3; c++) {
+            double s = W * N[i][c];
+            for (int e = 0; e < 3; e++) s += phi[e].g[c] * NN[i][e] + phi[e].v * C[i][e][c];
+            g[i][c] = s * idet;
+            gW[c] += g[i][c];
+        }
+    if (order < 2) return;
+    for (int i = 0; i < 3; i++)
+        for (int k = 0; k < 6; k++) {
+            int c = JI[k], d = JJ[k];
+            double s = gW[d] * N[i][c] + gW[c] * N[i][d];
+            for (int e = 0; e < 3; e++) s += phi[e].h[k] * NN[i][e] + phi[e].g[c] * C[i][e][d] + phi[e].g[d] * C[i][e][c];
+            H[i][k] = s * idet;
+        }
+}
+
+/* Near the support plane: the split form with jets. Returns 1 when the point lies on the face. */
+static int face_near_plane(const double a[3][3], const double E[3][3], const double *n, double two_area,
+                           const double *ell, const double *gram, double tol, const double *gy, const double *gw,
+                           int ng, double *w, double g[3][3], double H[3][6]) {
+    double h = dot3(n, a[0]);
+    jet hj = {h, {-n[0], -n[1], -n[2]}, {0, 0, 0, 0, 0, 0}};
+    jet h2 = j_mul(hj, hj);
+    double P[6];  // 2 (I - n n^T)
+    for (int k = 0; k < 6; k++) P[k] = 2.0 * ((JI[k] == JJ[k]) - n[JI[k]] * n[JJ[k]]);
+    jet s[3], T[3], S = j_const(0.0);
+    double wind_angle = 0.0;
+    int inside = 1;
+    for (int e = 0; e < 3; e++) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        double Ne[3], En[3], qj[3], qk[3];
+        cross3(a[j], a[k], Ne);
+        cross3(E[e], n, En);
+        for (int c = 0; c < 3; c++) qj[c] = a[j][c] - h * n[c], qk[c] = a[k][c] - h * n[c];
+        jet se = {dot3(n, Ne), {En[0], En[1], En[2]}, {0, 0, 0, 0, 0, 0}};
+        jet qq = {dot3(qj, qk), {-(qj[0] + qk[0]), -(qj[1] + qk[1]), -(qj[2] + qk[2])}, {P[0], P[1], P[2], P[3], P[4], P[5]}};
+        jet d = j_add(qq, h2);
+        double l2 = ell[e] * ell[e];
+        jet N2 = j_add(j_mul(se, se), j_scale(h2, l2));
+        s[e] = se;
+        if (se.v < -tol * ell[e]) inside = 0;
+        double sig = se.v >= 0 ? 1.0 : -1.0;
+        wind_angle += sig * atan2(sig * se.v, qq.v);
+        if (qq.v > 0 && se.v * se.v < 0.64 * qq.v * qq.v && N2.v < d.v * d.v) {
+            jet U = j_div(N2, j_mul(d, d)), u = j_div(j_mul(se, se), j_mul(qq, qq));
+            double G[3], D[6];
+            g_fun(U.v, gy, gw, ng, G);
+            g_divdiff(U.v, u.v, gy, gw, ng, D);
+            jet gU = j_f1(U, G[0], G[1], G[2]);
+            jet Dj = j_f2(U, u, D[0], D[1], D[2], D[3], D[4], D[5]);
+            jet qq2 = j_mul(qq, qq), s2 = j_mul(se, se);
+            jet poly = j_sub(j_sub(j_scale(qq2, l2), j_scale(j_mul(s2, qq), 2.0)), j_mul(s2, h2));
+            jet K = j_sub(j_mul(Dj, j_div(poly, j_mul(j_mul(d, d), j_mul(qq2, qq)))), j_div(gU, j_mul(d, qq)));
+            S = j_add(S, j_mul(se, K));
+            T[e] = j_div(gU, d);  // theta / |N|
+        } else {
+            jet sa = j_scale(se, sig);
+            jet th0 = j_atan2(sa, qq);
+            jet Nj = j_sqrt(N2);
+            jet Nps = j_add(Nj, sa);
+            jet X = j_sub(j_scale(j_div(qq, Nps), l2), sa);
+            jet Y = j_add(j_mul(d, qq), j_mul(Nj, sa));
+            jet r = j_div(X, Y);  // tan(delta) / h^2
+            double A[3];
+            atan_over(h * h * r.v, &A[0], &A[1], &A[2]);
+            jet dh2 = j_mul(r, j_f1(j_mul(h2, r), A[0], A[1], A[2]));  // delta / h^2
+            jet th = j_add(th0, j_mul(h2, dh2));
+            T[e] = j_div(th, Nj);
+            jet eps = j_scale(j_recip(j_mul(Nj, Nps)), l2);  // epsilon / h^2
+            S = j_add(S, j_scale(j_sub(dh2, j_mul(th, eps)), sig));
+        }
+    }
+    if (inside && fabs(h) <= tol) return 1;
+    double wind = round(wind_angle / (2.0 * TC_PI)), i4A = 1.0 / (2.0 * two_area);
+    for (int i = 0; i < 3; i++) {
+        jet B = j_mul(s[i], S);
+        for (int e = 0; e < 3; e++) B = j_add(B, j_scale(T[e], gram[3 * i + e]));
+        jet wi = j_scale(j_mul(hj, B), i4A);
+        if (wind != 0.0) wi = j_add(wi, j_scale(j_div(s[i], hj), 2.0 * TC_PI * wind * i4A));
+        w[i] = wi.v;
+        for (int c = 0; c < 3; c++) g[i][c] = wi.g[c];
+        for (int k = 0; k < 6; k++) H[i][k] = wi.h[k];
+    }
+    return 0;
+}
+
+/* Far field: collapsed Gauss rule of h int_T phi_i / |p - x|^4 dA, differentiated under the sign. */
+static void face_far(const double *x, const double *n, double h, const double *nodes, const double *coef, int Q,
+                     double *w, double g[3][3], double H[3][6]) {
+    double acc[3][10];
+    memset(acc, 0, sizeof(acc));
+    for (int q = 0; q < Q; q++) {
+        double d[3] = {nodes[3 * q] - x[0], nodes[3 * q + 1] - x[1], nodes[3 * q + 2] - x[2]};
+        double r2 = dot3(d, d), i2 = 1.0 / r2, i4 = i2 * i2, i6 = i4 * i2, i8 = i4 * i4;
+        double f[10];
+        f[0] = h * i4;
+        for (int c = 0; c < 3; c++) f[1 + c] = -n[c] * i4 + 4.0 * h * d[c] * i6;
+        for (int k = 0; k < 6; k++) {
+            int c = JI[k], e = JJ[k];
+            f[4 + k] = -4.0 * (n[c] * d[e] + d[c] * n[e]) * i6 - 4.0 * h * (c == e) * i6 + 24.0 * h * d[c] * d[e] * i8;
+        }
+        for (int i = 0; i < 3; i++) {
+            double cq = coef[3 * q + i];
+            for (int k = 0; k < 10; k++) acc[i][k] += cq * f[k];
+        }
+    }
+    for (int i = 0; i < 3; i++) {
+        w[i] = acc[i][0];
+        for (int c = 0; c < 3; c++) g[i][c] = acc[i][1 + c];
+        for (int k = 0; k < 6; k++) H[i][k] = acc[i][4 + k];
+    }
+}
+
+/* Mean value coordinates and their derivatives at n points.
+ * P (V, 3) vertices; tri (T, 3) int32 corners; E (T, 3, 3) edge vectors p_{e+1} - p_{e+2};
+ * nrm (T, 3) unit normals; two_area (T); ell (T, 3) edge lengths; gram (T, 3, 3) E_i.E_e;
+ * longest (T); far_nodes (T, Q, 3), far_coef (T, Q, 3); gl_y, gl_w (ng) Gauss-Legendre on [0, 1];
+ * X (n, 3). Writes L (n, V), G (n, V, 3) and, for order 2, H (n, V, 3, 3); on[p] = 1 for points
+ * on the cage (rows left undefined), 2 where the total weight vanishes. */
+void tc_mvcd3d(const double *P, long V, const int *tri, long T, const double *E, const double *nrm,
+               const double *two_area, const double *ell, const double *gram, const double *longest,
+               const double *far_nodes, const double *far_coef, long Q, double far_c, double near_c,
+               const double *gl_y, const double *gl_w, int ng, const double *X, long n, double tol, int order,
+               int nthreads, double *L, double *G, double *H, unsigned char *on) {
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *acc = (double *)malloc(sizeof(double) * 10 * V);
+#pragma omp for schedule(dynamic, 16)
+        for (long p = 0; p < n; p++) {
+            const double *x = X + 3 * p;
+            memset(acc, 0, sizeof(double) * 10 * V);
+            int flag = 0;
+            for (long t = 0; t < T && !flag; t++) {
+                const int *ti = tri + 3 * t;
+                double a[3][3], R[3], Et[3][3], w[3], g[3][3], Hh[3][6];
+                for (int i = 0; i < 3; i++) {
+                    for (int c = 0; c < 3; c++) a[i][c] = P[3 * ti[i] + c] - x[c], Et[i][c] = E[9 * t + 3 * i + c];
+                    R[i] = sqrt(dot3(a[i], a[i]));
+                }
+                double minR = fmin(R[0], fmin(R[1], R[2]));
+                if (minR <= tol) {
+                    flag = 1;
+                    break;
+                }
+                const double *nt = nrm + 3 * t;
+                double h = dot3(nt, a[0]);
+                if (longest[t] <= far_c * minR) {
+                    face_far(x, nt, h, far_nodes + 3 * Q * t, far_coef + 3 * Q * t, (int)Q, w, g, Hh);
+                } else if (fabs(h) < near_c * minR) {
+                    if (face_near_plane(a, Et, nt, two_area[t], ell + 3 * t, gram + 9 * t, tol, gl_y, gl_w, ng, w, g, Hh)) {
+                        flag = 1;
+                        break;
+                    }
+                } else {
+                    face_direct(a, Et, two_area[t], h, order, gl_y, gl_w, ng, w, g, Hh);
+                }
+                for (int i = 0; i < 3; i++) {
+                    double *ac = acc + 10 * ti[i];
+                    ac[0] += w[i];
+                    for (int c = 0; c < 3; c++) ac[1 + c] += g[i][c];
+                    if (order >= 2)
+                        for (int k = 0; k < 6; k++) ac[4 + k] += Hh[i][k];
+                }
+            }
+            on[p] = (unsigned char)flag;
+            if (flag) continue;
+            double W = 0, gW[3] = {0, 0, 0}, HW[6] = {0, 0, 0, 0, 0, 0};
+            for (long v = 0; v < V; v++) {
+                W += acc[10 * v];
+                for (int c = 0; c < 3; c++) gW[c] += acc[10 * v + 1 + c];
+                for (int k = 0; k < 6; k++) HW[k] += acc[10 * v + 4 + k];
+            }
+            if (!(W != 0.0) || !isfinite(W)) {
+                on[p] = 2;
+                continue;
+            }
+            double iW = 1.0 / W;
+            for (long v = 0; v < V; v++) {
+                const double *ac = acc + 10 * v;
+                double lam = ac[0] * iW, gl[3];
+                L[p * V + v] = lam;
+                for (int c = 0; c < 3; c++) {
+                    gl[c] = (ac[1 + c] - lam * gW[c]) * iW;
+                    G[(p * V + v) * 3 + c] = gl[c];
+                }
+                if (order < 2) continue;
+                double *Hp = H + (p * V + v) * 9;
+                for (int k = 0; k < 6; k++) {
+                    int c = JI[k], d = JJ[k];
+                    double val = (ac[4 + k] - lam * HW[k] - gl[c] * gW[d] - gW[c] * gl[d]) * iW;
+                    Hp[3 * c + d] = val;
+                    Hp[3 * d + c] = val;
+                }
+            }
+        }
+        free(acc);
+    }
+}
