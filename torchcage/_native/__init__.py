@@ -66,10 +66,10 @@ TC_GC3D_SIGNATURE = {
 }  # fmt: skip
 #: Arguments of ``tc_mvcd3d`` in mvcd3d.c (mean value coordinates with their derivatives), in order.
 TC_MVCD3D_SIGNATURE = {
-    "P": "ptr", "V": "i64", "tri": "ptr", "T": "i64", "E": "ptr", "nrm": "ptr", "two_area": "ptr", "ell": "ptr",
-    "gram": "ptr", "longest": "ptr", "far_nodes": "ptr", "far_coef": "ptr", "Q": "i64", "far_c": "f64",
-    "near_c": "f64", "gl_y": "ptr", "gl_w": "ptr", "ng": "i32", "X": "ptr", "n": "i64", "tol": "f64", "order": "i32",
-    "nthreads": "i32", "L": "ptr", "G": "ptr", "H": "ptr", "on": "ptr",
+    "P": "ptr", "V": "i64", "tri": "ptr", "T": "i64", "fe": "ptr", "NE": "i64", "E": "ptr", "nrm": "ptr",
+    "two_area": "ptr", "ell": "ptr", "gram": "ptr", "longest": "ptr", "far_nodes": "ptr", "far_coef": "ptr",
+    "Q": "i64", "far_c": "f64", "near_c": "f64", "gl_y": "ptr", "gl_w": "ptr", "ng": "i32", "X": "ptr", "n": "i64",
+    "tol": "f64", "order": "i32", "nthreads": "i32", "L": "ptr", "G": "ptr", "H": "ptr", "on": "ptr",
 }  # fmt: skip
 
 #: Arguments of ``tc_mvcd2d`` in mvcd2d.c, in order.

@@ -64,11 +64,36 @@ static void g_divdiff(double U, double u, const double *gy, const double *gw, in
     }
 }
 
+/* G(t) = atan(sqrt t)/sqrt t and its first two derivatives for 0 <= t <= 1: the alternating
+ * series below t = 0.1 (24 terms: truncation below 1e-24), the closed form above (G' and G''
+ * lose at most a factor 1/t and 1/t^2 of rounding there). */
+static const double G_SERIES[24] = {
+    1.0,        -1.0 / 3,  1.0 / 5,  -1.0 / 7,  1.0 / 9,  -1.0 / 11, 1.0 / 13, -1.0 / 15,
+    1.0 / 17,   -1.0 / 19, 1.0 / 21, -1.0 / 23, 1.0 / 25, -1.0 / 27, 1.0 / 29, -1.0 / 31,
+    1.0 / 33,   -1.0 / 35, 1.0 / 37, -1.0 / 39, 1.0 / 41, -1.0 / 43, 1.0 / 45, -1.0 / 47};
+
+static inline void g_closed(double t, double *G) {
+    if (t < 0.1) {
+        double a0 = 1.0 - t / 3.0, a1 = -1.0 / 3.0, a2 = 0, p = 1.0;  // p = t^(k-2)
+        for (int k = 2; k < 24; k++) {
+            double c = G_SERIES[k];
+            a2 += c * k * (k - 1) * p;
+            a1 += c * k * p * t;
+            a0 += c * p * t * t;
+            p *= t;
+        }
+        G[0] = a0, G[1] = a1, G[2] = a2;
+        return;
+    }
+    double s = sqrt(t), g = atan(s) / s, q = 1.0 / (1.0 + t), g1 = (q - g) / (2.0 * t);
+    G[0] = g, G[1] = g1, G[2] = (-q * q - 3.0 * g1) / (2.0 * t);
+}
+
 /* g = theta / (2 |N|) as a jet, from the jets of u = |N|^2 and v = a_j.a_k. */
-static jet half_angle_over_norm(jet u, jet v, const double *gy, const double *gw, int ng) {
+static jet half_angle_over_norm(jet u, jet v) {
     if (v.v > 0 && u.v <= v.v * v.v) {
         double t = u.v / (v.v * v.v), G[3];
-        g_fun(t, gy, gw, ng, G);
+        g_closed(t, G);
         double iv = 1.0 / v.v, tu = iv * iv, tv = -2.0 * t * iv, tuv = -2.0 * tu * iv, tvv = 6.0 * t * iv * iv;
         double h2 = 0.5 * iv;
         double f = G[0] * h2;
@@ -83,49 +108,60 @@ static jet half_angle_over_norm(jet u, jet v, const double *gy, const double *gw
     return j_mul(j_atan2(s, v), j_recip(j_scale(s, 2.0)));
 }
 
-/* Direct evaluation: weights, gradients and (order 2) Hessians of the three corners. */
-static void face_direct(const double a[3][3], const double E[3][3], double two_area, double h, int order,
-                        const double *gy, const double *gw, int ng, double *w, double g[3][3], double H[3][6]) {
-    double N[3][3], m[3] = {0, 0, 0};
-    jet phi[3];
+/* g_e = theta_e / (2 |N_e|) of one edge (j, k) seen from x, as a jet: depends on |N|^2 and
+ * a_j.a_k only, so it is shared by the edge's two faces (either orientation). */
+static jet edge_phi(const double *aj, const double *ak) {
+    double N[3], E[3] = {aj[0] - ak[0], aj[1] - ak[1], aj[2] - ak[2]}, EN[3];
+    cross3(aj, ak, N);
+    cross3(E, N, EN);
+    double E2 = dot3(E, E);
+    jet u = {dot3(N, N), {2 * EN[0], 2 * EN[1], 2 * EN[2]},
+             {2 * (E2 - E[0] * E[0]), 2 * (E2 - E[1] * E[1]), 2 * (E2 - E[2] * E[2]), -2 * E[0] * E[1],
+              -2 * E[0] * E[2], -2 * E[1] * E[2]}};
+    jet v = {dot3(aj, ak), {-(aj[0] + ak[0]), -(aj[1] + ak[1]), -(aj[2] + ak[2])}, {2, 2, 2, 0, 0, 0}};
+    return half_angle_over_norm(u, v);
+}
+
+/* Direct evaluation: weights, gradients and (order 2) Hessians of the three corners, from the
+ * edges' jets phi. With F_c = sum_e dphi_e/dx_c E_e, F_v = sum_e phi_e E_e and
+ * M_k = sum_e (H phi_e)_k N_e:  N_i . dm/dx_c = sum_e dphi_e/dx_c N_i.N_e + (F_v x N_i)_c and
+ * N_i . d2m/dx_c dx_d = N_i . M_cd + (F_c x N_i)_d + (F_d x N_i)_c. */
+static void face_direct(const double a[3][3], const double E[3][3], const jet *phi, double two_area, double h,
+                        int order, double *w, double g[3][3], double H[3][6]) {
+    double N[3][3], m[3] = {0, 0, 0}, Fv[3] = {0, 0, 0}, F[3][3] = {{0}}, M[6][3] = {{0}};
     for (int e = 0; e < 3; e++) {
-        int j = (e + 1) % 3, k = (e + 2) % 3;
-        cross3(a[j], a[k], N[e]);
-        double EN[3];
-        cross3(E[e], N[e], EN);
-        double E2 = dot3(E[e], E[e]);
-        jet u = {dot3(N[e], N[e]), {2 * EN[0], 2 * EN[1], 2 * EN[2]},
-                 {2 * (E2 - E[e][0] * E[e][0]), 2 * (E2 - E[e][1] * E[e][1]), 2 * (E2 - E[e][2] * E[e][2]),
-                  -2 * E[e][0] * E[e][1], -2 * E[e][0] * E[e][2], -2 * E[e][1] * E[e][2]}};
-        jet v = {dot3(a[j], a[k]), {-(a[j][0] + a[k][0]), -(a[j][1] + a[k][1]), -(a[j][2] + a[k][2])}, {2, 2, 2, 0, 0, 0}};
-        phi[e] = half_angle_over_norm(u, v, gy, gw, ng);
-        for (int c = 0; c < 3; c++) m[c] += phi[e].v * N[e][c];
-    }
-    double det = two_area * h, idet = 1.0 / det, NN[3][3], C[3][3][3];  // C[i][e] = E_e x N_i
-    for (int i = 0; i < 3; i++)
-        for (int e = 0; e < 3; e++) {
-            NN[i][e] = dot3(N[i], N[e]);
-            cross3(E[e], N[i], C[i][e]);
+        cross3(a[(e + 1) % 3], a[(e + 2) % 3], N[e]);
+        for (int c = 0; c < 3; c++) {
+            m[c] += phi[e].v * N[e][c];
+            Fv[c] += phi[e].v * E[e][c];
+            for (int d = 0; d < 3; d++) F[d][c] += phi[e].g[d] * E[e][c];
         }
-    double W = 0, gW[3] = {0, 0, 0};
+        if (order >= 2)
+            for (int k = 0; k < 6; k++)
+                for (int c = 0; c < 3; c++) M[k][c] += phi[e].h[k] * N[e][c];
+    }
+    double idet = 1.0 / (two_area * h), W = 0, gW[3] = {0, 0, 0};
     for (int i = 0; i < 3; i++) {
         w[i] = dot3(N[i], m) * idet;
         W += w[i];
     }
-    for (int i = 0; i < 3; i++)
+    double FN[3][3][3];  // FN[i][c] = F_c x N_i
+    for (int i = 0; i < 3; i++) {
+        double FvN[3], nn[3] = {dot3(N[i], N[0]), dot3(N[i], N[1]), dot3(N[i], N[2])};
+        cross3(Fv, N[i], FvN);
         for (int c = 0; c < 3; c++) {
-            double s = W * N[i][c];
-            for (int e = 0; e < 3; e++) s += phi[e].g[c] * NN[i][e] + phi[e].v * C[i][e][c];
+            double s = W * N[i][c] + FvN[c];
+            for (int e = 0; e < 3; e++) s += phi[e].g[c] * nn[e];
             g[i][c] = s * idet;
             gW[c] += g[i][c];
+            cross3(F[c], N[i], FN[i][c]);
         }
+    }
     if (order < 2) return;
     for (int i = 0; i < 3; i++)
         for (int k = 0; k < 6; k++) {
             int c = JI[k], d = JJ[k];
-            double s = gW[d] * N[i][c] + gW[c] * N[i][d];
-            for (int e = 0; e < 3; e++) s += phi[e].h[k] * NN[i][e] + phi[e].g[c] * C[i][e][d] + phi[e].g[d] * C[i][e][c];
-            H[i][k] = s * idet;
+            H[i][k] = (dot3(N[i], M[k]) + FN[i][c][d] + FN[i][d][c] + gW[d] * N[i][c] + gW[c] * N[i][d]) * idet;
         }
 }
 
@@ -230,27 +266,37 @@ static void face_far(const double *x, const double *n, double h, const double *n
  * P (V, 3) vertices; tri (T, 3) int32 corners; E (T, 3, 3) edge vectors p_{e+1} - p_{e+2};
  * nrm (T, 3) unit normals; two_area (T); ell (T, 3) edge lengths; gram (T, 3, 3) E_i.E_e;
  * longest (T); far_nodes (T, Q, 3), far_coef (T, Q, 3); gl_y, gl_w (ng) Gauss-Legendre on [0, 1];
- * X (n, 3). Writes L (n, V), G (n, V, 3) and, for order 2, H (n, V, 3, 3); on[p] = 1 for points
+ * fe (T, 3) int32 index of the unique edge opposite each corner (NE edges); X (n, 3). Writes L (n, V), G (n, V, 3) and, for order 2, H (n, V, 3, 3); on[p] = 1 for points
  * on the cage (rows left undefined), 2 where the total weight vanishes. */
-void tc_mvcd3d(const double *P, long V, const int *tri, long T, const double *E, const double *nrm,
-               const double *two_area, const double *ell, const double *gram, const double *longest,
-               const double *far_nodes, const double *far_coef, long Q, double far_c, double near_c,
-               const double *gl_y, const double *gl_w, int ng, const double *X, long n, double tol, int order,
-               int nthreads, double *L, double *G, double *H, unsigned char *on) {
+void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, long NE, const double *E,
+               const double *nrm, const double *two_area, const double *ell, const double *gram,
+               const double *longest, const double *far_nodes, const double *far_coef, long Q, double far_c,
+               double near_c, const double *gl_y, const double *gl_w, int ng, const double *X, long n, double tol,
+               int order, int nthreads, double *L, double *G, double *H, unsigned char *on) {
 #pragma omp parallel num_threads(nthreads)
     {
         double *acc = (double *)malloc(sizeof(double) * 10 * V);
+        double *av = (double *)malloc(sizeof(double) * 4 * V);  // p_v - x and |p_v - x|
+        jet *ephi = (jet *)malloc(sizeof(jet) * NE);             // edge jets, computed on demand
+        long *stamp = (long *)malloc(sizeof(long) * NE);
+        for (long e = 0; e < NE; e++) stamp[e] = -1;
 #pragma omp for schedule(dynamic, 16)
         for (long p = 0; p < n; p++) {
             const double *x = X + 3 * p;
             memset(acc, 0, sizeof(double) * 10 * V);
+            for (long v = 0; v < V; v++) {
+                double *ap = av + 4 * v;
+                for (int c = 0; c < 3; c++) ap[c] = P[3 * v + c] - x[c];
+                ap[3] = sqrt(dot3(ap, ap));
+            }
             int flag = 0;
             for (long t = 0; t < T && !flag; t++) {
                 const int *ti = tri + 3 * t;
                 double a[3][3], R[3], Et[3][3], w[3], g[3][3], Hh[3][6];
                 for (int i = 0; i < 3; i++) {
-                    for (int c = 0; c < 3; c++) a[i][c] = P[3 * ti[i] + c] - x[c], Et[i][c] = E[9 * t + 3 * i + c];
-                    R[i] = sqrt(dot3(a[i], a[i]));
+                    const double *ap = av + 4 * ti[i];
+                    for (int c = 0; c < 3; c++) a[i][c] = ap[c], Et[i][c] = E[9 * t + 3 * i + c];
+                    R[i] = ap[3];
                 }
                 double minR = fmin(R[0], fmin(R[1], R[2]));
                 if (minR <= tol) {
@@ -267,7 +313,16 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const double *E,
                         break;
                     }
                 } else {
-                    face_direct(a, Et, two_area[t], h, order, gl_y, gl_w, ng, w, g, Hh);
+                    jet phi[3];
+                    for (int e = 0; e < 3; e++) {
+                        long k = fe[3 * t + e];
+                        if (stamp[k] != p) {
+                            ephi[k] = edge_phi(a[(e + 1) % 3], a[(e + 2) % 3]);
+                            stamp[k] = p;
+                        }
+                        phi[e] = ephi[k];
+                    }
+                    face_direct(a, Et, phi, two_area[t], h, order, w, g, Hh);
                 }
                 for (int i = 0; i < 3; i++) {
                     double *ac = acc + 10 * ti[i];
@@ -309,5 +364,8 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const double *E,
             }
         }
         free(acc);
+        free(av);
+        free(ephi);
+        free(stamp);
     }
 }
