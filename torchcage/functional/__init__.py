@@ -7,6 +7,7 @@ coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
 from .green import green_coordinates
 from .local_barycentric import local_barycentric_coordinates, locality_statistics, solve_local_barycentric
 from .mean_value import mean_value_coordinates
+from .mean_value_derivatives import mean_value_derivatives, mean_value_gradients, mean_value_hessians
 from .quad_green import quad_green_coordinates
 from .quad_mean_value import quad_mean_value_coordinates
 
@@ -15,6 +16,9 @@ __all__ = [
     "local_barycentric_coordinates",
     "locality_statistics",
     "mean_value_coordinates",
+    "mean_value_derivatives",
+    "mean_value_gradients",
+    "mean_value_hessians",
     "quad_green_coordinates",
     "quad_mean_value_coordinates",
     "solve_local_barycentric",

@@ -7,6 +7,7 @@ import sys
 from collections.abc import Callable, Iterator
 
 import torch
+from torch._C._functorch import is_functorch_wrapped_tensor
 
 from ..cage import Cage
 from ..errors import CageError, PointsError
@@ -51,13 +52,19 @@ def check_points(points: torch.Tensor, cage: Cage) -> torch.Tensor:
     if points.device != cage.device:
         raise PointsError(f"points are on {points.device} but the cage is on {cage.device}; move one with .to(device)")
     flat = points.reshape(-1, cage.dim)
+    if not is_functorch_wrapped_tensor(flat):  # (under torch.func transforms the kernels' ops check)
+        check_finite(flat)
+    return flat
+
+
+def check_finite(flat: torch.Tensor) -> None:
+    """Raise a PointsError naming the rows of ``flat`` ``(N, D)`` that hold NaN or inf."""
     step = 1 << 20  # check in slices: no temporary grows with the number of points
     for start in range(0, flat.shape[0], step):
         bad = ~torch.isfinite(flat[start : start + step]).all(dim=1)
         if bool(bad.any()):
             idx = (torch.nonzero(bad).flatten()[:10] + start).tolist()
             raise PointsError(f"points contain NaN or inf (flattened indices {idx}); remove or fix them")
-    return flat
 
 
 def result_dtype(points: torch.Tensor, cage: Cage, dtype: torch.dtype | None) -> tuple[torch.dtype, torch.dtype]:

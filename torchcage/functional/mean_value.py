@@ -109,10 +109,13 @@ def mean_value_coordinates(
             graph is needed, else the torch kernel; ``"torch"`` forces the torch kernel (any
             device and dtype); ``"native"`` requires the native one.
 
-    Gradients: with the torch kernel, autograd differentiates the coordinates with respect to
-    the points and the cage's vertices (``gradcheck`` passes in float64 off the cage); ``"auto"``
-    picks it whenever either requires grad. Analytic derivative kernels are not part of this
-    function.
+    Gradients: when the points or ``cage.vertices`` require grad (or under ``torch.func``
+    transforms), the call goes through :class:`torchcage.autograd.MeanValueFunction`: derivatives
+    with respect to the points are the analytic gradients, and on double backward the analytic
+    Hessians (:func:`mean_value_derivatives`), finite everywhere off the cage; derivatives with
+    respect to the cage's vertices come from autograd of the torch kernel. ``gradcheck`` and
+    ``gradgradcheck`` pass in float64; ``torch.func.jacrev``, ``vmap`` and ``hessian`` work with
+    respect to the points.
 
     Returns:
         Coordinates of shape ``(*, V)``.
@@ -135,5 +138,21 @@ def mean_value_coordinates(
     """
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
-    lam = _coordinates_flat(flat.to(compute), cage, chunk_size, progress, backend)
+    if _records_graph(flat, cage.vertices):
+        from ..autograd.mean_value import mean_value_function
+
+        if cage.dim == 3:  # the same checks as the plain path (a triangle cage)
+            triangle_cage_data(cage, compute)
+        lam = mean_value_function(flat, cage, chunk_size, backend)
+    else:
+        lam = _coordinates_flat(flat.to(compute), cage, chunk_size, progress, backend)
     return lam.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
+
+
+def _records_graph(points: torch.Tensor, vertices: torch.Tensor) -> bool:
+    """True when autograd (or a torch.func transform) differentiates through this call."""
+    from torch._C._functorch import is_functorch_wrapped_tensor
+
+    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(vertices):
+        return True
+    return torch.is_grad_enabled() and (points.requires_grad or vertices.requires_grad)

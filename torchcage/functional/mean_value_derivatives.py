@@ -42,7 +42,7 @@ from ..errors import PointsError
 from ._common import ON_CAGE_TOLERANCE, check_points, chunks, triangle_geometry
 from ._mvc3d import _collapsed_gauss
 
-__all__ = ["mean_value_derivatives", "mean_value_gradients", "mean_value_hessians"]
+__all__ = ["derivatives_flat", "mean_value_derivatives", "mean_value_gradients", "mean_value_hessians"]
 
 #: Faces whose longest edge is below ``FAR_RATIO`` times their distance use the far-field rule
 #: (measured against 60-digit references: the direct form's Hessians lose up to 4e-10 relative at
@@ -101,6 +101,57 @@ def _library() -> object:
     return lib
 
 
+def derivatives_flat(
+    x: torch.Tensor,
+    cage: Cage,
+    order: int,
+    chunk_size: int | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The kernel on checked points ``x`` ``(n, D)``: float64 CPU tensors ``lam (n, V)``,
+    ``grad (n, V, D)``, ``hess (n, V, D, D)`` (empty for ``order=1``) and the ``(n,)`` bool mask of
+    points on the cage (their rows are undefined).
+
+    Raises:
+        PointsError: points where the coordinates are undefined (the total weight vanishes).
+    """
+    lib = _library()
+    D, V = cage.dim, cage.num_vertices
+    x = x.detach().to("cpu", torch.float64)
+    n = x.shape[0]
+    lam = torch.empty((n, V), dtype=torch.float64)
+    grad = torch.empty((n, V, D), dtype=torch.float64)
+    hess = torch.empty((n, V, D, D) if order == 2 else (0,), dtype=torch.float64)
+    tol = ON_CAGE_TOLERANCE * cage.scale
+    threads = torch.get_num_threads()
+    if D == 3:
+        tb = _tables3d(cage)
+        T, Q = tb["tri"].shape[0], tb["far_nodes"].shape[1]
+    else:
+        P2 = cage.vertices.detach().to("cpu", torch.float64).contiguous()
+        edges = cage.edges.cpu().to(torch.int32).contiguous()
+    flags = torch.empty(n, dtype=torch.uint8)
+    size = chunk_size if chunk_size is not None else 4096
+    for sl in chunks(n, size, progress, desc="mean value derivatives"):
+        xc, m = x[sl].contiguous(), sl.stop - sl.start
+        H = hess[sl] if order == 2 else hess
+        if D == 3:
+            args = [tb["P"], V, tb["tri"], T, tb["fe"], int(tb["fe"].max()) + 1, tb["E"], tb["nrm"],
+                    tb["two_area"], tb["ell"], tb["gram"], tb["longest"], tb["far_nodes"], tb["far_coef"], Q,
+                    FAR_RATIO, NEAR_PLANE, tb["gl_y"], tb["gl_w"], G_ORDER, xc, m, tol, order, threads, lam[sl],
+                    grad[sl], H, flags[sl]]  # fmt: skip
+            _native.call(lib.tc_mvcd3d, args)  # type: ignore[attr-defined]
+        else:
+            args = [P2, V, edges, edges.shape[0], xc, m, tol, order, threads, lam[sl], grad[sl], H, flags[sl]]
+            _native.call(lib.tc_mvcd2d, args)  # type: ignore[attr-defined]
+    bad = torch.nonzero(flags == 2).flatten()[:10].tolist()
+    if bad:
+        raise PointsError(
+            f"mean value coordinates are undefined at points {bad} (the total weight vanishes there); move these points"
+        )
+    return lam, grad, hess, flags == 1
+
+
 def mean_value_derivatives(
     points: torch.Tensor,
     cage: Cage,
@@ -147,48 +198,14 @@ def mean_value_derivatives(
     flat = check_points(points, cage)
     if cage.dim == 3:
         triangle_geometry(cage, torch.float64, "use cage.triangulated() to split quads")
-    lib = _library()
-    D, V = cage.dim, cage.num_vertices
-    x = flat.detach().to("cpu", torch.float64)
-    n = x.shape[0]
-    lam = torch.empty((n, V), dtype=torch.float64)
-    grad = torch.empty((n, V, D), dtype=torch.float64)
-    hess = torch.empty((n, V, D, D), dtype=torch.float64) if order == 2 else torch.empty(0, dtype=torch.float64)
-    tol = ON_CAGE_TOLERANCE * cage.scale
-    threads = torch.get_num_threads()
-    if D == 3:
-        tb = _tables3d(cage)
-        T, Q = tb["tri"].shape[0], tb["far_nodes"].shape[1]
-    else:
-        P2 = cage.vertices.detach().to("cpu", torch.float64).contiguous()
-        edges = cage.edges.cpu().to(torch.int32).contiguous()
-    flags = torch.empty(n, dtype=torch.uint8)
-    size = chunk_size if chunk_size is not None else 4096
-    for sl in chunks(n, size, progress, desc="mean value derivatives"):
-        xc, m = x[sl].contiguous(), sl.stop - sl.start
-        H = hess[sl] if order == 2 else hess
-        if D == 3:
-            args = [tb["P"], V, tb["tri"], T, tb["fe"], int(tb["fe"].max()) + 1, tb["E"], tb["nrm"],
-                    tb["two_area"], tb["ell"], tb["gram"], tb["longest"], tb["far_nodes"], tb["far_coef"], Q,
-                    FAR_RATIO, NEAR_PLANE, tb["gl_y"], tb["gl_w"], G_ORDER, xc, m, tol, order, threads, lam[sl],
-                    grad[sl], H, flags[sl]]  # fmt: skip
-            _native.call(lib.tc_mvcd3d, args)  # type: ignore[attr-defined]
-        else:
-            args = [P2, V, edges, edges.shape[0], xc, m, tol, order, threads, lam[sl], grad[sl], H, flags[sl]]
-            _native.call(lib.tc_mvcd2d, args)  # type: ignore[attr-defined]
-    if bool((flags != 0).any()):
-        on = torch.nonzero(flags == 1).flatten()[:10].tolist()
-        if on:
-            raise PointsError(
-                f"points {on} lie on the cage, where mean value coordinates are not differentiable; "
-                "move them off the cage"
-            )
-        bad = torch.nonzero(flags == 2).flatten()[:10].tolist()
+    lam, grad, hess, on = derivatives_flat(flat, cage, order, chunk_size, progress)
+    idx = torch.nonzero(on).flatten()[:10].tolist()
+    if idx:
         raise PointsError(
-            f"mean value coordinates are undefined at points {bad} (the total weight vanishes there); move these points"
+            f"points {idx} lie on the cage, where mean value coordinates are not differentiable; move them off the cage"
         )
-    dt = flat.dtype if flat.is_floating_point() else torch.float64
-    lead = points.shape[:-1]
+    dt = flat.dtype
+    lead, D, V = points.shape[:-1], cage.dim, cage.num_vertices
     out_l = lam.to(flat.device, dt).reshape(*lead, V)
     out_g = grad.to(flat.device, dt).reshape(*lead, V, D)
     out_h = hess.to(flat.device, dt).reshape(*lead, V, D, D) if order == 2 else None

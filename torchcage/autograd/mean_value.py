@@ -1,0 +1,271 @@
+"""Autograd Functions of mean value coordinates.
+
+* ``MeanValueFunction``: ``lam = mvc(points, vertices)``. Its derivative with respect to the points
+  is the analytic gradient (``MeanValueGradFunction``), whose own derivative is the analytic Hessian
+  (``MeanValueHessFunction``): first and second order, double backward included, finite wherever
+  the points are off the cage (autograd through the coordinate formula gives NaN or inf on the
+  faces' support planes). Derivatives with respect to the rest cage's vertices are exact too:
+  autograd through the torch kernel of the coordinates (twice, for the mixed second derivatives).
+* Forward mode (``jvp``) is implemented for tangents of the points, so ``torch.func.jacfwd`` and
+  ``torch.func.hessian`` work; every Function sets ``generate_vmap_rule = True`` and calls its
+  kernel through a ``torch.library`` custom op with a batching rule (a vmapped batch of points is
+  folded into one kernel call), so ``torch.func.vmap`` and ``jacrev`` work too.
+* Third derivatives are not implemented (``MeanValueHessFunction.backward`` raises).
+* Points on the cage: the coordinates interpolate there and are not differentiable across it; the
+  derivative kernels flag such points and their rows are taken from autograd of the torch kernel
+  (the derivatives of the interpolating formulas: barycentric on a face, linear on an edge).
+
+Derivations: ``torchcage/functional/mean_value_derivatives.py`` and ``_native/mvcd3d.c``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..cage import Cage
+from ..functional._common import check_finite, result_dtype
+
+__all__ = ["MeanValueFunction", "MeanValueGradFunction", "MeanValueHessFunction", "mean_value_function"]
+
+
+def _cage(vertices: Tensor, faces: Tensor) -> Cage:
+    """A Cage around ``vertices`` and ``faces`` (triangles in 3D, edges in 2D), already validated."""
+    dev = vertices.device
+    empty = [torch.zeros((0, k), dtype=torch.long, device=dev) for k in (3, 4, 2)]
+    if vertices.shape[-1] == 3:
+        return Cage._trusted(vertices, faces, empty[1], empty[2])
+    return Cage._trusted(vertices, empty[0], empty[1], faces)
+
+
+def _torch_coordinates(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:
+    """Coordinates by the torch kernel, recording autograd with respect to points and vertices."""
+    from ..functional.mean_value import _coordinates_flat
+
+    compute, out = result_dtype(points, _cage(vertices, faces), None)
+    return _coordinates_flat(points.to(compute), _cage(vertices.to(compute), faces), None, False, "torch").to(out)
+
+
+def _autograd_rows(points: Tensor, vertices: Tensor, faces: Tensor, order: int) -> tuple[Tensor, Tensor]:
+    """Gradients (and Hessians) of a few rows by autograd of the torch kernel (points on the cage)."""
+    with torch.enable_grad():
+        x = points.detach().to(torch.float64).requires_grad_()
+        lam = _torch_coordinates(x, vertices.detach().to(torch.float64), faces)
+        V, D = lam.shape[1], x.shape[1]
+        g = torch.stack(
+            [torch.autograd.grad(lam[:, i].sum(), x, create_graph=order == 2, retain_graph=True)[0] for i in range(V)],
+            dim=1,
+        )
+        if order < 2:
+            return g.detach(), torch.empty(0, dtype=torch.float64)
+        h = torch.zeros(x.shape[0], V, D, D, dtype=torch.float64)
+        for i in range(V):
+            for c in range(D):
+                if g[:, i, c].requires_grad:
+                    h[:, i, c] = torch.autograd.grad(g[:, i, c].sum(), x, retain_graph=True, allow_unused=True)[0]
+    return g.detach(), h
+
+
+# ----------------------------------------------------------------------------------- custom ops
+@torch.library.custom_op("torchcage::mean_value_coordinates", mutates_args=())
+def _coordinates_op(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int, backend: str) -> Tensor:
+    from ..functional.mean_value import _coordinates_flat
+
+    check_finite(points)
+    cage = _cage(vertices, faces)
+    compute, out = result_dtype(points, cage, None)
+    with torch.no_grad():
+        lam = _coordinates_flat(points.to(compute), cage, chunk_size if chunk_size > 0 else None, False, backend)
+    return lam.to(out)
+
+
+@_coordinates_op.register_fake
+def _(points, vertices, faces, chunk_size, backend):
+    dt = torch.promote_types(points.dtype, vertices.dtype)
+    return points.new_empty((points.shape[0], vertices.shape[0]), dtype=dt)
+
+
+@torch.library.custom_op("torchcage::mean_value_derivatives", mutates_args=())
+def _derivatives_op(points: Tensor, vertices: Tensor, faces: Tensor, order: int) -> Tensor:
+    from ..functional.mean_value_derivatives import derivatives_flat
+
+    check_finite(points)
+    cage = _cage(vertices.detach(), faces)
+    _, grad, hess, on = derivatives_flat(points, cage, order)
+    if bool(on.any()):
+        rows = torch.nonzero(on).flatten()
+        g, h = _autograd_rows(points[rows], vertices, faces, order)
+        grad[rows] = g
+        if order == 2:
+            hess[rows] = h
+    out = grad if order == 1 else hess
+    return out.to(points.device, torch.promote_types(points.dtype, vertices.dtype))
+
+
+@_derivatives_op.register_fake
+def _(points, vertices, faces, order):
+    D = points.shape[-1]
+    shape = (points.shape[0], vertices.shape[0], D) + ((D,) if order == 2 else ())
+    return points.new_empty(shape, dtype=torch.promote_types(points.dtype, vertices.dtype))
+
+
+def _fold(points: Tensor, vertices: Tensor, pdim: int | None, vdim: int | None) -> tuple[Tensor, int]:
+    """Fold a vmapped batch of points into the point axis (vertices unbatched)."""
+    if vdim is not None:
+        raise NotImplementedError("vmap over the rest cage's vertices is not supported; vmap over the points")
+    x = points.movedim(pdim, 0) if pdim is not None else points[None]
+    return x.reshape(-1, x.shape[-1]), x.shape[0]
+
+
+def _coordinates_vmap(info, in_dims, points, vertices, faces, chunk_size, backend):
+    x, B = _fold(points, vertices, in_dims[0], in_dims[1])
+    lam = _coordinates_op(x, vertices, faces, chunk_size, backend)
+    return lam.reshape(B, -1, lam.shape[-1]), 0
+
+
+def _derivatives_vmap(info, in_dims, points, vertices, faces, order):
+    x, B = _fold(points, vertices, in_dims[0], in_dims[1])
+    out = _derivatives_op(x, vertices, faces, order)
+    return out.reshape(B, -1, *out.shape[1:]), 0
+
+
+torch.library.register_vmap("torchcage::mean_value_coordinates", _coordinates_vmap)
+torch.library.register_vmap("torchcage::mean_value_derivatives", _derivatives_vmap)
+
+
+# ----------------------------------------------------------------------------------- Functions
+def _vertex_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:
+    """``sum g * d lam / d vertices`` by autograd of the torch kernel (kept differentiable when the
+    caller records a graph: double backward)."""
+    create = torch.is_grad_enabled()
+    with torch.enable_grad():
+        P = vertices if create and vertices.requires_grad else vertices.detach().requires_grad_()
+        lam = _torch_coordinates(points if create else points.detach(), P, faces)
+        (gP,) = torch.autograd.grad(lam, P, g, create_graph=create)
+    return gP
+
+
+def _vertex_grad_vjp(points: Tensor, vertices: Tensor, faces: Tensor, G: Tensor) -> Tensor:
+    """``sum G * d(grad_x lam) / d vertices``: the mixed second derivatives, by double autograd of
+    the torch kernel (``d lam / d x_c`` as the derivative of a vector-Jacobian product)."""
+    create = torch.is_grad_enabled()
+    with torch.enable_grad():
+        P = vertices if create and vertices.requires_grad else vertices.detach().requires_grad_()
+        x = points.detach().requires_grad_()
+        lam = _torch_coordinates(x, P, faces)
+        Z = torch.zeros_like(lam, requires_grad=True)
+        (r,) = torch.autograd.grad(lam, x, Z, create_graph=True)
+        total = lam.new_zeros(())
+        for c in range(x.shape[1]):
+            (dl,) = torch.autograd.grad(r[:, c].sum(), Z, create_graph=True)
+            total = total + (G[..., c] * dl).sum()
+        (gP,) = torch.autograd.grad(total, P, create_graph=create)
+    return gP
+
+
+def _no_vertex_tangent(dP: Tensor | None) -> None:
+    """Forward mode covers tangents of the points only (torch.func passes zeros for the others)."""
+    if dP is None:
+        return
+    try:
+        zero = bool((dP == 0).all())
+    except RuntimeError:  # a batched tangent whose values cannot be inspected
+        zero = False
+    if not zero:
+        raise NotImplementedError(
+            "forward-mode derivatives with respect to the rest cage's vertices are not implemented; "
+            "use reverse mode (backward, torch.func.jacrev)"
+        )
+
+
+class MeanValueHessFunction(torch.autograd.Function):
+    """``(points (N, D), vertices (V, D), faces) -> d^2 lam / dx^2 (N, V, D, D)``, analytic."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:
+        return _derivatives_op(points, vertices, faces, 2)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        pass
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        raise RuntimeError(
+            "third derivatives of mean value coordinates are not implemented (gradients and Hessians are)"
+        )
+
+
+class MeanValueGradFunction(torch.autograd.Function):
+    """``(points (N, D), vertices (V, D), faces) -> d lam / dx (N, V, D)``, analytic; its derivative
+    with respect to the points is the analytic Hessian."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:
+        return _derivatives_op(points, vertices, faces, 1)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(inputs[0], inputs[1])
+        ctx.save_for_forward(inputs[0], inputs[1])
+        ctx.faces = inputs[2]
+
+    @staticmethod
+    def backward(ctx, G: Tensor):
+        x, P = ctx.saved_tensors
+        gx = gP = None
+        if ctx.needs_input_grad[0]:
+            gx = torch.einsum("nvc,nvcd->nd", G, MeanValueHessFunction.apply(x, P, ctx.faces))
+        if ctx.needs_input_grad[1]:
+            gP = _vertex_grad_vjp(x, P, ctx.faces, G)
+        return gx, gP, None
+
+    @staticmethod
+    def jvp(ctx, dx: Tensor | None, dP: Tensor | None, _df: None) -> Tensor:
+        x, P = ctx.saved_tensors
+        _no_vertex_tangent(dP)
+        return torch.einsum("nvcd,nd->nvc", MeanValueHessFunction.apply(x, P, ctx.faces), dx)
+
+
+class MeanValueFunction(torch.autograd.Function):
+    """``(points (N, D), vertices (V, D), faces, chunk_size, backend) -> lam (N, V)``; derivatives
+    with respect to the points through the analytic gradients (and Hessians on double backward)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int, backend: str) -> Tensor:
+        return _coordinates_op(points, vertices, faces, chunk_size, backend)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(inputs[0], inputs[1])
+        ctx.save_for_forward(inputs[0], inputs[1])
+        ctx.faces = inputs[2]
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        x, P = ctx.saved_tensors
+        gx = gP = None
+        if ctx.needs_input_grad[0]:
+            gx = torch.einsum("nv,nvc->nc", g, MeanValueGradFunction.apply(x, P, ctx.faces))
+        if ctx.needs_input_grad[1]:
+            gP = _vertex_vjp(x, P, ctx.faces, g)
+        return gx, gP, None, None, None
+
+    @staticmethod
+    def jvp(ctx, dx: Tensor | None, dP: Tensor | None, *_: None) -> Tensor:
+        x, P = ctx.saved_tensors
+        _no_vertex_tangent(dP)
+        return torch.einsum("nvc,nc->nv", MeanValueGradFunction.apply(x, P, ctx.faces), dx)
+
+
+def mean_value_function(points: Tensor, cage: Cage, chunk_size: int | None = None, backend: str = "auto") -> Tensor:
+    """Mean value coordinates ``(N, V)`` of checked points ``(N, D)`` through
+    :class:`MeanValueFunction` (differentiable with respect to the points and ``cage.vertices``)."""
+    faces = cage.triangles if cage.dim == 3 else cage.edges
+    return MeanValueFunction.apply(points, cage.vertices, faces, chunk_size or 0, backend)
