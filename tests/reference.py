@@ -109,3 +109,25 @@ def mvc_derivatives_reference(x, coordinates, scale: float) -> tuple[list, list]
                 val = float((pp[i] - pm[i] - mp_[i] + mm[i]) / (4 * step**2))
                 hess[i][c][d] = hess[i][d][c] = val
     return grad, hess
+
+
+def distance_to_triangles(points: torch.Tensor, vertices: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
+    """Euclidean distance ``(N,)`` from each point to a set of triangles (brute force, float64)."""
+    p = vertices.to(torch.float64)[triangles]  # (T, 3, 3)
+    x = points.to(torch.float64)[:, None, :]  # (N, 1, 3)
+    best = torch.full((points.shape[0],), float("inf"), dtype=torch.float64)
+    for i in range(3):  # the three edges
+        a, b = p[:, i][None], p[:, (i + 1) % 3][None]
+        ab = b - a
+        t = (((x - a) * ab).sum(-1) / (ab * ab).sum(-1)).clamp(0, 1)
+        best = torch.minimum(best, (x - a - t[..., None] * ab).norm(dim=-1).min(dim=1).values)
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True)
+    h = ((x - p[:, 0][None]) * n[None]).sum(-1)  # (N, T)
+    foot = x - h[..., None] * n[None]
+    inside = torch.ones_like(h, dtype=torch.bool)
+    for i in range(3):
+        a, b = p[:, i][None], p[:, (i + 1) % 3][None]
+        inside &= (torch.linalg.cross(b - a, foot - a, dim=-1) * n[None]).sum(-1) >= 0
+    plane = torch.where(inside, h.abs(), torch.inf).min(dim=1).values
+    return torch.minimum(best, plane)

@@ -391,7 +391,7 @@ class Cage:
                 "reverse the corner order of the wrongly oriented faces so that normals point outward"
             )
         self._check_vertex_fans(s, d, o)
-        vol = float(self.signed_volume())
+        vol = float(self.signed_volume().detach())
         if vol < 0:
             warnings.warn(
                 "the cage is oriented inward (negative signed volume); its faces were flipped so that "

@@ -26,6 +26,13 @@
  * 3. far field (longest edge <= far_c min |a_i|): w_i^T = int_T phi_i h / |p - x|^4 dA by a
  *    collapsed Gauss rule, differentiated under the integral.
  * Points on a face (within tol) have no derivatives: they are flagged in `on`.
+ *
+ * Near a face (foot point inside it, small h) that face's weights carry the singular part
+ * k s_i / h (k = 2 pi / (4 area), s_i / (2 area) the foot's barycentric coordinates), and the
+ * quotient w / W would subtract derivatives of size 1/h^3 to get O(1) ones. For the nearest such
+ * face the singular part is kept apart and the coordinates are formed as
+ *   lam_v = (k s_v + h r_v) / (k sum s + h sum r),
+ * r the remaining weights: numerator and denominator are smooth and O(1), so their jets are exact.
  */
 #include <math.h>
 #include <stdlib.h>
@@ -168,7 +175,7 @@ static void face_direct(const double a[3][3], const double E[3][3], const jet *p
 /* Near the support plane: the split form with jets. Returns 1 when the point lies on the face. */
 static int face_near_plane(const double a[3][3], const double E[3][3], const double *n, double two_area,
                            const double *ell, const double *gram, double tol, const double *gy, const double *gw,
-                           int ng, double *w, double g[3][3], double H[3][6]) {
+                           int ng, double *w, double g[3][3], double H[3][6], jet *sing, jet *hout) {
     double h = dot3(n, a[0]);
     jet hj = {h, {-n[0], -n[1], -n[2]}, {0, 0, 0, 0, 0, 0}};
     jet h2 = j_mul(hj, hj);
@@ -190,8 +197,8 @@ static int face_near_plane(const double a[3][3], const double E[3][3], const dou
         jet N2 = j_add(j_mul(se, se), j_scale(h2, l2));
         s[e] = se;
         if (se.v < -tol * ell[e]) inside = 0;
-        double sig = se.v >= 0 ? 1.0 : -1.0;
-        wind_angle += sig * atan2(sig * se.v, qq.v);
+        double sig = se.v >= 0 ? 1.0 : -1.0, sabs = sig * se.v + 0.0;  // + 0.0: -0 -> +0 (atan2 tells them apart)
+        wind_angle += sig * atan2(sabs, qq.v);
         if (qq.v > 0 && se.v * se.v < 0.64 * qq.v * qq.v && N2.v < d.v * d.v) {
             jet U = j_div(N2, j_mul(d, d)), u = j_div(j_mul(se, se), j_mul(qq, qq));
             double G[3], D[6];
@@ -206,6 +213,7 @@ static int face_near_plane(const double a[3][3], const double E[3][3], const dou
             T[e] = j_div(gU, d);  // theta / |N|
         } else {
             jet sa = j_scale(se, sig);
+            sa.v = sabs;
             jet th0 = j_atan2(sa, qq);
             jet Nj = j_sqrt(N2);
             jet Nps = j_add(Nj, sa);
@@ -227,12 +235,20 @@ static int face_near_plane(const double a[3][3], const double E[3][3], const dou
         jet B = j_mul(s[i], S);
         for (int e = 0; e < 3; e++) B = j_add(B, j_scale(T[e], gram[3 * i + e]));
         jet wi = j_scale(j_mul(hj, B), i4A);
-        if (wind != 0.0) wi = j_add(wi, j_scale(j_div(s[i], hj), 2.0 * TC_PI * wind * i4A));
+        sing[i] = j_scale(s[i], 2.0 * TC_PI * wind * i4A);  // the weight's singular part is sing / h
         w[i] = wi.v;
         for (int c = 0; c < 3; c++) g[i][c] = wi.g[c];
         for (int k = 0; k < 6; k++) H[i][k] = wi.h[k];
     }
-    return 0;
+    *hout = hj;
+    return wind != 0.0 ? 2 : 0;
+}
+
+/* acc[v] (value, gradient, Hessian of w_v) += jet a. */
+static inline void acc_add(double *ac, jet a) {
+    ac[0] += a.v;
+    for (int c = 0; c < 3; c++) ac[1 + c] += a.g[c];
+    for (int k = 0; k < 6; k++) ac[4 + k] += a.h[k];
 }
 
 /* Far field: collapsed Gauss rule of h int_T phi_i / |p - x|^4 dA, differentiated under the sign. */
@@ -289,7 +305,9 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 for (int c = 0; c < 3; c++) ap[c] = P[3 * v + c] - x[c];
                 ap[3] = sqrt(dot3(ap, ap));
             }
-            int flag = 0;
+            int flag = 0, sidx[3] = {0, 0, 0};
+            long sface = -1;  // the nearest face whose foot point the point sees inside (see above)
+            jet ssing[3], shj = j_const(0.0);
             for (long t = 0; t < T && !flag; t++) {
                 const int *ti = tri + 3 * t;
                 double a[3][3], R[3], Et[3][3], w[3], g[3][3], Hh[3][6];
@@ -308,9 +326,24 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 if (longest[t] <= far_c * minR) {
                     face_far(x, nt, h, far_nodes + 3 * Q * t, far_coef + 3 * Q * t, (int)Q, w, g, Hh);
                 } else if (fabs(h) < near_c * minR) {
-                    if (face_near_plane(a, Et, nt, two_area[t], ell + 3 * t, gram + 9 * t, tol, gl_y, gl_w, ng, w, g, Hh)) {
+                    jet sg[3], hj;
+                    int r = face_near_plane(a, Et, nt, two_area[t], ell + 3 * t, gram + 9 * t, tol, gl_y, gl_w, ng, w,
+                                            g, Hh, sg, &hj);
+                    if (r == 1) {
                         flag = 1;
                         break;
+                    }
+                    if (r == 2) {  // keep the nearest face's singular part apart, fold any other back in
+                        if (sface >= 0 && fabs(hj.v) < fabs(shj.v)) {
+                            for (int i = 0; i < 3; i++) acc_add(acc + 10 * sidx[i], j_div(ssing[i], shj));
+                            sface = -1;
+                        }
+                        if (sface < 0) {
+                            sface = t, shj = hj;
+                            for (int i = 0; i < 3; i++) ssing[i] = sg[i], sidx[i] = ti[i];
+                        } else {
+                            for (int i = 0; i < 3; i++) acc_add(acc + 10 * ti[i], j_div(sg[i], hj));
+                        }
                     }
                 } else {
                     jet phi[3];
@@ -334,6 +367,35 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
             }
             on[p] = (unsigned char)flag;
             if (flag) continue;
+            if (sface >= 0) {  // lam_v = (k s_v + h r_v) / (k sum s + h sum r)
+                jet R = j_const(0.0), den;
+                for (long v = 0; v < V; v++) {
+                    const double *ac = acc + 10 * v;
+                    jet r = {ac[0], {ac[1], ac[2], ac[3]}, {ac[4], ac[5], ac[6], ac[7], ac[8], ac[9]}};
+                    R = j_add(R, r);
+                }
+                den = j_mul(shj, R);
+                for (int i = 0; i < 3; i++) den = j_add(den, ssing[i]);
+                if (!(den.v != 0.0) || !isfinite(den.v)) {
+                    on[p] = 2;
+                    continue;
+                }
+                jet iden = j_recip(den);
+                for (long v = 0; v < V; v++) {
+                    const double *ac = acc + 10 * v;
+                    jet num = {ac[0], {ac[1], ac[2], ac[3]}, {ac[4], ac[5], ac[6], ac[7], ac[8], ac[9]}};
+                    num = j_mul(shj, num);
+                    for (int i = 0; i < 3; i++)
+                        if (sidx[i] == v) num = j_add(num, ssing[i]);
+                    jet lam = j_mul(num, iden);
+                    L[p * V + v] = lam.v;
+                    for (int c = 0; c < 3; c++) G[(p * V + v) * 3 + c] = lam.g[c];
+                    if (order < 2) continue;
+                    double *Hp = H + (p * V + v) * 9;
+                    for (int k = 0; k < 6; k++) Hp[3 * JI[k] + JJ[k]] = Hp[3 * JJ[k] + JI[k]] = lam.h[k];
+                }
+                continue;
+            }
             double W = 0, gW[3] = {0, 0, 0}, HW[6] = {0, 0, 0, 0, 0, 0};
             for (long v = 0; v < V; v++) {
                 W += acc[10 * v];
