@@ -60,7 +60,7 @@ def mvc3d_reference(x, vertices, triangles) -> list:
 @mp.workdps(60)
 def mvc2d_reference(x, vertices) -> list:
     """2D mean value coordinates of one point for a counter-clockwise polygon given in order."""
-    xv = [mp.mpf(float(c)) for c in x]
+    xv = [_mpf(c) for c in x]
     P = [[mp.mpf(float(a)) - xv[0], mp.mpf(float(b)) - xv[1]] for a, b in vertices.tolist()]
     n = len(P)
     r = [mp.sqrt(p[0] ** 2 + p[1] ** 2) for p in P]
@@ -80,11 +80,12 @@ def to_tensor(values) -> torch.Tensor:
 @mp.workdps(60)
 def mvc_derivatives_reference(x, coordinates, scale: float) -> tuple[list, list]:
     """Gradients ``[i][c]`` and Hessians ``[i][c][d]`` (floats) of ``coordinates(x)`` (a function
-    returning a list of mpmath numbers, e.g. a closure over :func:`mvc3d_reference`) by central
+    returning a list of mpmath numbers, e.g. a closure over :func:`mvc3d_reference`; ``x`` may hold
+    mpmath numbers, to sit closer to a singular plane than float64 can) by central
     differences in 60-digit arithmetic with the step ``1e-12 * scale``: truncation error about
     ``1e-24`` relative to the scale on which the coordinates vary, rounding about ``1e-36``."""
     D = len(x)
-    x0 = [mp.mpf(float(c)) for c in x]
+    x0 = [c if isinstance(c, mp.mpf) else mp.mpf(float(c)) for c in x]
     step = mp.mpf(scale) * mp.mpf("1e-12")
 
     def f(offsets):

@@ -6,7 +6,8 @@
  * of cancellation, so t is exact to rounding everywhere off the edge, its support line included
  * (where t = 0 smoothly). Every quantity is evaluated as a jet (value, gradient, Hessian; jet.h),
  * the 2D case using the first two gradient entries and Hessian entries xx, yy, xy (slots 0, 1, 3).
- * Normalisation as in mvcd3d.c. Points on the polygon (within tol) are flagged in `on`.
+ * Normalisation as in mvcd3d.c. Points on the polygon (within tol) are flagged in `on` and get
+ * the linear interpolant along their edge and its derivative (Lagrange at a vertex, derivative 0).
  */
 #include <math.h>
 #include <stdlib.h>
@@ -29,7 +30,7 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
         for (long p = 0; p < n; p++) {
             const double x0 = X[2 * p], x1 = X[2 * p + 1];
             memset(acc, 0, sizeof(double) * 6 * V);
-            int flag = 0;
+            int flag = 0, oj = 0, ok = 0;
             for (long e = 0; e < NE; e++) {
                 int j = edges[2 * e], k = edges[2 * e + 1];
                 double aj0 = P[2 * j] - x0, aj1 = P[2 * j + 1] - x1, ak0 = P[2 * k] - x0, ak1 = P[2 * k + 1] - x1;
@@ -40,7 +41,7 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
                 jet rj = j_sqrt(j2(aj0 * aj0 + aj1 * aj1, -2 * aj0, -2 * aj1, 2, 2, 0));
                 jet rk = j_sqrt(j2(ak0 * ak0 + ak1 * ak1, -2 * ak0, -2 * ak1, 2, 2, 0));
                 if (rj.v <= tol || rk.v <= tol || (fabs(c.v) <= tol * ell && d.v <= 0)) {
-                    flag = 1;
+                    flag = 1, oj = j, ok = k;
                     break;
                 }
                 jet rr = j_mul(rj, rk);
@@ -56,7 +57,20 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
                 }
             }
             on[p] = (unsigned char)flag;
-            if (flag) continue;
+            if (flag) {  // on the polygon: the linear interpolant along the edge and its derivative
+                memset(L + p * V, 0, sizeof(double) * V);
+                memset(G + p * V * 2, 0, sizeof(double) * V * 2);
+                if (order >= 2) memset(H + p * V * 4, 0, sizeof(double) * V * 4);
+                double e0 = P[2 * ok] - P[2 * oj], e1 = P[2 * ok + 1] - P[2 * oj + 1], l2 = e0 * e0 + e1 * e1;
+                double t = ((x0 - P[2 * oj]) * e0 + (x1 - P[2 * oj + 1]) * e1) / l2;
+                t = t < 0 ? 0 : (t > 1 ? 1 : t);
+                L[p * V + oj] = 1.0 - t, L[p * V + ok] = t;
+                if (t > 0 && t < 1) {
+                    G[(p * V + ok) * 2] = e0 / l2, G[(p * V + ok) * 2 + 1] = e1 / l2;
+                    G[(p * V + oj) * 2] = -e0 / l2, G[(p * V + oj) * 2 + 1] = -e1 / l2;
+                }
+                continue;
+            }
             double W = 0, gW[2] = {0, 0}, HW[3] = {0, 0, 0};
             for (long v = 0; v < V; v++) {
                 W += acc[6 * v];

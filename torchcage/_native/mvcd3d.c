@@ -282,8 +282,10 @@ static void face_far(const double *x, const double *n, double h, const double *n
  * P (V, 3) vertices; tri (T, 3) int32 corners; E (T, 3, 3) edge vectors p_{e+1} - p_{e+2};
  * nrm (T, 3) unit normals; two_area (T); ell (T, 3) edge lengths; gram (T, 3, 3) E_i.E_e;
  * longest (T); far_nodes (T, Q, 3), far_coef (T, Q, 3); gl_y, gl_w (ng) Gauss-Legendre on [0, 1];
- * fe (T, 3) int32 index of the unique edge opposite each corner (NE edges); X (n, 3). Writes L (n, V), G (n, V, 3) and, for order 2, H (n, V, 3, 3); on[p] = 1 for points
- * on the cage (rows left undefined), 2 where the total weight vanishes. */
+ * fe (T, 3) int32 index of the unique edge opposite each corner (NE edges); X (n, 3).
+ * Writes L (n, V), G (n, V, 3) and, for order 2, H (n, V, 3, 3). on[p] = 1 for points on the cage
+ * (rows: the barycentric interpolant of a face holding the point, its gradient in the face's
+ * plane, Hessian 0; Lagrange at a vertex, derivatives 0), 2 where the total weight vanishes. */
 void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, long NE, const double *E,
                const double *nrm, const double *two_area, const double *ell, const double *gram,
                const double *longest, const double *far_nodes, const double *far_coef, long Q, double far_c,
@@ -306,7 +308,7 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 ap[3] = sqrt(dot3(ap, ap));
             }
             int flag = 0, sidx[3] = {0, 0, 0};
-            long sface = -1;  // the nearest face whose foot point the point sees inside (see above)
+            long sface = -1, on_face = -1, on_vertex = -1;  // the nearest face whose foot point the point sees inside (see above)
             jet ssing[3], shj = j_const(0.0);
             for (long t = 0; t < T && !flag; t++) {
                 const int *ti = tri + 3 * t;
@@ -318,7 +320,7 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 }
                 double minR = fmin(R[0], fmin(R[1], R[2]));
                 if (minR <= tol) {
-                    flag = 1;
+                    flag = 1, on_face = t, on_vertex = ti[R[0] <= tol ? 0 : (R[1] <= tol ? 1 : 2)];
                     break;
                 }
                 const double *nt = nrm + 3 * t;
@@ -330,7 +332,7 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                     int r = face_near_plane(a, Et, nt, two_area[t], ell + 3 * t, gram + 9 * t, tol, gl_y, gl_w, ng, w,
                                             g, Hh, sg, &hj);
                     if (r == 1) {
-                        flag = 1;
+                        flag = 1, on_face = t;
                         break;
                     }
                     if (r == 2) {  // keep the nearest face's singular part apart, fold any other back in
@@ -366,7 +368,26 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 }
             }
             on[p] = (unsigned char)flag;
-            if (flag) continue;
+            if (flag) {  // on the cage: the interpolant's values and (one-sided, tangential) derivatives
+                memset(L + p * V, 0, sizeof(double) * V);
+                memset(G + p * V * 3, 0, sizeof(double) * V * 3);
+                if (order >= 2) memset(H + p * V * 9, 0, sizeof(double) * V * 9);
+                if (on_vertex >= 0) {
+                    L[p * V + on_vertex] = 1.0;
+                    continue;
+                }
+                const int *ti = tri + 3 * on_face;
+                const double *nt = nrm + 3 * on_face;
+                for (int i = 0; i < 3; i++) {  // barycentric b_i = n.(a_j x a_k) / (2 area), grad (E_i x n) / (2 area)
+                    const double *aj = av + 4 * ti[(i + 1) % 3], *ak = av + 4 * ti[(i + 2) % 3];
+                    double Ne[3], En[3];
+                    cross3(aj, ak, Ne);
+                    cross3(E + 9 * on_face + 3 * i, nt, En);
+                    L[p * V + ti[i]] = dot3(nt, Ne) / two_area[on_face];
+                    for (int c = 0; c < 3; c++) G[(p * V + ti[i]) * 3 + c] = En[c] / two_area[on_face];
+                }
+                continue;
+            }
             if (sface >= 0) {  // lam_v = (k s_v + h r_v) / (k sum s + h sum r)
                 jet R = j_const(0.0), den;
                 for (long v = 0; v < V; v++) {

@@ -11,9 +11,9 @@
   kernel through a ``torch.library`` custom op with a batching rule (a vmapped batch of points is
   folded into one kernel call), so ``torch.func.vmap`` and ``jacrev`` work too.
 * Third derivatives are not implemented (``MeanValueHessFunction.backward`` raises).
-* Points on the cage: the coordinates interpolate there and are not differentiable across it; the
-  derivative kernels flag such points and their rows are taken from autograd of the torch kernel
-  (the derivatives of the interpolating formulas: barycentric on a face, linear on an edge).
+* Points on the cage: the coordinates interpolate there and are not differentiable across it;
+  there the derivatives are those of the interpolant (barycentric in a face holding the point, its
+  gradient in the face's plane; linear along a polygon's edge; zero at a vertex), Hessians zero.
 
 Derivations: ``torchcage/functional/mean_value_derivatives.py`` and ``_native/mvcd3d.c``.
 """
@@ -46,26 +46,6 @@ def _torch_coordinates(points: Tensor, vertices: Tensor, faces: Tensor) -> Tenso
     return _coordinates_flat(points.to(compute), _cage(vertices.to(compute), faces), None, False, "torch").to(out)
 
 
-def _autograd_rows(points: Tensor, vertices: Tensor, faces: Tensor, order: int) -> tuple[Tensor, Tensor]:
-    """Gradients (and Hessians) of a few rows by autograd of the torch kernel (points on the cage)."""
-    with torch.enable_grad():
-        x = points.detach().to(torch.float64).requires_grad_()
-        lam = _torch_coordinates(x, vertices.detach().to(torch.float64), faces)
-        V, D = lam.shape[1], x.shape[1]
-        g = torch.stack(
-            [torch.autograd.grad(lam[:, i].sum(), x, create_graph=order == 2, retain_graph=True)[0] for i in range(V)],
-            dim=1,
-        )
-        if order < 2:
-            return g.detach(), torch.empty(0, dtype=torch.float64)
-        h = torch.zeros(x.shape[0], V, D, D, dtype=torch.float64)
-        for i in range(V):
-            for c in range(D):
-                if g[:, i, c].requires_grad:
-                    h[:, i, c] = torch.autograd.grad(g[:, i, c].sum(), x, retain_graph=True, allow_unused=True)[0]
-    return g.detach(), h
-
-
 # ----------------------------------------------------------------------------------- custom ops
 @torch.library.custom_op("torchcage::mean_value_coordinates", mutates_args=())
 def _coordinates_op(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int, backend: str) -> Tensor:
@@ -90,14 +70,7 @@ def _derivatives_op(points: Tensor, vertices: Tensor, faces: Tensor, order: int)
     from ..functional.mean_value_derivatives import derivatives_flat
 
     check_finite(points)
-    cage = _cage(vertices.detach(), faces)
-    _, grad, hess, on = derivatives_flat(points, cage, order)
-    if bool(on.any()):
-        rows = torch.nonzero(on).flatten()
-        g, h = _autograd_rows(points[rows], vertices, faces, order)
-        grad[rows] = g
-        if order == 2:
-            hess[rows] = h
+    _, grad, hess, _ = derivatives_flat(points, _cage(vertices.detach(), faces), order)
     out = grad if order == 1 else hess
     return out.to(points.device, torch.promote_types(points.dtype, vertices.dtype))
 
