@@ -295,3 +295,34 @@ def test_shapes_dtypes_and_errors():
     _, Ga, Ha = F.mean_value_derivatives(xs, cage, chunk_size=700)
     _, Gb, Hb = F.mean_value_derivatives(xs, cage)
     assert torch.equal(Ga, Gb) and torch.equal(Ha, Hb)
+
+
+# ------------------------------------------------------------------ module
+@pytest.mark.parametrize("store", [0, 2])
+def test_module_jacobian_and_hessian(store):
+    """J = s R and H = 0 under a similarity; for a bent pose J and H equal torch.func derivatives
+    of x -> mvc(x) @ V' at the embedded points; both differentiable w.r.t. the deformed vertices."""
+    from torch.func import hessian, jacrev
+
+    cage = HANDMADE["l_shape"]()
+    pts = torch.tensor([[0.5, -0.5, 0.1], [-0.5, 0.5, -0.2], [-0.4, -0.3, 0.3]], dtype=f64)
+    m = torchcage.MeanValueCoordinates(cage, pts, store_derivatives=store)
+    R = torch.linalg.qr(torch.randn(3, 3, dtype=f64, generator=torch.Generator().manual_seed(3)))[0]
+    P = 1.7 * cage.vertices.to(f64) @ R.T + torch.tensor([0.3, -2.0, 1.0], dtype=f64)
+    assert (m.jacobian(P) - 1.7 * R).abs().max() < 1e-12
+    assert m.hessian(P).abs().max() < 1e-11
+    bent = cage.vertices.to(f64).clone()
+    bent[:, 0] += 0.3 * bent[:, 2] ** 2
+    bent = torch.stack([bent, 1.1 * bent])  # a batch of two poses
+    J, H = m.jacobian(bent), m.hessian(bent)
+    assert J.shape == (2, 3, 3, 3) and H.shape == (2, 3, 3, 3, 3)
+    for i in range(3):
+        ref_j = jacrev(lambda x: F.mean_value_coordinates(x[None], cage)[0] @ bent[0])(pts[i])
+        ref_h = hessian(lambda x: F.mean_value_coordinates(x[None], cage)[0] @ bent[0])(pts[i])
+        assert torch.allclose(J[0, i], ref_j, atol=1e-13) and torch.allclose(H[0, i], ref_h, atol=1e-12)
+    v = bent[0].clone().requires_grad_(True)
+    loss = ((m.jacobian(v) - torch.eye(3, dtype=f64)) ** 2).sum() + (m.hessian(v) ** 2).sum()
+    loss.backward()
+    assert torch.isfinite(v.grad).all() and v.grad.abs().max() > 0
+    if store:
+        assert set(m.state_dict()) >= {"gradients", "hessians"}
