@@ -43,3 +43,20 @@ def naive_mean_value_coordinates(points: torch.Tensor, vertices: torch.Tensor, t
     for i in range(3):
         W.index_add_(1, triangles[:, i], w[..., i])
     return W / W.sum(-1, keepdim=True)
+
+
+def textbook_vector_form(points: torch.Tensor, vertices: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
+    """The vector form of the same coordinates (``w_i = N_i . m / det``, Ju et al. / Thiery et al.
+    Sec. 2.2) in plain torch ops, smooth off the faces' support planes: the formula that automatic
+    differentiation differentiates in the derivative benchmark. ``(N, 3)`` -> ``(N, V)``."""
+    a = vertices[triangles][None] - points[:, None, None, :]  # (N, T, 3, 3)
+    N = [torch.linalg.cross(a[:, :, (e + 1) % 3], a[:, :, (e + 2) % 3], dim=-1) for e in range(3)]
+    m = torch.zeros_like(N[0])
+    for e in range(3):
+        nn = N[e].norm(dim=-1, keepdim=True)
+        theta = torch.atan2(nn, (a[:, :, (e + 1) % 3] * a[:, :, (e + 2) % 3]).sum(-1, keepdim=True))
+        m = m + theta / (2 * nn) * N[e]
+    det = (a[:, :, 0] * N[0]).sum(-1)
+    w = torch.stack([(N[i] * m).sum(-1) / det for i in range(3)], -1).reshape(points.shape[0], -1)
+    W = torch.zeros(points.shape[0], vertices.shape[0], dtype=points.dtype).index_add(1, triangles.reshape(-1), w)
+    return W / W.sum(-1, keepdim=True)
