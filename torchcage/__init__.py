@@ -10,7 +10,7 @@ Example:
     True
 """
 
-from . import data, functional
+from . import data, functional, variational
 from .cage import Cage
 from .errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError, PointsError
 from .io import load_cage, load_mesh, save_cage, save_mesh
@@ -43,4 +43,5 @@ __all__ = [
     "load_mesh",
     "save_cage",
     "save_mesh",
+    "variational",
 ]
