@@ -36,7 +36,7 @@ def test_state_dict_round_trip():
     cage, pts, m = make()
     buf = io.BytesIO()
     torch.save(m.state_dict(), buf)
-    assert set(m.state_dict()) == {"rest_vertices", "points", "weights"}
+    assert set(m.state_dict()) == {"rest_vertices", "points", "weights", "faces"}  # faces: derivatives on demand
     m2 = torchcage.MeanValueCoordinates(cage, pts + 0.01)
     buf.seek(0)
     m2.load_state_dict(torch.load(buf))
