@@ -80,9 +80,10 @@ class VariationalMVC:
         rotation_points: ``(K, D)`` points where the deformation should be a rotation (its
             Jacobian ``J`` close to ``R``: given, or fitted).
         smoothness_points: ``(S, D)`` points where the deformation's Hessians should vanish.
-        position_weight, rotation_weight, smoothness_weight: ``w_P, w_J, w_H`` (the smoothness
-            weight multiplies the squared Hessians times the cage size squared, so that the three
-            terms have the same units).
+        position_weight: ``w_P``, the weight of the positional constraints.
+        rotation_weight: ``w_J``, the weight of the rotation (Jacobian) constraints.
+        smoothness_weight: ``w_H``; it multiplies the squared Hessians times the cage size
+            squared, so that the three terms have the same units.
         regularization: relative Tikhonov term of the normal matrix (see the module docstring).
 
     All points must be off the cage; they are embedded once (analytic gradients and Hessians,
@@ -306,9 +307,14 @@ def design_scalar_field(
 
     Args:
         cage: the cage.
-        value_points: ``(P, D)`` points with prescribed values ``values`` ``(*B, P)``.
-        gradient_points: ``(G, D)`` points with prescribed gradients ``gradients`` ``(*B, G, D)``.
-        value_weight, gradient_weight, smoothness_weight: the three weights.
+        value_points: ``(P, D)`` points with prescribed values.
+        values: ``(*B, P)`` the values there (a batch of value sets is solved at once).
+        gradient_points: ``(G, D)`` points with prescribed gradients.
+        gradients: ``(*B, G, D)`` the gradients there.
+        value_weight: ``w_v``, the weight of the value constraints.
+        gradient_weight: ``w_g``, the weight of the gradient constraints.
+        smoothness_weight: ``w_s``, the weight of the Laplacian term.
+        regularization: relative Tikhonov term of the normal matrix.
 
     Returns:
         :class:`ScalarFieldResult`.
