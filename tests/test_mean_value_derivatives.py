@@ -223,7 +223,8 @@ def test_on_the_cage():
 # ------------------------------------------------------------------ autograd
 def test_gradcheck_and_gradgradcheck_3d():
     cage = HANDMADE["l_shape"]()
-    x = torch.tensor([[0.5, -0.5, 0.3], [-0.5, 0.5, 0.2], [0.3, 0.3, 0.45], [3.0, 1.0, -2.0]], dtype=f64)
+    # the third point lies exactly on the top cap's support plane (z = 0.5), outside the cap
+    x = torch.tensor([[0.5, -0.5, 0.3], [-0.5, 0.5, 0.2], [0.3, 0.35, 0.5], [3.0, 1.0, -2.0]], dtype=f64)
     x.requires_grad_(True)
     P = cage.vertices.to(f64).clone().requires_grad_(True)
 

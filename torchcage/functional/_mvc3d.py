@@ -192,7 +192,9 @@ def _stable_face_weights(
         B = s[i] * S_rest + theta_over_N[0] * gram[i][0] + theta_over_N[1] * gram[i][1] + theta_over_N[2] * gram[i][2]
         w = h * B * inv4A
         w = w + torch.where(wind != 0, s[i] * (2 * math.pi) * wind / safe_h * inv4A, 0.0)
-        out.append(torch.where(h != 0, w, torch.where(wind != 0, w, 0.0)))
+        # h = 0 outside the face: w = h B / (4A) = 0, kept as that product so that autograd sees
+        # its derivative B dh / (4A) (a constant 0 here lost the rest vertices' gradients on planes)
+        out.append(w)
     return out
 
 
