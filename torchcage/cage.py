@@ -296,6 +296,15 @@ class Cage:
         return Cage._trusted(v, self.triangles.to(dev), self.quads.to(dev), self.edges.to(dev))
 
     @classmethod
+    def _from_faces(cls, v: torch.Tensor, faces: torch.Tensor) -> Cage:
+        """Build without validation around vertices ``(V, D)`` and the faces of an already
+        validated cage: triangles ``(T, 3)`` in 3D, edges ``(E, 2)`` in 2D."""
+        empty = [torch.zeros((0, k), dtype=torch.long, device=v.device) for k in (3, 4, 2)]
+        if v.shape[-1] == 3:
+            return cls._trusted(v, faces, empty[1], empty[2])
+        return cls._trusted(v, empty[0], empty[1], faces)
+
+    @classmethod
     def _trusted(cls, v: torch.Tensor, tri: torch.Tensor, quads: torch.Tensor, edges: torch.Tensor) -> Cage:
         """Build without validation from parts already known to be valid."""
         c = cls.__new__(cls)

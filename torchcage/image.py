@@ -357,7 +357,7 @@ class CageWarp(nn.Module):
         for pose in verts:  # one coordinate computation per deformed cage
             inside = inside_polygon(centres, pose.detach(), self.edges)
             y = centres[inside]
-            deformed = Cage._trusted(pose, _empty(3, pose.device), _empty(4, pose.device), self.edges)
+            deformed = Cage._from_faces(pose, self.edges)
             if self.method == "mvc":
                 x = mean_value_coordinates(y, deformed) @ rest
             else:  # green: the deformed cage plays the rest cage's part, stretch |a| / |a'|
@@ -393,10 +393,6 @@ class CageWarp(nn.Module):
         if unbatched:
             out, mask = out[0], mask[0]
         return (out, mask) if self.outside == "mask" else out
-
-
-def _empty(k: int, device: torch.device | None = None) -> torch.Tensor:
-    return torch.zeros((0, k), dtype=torch.int64, device=device)
 
 
 def warp_image(

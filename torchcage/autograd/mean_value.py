@@ -29,13 +29,7 @@ from ..functional._common import check_finite, result_dtype
 __all__ = ["MeanValueFunction", "MeanValueGradFunction", "MeanValueHessFunction", "mean_value_function"]
 
 
-def _cage(vertices: Tensor, faces: Tensor) -> Cage:
-    """A Cage around ``vertices`` and ``faces`` (triangles in 3D, edges in 2D), already validated."""
-    dev = vertices.device
-    empty = [torch.zeros((0, k), dtype=torch.long, device=dev) for k in (3, 4, 2)]
-    if vertices.shape[-1] == 3:
-        return Cage._trusted(vertices, faces, empty[1], empty[2])
-    return Cage._trusted(vertices, empty[0], empty[1], faces)
+_cage = Cage._from_faces  # (vertices, faces of a validated cage) -> Cage
 
 
 def _torch_coordinates(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:

@@ -9,16 +9,25 @@ from .. import _native
 from ._mvc3d import CANCELLATION, FAR_FIELD, NEAR_PLANE, TriangleCageData
 
 
+def unique_face_edges(tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Unique edges of triangles ``tri`` ``(T, 3)``: ``(edges (E, 2)`` sorted pairs,
+    ``face_edge (T, 3)`` the index of the edge opposite each corner, ``sign (T, 3)`` +1 where that
+    edge is stored as ``(t[i+1], t[i+2])``, else -1 (float64)``)``."""
+    opp = torch.stack([tri.roll(-1, dims=1), tri.roll(-2, dims=1)], dim=-1)  # (T, 3, 2)
+    lo, hi = opp.min(dim=-1).values, opp.max(dim=-1).values
+    uniq, inv = torch.unique(torch.stack([lo, hi], dim=-1).reshape(-1, 2), dim=0, return_inverse=True)
+    sign = torch.where(opp[..., 0] == lo, 1.0, -1.0).to(torch.float64)
+    return uniq, inv.reshape(-1, 3), sign
+
+
 def native_tables(data: TriangleCageData) -> dict[str, torch.Tensor]:
     """Tables for the native kernel, built once per cage: among them the unique edges and, for the
     edge opposite each corner, its index ``face_edge`` and orientation ``face_sign`` (+1 when
     stored as ``(t[i+1], t[i+2])``), and the vertex-to-corner incidence as CSR."""
     tri = data.tri
     V = data.vertices.shape[1]
-    opp = torch.stack([tri.roll(-1, dims=1), tri.roll(-2, dims=1)], dim=-1)  # (T, 3, 2)
-    lo, hi = opp.min(dim=-1).values, opp.max(dim=-1).values
-    uniq, inv = torch.unique(torch.stack([lo, hi], dim=-1).reshape(-1, 2), dim=0, return_inverse=True)
-    sign = torch.where(opp[..., 0] == lo, 1.0, -1.0).to(data.vertices.dtype)
+    uniq, inv, sign = unique_face_edges(tri)
+    sign = sign.to(data.vertices.dtype)
     # Vertex -> face corners (index c * T + f), as CSR, to gather the corner weights per vertex.
     corner_vertex = tri.T.reshape(-1)
     inc_idx = torch.argsort(corner_vertex, stable=True)
@@ -29,7 +38,7 @@ def native_tables(data: TriangleCageData) -> dict[str, torch.Tensor]:
         "P": data.vertices.contiguous(),
         "tri": tri.T.to(torch.int32).contiguous(),
         "edges": uniq.T.to(torch.int32).contiguous(),
-        "face_edge": inv.reshape(-1, 3).T.to(torch.int32).contiguous(),
+        "face_edge": inv.T.to(torch.int32).contiguous(),
         "inc_ptr": inc_ptr.to(torch.int32),
         "inc_idx": inc_idx.to(torch.int32),
         "face_sign": sign.T.contiguous(),

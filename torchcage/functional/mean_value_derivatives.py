@@ -41,6 +41,7 @@ from ..cage import Cage
 from ..errors import PointsError
 from ._common import ON_CAGE_TOLERANCE, check_points, chunks, triangle_geometry
 from ._mvc3d import _collapsed_gauss
+from ._mvc3d_native import unique_face_edges
 
 __all__ = ["derivatives_flat", "mean_value_derivatives", "mean_value_gradients", "mean_value_hessians"]
 
@@ -72,12 +73,11 @@ def _tables3d(cage: Cage) -> dict[str, torch.Tensor]:
     bary, qw = _collapsed_gauss(FAR_ORDER, torch.float64, torch.device("cpu"))
     gy, gw = _gauss01(G_ORDER)
     tri = cage.triangles.cpu()
-    opp = torch.stack([tri.roll(-1, dims=1), tri.roll(-2, dims=1)], dim=-1)  # (T, 3, 2): edge opposite each corner
-    _, face_edge = torch.unique(opp.sort(dim=-1).values.reshape(-1, 2), dim=0, return_inverse=True)
+    _, face_edge, _ = unique_face_edges(tri)
     return {
         "P": cage.vertices.detach().to("cpu", torch.float64).contiguous(),
         "tri": tri.to(torch.int32).contiguous(),
-        "fe": face_edge.reshape(-1, 3).to(torch.int32).contiguous(),
+        "fe": face_edge.to(torch.int32).contiguous(),
         "E": E.contiguous(),
         "nrm": normal.contiguous(),
         "two_area": two_area.contiguous(),
@@ -110,7 +110,7 @@ def derivatives_flat(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The kernel on checked points ``x`` ``(n, D)``: float64 CPU tensors ``lam (n, V)``,
     ``grad (n, V, D)``, ``hess (n, V, D, D)`` (empty for ``order=1``) and the ``(n,)`` bool mask of
-    points on the cage (their rows are undefined).
+    points on the cage (their rows hold the interpolant and its derivatives: see mvcd3d.c).
 
     Raises:
         PointsError: points where the coordinates are undefined (the total weight vanishes).

@@ -71,31 +71,21 @@ class MeanValueCoordinates(DenseWeightsModule):
         self.register_buffer("faces", (cage.triangles if cage.dim == 3 else cage.edges).detach().clone())
         g = h = None
         if store_derivatives:
-            _, g, h = self._derivatives(store_derivatives, dtype)
+            _, g, h = mean_value_derivatives(self.points.to(torch.float64), cage, store_derivatives)
+            g, h = g.to(dtype), (h.to(dtype) if h is not None else None)
         self.gradients: torch.Tensor | None
         self.hessians: torch.Tensor | None
         self.register_buffer("gradients", g)
         self.register_buffer("hessians", h)
 
-    def _rest_cage(self) -> Cage:
-        f = self.faces
-        if self.dim == 3:
-            empty = torch.zeros((0, 4), dtype=torch.long, device=f.device)
-            return Cage._trusted(self.rest_vertices, f, empty, torch.zeros((0, 2), dtype=torch.long, device=f.device))
-        return Cage._trusted(self.rest_vertices, torch.zeros((0, 3), dtype=torch.long, device=f.device),
-                             torch.zeros((0, 4), dtype=torch.long, device=f.device), f)  # fmt: skip
-
-    def _derivatives(self, order: int, dtype: torch.dtype) -> tuple:
-        _, g, h = mean_value_derivatives(self.points.to(torch.float64), self._rest_cage(), order)
-        return None, g.to(dtype), (h.to(dtype) if h is not None else None)
-
-    def _gradients(self, dtype: torch.dtype) -> torch.Tensor:
-        g = self.gradients if self.gradients is not None else self._derivatives(1, torch.float64)[1]
-        return g.to(dtype)
-
-    def _hessians(self, dtype: torch.dtype) -> torch.Tensor:
-        h = self.hessians if self.hessians is not None else self._derivatives(2, torch.float64)[2]
-        return h.to(dtype)
+    def _derivative(self, order: int, dtype: torch.dtype) -> torch.Tensor:
+        """Gradients (order 1) or Hessians (order 2) of the coordinates at the points: the stored
+        buffer, else computed from the rest cage."""
+        stored = self.gradients if order == 1 else self.hessians
+        if stored is None:
+            cage = Cage._from_faces(self.rest_vertices, self.faces)
+            stored = mean_value_derivatives(self.points.to(torch.float64), cage, order)[order]
+        return stored.to(dtype)
 
     def jacobian(self, vertices: torch.Tensor) -> torch.Tensor:
         """Jacobian of the deformation at the embedded points, ``J[..., n, a, c] = d y_a / d x_c``:
@@ -105,7 +95,7 @@ class MeanValueCoordinates(DenseWeightsModule):
         the rotation (times the scale) of a similarity.
         """
         self._check_vertices(vertices, self.weights)
-        g = self._gradients(vertices.dtype)  # (N, V, D)
+        g = self._derivative(1, vertices.dtype)  # (N, V, D)
         return torch.einsum("nvc,...va->...nac", g, vertices)
 
     def hessian(self, vertices: torch.Tensor) -> torch.Tensor:
@@ -113,5 +103,5 @@ class MeanValueCoordinates(DenseWeightsModule):
         d^2 y_a / d x_c d x_d``: ``(*, N, D, D, D)`` for deformed vertices ``(*, V, D)``;
         differentiable with respect to them. Zero for affine motions of the cage."""
         self._check_vertices(vertices, self.weights)
-        h = self._hessians(vertices.dtype)  # (N, V, D, D)
+        h = self._derivative(2, vertices.dtype)  # (N, V, D, D)
         return torch.einsum("nvcd,...va->...nacd", h, vertices)
