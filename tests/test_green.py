@@ -155,10 +155,15 @@ def test_native_and_torch_kernels_agree():
     nrm = cage.triangle_normals()
     centroids = p[tri].mean(1)
     edges_mid = 0.5 * (p[tri[:, 0]] + p[tri[:, 1]])
-    x = torch.cat([inside_points(cage, 300, seed=6), centroids, edges_mid, p, centroids - 1e-9 * nrm])
+    far = 3.0 * torch.randn(50, 3, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    x = torch.cat(
+        [inside_points(cage, 300, seed=6), centroids, edges_mid, p, centroids - 1e-9 * nrm, centroids + 1e-3 * nrm, far]
+    )
     a = F.green_coordinates(x, cage, backend="native")
     b = F.green_coordinates(x, cage, backend="torch")
     assert (a[0] - b[0]).abs().max() < 1e-12 and (a[1] - b[1]).abs().max() < 1e-12
+    c = F.green_coordinates(x, cage, backend="native", chunk_size=7)  # written block by block
+    assert torch.equal(a[0], c[0]) and torch.equal(a[1], c[1])
     xr = x[:3].clone().requires_grad_(True)
     with pytest.raises(RuntimeError, match="autograd"):
         F.green_coordinates(xr, cage, backend="native")

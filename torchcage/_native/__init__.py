@@ -126,7 +126,7 @@ def _build() -> ctypes.CDLL:
     cc = _compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (set CC)")
-    flags = ["-O3", "-fno-math-errno", "-fPIC", "-shared", "-fopenmp", "-std=c99"]
+    flags = ["-O3", "-fno-math-errno", "-fno-trapping-math", "-fPIC", "-shared", "-fopenmp", "-std=c99"]
     flags += os.environ.get("TORCHCAGE_CFLAGS", "").split()
     # (compile flags, libraries): glibc's vector atan with AVX2, then SSE2, then plain scalar code.
     variants: list[tuple[list[str], list[str]]] = [([], [])]

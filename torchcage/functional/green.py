@@ -73,8 +73,6 @@ def green_coordinates(
         tables = _native_tables(data, cage.vertices.to(compute)) if lib is not None else {}
 
         def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            if lib is not None:
-                return _native_chunk(c, data, tables, lib, cage.num_vertices)
             return green3d_coordinates(c, data, cage.num_vertices)
     else:
         T = cage.edges.shape[0]
@@ -88,7 +86,10 @@ def green_coordinates(
     phi = torch.empty(x.shape[0], cage.num_vertices, dtype=compute, device=x.device)
     psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
-        phi[sl], psi[sl] = kernel(x[sl])
+        if lib is not None:  # writes straight into the row blocks (contiguous): no copies
+            _native_chunk(x[sl], tables, lib, phi[sl], psi[sl], data.tol)
+        else:
+            phi[sl], psi[sl] = kernel(x[sl])
     lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, -1), psi.to(out_dtype).reshape(*lead, -1)
 
@@ -119,16 +120,13 @@ def _native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str,
 
 
 def _native_chunk(
-    x: torch.Tensor, data: TriangleGreenData, tables: dict[str, torch.Tensor], lib: object, num_vertices: int
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The native kernel on a chunk: ``x`` ``(n, 3)`` float64 -> ``(phi (n, V), psi (n, T))``."""
+    x: torch.Tensor, tables: dict[str, torch.Tensor], lib: object, phi: torch.Tensor, psi: torch.Tensor, tol: float
+) -> None:
+    """The native kernel on a chunk: ``x`` ``(n, 3)`` float64 into ``phi`` ``(n, V)`` and ``psi``
+    ``(n, T)`` (contiguous float64 CPU tensors, written in place)."""
     x = x.contiguous()
-    n, T = x.shape[0], data.tri.shape[0]
-    phi = torch.empty(n, num_vertices, dtype=torch.float64)
-    psi = torch.empty(n, T, dtype=torch.float64)
     t = tables
-    args = [t["Pv"], num_vertices, t["tri"], T, t["edges"], t["edges"].shape[1], t["eu"], t["fe"], t["nrm"],
-            t["two_area"], t["ell"], t["edir"], t["eout"], t["gbary"], x, n, data.tol, torch.get_num_threads(), phi,
-            psi]  # fmt: skip
+    args = [t["Pv"], phi.shape[1], t["tri"], psi.shape[1], t["edges"], t["edges"].shape[1], t["eu"], t["fe"],
+            t["nrm"], t["two_area"], t["ell"], t["edir"], t["eout"], t["gbary"], x, x.shape[0], tol,
+            torch.get_num_threads(), phi, psi]  # fmt: skip
     _native.call(lib.tc_gc3d, args)  # type: ignore[attr-defined]
-    return phi, psi
