@@ -62,7 +62,7 @@ TC_MVC2D_SIGNATURE = {
 TC_GC3D_SIGNATURE = {
     "Pv": "ptr", "V": "i64", "tri": "ptr", "T": "i64", "edges": "ptr", "E": "i64", "eu": "ptr", "fe": "ptr",
     "nrm": "ptr", "two_area": "ptr", "ell": "ptr", "edir": "ptr", "eout": "ptr", "gbary": "ptr", "X": "ptr",
-    "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr", "PSI": "ptr",
+    "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr", "PSI": "ptr", "ONF": "ptr", "AL": "ptr",
 }  # fmt: skip
 #: Arguments of ``tc_mvcd3d`` in mvcd3d.c (mean value coordinates with their derivatives), in order.
 TC_MVCD3D_SIGNATURE = {

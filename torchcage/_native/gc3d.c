@@ -119,7 +119,10 @@ double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir,
  * (3, E) their unit directions; fe (3, T) int32 the edge opposite each corner; nrm (T, 3) unit
  * normals; two_area (T,); ell (T, 3) length of the edge opposite each corner; edir, eout, gbary
  * (T, 3, 3) its unit direction p_{i+1} -> p_{i+2}, outward in-plane normal, and the in-plane gradient
- * of corner i's hat function; X (n, 3). Outputs PHI (n, V), PSI (n, T).
+ * of corner i's hat function; X (n, 3). Outputs PHI (n, V), PSI (n, T). With ONF (n,) int32 and
+ * AL (n, 3) given (not NULL), the faces are part of a larger cage: PHI keeps the principal values,
+ * ONF gets the first face a point lies on (or -1) and AL the point's barycentric coordinates there,
+ * and the caller adds the jump; without them, the jump is added here (a closed triangle cage).
  *
  * Per point, plain loops that the compiler vectorises (gathers, libmvec's log and atan2): one over
  * vertices (corner offsets, distances), one over unique edges (the edge integrals, shared by an
@@ -136,7 +139,7 @@ enum { FC_N = 0, FC_O = 3, FC_C = 12, FC_M = 15, FC_S = 24, FC_THR = 25, FC_K = 
 void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges, long E, const double *eu,
              const int *fe, const double *nrm, const double *two_area, const double *ell, const double *edir,
              const double *eout, const double *gbary, const double *X, long n, double tol, int nthreads, double *PHI,
-             double *PSI) {
+             double *PSI, int *ONF, double *AL) {
     const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
     const int *e0 = edges, *e1 = edges + E, *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
     const double inv4pi = 1.0 / FOUR_PI;
@@ -263,8 +266,12 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
                 phi[t1[f]] += P1[f];
                 phi[t2[f]] += P2[f];
             }
-            if (on_face >= 0) { /* the limit from inside: hat values with the jump weight */
-                double sum = on_alpha[0] + on_alpha[1] + on_alpha[2], jump = 1.0 - omega_sum / FOUR_PI;
+            double sum = on_alpha[0] + on_alpha[1] + on_alpha[2];
+            if (ONF) {
+                ONF[p] = (int)on_face;
+                for (int i = 0; i < 3; ++i) AL[3 * p + i] = on_face >= 0 ? on_alpha[i] / sum : 0.0;
+            } else if (on_face >= 0) { /* the limit from inside: hat values with the jump weight */
+                double jump = 1.0 - omega_sum / FOUR_PI;
                 for (int i = 0; i < 3; ++i) phi[tri[i * T + on_face]] += jump * on_alpha[i] / sum;
             }
         }

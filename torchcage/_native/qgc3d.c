@@ -31,29 +31,6 @@ static inline double edge_log(double l_j, double l_k, double R_j, double R_k, do
     return log((R_k + l_k) * (R_j - l_j) / fmax(R0sq, 1e-300));
 }
 
-/* For the edge from aj to ak of a sub-triangle with normal cr (length 2A, inv2A its inverse), at
- * distance h from its plane: the signed distance d of the foot point to the edge line and the
- * argument of the log in int_e dl / r (as edge_integral in gc3d.c). */
-static inline void edge_arg(double ajx, double ajy, double ajz, double akx, double aky, double akz, double Rj,
-                            double Rk, double crx, double cry, double crz, double inv2A, double h, double *d_out,
-                            double *arg_out) {
-    double Ex = akx - ajx, Ey = aky - ajy, Ez = akz - ajz;
-    double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
-    double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
-    double mx = uy * crz - uz * cry, my = uz * crx - ux * crz, mz = ux * cry - uy * crx; /* outward x 2A */
-    double d = (ajx * mx + ajy * my + ajz * mz) * inv2A;
-    double lj = ajx * ux + ajy * uy + ajz * uz, lk = akx * ux + aky * uy + akz * uz, R0sq = d * d + h * h;
-    double arg;
-    if (lj >= 0)
-        arg = (Rk + lk) / fmax(Rj + lj, 1e-300);
-    else if (lk <= 0)
-        arg = (Rj - lj) / fmax(Rk - lk, 1e-300);
-    else
-        arg = (Rk + lk) * (Rj - lj) / fmax(R0sq, 1e-300);
-    *d_out = d;
-    *arg_out = fmax(arg, 1e-300);
-}
-
 /* Eq. 19 (m = 3): 2K + 1 nodes in [0, 1] concentrated around t. */
 static void grid19(double t, int K, double *x) {
     for (int i = 0; i <= 2 * K; ++i) {
@@ -80,18 +57,48 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
               const double *null, const double *origin, const int *pattern, long Pn, int K, const double *X, long n,
               double tol, int nthreads, double *PHI, double *PSIQ, int *ONQ, double *UV) {
     const int G = 2 * K + 1;
+    /* The pattern's sub-triangles as flat grid-node indices (corner c of triangle t at [c * Pn + t])
+     * and their u and v indices; its unique edges (nodes EJ, EK) and, for each triangle, the edge
+     * opposite each corner (TE, same layout): an edge's integral int dl / r is shared by the
+     * triangles on both sides. */
+    int *node = (int *)malloc(sizeof(int) * 12 * (size_t)Pn), *iu = node + 3 * Pn, *iv = iu + 3 * Pn;
+    int *TE = iv + 3 * Pn, *EJ = (int *)malloc(sizeof(int) * 6 * (size_t)Pn), *EK = EJ + 3 * Pn;
+    int *seen = (int *)malloc(sizeof(int) * 25 * (size_t)G * G); /* (node, offset to the other node) */
+    for (long i = 0; i < 25 * (long)G * G; ++i) seen[i] = -1;
+    long NE = 0;
+    for (long t = 0; t < Pn; ++t)
+        for (int c = 0; c < 3; ++c) {
+            long r = 3 * t + c;
+            iu[c * Pn + t] = pattern[2 * r];
+            iv[c * Pn + t] = pattern[2 * r + 1];
+            node[c * Pn + t] = pattern[2 * r] * G + pattern[2 * r + 1];
+        }
+    for (long t = 0; t < Pn; ++t)
+        for (int c = 0; c < 3; ++c) {
+            int j = node[((c + 1) % 3) * Pn + t], k = node[((c + 2) % 3) * Pn + t];
+            int lo = j < k ? j : k, hi = j < k ? k : j;
+            int off = (hi / G - lo / G + 2) * 5 + (hi % G - lo % G + 2); /* pattern edges span <= 2 cells */
+            int *slot = seen + 25 * (long)lo + off;
+            if (*slot < 0) {
+                *slot = (int)NE;
+                EJ[NE] = lo;
+                EK[NE] = hi;
+                ++NE;
+            }
+            TE[c * Pn + t] = *slot;
+        }
+    free(seen);
+    int *GU = (int *)malloc(sizeof(int) * 2 * (size_t)G * G), *GV = GU + G * G; /* node g = GU G + GV */
+    for (int g = 0; g < G * G; ++g) {
+        GU[g] = g / G;
+        GV[g] = g % G;
+    }
+    const double inv4pi = 1.0 / FOUR_PI;
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = (double *)malloc(sizeof(double) * (2 * (size_t)G + 4 * (size_t)G * G + 10 * (size_t)Pn));
+        double *buf = (double *)malloc(sizeof(double) * (2 * (size_t)G + 4 * (size_t)G * G + 2 * (size_t)NE));
         double *un = buf, *vn = un + G, *Sx = vn + G, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
-        double *TH = SR + G * G, *TA = TH + Pn, *TDET = TA + Pn, *TDEN = TDET + Pn, *TD = TDEN + Pn, *TL = TD + 3 * Pn;
-        /* Sub-triangle corners as flat grid-node indices, and their u and v indices. */
-        int *node = (int *)malloc(sizeof(int) * 9 * (size_t)Pn), *iu = node + 3 * Pn, *iv = iu + 3 * Pn;
-        for (long t = 0; t < 3 * Pn; ++t) {
-            iu[t] = pattern[2 * t];
-            iv[t] = pattern[2 * t + 1];
-            node[t] = iu[t] * G + iv[t];
-        }
+        double *IE = SR + G * G, *EL = IE + NE;
 #pragma omp for schedule(dynamic, 16)
         for (long pt = 0; pt < n; ++pt) {
             const double *x = X + 3 * pt;
@@ -140,19 +147,47 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 /* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18). */
                 grid19(u, K, un);
                 grid19(v, K, vn);
-                for (int i = 0; i < G; ++i)
-                    for (int j = 0; j < G; ++j) {
-                        int g = i * G + j;
-                        Sx[g] = qp.p[0][0] + un[i] * b[0] + vn[j] * cc[0] + un[i] * vn[j] * dd[0];
-                        Sy[g] = qp.p[0][1] + un[i] * b[1] + vn[j] * cc[1] + un[i] * vn[j] * dd[1];
-                        Sz[g] = qp.p[0][2] + un[i] * b[2] + vn[j] * cc[2] + un[i] * vn[j] * dd[2];
-                        SR[g] = sqrt(Sx[g] * Sx[g] + Sy[g] * Sy[g] + Sz[g] * Sz[g]);
-                    }
+                const double p0x = qp.p[0][0], p0y = qp.p[0][1], p0z = qp.p[0][2];
+#pragma omp simd
+                for (long g = 0; g < G * G; ++g) { /* grid nodes on the quad, minus the point */
+                    double uu = un[GU[g]], vv = vn[GV[g]], uv = uu * vv;
+                    double sx = p0x + uu * b[0] + vv * cc[0] + uv * dd[0];
+                    double sy = p0y + uu * b[1] + vv * cc[1] + uv * dd[1];
+                    double sz = p0z + uu * b[2] + vv * cc[2] + uv * dd[2];
+                    Sx[g] = sx;
+                    Sy[g] = sy;
+                    Sz[g] = sz;
+                    SR[g] = sqrt(sx * sx + sy * sy + sz * sz);
+                }
                 const double *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
-                /* Sub-triangles in three passes: geometry and the arguments of the logs and atan2s,
-                 * then the logs and atan2s in plain loops (vectorised with libmvec), then the sums. */
+                /* Edges: int dl / r in the three forms of edge_integral (gc3d.c), selected without
+                 * branches, and the lengths; plain loops that vectorise (libmvec's log). */
+#pragma omp simd
+                for (long e = 0; e < NE; ++e) {
+                    int j = EJ[e], k = EK[e];
+                    double ajx = Sx[j], ajy = Sy[j], ajz = Sz[j], Rj = SR[j], Rk = SR[k];
+                    double Ex = Sx[k] - ajx, Ey = Sy[k] - ajy, Ez = Sz[k] - ajz;
+                    double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
+                    double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
+                    double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
+                    double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
+                    double pk = Rk + lk, mj = Rj - lj, pj = Rj + lj, mk = Rk - lk, both = pk * mj;
+                    double c2 = cx * cx + cy * cy + cz * cz;
+                    double num = lj >= 0 ? pk : (lk <= 0 ? mj : both);
+                    double den = lj >= 0 ? pj : (lk <= 0 ? mk : c2);
+                    double arg = num / (den > 1e-300 ? den : 1e-300);
+                    IE[e] = arg > 1e-300 ? arg : 1e-300;
+                    EL[e] = ell;
+                }
+#pragma omp simd
+                for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
+                /* Sub-triangles: Van Oosterom-Strackee solid angle (tan(omega / 2) = det / den,
+                 * det = h 2A), psi = (sum_e d_e I_e - h omega) / 4 pi with d_e the signed distance
+                 * of the foot point to edge e's line, and the bilinear basis at the centroid. */
+                double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
+#pragma omp simd reduction(+ : e0, e1, e2, e3, e4, e5, e6, e7)
                 for (long t = 0; t < Pn; ++t) {
-                    int i0 = node[3 * t], i1 = node[3 * t + 1], i2 = node[3 * t + 2];
+                    int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
                     double a0x = Sx[i0], a0y = Sy[i0], a0z = Sz[i0], R0 = SR[i0];
                     double a1x = Sx[i1], a1y = Sy[i1], a1z = Sz[i1], R1 = SR[i1];
                     double a2x = Sx[i2], a2y = Sy[i2], a2z = Sz[i2], R2 = SR[i2];
@@ -161,37 +196,30 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
                     double two_area = sqrt(crx * crx + cry * cry + crz * crz);
                     double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
-                    /* Van Oosterom-Strackee: tan(omega / 2) = det / den; det = h 2A. */
                     double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
-                    double h = det * inv2A;
-                    TH[t] = h;
-                    TA[t] = two_area;
-                    TDET[t] = det;
-                    TDEN[t] = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
-                              (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
-                    edge_arg(a1x, a1y, a1z, a2x, a2y, a2z, R1, R2, crx, cry, crz, inv2A, h, TD + 3 * t, TL + 3 * t);
-                    edge_arg(a2x, a2y, a2z, a0x, a0y, a0z, R2, R0, crx, cry, crz, inv2A, h, TD + 3 * t + 1, TL + 3 * t + 1);
-                    edge_arg(a0x, a0y, a0z, a1x, a1y, a1z, R0, R1, crx, cry, crz, inv2A, h, TD + 3 * t + 2, TL + 3 * t + 2);
-                }
-#pragma omp simd
-                for (long i = 0; i < 3 * Pn; ++i) TL[i] = log(TL[i]);
-#pragma omp simd
-                for (long t = 0; t < Pn; ++t) TDET[t] = 2.0 * atan2(TDET[t], TDEN[t]);
-                double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
-                for (long t = 0; t < Pn; ++t) {
-                    double h = TH[t], two_area = TA[t];
-                    double om = (fabs(h) <= tol || two_area == 0) ? 0.0 : TDET[t];
-                    double dI = 0.0;
-                    for (int e = 0; e < 3; ++e) {
-                        double d = TD[3 * t + e];
-                        dI += d != 0 ? d * TL[3 * t + e] : 0.0;
-                    }
-                    double ps = two_area > 0 ? (dI - h * om) / FOUR_PI : 0.0;
-                    double uc = (un[iu[3 * t]] + un[iu[3 * t + 1]] + un[iu[3 * t + 2]]) / 3;
-                    double vc = (vn[iv[3 * t]] + vn[iv[3 * t + 1]] + vn[iv[3 * t + 2]]) / 3;
+                    double h = det * inv2A, ha = h >= 0 ? h : -h;
+                    double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
+                                 (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+                    double omv = 2.0 * atan2(det, den);
+                    double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
+                    /* d_e = a_j . (E_e x cr) / (|E_e| 2A), E_e from corner j to corner k. */
+                    double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z; /* edge opposite corner 0 */
+                    double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
+                    double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z; /* opposite corner 1 */
+                    double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
+                    double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
+                    int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
+                    double L0 = EL[k0], L1 = EL[k1], L2 = EL[k2];
+                    double d0 = L0 > 0 ? m0 * inv2A / L0 : 0.0, d1 = L1 > 0 ? m1 * inv2A / L1 : 0.0;
+                    double d2 = L2 > 0 ? m2 * inv2A / L2 : 0.0;
+                    double q0 = d0 * IE[k0], q1 = d1 * IE[k1], q2 = d2 * IE[k2];
+                    double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
+                    double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
+                    double uc = (un[iu[t]] + un[iu[Pn + t]] + un[iu[2 * Pn + t]]) * (1.0 / 3.0);
+                    double vc = (vn[iv[t]] + vn[iv[Pn + t]] + vn[iv[2 * Pn + t]]) * (1.0 / 3.0);
                     double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
                     double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
-                    double sp = Nn > 0 ? ps / Nn : 0.0, so = om / FOUR_PI;
+                    double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
                     double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
                     e0 += b0 * so;
                     e1 += b1 * so;
@@ -226,6 +254,8 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             }
         }
         free(buf);
-        free(node);
     }
+    free(node);
+    free(EJ);
+    free(GU);
 }

@@ -13,7 +13,8 @@ from .. import _native
 from ..cage import Cage
 from ._common import check_points, chunks, default_chunk, result_dtype
 from ._green2d import green_coordinates_2d
-from ._green3d import TriangleGreenData, green3d_coordinates, triangle_green_data
+from ._green3d import green3d_coordinates, triangle_green_data
+from ._green3d_native import native_chunk, native_tables
 
 __all__ = ["green_coordinates"]
 
@@ -70,7 +71,7 @@ def green_coordinates(
     if cage.dim == 3:
         data = triangle_green_data(cage, compute)
         T = data.tri.shape[0]
-        tables = _native_tables(data, cage.vertices.to(compute)) if lib is not None else {}
+        tables = native_tables(data, cage.vertices.to(compute)) if lib is not None else {}
 
         def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             return green3d_coordinates(c, data, cage.num_vertices)
@@ -87,46 +88,8 @@ def green_coordinates(
     psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
         if lib is not None:  # writes straight into the row blocks (contiguous): no copies
-            _native_chunk(x[sl], tables, lib, phi[sl], psi[sl], data.tol)
+            native_chunk(x[sl], tables, lib, phi[sl], psi[sl], data.tol)
         else:
             phi[sl], psi[sl] = kernel(x[sl])
     lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, -1), psi.to(out_dtype).reshape(*lead, -1)
-
-
-def _native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Tables for ``tc_gc3d`` (layouts in gc3d.c): among them the unique edges with their unit
-    directions and, for each face, the edge opposite each corner."""
-    tri = data.tri
-    opp = torch.stack([tri.roll(-1, dims=1), tri.roll(-2, dims=1)], dim=-1)  # (T, 3, 2)
-    lo, hi = opp.min(dim=-1).values, opp.max(dim=-1).values
-    key = lo * vertices.shape[0] + hi  # 1D keys: torch.unique over rows is slow
-    uniq, inv = torch.unique(key.reshape(-1), return_inverse=True)
-    edges = torch.stack([uniq // vertices.shape[0], uniq % vertices.shape[0]])  # (2, E)
-    direction = vertices[edges[1]] - vertices[edges[0]]
-    return {
-        "Pv": vertices.T.contiguous(),
-        "tri": tri.T.to(torch.int32).contiguous(),
-        "edges": edges.to(torch.int32).contiguous(),
-        "eu": (direction / direction.norm(dim=1, keepdim=True)).T.contiguous(),
-        "fe": inv.reshape(-1, 3).T.to(torch.int32).contiguous(),
-        "nrm": data.normal.contiguous(),
-        "two_area": data.two_area.contiguous(),
-        "ell": (data.grad_bary.norm(dim=-1) * data.two_area[:, None]).contiguous(),
-        "edir": data.edge_dir.contiguous(),
-        "eout": data.edge_out.contiguous(),
-        "gbary": data.grad_bary.contiguous(),
-    }
-
-
-def _native_chunk(
-    x: torch.Tensor, tables: dict[str, torch.Tensor], lib: object, phi: torch.Tensor, psi: torch.Tensor, tol: float
-) -> None:
-    """The native kernel on a chunk: ``x`` ``(n, 3)`` float64 into ``phi`` ``(n, V)`` and ``psi``
-    ``(n, T)`` (contiguous float64 CPU tensors, written in place)."""
-    x = x.contiguous()
-    t = tables
-    args = [t["Pv"], phi.shape[1], t["tri"], psi.shape[1], t["edges"], t["edges"].shape[1], t["eu"], t["fe"],
-            t["nrm"], t["two_area"], t["ell"], t["edir"], t["eout"], t["gbary"], x, x.shape[0], tol,
-            torch.get_num_threads(), phi, psi]  # fmt: skip
-    _native.call(lib.tc_gc3d, args)  # type: ignore[attr-defined]

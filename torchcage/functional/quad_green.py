@@ -10,7 +10,8 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ._common import chunks
-from ._green3d import triangle_frame, triangle_integrals
+from ._green3d import TriangleGreenData, triangle_frame, triangle_integrals
+from ._green3d_native import native_chunk, native_tables
 from ._qgc3d import QuadGreenData, quad_green_chunk, quad_green_data
 from .quad_mean_value import prepare_quad_call
 
@@ -57,27 +58,50 @@ def _quad_part_native(x: torch.Tensor, qdata: QuadGreenData, V: int, verts: torc
     return phi, psi, onq, hat
 
 
-def _chunk(
-    x: torch.Tensor, tri_p: torch.Tensor, tri_geometry: tuple, triangles: torch.Tensor, quad_part, V: int, tol: float
-) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """``(phi (m, V), psi (m, T + 4Q))`` of a chunk ``x`` ``(m, 3)``; ``quad_part(x)`` computes the
-    quads' share (or is None for a triangle cage)."""
-    m, T = x.shape[0], triangles.shape[0]
+def _tri_part_torch(
+    x: torch.Tensor, tri_p: torch.Tensor, tri_geometry: tuple, triangles: torch.Tensor, V: int, tol: float
+) -> tuple[torch.Tensor, ...]:  # fmt: skip
+    """Triangles' ``phi`` ``(m, V)`` (principal values on the cage) and ``psi`` ``(m, T)``, whether
+    each point lies on a triangle, and its hat values ``(m, V)`` there, with the torch kernel."""
+    m = x.shape[0]
+    a = tri_p[None] - x[:, None, None, :]  # (m, T, 3, 3)
+    phi_face, psi_t, _, on_face, alpha = triangle_integrals(a, tuple(g[None] for g in tri_geometry), tol)
+    phi = torch.zeros(m, V, dtype=x.dtype, device=x.device)
+    for i in range(3):
+        phi = phi.index_add(1, triangles[:, i], phi_face[..., i])
+    f = on_face.to(torch.int8).argmax(dim=1)
+    bary = alpha[torch.arange(m, device=x.device), f].clamp_min(0.0)
+    bary = bary / bary.sum(dim=1, keepdim=True).clamp_min(1e-300)
+    hat = torch.zeros(m, V, dtype=x.dtype, device=x.device).scatter_add(1, triangles[f], bary)
+    return phi, psi_t, on_face.any(dim=1), hat
+
+
+def _tri_part_native(
+    x: torch.Tensor, tables: dict[str, torch.Tensor], triangles: torch.Tensor, V: int, tol: float, lib: object
+) -> tuple[torch.Tensor, ...]:  # fmt: skip
+    """As :func:`_tri_part_torch`, with the native Green kernel (float64, CPU)."""
+    m = x.shape[0]
+    phi = torch.empty(m, V, dtype=x.dtype)
+    psi = torch.empty(m, triangles.shape[0], dtype=x.dtype)
+    onf = torch.empty(m, dtype=torch.int32)
+    alpha = torch.empty(m, 3, dtype=x.dtype)
+    native_chunk(x, tables, lib, phi, psi, tol, onf, alpha)
+    onf = onf.long()
+    hat = torch.zeros(m, V, dtype=x.dtype).scatter_add(1, triangles[onf.clamp_min(0)], alpha)
+    return phi, psi, onf >= 0, hat
+
+
+def _chunk(x: torch.Tensor, tri_part, quad_part, V: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(phi (m, V), psi (m, T + 4Q))`` of a chunk ``x`` ``(m, 3)``; ``tri_part(x)`` and
+    ``quad_part(x)`` compute the triangles' and the quads' shares (None where there are none)."""
+    m = x.shape[0]
     phi = torch.zeros(m, V, dtype=x.dtype, device=x.device)
     psis = []
     on = torch.zeros(m, dtype=torch.bool, device=x.device)
     hat = torch.zeros(m, V, dtype=x.dtype, device=x.device)
-    if T:
-        a = tri_p[None] - x[:, None, None, :]  # (m, T, 3, 3)
-        phi_face, psi_t, _, on_face, alpha = triangle_integrals(a, tuple(g[None] for g in tri_geometry), tol)
-        for i in range(3):
-            phi = phi.index_add(1, triangles[:, i], phi_face[..., i])
+    if tri_part is not None:
+        phi, psi_t, on, hat = tri_part(x)
         psis.append(psi_t)
-        on = on_face.any(dim=1)
-        f = on_face.to(torch.int8).argmax(dim=1)
-        bary = alpha[torch.arange(m, device=x.device), f].clamp_min(0.0)
-        bary = bary / bary.sum(dim=1, keepdim=True).clamp_min(1e-300)
-        hat = hat.scatter_add(1, triangles[f], bary)
     if quad_part is not None:
         phi_q, psi_q, onq, hat_q = quad_part(x)
         phi = phi + phi_q
@@ -154,7 +178,16 @@ def quad_green_coordinates(
     tri_geometry = triangle_frame(tri_p)
     qdata = quad_green_data(verts, cage.quads, tol, n) if Q else None
     lib = _native.select(backend, x, cage.vertices)
-    quad_part = None
+    tri_part = quad_part = None
+    if T and lib is not None:
+        normal, two_area, edge_dir, edge_out, grad_bary = tri_geometry
+        tdata = TriangleGreenData(tri_p, normal, two_area, edge_dir, edge_out, grad_bary, cage.triangles, tol)
+        tables = native_tables(tdata, verts)
+        tri_part = functools.partial(_tri_part_native, tables=tables, triangles=cage.triangles, V=V, tol=tol, lib=lib)
+    elif T:
+        tri_part = functools.partial(
+            _tri_part_torch, tri_p=tri_p, tri_geometry=tri_geometry, triangles=cage.triangles, V=V, tol=tol
+        )
     if qdata is not None:
         if lib is not None:
             quad_part = functools.partial(_quad_part_native, qdata=qdata, V=V, verts=verts, lib=lib)
@@ -166,7 +199,7 @@ def quad_green_coordinates(
         size = chunk_size or max(8, (1 << 17) // (max(Q, 1) * 4 * (n + 1) ** 2 + T))
     phis, psis = [], []
     for sl in chunks(x.shape[0], size, progress, desc="quad Green coordinates"):
-        ph, ps = _chunk(x[sl], tri_p, tri_geometry, cage.triangles, quad_part, V, tol)
+        ph, ps = _chunk(x[sl], tri_part, quad_part, V)
         phis.append(ph)
         psis.append(ps)
     phi = torch.cat(phis) if phis else x.new_zeros((0, V))
