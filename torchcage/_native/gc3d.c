@@ -136,146 +136,180 @@ double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir,
 /* Per-face constants, structure of arrays (index [k * T + f]). */
 enum { FC_N = 0, FC_O = 3, FC_C = 12, FC_M = 15, FC_S = 24, FC_THR = 25, FC_K = 26 };
 
-void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges, long E, const double *eu,
-             const int *fe, const double *nrm, const double *two_area, const double *ell, const double *edir,
-             const double *eout, const double *gbary, const double *X, long n, double tol, int nthreads, double *PHI,
-             double *PSI, int *ONF, double *AL) {
-    const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
-    const int *e0 = edges, *e1 = edges + E, *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
+/* Fold the per-face constants into g->fc (allocated here; tc_gc_free releases it). */
+void tc_gc_prepare(gc_tables *g) {
+    long T = g->T;
     const double inv4pi = 1.0 / FOUR_PI;
     double *fc = (double *)malloc(sizeof(double) * FC_K * (size_t)T);
     for (long f = 0; f < T; ++f) {
-        int live = two_area[f] > 0;
-        for (int c = 0; c < 3; ++c) fc[(FC_N + c) * T + f] = nrm[3 * f + c];
-        for (int e = 0; e < 9; ++e) fc[(FC_O + e) * T + f] = eout[9 * f + e];
+        const double *eout = g->eout + 9 * f, *gbary = g->gbary + 9 * f, two_area = g->two_area[f];
+        int live = two_area > 0;
+        for (int c = 0; c < 3; ++c) fc[(FC_N + c) * T + f] = g->nrm[3 * f + c];
+        for (int e = 0; e < 9; ++e) fc[(FC_O + e) * T + f] = eout[e];
         for (int i = 0; i < 3; ++i) {
-            fc[(FC_C + i) * T + f] = live ? ell[3 * f + i] / two_area[f] * inv4pi : 0.0;
+            fc[(FC_C + i) * T + f] = live ? g->ell[3 * f + i] / two_area * inv4pi : 0.0;
             for (int e = 0; e < 3; ++e)
-                fc[(FC_M + 3 * i + e) * T + f] = live ? -dot3(gbary + 9 * f + 3 * i, eout + 9 * f + 3 * e) * inv4pi : 0.0;
+                fc[(FC_M + 3 * i + e) * T + f] = live ? -dot3(gbary + 3 * i, eout + 3 * e) * inv4pi : 0.0;
         }
         fc[FC_S * T + f] = live ? inv4pi : 0.0;         /* psi's scale: degenerate faces integrate to nothing */
         fc[FC_THR * T + f] = live ? GC_NEAR_PLANE : -1.0; /* ... and always go to the fix-up */
     }
+    g->fc = fc;
+}
+
+void tc_gc_free(gc_tables *g) {
+    free(g->fc);
+    g->fc = NULL;
+}
+
+/* Doubles of workspace tc_gc_point needs. */
+size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g->E + 6 * (size_t)g->T; }
+
+/*
+ * The Green integrals of all faces seen from the point x: psi (T,) and each face's corner terms
+ * P (3, T) (index [i * T + f]: corner i's share of phi, principal values on the cage) and solid
+ * angle OM (T,). ws: tc_gc_workspace(g) doubles. Returns the first face x lies on (or -1), with
+ * x's barycentric coordinates there in on_alpha (3,).
+ */
+long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, double *psi, double *P, double *OM,
+                 double *on_alpha) {
+    const long V = g->V, T = g->T, E = g->E;
+    const double *Pv = g->Pv, *eu = g->eu, *fc = g->fc, *two_area = g->two_area;
+    const int *t0 = g->tri, *t1 = t0 + T, *t2 = t1 + T, *e0 = g->edges, *e1 = e0 + E;
+    const int *f0 = g->fe, *f1 = f0 + T, *f2 = f1 + T;
     const double *Nx = fc + FC_N * T, *Ny = Nx + T, *Nz = Ny + T, *O = fc + FC_O * T, *Cc = fc + FC_C * T;
     const double *M = fc + FC_M * T, *S = fc + FC_S * T, *THR = fc + FC_THR * T;
+    const double inv4pi = 1.0 / FOUR_PI;
+    double *Ax = ws, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V, *IE = RA + V;
+    double *H = IE + E, *D0 = H + T, *D1 = D0 + T, *D2 = D1 + T, *FL = D2 + T;
+    double *P0 = P, *P1 = P + T, *P2 = P + 2 * T;
+#pragma omp simd
+    for (long v = 0; v < V; ++v) {
+        double ax = Pv[v] - x[0], ay = Pv[V + v] - x[1], az = Pv[2 * V + v] - x[2];
+        Ax[v] = ax;
+        Ay[v] = ay;
+        Az[v] = az;
+        RA[v] = sqrt(ax * ax + ay * ay + az * az);
+    }
+    /* Edge integrals in edge_integral's three forms, all computed, then selected: vectorises. */
+#pragma omp simd
+    for (long q = 0; q < E; ++q) {
+        int j = e0[q], k = e1[q];
+        double ux = eu[q], uy = eu[E + q], uz = eu[2 * E + q];
+        double l_j = Ax[j] * ux + Ay[j] * uy + Az[j] * uz, l_k = Ax[k] * ux + Ay[k] * uy + Az[k] * uz;
+        double cx = Ay[j] * uz - Az[j] * uy, cy = Az[j] * ux - Ax[j] * uz, cz = Ax[j] * uy - Ay[j] * ux;
+        double Rj = RA[j], Rk = RA[k];
+        double pk = Rk + l_k, mj = Rj - l_j, pj = Rj + l_j, mk = Rk - l_k, both = pk * mj;
+        double c2 = cx * cx + cy * cy + cz * cz;
+        double num = l_j >= 0 ? pk : (l_k <= 0 ? mj : both);
+        double den = l_j >= 0 ? pj : (l_k <= 0 ? mk : c2);
+        IE[q] = num / (den > 1e-300 ? den : 1e-300);
+    }
+#pragma omp simd
+    for (long q = 0; q < E; ++q) IE[q] = log(IE[q]);
+    /* h, the d_e, the solid angle away from the plane, and which faces need the fix-up. */
+#pragma omp simd
+    for (long f = 0; f < T; ++f) {
+        int i0 = t0[f], i1 = t1[f], i2 = t2[f];
+        double a0x = Ax[i0], a0y = Ay[i0], a0z = Az[i0], a1x = Ax[i1], a1y = Ay[i1], a1z = Az[i1];
+        double a2x = Ax[i2], a2y = Ay[i2], a2z = Az[i2], R0 = RA[i0], R1 = RA[i1], R2 = RA[i2];
+        double h = a0x * Nx[f] + a0y * Ny[f] + a0z * Nz[f];
+        H[f] = h;
+        D0[f] = a1x * O[f] + a1y * O[T + f] + a1z * O[2 * T + f];
+        D1[f] = a2x * O[3 * T + f] + a2y * O[4 * T + f] + a2z * O[5 * T + f];
+        D2[f] = a0x * O[6 * T + f] + a0y * O[7 * T + f] + a0z * O[8 * T + f];
+        double c12x = a1y * a2z - a1z * a2y, c12y = a1z * a2x - a1x * a2z, c12z = a1x * a2y - a1y * a2x;
+        double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
+                     (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+        OM[f] = 2.0 * atan2(a0x * c12x + a0y * c12y + a0z * c12z, den);
+        double rmin = R0 < R1 ? R0 : R1;
+        rmin = rmin < R2 ? rmin : R2;
+        double ha = h >= 0 ? h : -h;
+        FL[f] = (ha < THR[f] * rmin || ha <= tol || THR[f] < 0) ? 1.0 : 0.0;
+    }
+    long on_face = -1;
+    on_alpha[0] = on_alpha[1] = on_alpha[2] = 0.0;
+    for (long f = 0; f < T; ++f) {
+        if (FL[f] == 0.0) continue;
+        if (!(two_area[f] > 0)) { /* degenerate: its constants are zero, its solid angle too */
+            OM[f] = 0.0;
+            continue;
+        }
+        const int c3[3] = {t0[f], t1[f], t2[f]};
+        const double d[3] = {D0[f], D1[f], D2[f]}, *ed = g->edir + 9 * f;
+        double h = H[f], habs = fabs(h), beta = 0.0;
+        if (habs <= tol) { /* on the plane: principal value, no solid angle */
+            OM[f] = 0.0;
+            if (on_face < 0 && d[0] >= -tol && d[1] >= -tol && d[2] >= -tol) {
+                on_face = f;
+                double sum = 0.0;
+                for (int i = 0; i < 3; ++i) {
+                    double al = d[i] * g->ell[3 * f + i] / two_area[f];
+                    on_alpha[i] = al > 0 ? al : 0.0;
+                    sum += on_alpha[i];
+                }
+                for (int i = 0; i < 3; ++i) on_alpha[i] /= sum;
+            }
+            continue;
+        }
+        for (int e = 0; e < 3; ++e) { /* edge-sum solid angle: does not cancel near the plane */
+            int j = c3[(e + 1) % 3], k = c3[(e + 2) % 3];
+            const double *u = ed + 3 * e;
+            double l_j = Ax[j] * u[0] + Ay[j] * u[1] + Az[j] * u[2];
+            double l_k = Ax[k] * u[0] + Ay[k] * u[1] + Az[k] * u[2], R0sq = d[e] * d[e] + h * h;
+            beta += atan2(d[e] * l_k, R0sq + habs * RA[k]) - atan2(d[e] * l_j, R0sq + habs * RA[j]);
+        }
+        OM[f] = h >= 0 ? beta : -beta;
+    }
+    /* psi and the corner terms; on a face's plane (|h| <= tol) h K is dropped, and a d_e = 0 (the
+     * point on an edge line) drops that edge's integral. */
+#pragma omp simd
+    for (long f = 0; f < T; ++f) {
+        double I0 = IE[f0[f]], I1 = IE[f1[f]], I2 = IE[f2[f]], h = H[f], om = OM[f];
+        double d0 = D0[f], d1 = D1[f], d2 = D2[f];
+        double q0 = d0 * I0, q1 = d1 * I1, q2 = d2 * I2;
+        double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
+        psi[f] = S[f] * dI - h * om * inv4pi;
+        double ha = h >= 0 ? h : -h, hk = ha <= tol ? 0.0 : h;
+        const double *m = M + f;
+        P0[f] = Cc[f] * d0 * om + hk * (m[0] * I0 + m[T] * I1 + m[2 * T] * I2);
+        P1[f] = Cc[T + f] * d1 * om + hk * (m[3 * T] * I0 + m[4 * T] * I1 + m[5 * T] * I2);
+        P2[f] = Cc[2 * T + f] * d2 * om + hk * (m[6 * T] * I0 + m[7 * T] * I1 + m[8 * T] * I2);
+    }
+    return on_face;
+}
+
+void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges, long E, const double *eu,
+             const int *fe, const double *nrm, const double *two_area, const double *ell, const double *edir,
+             const double *eout, const double *gbary, const double *X, long n, double tol, int nthreads, double *PHI,
+             double *PSI, int *ONF, double *AL) {
+    gc_tables g = {Pv, V, tri, T, edges, E, eu, fe, nrm, two_area, ell, edir, eout, gbary, NULL};
+    tc_gc_prepare(&g);
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + (size_t)E + 9 * (size_t)T));
-        double *Ax = buf, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V, *IE = RA + V;
-        double *H = IE + E, *D0 = H + T, *D1 = D0 + T, *D2 = D1 + T, *OM = D2 + T, *P0 = OM + T, *P1 = P0 + T;
-        double *P2 = P1 + T, *FL = P2 + T;
+        double *buf = (double *)malloc(sizeof(double) * (tc_gc_workspace(&g) + 4 * (size_t)T));
+        double *P = buf + tc_gc_workspace(&g), *OM = P + 3 * T;
 #pragma omp for schedule(dynamic, 16)
         for (long p = 0; p < n; ++p) {
-            const double *x = X + 3 * p;
-            double *phi = PHI + p * V, *psi = PSI + p * T;
-#pragma omp simd
-            for (long v = 0; v < V; ++v) {
-                double ax = Pv[v] - x[0], ay = Pv[V + v] - x[1], az = Pv[2 * V + v] - x[2];
-                Ax[v] = ax;
-                Ay[v] = ay;
-                Az[v] = az;
-                RA[v] = sqrt(ax * ax + ay * ay + az * az);
-            }
-            /* Edge integrals in edge_integral's three forms, selected without branches. */
-#pragma omp simd
-            for (long q = 0; q < E; ++q) {
-                int j = e0[q], k = e1[q];
-                double ux = eu[q], uy = eu[E + q], uz = eu[2 * E + q];
-                double l_j = Ax[j] * ux + Ay[j] * uy + Az[j] * uz, l_k = Ax[k] * ux + Ay[k] * uy + Az[k] * uz;
-                double cx = Ay[j] * uz - Az[j] * uy, cy = Az[j] * ux - Ax[j] * uz, cz = Ax[j] * uy - Ay[j] * ux;
-                double Rj = RA[j], Rk = RA[k];
-                double pk = Rk + l_k, mj = Rj - l_j, pj = Rj + l_j, mk = Rk - l_k, both = pk * mj;
-                double c2 = cx * cx + cy * cy + cz * cz; /* all computed, then selected: vectorises */
-                double num = l_j >= 0 ? pk : (l_k <= 0 ? mj : both);
-                double den = l_j >= 0 ? pj : (l_k <= 0 ? mk : c2);
-                IE[q] = num / (den > 1e-300 ? den : 1e-300);
-            }
-#pragma omp simd
-            for (long q = 0; q < E; ++q) IE[q] = log(IE[q]);
-            /* h, the d_e, the solid angle away from the plane, and which faces need the fix-up. */
-#pragma omp simd
-            for (long f = 0; f < T; ++f) {
-                int i0 = t0[f], i1 = t1[f], i2 = t2[f];
-                double a0x = Ax[i0], a0y = Ay[i0], a0z = Az[i0], a1x = Ax[i1], a1y = Ay[i1], a1z = Az[i1];
-                double a2x = Ax[i2], a2y = Ay[i2], a2z = Az[i2], R0 = RA[i0], R1 = RA[i1], R2 = RA[i2];
-                double h = a0x * Nx[f] + a0y * Ny[f] + a0z * Nz[f];
-                H[f] = h;
-                D0[f] = a1x * O[f] + a1y * O[T + f] + a1z * O[2 * T + f];
-                D1[f] = a2x * O[3 * T + f] + a2y * O[4 * T + f] + a2z * O[5 * T + f];
-                D2[f] = a0x * O[6 * T + f] + a0y * O[7 * T + f] + a0z * O[8 * T + f];
-                double c12x = a1y * a2z - a1z * a2y, c12y = a1z * a2x - a1x * a2z, c12z = a1x * a2y - a1y * a2x;
-                double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
-                             (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
-                OM[f] = 2.0 * atan2(a0x * c12x + a0y * c12y + a0z * c12z, den);
-                double rmin = R0 < R1 ? R0 : R1;
-                rmin = rmin < R2 ? rmin : R2;
-                double ha = h >= 0 ? h : -h;
-                FL[f] = (ha < THR[f] * rmin || ha <= tol || THR[f] < 0) ? 1.0 : 0.0;
-            }
-            double on_alpha[3] = {0.0, 0.0, 0.0};
-            long on_face = -1;
-            for (long f = 0; f < T; ++f) {
-                if (FL[f] == 0.0) continue;
-                if (!(two_area[f] > 0)) { /* degenerate: its constants are zero, its solid angle too */
-                    OM[f] = 0.0;
-                    continue;
-                }
-                const int c3[3] = {t0[f], t1[f], t2[f]};
-                const double d[3] = {D0[f], D1[f], D2[f]}, *ed = edir + 9 * f;
-                double h = H[f], habs = fabs(h), beta = 0.0;
-                if (habs <= tol) { /* on the plane: principal value, no solid angle */
-                    OM[f] = 0.0;
-                    if (on_face < 0 && d[0] >= -tol && d[1] >= -tol && d[2] >= -tol) {
-                        on_face = f;
-                        for (int i = 0; i < 3; ++i) {
-                            double al = d[i] * ell[3 * f + i] / two_area[f];
-                            on_alpha[i] = al > 0 ? al : 0.0;
-                        }
-                    }
-                    continue;
-                }
-                for (int e = 0; e < 3; ++e) { /* edge-sum solid angle: does not cancel near the plane */
-                    int j = c3[(e + 1) % 3], k = c3[(e + 2) % 3];
-                    const double *u = ed + 3 * e;
-                    double l_j = Ax[j] * u[0] + Ay[j] * u[1] + Az[j] * u[2];
-                    double l_k = Ax[k] * u[0] + Ay[k] * u[1] + Az[k] * u[2], R0sq = d[e] * d[e] + h * h;
-                    beta += atan2(d[e] * l_k, R0sq + habs * RA[k]) - atan2(d[e] * l_j, R0sq + habs * RA[j]);
-                }
-                OM[f] = h >= 0 ? beta : -beta;
-            }
-            /* psi and the corner terms; on a face's plane (|h| <= tol) h K is dropped, and a
-             * d_e = 0 (the point on an edge line) drops that edge's integral. */
-            double omega_sum = 0.0;
-#pragma omp simd reduction(+ : omega_sum)
-            for (long f = 0; f < T; ++f) {
-                double I0 = IE[f0[f]], I1 = IE[f1[f]], I2 = IE[f2[f]], h = H[f], om = OM[f];
-                double d0 = D0[f], d1 = D1[f], d2 = D2[f];
-                double q0 = d0 * I0, q1 = d1 * I1, q2 = d2 * I2;
-                double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
-                psi[f] = S[f] * dI - h * om * inv4pi;
-                double ha = h >= 0 ? h : -h, hk = ha <= tol ? 0.0 : h;
-                const double *m = M + f;
-                P0[f] = Cc[f] * d0 * om + hk * (m[0] * I0 + m[T] * I1 + m[2 * T] * I2);
-                P1[f] = Cc[T + f] * d1 * om + hk * (m[3 * T] * I0 + m[4 * T] * I1 + m[5 * T] * I2);
-                P2[f] = Cc[2 * T + f] * d2 * om + hk * (m[6 * T] * I0 + m[7 * T] * I1 + m[8 * T] * I2);
-                omega_sum += om;
-            }
+            double *phi = PHI + p * V, *psi = PSI + p * T, on_alpha[3];
+            long on_face = tc_gc_point(&g, X + 3 * p, tol, buf, psi, P, OM, on_alpha);
             memset(phi, 0, sizeof(double) * (size_t)V);
+            double omega_sum = 0.0;
             for (long f = 0; f < T; ++f) {
-                phi[t0[f]] += P0[f];
-                phi[t1[f]] += P1[f];
-                phi[t2[f]] += P2[f];
+                phi[tri[f]] += P[f];
+                phi[tri[T + f]] += P[T + f];
+                phi[tri[2 * T + f]] += P[2 * T + f];
+                omega_sum += OM[f];
             }
-            double sum = on_alpha[0] + on_alpha[1] + on_alpha[2];
             if (ONF) {
                 ONF[p] = (int)on_face;
-                for (int i = 0; i < 3; ++i) AL[3 * p + i] = on_face >= 0 ? on_alpha[i] / sum : 0.0;
+                for (int i = 0; i < 3; ++i) AL[3 * p + i] = on_alpha[i];
             } else if (on_face >= 0) { /* the limit from inside: hat values with the jump weight */
                 double jump = 1.0 - omega_sum / FOUR_PI;
-                for (int i = 0; i < 3; ++i) phi[tri[i * T + on_face]] += jump * on_alpha[i] / sum;
+                for (int i = 0; i < 3; ++i) phi[tri[i * T + on_face]] += jump * on_alpha[i];
             }
         }
         free(buf);
     }
-    free(fc);
+    tc_gc_free(&g);
 }

@@ -2,6 +2,8 @@
 #ifndef TORCHCAGE_NATIVE_H
 #define TORCHCAGE_NATIVE_H
 
+#include <stddef.h>
+
 static inline void cross3(const double *a, const double *b, double *c) {
     c[0] = a[1] * b[2] - a[2] * b[1];
     c[1] = a[2] * b[0] - a[0] * b[2];
@@ -19,6 +21,26 @@ int tc_tri_green(const double a[3][3], const double *nf, double two_area, const 
                  const double *eout, const double *gbary, double tol, double *phi, double *psi, double *omega,
                  double *alpha);
 double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir, double *eout, double *gbary);
+
+/* A set of triangles for tc_gc_point (gc3d.c; layouts as tc_gc3d's arguments); fc: per-face
+ * constants that tc_gc_prepare folds (tc_gc_free releases them). */
+typedef struct {
+    const double *Pv;
+    long V;
+    const int *tri;
+    long T;
+    const int *edges;
+    long E;
+    const double *eu;
+    const int *fe;
+    const double *nrm, *two_area, *ell, *edir, *eout, *gbary;
+    double *fc;
+} gc_tables;
+void tc_gc_prepare(gc_tables *g);
+void tc_gc_free(gc_tables *g);
+size_t tc_gc_workspace(const gc_tables *g);
+long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, double *psi, double *P, double *OM,
+                 double *on_alpha);
 
 /* Per point-quad quantities of quad mean value and quad Green coordinates (qmvc3d.c). */
 typedef struct {

@@ -88,6 +88,24 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             TE[c * Pn + t] = *slot;
         }
     free(seen);
+    /* Eq. 19's nodes are affine in the centre t (node i = ga[i] + gb[i] t), so is the mean of a
+     * sub-triangle's three: its centroid (uc, vc) = (UA + UB u, VA + VB v), without gathers. */
+    double *UA = (double *)malloc(sizeof(double) * 4 * (size_t)Pn), *UB = UA + Pn, *VA = UB + Pn, *VB = VA + Pn;
+    {
+        double ga[2 * K + 1], gb[2 * K + 1];
+        grid19(0.0, K, ga);
+        grid19(1.0, K, gb);
+        for (int i = 0; i < G; ++i) gb[i] -= ga[i];
+        for (long t = 0; t < Pn; ++t) {
+            UA[t] = UB[t] = VA[t] = VB[t] = 0.0;
+            for (int c = 0; c < 3; ++c) {
+                UA[t] += ga[iu[c * Pn + t]] / 3;
+                UB[t] += gb[iu[c * Pn + t]] / 3;
+                VA[t] += ga[iv[c * Pn + t]] / 3;
+                VB[t] += gb[iv[c * Pn + t]] / 3;
+            }
+        }
+    }
     int *GU = (int *)malloc(sizeof(int) * 2 * (size_t)G * G), *GV = GU + G * G; /* node g = GU G + GV */
     for (int g = 0; g < G * G; ++g) {
         GU[g] = g / G;
@@ -161,7 +179,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 }
                 const double *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
                 /* Edges: int dl / r in the three forms of edge_integral (gc3d.c), selected without
-                 * branches, and the lengths; plain loops that vectorise (libmvec's log). */
+                 * branches, and 1 / length; plain loops that vectorise (libmvec's log). */
 #pragma omp simd
                 for (long e = 0; e < NE; ++e) {
                     int j = EJ[e], k = EK[e];
@@ -177,7 +195,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     double den = lj >= 0 ? pj : (lk <= 0 ? mk : c2);
                     double arg = num / (den > 1e-300 ? den : 1e-300);
                     IE[e] = arg > 1e-300 ? arg : 1e-300;
-                    EL[e] = ell;
+                    EL[e] = invl; /* 1 / length (0 for a degenerate edge) */
                 }
 #pragma omp simd
                 for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
@@ -209,14 +227,11 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
                     double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
                     int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
-                    double L0 = EL[k0], L1 = EL[k1], L2 = EL[k2];
-                    double d0 = L0 > 0 ? m0 * inv2A / L0 : 0.0, d1 = L1 > 0 ? m1 * inv2A / L1 : 0.0;
-                    double d2 = L2 > 0 ? m2 * inv2A / L2 : 0.0;
+                    double d0 = m0 * inv2A * EL[k0], d1 = m1 * inv2A * EL[k1], d2 = m2 * inv2A * EL[k2];
                     double q0 = d0 * IE[k0], q1 = d1 * IE[k1], q2 = d2 * IE[k2];
                     double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
                     double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
-                    double uc = (un[iu[t]] + un[iu[Pn + t]] + un[iu[2 * Pn + t]]) * (1.0 / 3.0);
-                    double vc = (vn[iv[t]] + vn[iv[Pn + t]] + vn[iv[2 * Pn + t]]) * (1.0 / 3.0);
+                    double uc = UA[t] + UB[t] * u, vc = VA[t] + VB[t] * v;
                     double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
                     double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
                     double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
@@ -257,5 +272,6 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     }
     free(node);
     free(EJ);
+    free(UA);
     free(GU);
 }
