@@ -49,7 +49,9 @@ TC_QMVC3D_SIGNATURE = {
 TC_QGC3D_SIGNATURE = {
     "P": "ptr", "V": "i64", "quads": "ptr", "Q": "i64", "size": "ptr", "pinv": "ptr", "null": "ptr", "origin": "ptr",
     "pattern": "ptr", "Pn": "i64", "K": "i32", "X": "ptr", "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr",
-    "PSIQ": "ptr", "ONQ": "ptr", "UV": "ptr",
+    "PSIQ": "ptr", "ONQ": "ptr", "UV": "ptr", "s_Pv": "ptr", "s_tri": "ptr", "s_edges": "ptr", "s_E": "i64",
+    "s_eu": "ptr", "s_fe": "ptr", "s_nrm": "ptr", "s_two_area": "ptr", "s_ell": "ptr", "s_edir": "ptr",
+    "s_eout": "ptr", "s_gbary": "ptr",
 }  # fmt: skip
 
 #: Arguments of ``tc_mvc2d`` in mvc2d.c, in order.

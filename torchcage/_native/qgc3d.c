@@ -51,12 +51,23 @@ static void grid19(double t, int K, double *x) {
  * null-space basis (columns) of A_q built on corners relative to origin (3,); pattern: (Pn, 3, 2)
  * int32 sub-triangles as (u index, v index) on a (2K+1)^2 grid; X: (n, 3). Outputs: PHI (n, V)
  * incremented by the quads' phi (principal values on the cage), PSIQ (n, 4Q), ONQ (n,) the first
- * quad a point lies on (or -1) and UV (n, 2) its projection there.
+ * quad a point lies on (or -1) and UV (n, 2) its projection there. s_*: the Green-kernel tables
+ * (as tc_gc3d's arguments) of the quads' split triangles, 2q: (q0 q1 q2) and 2q + 1: (q0 q2 q3).
  */
 void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *pinv,
               const double *null, const double *origin, const int *pattern, long Pn, int K, const double *X, long n,
-              double tol, int nthreads, double *PHI, double *PSIQ, int *ONQ, double *UV) {
+              double tol, int nthreads, double *PHI, double *PSIQ, int *ONQ, double *UV, const double *s_Pv,
+              const int *s_tri, const int *s_edges, long s_E, const double *s_eu, const int *s_fe, const double *s_nrm,
+              const double *s_two_area, const double *s_ell, const double *s_edir, const double *s_eout,
+              const double *s_gbary) {
     const int G = 2 * K + 1;
+    /* The split triangles (q0 q1 q2), (q0 q2 q3) of every quad (2q, 2q + 1), as a set for the
+     * Green kernel: per point, their integrals in one vectorised pass (tc_gc_point). */
+    const long T2 = 2 * Q;
+    gc_tables sg = {s_Pv, V, s_tri, T2, s_edges, s_E, s_eu, s_fe, s_nrm, s_two_area, s_ell, s_edir, s_eout, s_gbary,
+                    NULL};
+    tc_gc_prepare(&sg);
+    const size_t sws = tc_gc_workspace(&sg);
     /* The pattern's sub-triangles as flat grid-node indices (corner c of triangle t at [c * Pn + t])
      * and their u and v indices; its unique edges (nodes EJ, EK) and, for each triangle, the edge
      * opposite each corner (TE, same layout): an edge's integral int dl / r is shared by the
@@ -115,6 +126,8 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
 #pragma omp parallel num_threads(nthreads)
     {
         double *buf = (double *)malloc(sizeof(double) * (2 * (size_t)G + 4 * (size_t)G * G + 2 * (size_t)NE));
+        double *sbuf = (double *)malloc(sizeof(double) * (sws + 5 * (size_t)T2));
+        double *SPSI = sbuf + sws, *SP = SPSI + T2, *SOM = SP + 3 * T2;
         double *un = buf, *vn = un + G, *Sx = vn + G, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
         double *IE = SR + G * G, *EL = IE + NE;
 #pragma omp for schedule(dynamic, 16)
@@ -122,6 +135,8 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             const double *x = X + 3 * pt;
             double *phi = PHI + pt * V, *psiq = PSIQ + pt * 4 * Q;
             ONQ[pt] = -1;
+            double s_alpha[3];
+            tc_gc_point(&sg, x, tol, sbuf, SPSI, SP, SOM, s_alpha);
             for (long q = 0; q < Q; ++q) {
                 const int *qi = quads + 4 * q;
                 quad_pair qp;
@@ -137,26 +152,32 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 double apex[3], rhs[4] = {0, 0, 0, 0};
                 for (int c = 0; c < 3; ++c) apex[c] = qp.p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
                 /* Outside the quad's tetrahedron the point cannot lie between the sheet and the split
-                 * (q0 q1 q2), (q0 q2 q3): those two triangles give the same invariants more cheaply. */
-                int split = !qp.inside && !qp.on;
-                for (int e = 0; e < (split ? 2 : 4); ++e) {
-                    double a[3][3], nf[3], ell[3], edir[9], eout[9], gbary[9], ph[3], ps, om, al[3];
-                    if (split) {
-                        memcpy(a[0], qp.p[0], sizeof(a[0]));
-                        memcpy(a[1], qp.p[e + 1], sizeof(a[1]));
-                        memcpy(a[2], qp.p[e + 2], sizeof(a[2]));
-                    } else {
+                 * (q0 q1 q2), (q0 q2 q3): those two triangles give the same invariants, already
+                 * computed for all quads above. */
+                if (!qp.inside && !qp.on) {
+                    for (long t = 2 * q; t < 2 * q + 2; ++t) {
+                        for (int i = 0; i < 3; ++i) {
+                            double ph = SP[i * T2 + t];
+                            const double *c3 = P + 3 * s_tri[i * T2 + t];
+                            for (int c = 0; c < 3; ++c) rhs[c] += ph * (c3[c] - origin[c]);
+                            rhs[3] += ph;
+                        }
+                        for (int c = 0; c < 3; ++c) rhs[c] += SPSI[t] * s_nrm[3 * t + c];
+                    }
+                } else {
+                    for (int e = 0; e < 4; ++e) {
+                        double a[3][3], nf[3], ell[3], edir[9], eout[9], gbary[9], ph[3], ps, om, al[3];
                         memcpy(a[0], qp.p[e], sizeof(a[0]));
                         memcpy(a[1], qp.p[(e + 1) & 3], sizeof(a[1]));
                         memcpy(a[2], apex, sizeof(a[2]));
+                        double two_area = tc_tri_frame(a, nf, ell, edir, eout, gbary);
+                        tc_tri_green(a, nf, two_area, ell, edir, eout, gbary, tol, ph, &ps, &om, al);
+                        for (int i = 0; i < 3; ++i) {
+                            for (int c = 0; c < 3; ++c) rhs[c] += ph[i] * (a[i][c] + x[c] - origin[c]);
+                            rhs[3] += ph[i];
+                        }
+                        for (int c = 0; c < 3; ++c) rhs[c] += ps * nf[c];
                     }
-                    double two_area = tc_tri_frame(a, nf, ell, edir, eout, gbary);
-                    tc_tri_green(a, nf, two_area, ell, edir, eout, gbary, tol, ph, &ps, &om, al);
-                    for (int i = 0; i < 3; ++i) {
-                        for (int c = 0; c < 3; ++c) rhs[c] += ph[i] * (a[i][c] + x[c] - origin[c]);
-                        rhs[3] += ph[i];
-                    }
-                    for (int c = 0; c < 3; ++c) rhs[c] += ps * nf[c];
                 }
                 const double *Ap = pinv + 32 * q, *Nl = null + 32 * q;
                 double bar[8];
@@ -269,7 +290,9 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             }
         }
         free(buf);
+        free(sbuf);
     }
+    tc_gc_free(&sg);
     free(node);
     free(EJ);
     free(UA);

@@ -36,8 +36,19 @@ def _quad_part_torch(x: torch.Tensor, qdata: QuadGreenData, V: int) -> tuple[tor
     return phi, psi, onq, hat
 
 
-def _quad_part_native(x: torch.Tensor, qdata: QuadGreenData, V: int, verts: torch.Tensor, lib: object) -> tuple:
-    """As :func:`_quad_part_torch`, with the native kernel (float64, CPU)."""
+def _split_tables(verts: torch.Tensor, quads: torch.Tensor, tol: float) -> dict[str, torch.Tensor]:
+    """Green-kernel tables of the triangles ``(q0 q1 q2)``, ``(q0 q2 q3)`` of every quad (rows
+    ``2q``, ``2q + 1``): outside a quad's tetrahedron they give its invariants (see qgc3d.c)."""
+    split = torch.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
+    p = verts[split]
+    return native_tables(TriangleGreenData(p, *triangle_frame(p), split, tol), verts)
+
+
+def _quad_part_native(
+    x: torch.Tensor, qdata: QuadGreenData, V: int, verts: torch.Tensor, lib: object, split: dict[str, torch.Tensor]
+) -> tuple:  # fmt: skip
+    """As :func:`_quad_part_torch`, with the native kernel (float64, CPU); ``split``: the tables
+    of :func:`_split_tables`."""
     x = x.contiguous()
     m, Q = x.shape[0], qdata.quads.shape[0]
     phi = torch.zeros(m, V, dtype=x.dtype)
@@ -48,7 +59,9 @@ def _quad_part_native(x: torch.Tensor, qdata: QuadGreenData, V: int, verts: torc
         verts.contiguous(), V, qdata.quads.to(torch.int32).contiguous(), Q, qdata.proj.size[:, 0].contiguous(),
         qdata.pinv.contiguous(), qdata.null.contiguous(), qdata.origin.contiguous(),
         qdata.pattern.to(torch.int32).contiguous(), qdata.pattern.shape[0], qdata.K, x, m, qdata.tol,
-        torch.get_num_threads(), phi, psi, onq, uv,
+        torch.get_num_threads(), phi, psi, onq, uv, split["Pv"], split["tri"], split["edges"],
+        split["edges"].shape[1], split["eu"], split["fe"], split["nrm"], split["two_area"], split["ell"], split["edir"],
+        split["eout"], split["gbary"],
     ]  # fmt: skip
     _native.call(lib.tc_qgc3d, args)  # type: ignore[attr-defined]
     onq = onq.long()
@@ -190,7 +203,8 @@ def quad_green_coordinates(
         )
     if qdata is not None:
         if lib is not None:
-            quad_part = functools.partial(_quad_part_native, qdata=qdata, V=V, verts=verts, lib=lib)
+            split = _split_tables(verts, cage.quads, tol)
+            quad_part = functools.partial(_quad_part_native, qdata=qdata, V=V, verts=verts, lib=lib, split=split)
         else:
             quad_part = functools.partial(_quad_part_torch, qdata=qdata, V=V)
     if lib is not None:
