@@ -99,9 +99,11 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             TE[c * Pn + t] = *slot;
         }
     free(seen);
-    /* Eq. 19's nodes are affine in the centre t (node i = ga[i] + gb[i] t), so is the mean of a
-     * sub-triangle's three: its centroid (uc, vc) = (UA + UB u, VA + VB v), without gathers. */
-    double *UA = (double *)malloc(sizeof(double) * 4 * (size_t)Pn), *UB = UA + Pn, *VA = UB + Pn, *VB = VA + Pn;
+    /* Eq. 19's nodes are affine in the centre t (node i = ga[i] + gb[i] t): so are the grid node
+     * g = (i, j) = i G + j, (u_i, v_j) = (GA[g] + GB[g] u, GA[G^2 + g] + GB[G^2 + g] v), and a
+     * sub-triangle's centroid (uc, vc) = (UA + UB u, VA + VB v): no per-point grid, no gathers. */
+    double *UA = (double *)malloc(sizeof(double) * (4 * (size_t)Pn + 4 * (size_t)G * G)), *UB = UA + Pn;
+    double *VA = UB + Pn, *VB = VA + Pn, *GA = VB + Pn, *GB = GA + 2 * G * G;
     {
         double ga[2 * K + 1], gb[2 * K + 1];
         grid19(0.0, K, ga);
@@ -116,19 +118,20 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 VB[t] += gb[iv[c * Pn + t]] / 3;
             }
         }
-    }
-    int *GU = (int *)malloc(sizeof(int) * 2 * (size_t)G * G), *GV = GU + G * G; /* node g = GU G + GV */
-    for (int g = 0; g < G * G; ++g) {
-        GU[g] = g / G;
-        GV[g] = g % G;
+        for (int g = 0; g < G * G; ++g) {
+            GA[g] = ga[g / G];
+            GB[g] = gb[g / G];
+            GA[G * G + g] = ga[g % G];
+            GB[G * G + g] = gb[g % G];
+        }
     }
     const double inv4pi = 1.0 / FOUR_PI;
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = (double *)malloc(sizeof(double) * (2 * (size_t)G + 4 * (size_t)G * G + 2 * (size_t)NE));
+        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)G * G + 2 * (size_t)NE));
         double *sbuf = (double *)malloc(sizeof(double) * (sws + 5 * (size_t)T2));
         double *SPSI = sbuf + sws, *SP = SPSI + T2, *SOM = SP + 3 * T2;
-        double *un = buf, *vn = un + G, *Sx = vn + G, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
+        double *Sx = buf, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
         double *IE = SR + G * G, *EL = IE + NE;
 #pragma omp for schedule(dynamic, 16)
         for (long pt = 0; pt < n; ++pt) {
@@ -184,12 +187,10 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 for (int i = 0; i < 8; ++i)
                     bar[i] = Ap[4 * i] * rhs[0] + Ap[4 * i + 1] * rhs[1] + Ap[4 * i + 2] * rhs[2] + Ap[4 * i + 3] * rhs[3];
                 /* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18). */
-                grid19(u, K, un);
-                grid19(v, K, vn);
                 const double p0x = qp.p[0][0], p0y = qp.p[0][1], p0z = qp.p[0][2];
 #pragma omp simd
                 for (long g = 0; g < G * G; ++g) { /* grid nodes on the quad, minus the point */
-                    double uu = un[GU[g]], vv = vn[GV[g]], uv = uu * vv;
+                    double uu = GA[g] + GB[g] * u, vv = GA[G * G + g] + GB[G * G + g] * v, uv = uu * vv;
                     double sx = p0x + uu * b[0] + vv * cc[0] + uv * dd[0];
                     double sy = p0y + uu * b[1] + vv * cc[1] + uv * dd[1];
                     double sz = p0z + uu * b[2] + vv * cc[2] + uv * dd[2];
@@ -296,5 +297,4 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     free(node);
     free(EJ);
     free(UA);
-    free(GU);
 }
