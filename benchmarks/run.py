@@ -135,7 +135,7 @@ def main() -> None:
     print("best: best of the repeated calls; peak MB: peak resident memory of the process above its level")
     print("before the first call; max |err|: linear precision, max |W V - X| / cage size (for green: the")
     print("identity phi V + psi n = X at the points inside the cage). native/torch/naive: mean value")
-    print("coordinates; green: Green coordinates (torch kernel).")
+    print("coordinates; green: Green coordinates (default backend: native where available).")
     if args.large:
         out_mb = args.large * 16 * 8 / 2**20
         print(f"\n{args.large} random points in the bar cage (16 vertices): the output alone is {out_mb:.0f} MB")

@@ -215,7 +215,15 @@ def test_backends_agree():
     if not _native.available():
         pytest.skip("no C compiler")
     cage = triquad()
-    x = torch.cat([inside_points(cage, 200), quad_adversarial_points(cage, distances=(0.0, 1e-6, 1e-3))[:-9]])
+    v, tri = cage.vertices.to(torch.float64), cage.triangles
+    assert tri.shape[0] > 0
+    on_tri = torch.cat([v[tri].mean(1), 0.5 * (v[tri[:, 0]] + v[tri[:, 1]])])  # on the triangles, their edges
+    far = 3 * cage.scale * torch.randn(20, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    x = torch.cat(
+        [inside_points(cage, 200), quad_adversarial_points(cage, distances=(0.0, 1e-6, 1e-3))[:-9], on_tri, far]
+    )
+    phi, psi = F.quad_green_coordinates(on_tri, cage, backend="native")  # the limit from inside
+    assert_reproduces(phi, psi, cage, on_tri)
     for n in (1, 2):
         a = F.quad_green_coordinates(x, cage, n, backend="native")
         b = F.quad_green_coordinates(x, cage, n, backend="torch")
