@@ -88,15 +88,19 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         for (int c = 0; c < 3; ++c) {
             int j = node[((c + 1) % 3) * Pn + t], k = node[((c + 2) % 3) * Pn + t];
             int lo = j < k ? j : k, hi = j < k ? k : j;
-            int off = (hi / G - lo / G + 2) * 5 + (hi % G - lo % G + 2); /* pattern edges span <= 2 cells */
-            int *slot = seen + 25 * (long)lo + off;
-            if (*slot < 0) {
-                *slot = (int)NE;
-                EJ[NE] = lo;
-                EK[NE] = hi;
-                ++NE;
+            int du = hi / G - lo / G, dv = hi % G - lo % G; /* Algorithm 1's edges span <= 2 cells */
+            int *slot = du <= 2 && dv >= -2 && dv <= 2 ? seen + 25 * (long)lo + (du + 2) * 5 + (dv + 2) : NULL;
+            long id = slot ? *slot : -1;
+            if (!slot) /* (any other pattern: a linear search) */
+                for (long e = 0; e < NE && id < 0; ++e)
+                    if (EJ[e] == lo && EK[e] == hi) id = e;
+            if (id < 0) {
+                id = NE++;
+                EJ[id] = lo;
+                EK[id] = hi;
+                if (slot) *slot = (int)id;
             }
-            TE[c * Pn + t] = *slot;
+            TE[c * Pn + t] = (int)id;
         }
     free(seen);
     /* Eq. 19's nodes are affine in the centre t (node i = ga[i] + gb[i] t): so are the grid node
