@@ -109,7 +109,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     double *UA = (double *)malloc(sizeof(double) * (4 * (size_t)Pn + 4 * (size_t)G * G)), *UB = UA + Pn;
     double *VA = UB + Pn, *VB = VA + Pn, *GA = VB + Pn, *GB = GA + 2 * G * G;
     {
-        double ga[2 * K + 1], gb[2 * K + 1];
+        double *ga = (double *)malloc(sizeof(double) * 2 * (size_t)G), *gb = ga + G;
         grid19(0.0, K, ga);
         grid19(1.0, K, gb);
         for (int i = 0; i < G; ++i) gb[i] -= ga[i];
@@ -128,6 +128,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             GA[G * G + g] = ga[g % G];
             GB[G * G + g] = gb[g % G];
         }
+        free(ga);
     }
     const double inv4pi = 1.0 / FOUR_PI;
 #pragma omp parallel num_threads(nthreads)
