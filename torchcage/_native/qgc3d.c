@@ -113,14 +113,19 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         grid19(0.0, K, ga);
         grid19(1.0, K, gb);
         for (int i = 0; i < G; ++i) gb[i] -= ga[i];
-        for (long t = 0; t < Pn; ++t) {
-            UA[t] = UB[t] = VA[t] = VB[t] = 0.0;
+        for (long t = 0; t < Pn; ++t) { /* (sums in locals: gcc 12 -O3 miscompiled the same sums
+                                           * accumulated in place after a zeroing store) */
+            double ua = 0.0, ub = 0.0, va = 0.0, vb = 0.0;
             for (int c = 0; c < 3; ++c) {
-                UA[t] += ga[iu[c * Pn + t]] / 3;
-                UB[t] += gb[iu[c * Pn + t]] / 3;
-                VA[t] += ga[iv[c * Pn + t]] / 3;
-                VB[t] += gb[iv[c * Pn + t]] / 3;
+                ua += ga[iu[c * Pn + t]];
+                ub += gb[iu[c * Pn + t]];
+                va += ga[iv[c * Pn + t]];
+                vb += gb[iv[c * Pn + t]];
             }
+            UA[t] = ua / 3;
+            UB[t] = ub / 3;
+            VA[t] = va / 3;
+            VB[t] = vb / 3;
         }
         for (int g = 0; g < G * G; ++g) {
             GA[g] = ga[g / G];
