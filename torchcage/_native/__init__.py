@@ -128,7 +128,11 @@ def _build() -> ctypes.CDLL:
     cc = _compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (set CC)")
-    flags = ["-O3", "-fno-math-errno", "-fno-trapping-math", "-fPIC", "-shared", "-fopenmp", "-std=c99"]
+    # -fno-trapping-math: selects vectorise (nothing reads floating-point exception flags);
+    # -fno-tree-loop-distribute-patterns: gcc 12.2 -O3 miscompiled a loop of in-place sums after
+    # a zeroing store when it split the loop around a memset (found in qgc3d.c, reproduced alone).
+    flags = ["-O3", "-fno-math-errno", "-fno-trapping-math", "-fno-tree-loop-distribute-patterns", "-fPIC",
+             "-shared", "-fopenmp", "-std=c99"]  # fmt: skip
     flags += os.environ.get("TORCHCAGE_CFLAGS", "").split()
     # (compile flags, libraries): glibc's vector atan with AVX2, then SSE2, then plain scalar code.
     variants: list[tuple[list[str], list[str]]] = [([], [])]
