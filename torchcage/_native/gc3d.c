@@ -1,7 +1,7 @@
 /*
  * Native CPU kernel of torchcage's 3D Green coordinates (float64): the same closed forms as
- * torchcage/functional/_green3d.py (see its module docstring), one point per iteration, OpenMP
- * over points. The tests check it against the torch kernel.
+ * torchcage/functional/_green3d.py (see its module docstring), one point per iteration (tc_gc_point,
+ * also used by the QGC kernel), OpenMP over points. The tests check it against the torch kernel.
  */
 #define _GNU_SOURCE
 #include <math.h>

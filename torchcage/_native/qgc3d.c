@@ -2,12 +2,14 @@
  * Native CPU kernel of the quad part of torchcage's Green coordinates for triquad cages (float64).
  *
  * The same steps as torchcage/functional/_qgc3d.py (see its docstring): per point and quad, the
- * smooth projection (tc_quad_pair, shared with QMVC), the invariants on the fan of four triangles
- * from the projection to the edges (exact triangle Green integrals, tc_tri_green), the least-norm
- * solution through the precomputed pseudo-inverse of A_q, and the null-space part from the adaptive
- * Riemann sum of Algorithm 1. On the Riemann sub-triangles the solid angle is taken in Van
- * Oosterom and Strackee's one-atan2 form (the estimate needs no more); the tests check this kernel
- * against the torch kernel. One point per iteration, OpenMP over points.
+ * smooth projection (tc_quad_pair, shared with QMVC), the invariants from exact triangle Green
+ * integrals (outside the quad's tetrahedron on its split triangles, computed for all quads at once
+ * per point by tc_gc_point; inside it on the fan of four triangles from the projection to the
+ * edges, tc_tri_green), the least-norm solution through the precomputed pseudo-inverse of A_q, and
+ * the null-space part from the adaptive Riemann sum of Algorithm 1 (edge integrals once per unique
+ * pattern edge, then one vectorised loop over the sub-triangles). On the Riemann sub-triangles the
+ * solid angle is taken in Van Oosterom and Strackee's one-atan2 form (the estimate needs no more);
+ * the tests check this kernel against the torch kernel. One point per iteration, OpenMP over points.
  */
 #define _GNU_SOURCE
 #include <math.h>
@@ -23,13 +25,6 @@ __attribute__((simd("notinbranch"))) double atan2(double, double);
 #endif
 
 #define FOUR_PI 12.566370614359172953850573533118
-
-/* int_e dl / r along an edge (as edge_integral in gc3d.c, without the stored constants). */
-static inline double edge_log(double l_j, double l_k, double R_j, double R_k, double R0sq) {
-    if (l_j >= 0) return log((R_k + l_k) / fmax(R_j + l_j, 1e-300));
-    if (l_k <= 0) return log((R_j - l_j) / fmax(R_k - l_k, 1e-300));
-    return log((R_k + l_k) * (R_j - l_j) / fmax(R0sq, 1e-300));
-}
 
 /* Eq. 19 (m = 3): 2K + 1 nodes in [0, 1] concentrated around t. */
 static void grid19(double t, int K, double *x) {
