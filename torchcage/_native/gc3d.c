@@ -19,11 +19,11 @@ __attribute__((simd("notinbranch"))) double log(double);
 __attribute__((simd("notinbranch"))) double atan2(double, double);
 #endif
 
-/* int_e dl / r along the edge from p_j to p_k, in the form that does not cancel. */
-static inline double edge_integral(double l_j, double l_k, double R_j, double R_k, double R0sq) {
-    if (l_j >= 0) return log((R_k + l_k) / fmax(R_j + l_j, 1e-300));
-    if (l_k <= 0) return log((R_j - l_j) / fmax(R_k - l_k, 1e-300));
-    return log((R_k + l_k) * (R_j - l_j) / fmax(R0sq, 1e-300));
+/* One edge's term of the solid angle's edge sum (no cancellation near the face's plane): d the
+ * foot point's signed distance to the edge line, l_j, l_k, R_j, R_k as in tc_edge_log_arg, R0sq =
+ * d^2 + h^2, habs = |h|. */
+static inline double edge_angle(double d, double l_j, double l_k, double R_j, double R_k, double R0sq, double habs) {
+    return atan2(d * l_k, R0sq + habs * R_k) - atan2(d * l_j, R0sq + habs * R_j);
 }
 
 /* The Green integrals of a face from its distance h to the point, solid angle om, the signed
@@ -74,8 +74,8 @@ int tc_tri_green(const double a[3][3], const double *nf, double two_area, const 
         const double *u = edir + 3 * e, *m = eout + 3 * e;
         d[e] = dot3(a[j], m);
         double l_j = dot3(a[j], u), l_k = dot3(a[k], u), R0sq = d[e] * d[e] + h * h;
-        if (!far) beta += atan2(d[e] * l_k, R0sq + habs * R[k]) - atan2(d[e] * l_j, R0sq + habs * R[j]);
-        I[e] = edge_integral(l_j, l_k, R[j], R[k], R0sq);
+        if (!far) beta += edge_angle(d[e], l_j, l_k, R[j], R[k], R0sq, habs);
+        I[e] = log(tc_edge_log_arg(l_j, l_k, R[j], R[k], R0sq));
         inside &= d[e] >= -tol;
     }
     if (far) {
@@ -163,7 +163,7 @@ void tc_gc_free(gc_tables *g) {
 }
 
 /* Doubles of workspace tc_gc_point needs. */
-size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g->E + 6 * (size_t)g->T; }
+size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g->E + 5 * (size_t)g->T; }
 
 /*
  * The Green integrals of all faces seen from the point x: psi (T,) and each face's corner terms
@@ -191,19 +191,14 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         Az[v] = az;
         RA[v] = sqrt(ax * ax + ay * ay + az * az);
     }
-    /* Edge integrals in edge_integral's three forms, all computed, then selected: vectorises. */
+    /* Edge integrals (the logs in a loop of their own, vectorised with libmvec). */
 #pragma omp simd
     for (long q = 0; q < E; ++q) {
         int j = e0[q], k = e1[q];
         double ux = eu[q], uy = eu[E + q], uz = eu[2 * E + q];
         double l_j = Ax[j] * ux + Ay[j] * uy + Az[j] * uz, l_k = Ax[k] * ux + Ay[k] * uy + Az[k] * uz;
         double cx = Ay[j] * uz - Az[j] * uy, cy = Az[j] * ux - Ax[j] * uz, cz = Ax[j] * uy - Ay[j] * ux;
-        double Rj = RA[j], Rk = RA[k];
-        double pk = Rk + l_k, mj = Rj - l_j, pj = Rj + l_j, mk = Rk - l_k, both = pk * mj;
-        double c2 = cx * cx + cy * cy + cz * cz;
-        double num = l_j >= 0 ? pk : (l_k <= 0 ? mj : both);
-        double den = l_j >= 0 ? pj : (l_k <= 0 ? mk : c2);
-        IE[q] = num / (den > 1e-300 ? den : 1e-300);
+        IE[q] = tc_edge_log_arg(l_j, l_k, RA[j], RA[k], cx * cx + cy * cy + cz * cz);
     }
 #pragma omp simd
     for (long q = 0; q < E; ++q) IE[q] = log(IE[q]);
@@ -257,7 +252,7 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
             const double *u = ed + 3 * e;
             double l_j = Ax[j] * u[0] + Ay[j] * u[1] + Az[j] * u[2];
             double l_k = Ax[k] * u[0] + Ay[k] * u[1] + Az[k] * u[2], R0sq = d[e] * d[e] + h * h;
-            beta += atan2(d[e] * l_k, R0sq + habs * RA[k]) - atan2(d[e] * l_j, R0sq + habs * RA[j]);
+            beta += edge_angle(d[e], l_j, l_k, RA[j], RA[k], R0sq, habs);
         }
         OM[f] = h >= 0 ? beta : -beta;
     }

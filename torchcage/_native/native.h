@@ -12,6 +12,17 @@ static inline void cross3(const double *a, const double *b, double *c) {
 
 static inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
+/* The argument of the log in int_e dl / r = log(arg) along an edge from p_j to p_k: l_j, l_k the
+ * endpoints' positions along the edge's direction from the point's foot, R_j, R_k their distances,
+ * c2 the squared distance from the point to the edge's line. Three forms, each free of cancellation
+ * where it is used; all are computed, then one selected, so that loops over edges vectorise. */
+static inline double tc_edge_log_arg(double l_j, double l_k, double R_j, double R_k, double c2) {
+    double pk = R_k + l_k, mj = R_j - l_j, pj = R_j + l_j, mk = R_k - l_k, both = pk * mj;
+    double num = l_j >= 0 ? pk : (l_k <= 0 ? mj : both);
+    double den = l_j >= 0 ? pj : (l_k <= 0 ? mk : c2);
+    return num / (den > 1e-300 ? den : 1e-300);
+}
+
 /* Stable split form of one triangle's mean value weights near its support plane (mvc3d.c). */
 void tc_stable_face(double h, const double *s, const double *dots, const double *R, const double *ell,
                     const double *gram, double two_area, double *w);

@@ -137,7 +137,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         double *sbuf = (double *)malloc(sizeof(double) * (sws + 5 * (size_t)T2));
         double *SPSI = sbuf + sws, *SP = SPSI + T2, *SOM = SP + 3 * T2;
         double *Sx = buf, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
-        double *IE = SR + G * G, *EL = IE + NE;
+        double *IE = SR + G * G, *EINV = IE + NE;
 #pragma omp for schedule(dynamic, 16)
         for (long pt = 0; pt < n; ++pt) {
             const double *x = X + 3 * pt;
@@ -156,9 +156,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     UV[2 * pt + 1] = qp.vertex < 0 ? v : (qp.vertex >= 2 ? 1.0 : 0.0);
                 }
                 const double *b = qp.b, *cc = qp.cc, *dd = qp.dd;
-                /* Invariants on the fan from the projection to the four edges. */
-                double apex[3], rhs[4] = {0, 0, 0, 0};
-                for (int c = 0; c < 3; ++c) apex[c] = qp.p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
+                double rhs[4] = {0, 0, 0, 0}; /* the invariants */
                 /* Outside the quad's tetrahedron the point cannot lie between the sheet and the split
                  * (q0 q1 q2), (q0 q2 q3): those two triangles give the same invariants, already
                  * computed for all quads above. */
@@ -172,7 +170,9 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                         }
                         for (int c = 0; c < 3; ++c) rhs[c] += SPSI[t] * s_nrm[3 * t + c];
                     }
-                } else {
+                } else { /* on the fan from the projection (apex) to the four edges */
+                    double apex[3];
+                    for (int c = 0; c < 3; ++c) apex[c] = qp.p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
                     for (int e = 0; e < 4; ++e) {
                         double a[3][3], nf[3], ell[3], edir[9], eout[9], gbary[9], ph[3], ps, om, al[3];
                         memcpy(a[0], qp.p[e], sizeof(a[0]));
@@ -205,8 +205,8 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     SR[g] = sqrt(sx * sx + sy * sy + sz * sz);
                 }
                 const double *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
-                /* Edges: int dl / r in the three forms of edge_integral (gc3d.c), selected without
-                 * branches, and 1 / length; plain loops that vectorise (libmvec's log). */
+                /* Edges: int dl / r (tc_edge_log_arg, then the logs in a loop of their own, vectorised
+                 * with libmvec) and 1 / length. */
 #pragma omp simd
                 for (long e = 0; e < NE; ++e) {
                     int j = EJ[e], k = EK[e];
@@ -216,13 +216,9 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
                     double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
                     double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
-                    double pk = Rk + lk, mj = Rj - lj, pj = Rj + lj, mk = Rk - lk, both = pk * mj;
-                    double c2 = cx * cx + cy * cy + cz * cz;
-                    double num = lj >= 0 ? pk : (lk <= 0 ? mj : both);
-                    double den = lj >= 0 ? pj : (lk <= 0 ? mk : c2);
-                    double arg = num / (den > 1e-300 ? den : 1e-300);
+                    double arg = tc_edge_log_arg(lj, lk, Rj, Rk, cx * cx + cy * cy + cz * cz);
                     IE[e] = arg > 1e-300 ? arg : 1e-300;
-                    EL[e] = invl; /* 1 / length (0 for a degenerate edge) */
+                    EINV[e] = invl; /* 1 / length (0 for a degenerate edge) */
                 }
 #pragma omp simd
                 for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
@@ -254,7 +250,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                     double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
                     double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
                     int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
-                    double d0 = m0 * inv2A * EL[k0], d1 = m1 * inv2A * EL[k1], d2 = m2 * inv2A * EL[k2];
+                    double d0 = m0 * inv2A * EINV[k0], d1 = m1 * inv2A * EINV[k1], d2 = m2 * inv2A * EINV[k2];
                     double q0 = d0 * IE[k0], q1 = d1 * IE[k1], q2 = d2 * IE[k2];
                     double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
                     double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from .. import _native
-from ._green3d import TriangleGreenData
+from ._green3d import TriangleGreenData, triangle_frame
 from ._mvc3d_native import unique_face_edges
 
 
@@ -29,6 +29,13 @@ def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, 
         "eout": data.edge_out.contiguous(),
         "gbary": data.grad_bary.contiguous(),
     }
+
+
+def native_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: float) -> dict[str, torch.Tensor]:
+    """:func:`native_tables` of triangles ``tri`` ``(T, 3)`` over ``vertices`` ``(V, 3)`` float64
+    that need not close a cage (a triquad cage's triangles, the split triangles of its quads)."""
+    p = vertices[tri]
+    return native_tables(TriangleGreenData(p, *triangle_frame(p), tri, tol), vertices)
 
 
 def native_chunk(

@@ -10,8 +10,8 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ._common import chunks
-from ._green3d import TriangleGreenData, triangle_frame, triangle_integrals
-from ._green3d_native import native_chunk, native_tables
+from ._green3d import triangle_frame, triangle_integrals
+from ._green3d_native import native_chunk, native_subset_tables
 from ._qgc3d import QuadGreenData, quad_green_chunk, quad_green_data
 from .quad_mean_value import prepare_quad_call
 
@@ -40,8 +40,7 @@ def _split_tables(verts: torch.Tensor, quads: torch.Tensor, tol: float) -> dict[
     """Green-kernel tables of the triangles ``(q0 q1 q2)``, ``(q0 q2 q3)`` of every quad (rows
     ``2q``, ``2q + 1``): outside a quad's tetrahedron they give its invariants (see qgc3d.c)."""
     split = torch.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
-    p = verts[split]
-    return native_tables(TriangleGreenData(p, *triangle_frame(p), split, tol), verts)
+    return native_subset_tables(verts, split, tol)
 
 
 def _quad_part_native(
@@ -108,13 +107,14 @@ def _chunk(x: torch.Tensor, tri_part, quad_part, V: int) -> tuple[torch.Tensor, 
     """``(phi (m, V), psi (m, T + 4Q))`` of a chunk ``x`` ``(m, 3)``; ``tri_part(x)`` and
     ``quad_part(x)`` compute the triangles' and the quads' shares (None where there are none)."""
     m = x.shape[0]
-    phi = torch.zeros(m, V, dtype=x.dtype, device=x.device)
     psis = []
-    on = torch.zeros(m, dtype=torch.bool, device=x.device)
-    hat = torch.zeros(m, V, dtype=x.dtype, device=x.device)
     if tri_part is not None:
         phi, psi_t, on, hat = tri_part(x)
         psis.append(psi_t)
+    else:
+        phi = torch.zeros(m, V, dtype=x.dtype, device=x.device)
+        on = torch.zeros(m, dtype=torch.bool, device=x.device)
+        hat = torch.zeros(m, V, dtype=x.dtype, device=x.device)
     if quad_part is not None:
         phi_q, psi_q, onq, hat_q = quad_part(x)
         phi = phi + phi_q
@@ -193,9 +193,7 @@ def quad_green_coordinates(
     lib = _native.select(backend, x, cage.vertices)
     tri_part = quad_part = None
     if T and lib is not None:
-        normal, two_area, edge_dir, edge_out, grad_bary = tri_geometry
-        tdata = TriangleGreenData(tri_p, normal, two_area, edge_dir, edge_out, grad_bary, cage.triangles, tol)
-        tables = native_tables(tdata, verts)
+        tables = native_subset_tables(verts, cage.triangles, tol)
         tri_part = functools.partial(_tri_part_native, tables=tables, triangles=cage.triangles, V=V, tol=tol, lib=lib)
     elif T:
         tri_part = functools.partial(
