@@ -11,7 +11,7 @@ from test_quad_mean_value import bent_box, box_points, quad_adversarial_points, 
 
 import torchcage
 from torchcage import functional as F
-from torchcage.nn.green import triangle_frames
+from torchcage.functional._stretch import triangle_frames
 
 
 def normals(cage: torchcage.Cage) -> torch.Tensor:

@@ -48,10 +48,10 @@ from torch import nn
 from ._raster import rasterize_triangles
 from .cage import Cage
 from .errors import CageError
+from .functional._stretch import stretched_normals
 from .functional.green import green_coordinates
 from .functional.mean_value import mean_value_coordinates
 from .geometry import inside_polygon
-from .nn.green import stretched_normals
 
 __all__ = ["CageWarp", "inside_polygon", "pixel_centres", "warp_image"]
 

@@ -17,6 +17,47 @@ from ..errors import CageError, PointsError
 ON_CAGE_TOLERANCE = 16 * torch.finfo(torch.float64).eps
 
 
+def records_graph(*tensors: torch.Tensor) -> bool:
+    """True when autograd (or a torch.func transform) differentiates through a call on ``tensors``."""
+    if any(is_functorch_wrapped_tensor(t) for t in tensors):
+        return True
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
+def outside_point(vertices: torch.Tensor) -> torch.Tensor:
+    """A point ``(D,)`` well outside the bounding box of ``vertices`` ``(V, D)`` (detached), in no
+    special position: kernels evaluate their regular formula there in place of points on the cage,
+    whose values come from the interpolant, so that the discarded branch has finite derivatives
+    (``torch.where`` multiplies the unused branch's gradient by zero, and ``0 * inf`` is NaN)."""
+    v = vertices.detach()
+    lo, hi = v.min(dim=0).values, v.max(dim=0).values
+    size = (hi - lo).norm()
+    direction = v.new_tensor([0.8017, 0.4751, 0.3625][: v.shape[1]])
+    return hi + size * direction
+
+
+def safe_sqrt(x: torch.Tensor) -> torch.Tensor:
+    """``sqrt(max(x, 0))`` whose derivative at 0 is 0 instead of inf (a finite subgradient)."""
+    pos = x > 0
+    return torch.sqrt(torch.where(pos, x, 1.0)) * pos
+
+
+def safe_norm(x: torch.Tensor, dim: int = -1, keepdim: bool = False) -> torch.Tensor:
+    """Euclidean norm over ``dim`` whose derivative at the zero vector is 0 (not NaN)."""
+    return safe_sqrt((x * x).sum(dim=dim, keepdim=keepdim))
+
+
+def safe_atan2(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``atan2(y, x)`` with the value 0 and zero derivatives at ``(0, 0)`` (torch gives NaN there)."""
+    zero = (y == 0) & (x == 0)
+    return torch.atan2(torch.where(zero, 0.0, y), torch.where(zero, 1.0, x))
+
+
+def safe_div(num: torch.Tensor, den: torch.Tensor, ok: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
+    """``num / den`` where ``ok``, ``fill`` elsewhere, with finite derivatives on both branches."""
+    return torch.where(ok, num / torch.where(ok, den, 1.0), fill)
+
+
 def triangle_geometry(cage: Cage, dtype: torch.dtype, quad_hint: str) -> tuple[torch.Tensor, ...]:
     """Corners ``(T, 3, 3)``, unit outward normals ``(T, 3)`` and twice the areas ``(T,)`` of a
     triangle cage's faces, in ``dtype``.

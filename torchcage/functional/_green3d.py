@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import ON_CAGE_TOLERANCE, triangle_geometry
+from ._common import ON_CAGE_TOLERANCE, records_graph, safe_atan2, safe_norm, triangle_geometry
 
 
 @dataclass(frozen=True)
@@ -75,11 +75,11 @@ def triangle_frame(p: torch.Tensor) -> tuple[torch.Tensor, ...]:
     in-plane gradient of the corner's hat function. Degenerate triangles get finite placeholders
     (normal (0, 0, 1), zero gradients) and ``two_area = 0``: callers weight them by their area."""
     cross = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
-    two_area = cross.norm(dim=-1)
+    two_area = safe_norm(cross)
     ok = two_area > 0
     n = torch.where(ok[..., None], cross / torch.where(ok, two_area, 1.0)[..., None], cross.new_tensor([0.0, 0.0, 1.0]))
     E = p.roll(-2, dims=-2) - p.roll(-1, dims=-2)  # edge opposite corner i: p_{i+1} -> p_{i+2}
-    ell = E.norm(dim=-1, keepdim=True)
+    ell = safe_norm(E, keepdim=True)
     edge_dir = E / torch.where(ell > 0, ell, 1.0)
     edge_out = torch.linalg.cross(edge_dir, n[..., None, :].expand_as(edge_dir), dim=-1) * ok[..., None, None]
     grad_bary = -edge_out * (ell / torch.where(ok, two_area, 1.0)[..., None, None]) * ok[..., None, None]
@@ -91,14 +91,34 @@ def _edge_integrals(a_j: torch.Tensor, a_k: torch.Tensor, u: torch.Tensor) -> to
     ``a = p - eta``: ``asinh(l_k / R0) - asinh(l_j / R0)``, evaluated as a ratio of sums that
     never cancel. Shapes ``(..., 3)`` -> ``(...)``."""
     l_j, l_k = (a_j * u).sum(-1), (a_k * u).sum(-1)
-    R_j, R_k = a_j.norm(dim=-1), a_k.norm(dim=-1)
+    R_j, R_k = safe_norm(a_j), safe_norm(a_k)
     # Ahead of the edge (l >= 0): log((R_k + l_k) / (R_j + l_j)); behind it: log((R_j - l_j) / (R_k - l_k));
     # straddling: (R_j + l_j) = R0^2 / (R_j - l_j) with R0^2 = R_j^2 - l_j^2 from the cross product.
     R0sq = torch.linalg.cross(a_j, u.expand_as(a_j), dim=-1).square().sum(-1)
-    ahead = torch.log((R_k + l_k) / (R_j + l_j).clamp_min(1e-300))
-    behind = torch.log((R_j - l_j) / (R_k - l_k).clamp_min(1e-300))
-    straddle = torch.log((R_k + l_k) * (R_j - l_j) / R0sq.clamp_min(1e-300))
+    # Each form is evaluated where its arguments are positive and is 0 elsewhere (a point on the
+    # edge, where I is infinite and its callers multiply it by 0), so every branch has finite
+    # derivatives.
+    ahead = _log_ratio(R_k + l_k, R_j + l_j)
+    behind = _log_ratio(R_j - l_j, R_k - l_k)
+    straddle = _log_ratio((R_k + l_k) * (R_j - l_j), R0sq)
     return torch.where(l_j >= 0, ahead, torch.where(l_k <= 0, behind, straddle))
+
+
+def _vos_solid_angle(a: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """Signed solid angle ``2 atan2(det, den)`` (Van Oosterom-Strackee) of triangles with corners
+    ``a`` ``(..., 3, 3)`` relative to the point and their lengths ``R`` ``(..., 3)``; positive for
+    points on the inner side (the sign convention of :func:`triangle_integrals`)."""
+    a0, a1, a2 = a[..., 0, :], a[..., 1, :], a[..., 2, :]
+    det = (a0 * torch.linalg.cross(a1, a2, dim=-1)).sum(-1)
+    R0, R1, R2 = R[..., 0], R[..., 1], R[..., 2]
+    den = R0 * R1 * R2 + (a0 * a1).sum(-1) * R2 + (a0 * a2).sum(-1) * R1 + (a1 * a2).sum(-1) * R0
+    return 2.0 * safe_atan2(det, den)
+
+
+def _log_ratio(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
+    """``log(num / den)`` where both are positive, 0 elsewhere; finite derivatives everywhere."""
+    ok = (num > 0) & (den > 0)
+    return torch.log(torch.where(ok, num, 1.0) / torch.where(ok, den, 1.0))
 
 
 def green3d_chunk(x: torch.Tensor, data: TriangleGreenData) -> tuple[torch.Tensor, ...]:
@@ -125,7 +145,7 @@ def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol:
     alpha (..., 3))`` as :func:`green3d_chunk`."""
     normal, two_area, edge_dir, edge_out, grad_bary = geometry
     h = (a[..., 0, :] * normal).sum(-1)  # > 0 on the inner side
-    R = a.norm(dim=-1)  # (..., 3)
+    R = safe_norm(a)  # (..., 3)
     aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]  # edge e runs from corner e + 1 to e + 2
     # Edge integrals and signed foot-to-edge distances (positive inside).
     ok = two_area > 0  # a degenerate triangle integrates to nothing
@@ -135,22 +155,31 @@ def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol:
     # Omega = sign(h) sum_e [atan(d l_k / (R0^2 + |h| R_k)) - atan(d l_j / (R0^2 + |h| R_j))].
     l_j, l_k = (aj * edge_dir).sum(-1), (ak * edge_dir).sum(-1)
     R_j, R_k = R[..., [1, 2, 0]], R[..., [2, 0, 1]]
-    habs = h.abs()[..., None]
+    # |h| as sign(h) h with the sign held constant (sign(0) = +1): Omega = sign(h) f(|h|) is smooth
+    # across the plane outside the face, and this keeps its derivative there (abs' (0) = 0 lost it).
+    sgn = torch.where(h >= 0, 1.0, -1.0)
+    habs = (sgn * h)[..., None]
     R0sq = d * d + habs * habs
-    beta = torch.atan2(d * l_k, R0sq + habs * R_k) - torch.atan2(d * l_j, R0sq + habs * R_j)
-    omega = torch.where(h >= 0, 1.0, -1.0) * beta.sum(-1)
-    # Faces whose plane holds the point (within tol) contribute their principal value: no solid
-    # angle, no h-term; edges through the point have d = 0 and a log-singular I: their product is 0.
+    beta = safe_atan2(d * l_k, R0sq + habs * R_k) - safe_atan2(d * l_j, R0sq + habs * R_j)
+    omega = sgn * beta.sum(-1)
+    # Faces that hold the point (within tol) contribute their principal value: no solid angle, no
+    # h-term; edges through the point have d = 0 and a log-singular I: their product is 0. A point
+    # on a face's plane off the face keeps both (omega is 0 there, its derivative is not).
     on_plane = h.abs() <= tol
-    omega = torch.where(on_plane, 0.0, omega)
-    ell = grad_bary.norm(dim=-1) * two_area[..., None]  # |grad| * 2A = edge length
+    on_face = on_plane & (d >= -tol).all(dim=-1) & ok
+    if records_graph(a):
+        # On the plane off the face, omega is 0 but the edge-sum form has no derivative where the
+        # point is also on an edge's line (atan2(0, 0) in both of that edge's terms): take the
+        # Van Oosterom-Strackee form there, whose denominator is positive off the face.
+        omega = torch.where(on_plane & ~on_face, _vos_solid_angle(a, R), omega)
+    omega = torch.where(on_face, 0.0, omega)
+    ell = safe_norm(grad_bary) * two_area[..., None]  # |grad| * 2A = edge length
     alpha = d * ell / torch.where(two_area > 0, two_area, 1.0)[..., None]  # barycentric coords of the foot
-    K = -(edge_out * torch.where(on_plane[..., None], 0.0, I)[..., None]).sum(-2)  # (..., 3)
+    K = -(edge_out * torch.where(on_face[..., None], 0.0, I)[..., None]).sum(-2)  # (..., 3)
     gK = (grad_bary * K[..., None, :]).sum(-1)  # (..., 3)
     phi_face = (alpha * omega[..., None] + h[..., None] * gK) / (4 * math.pi)
-    dI = torch.where(d != 0, d * I, 0.0)
+    dI = d * I  # I is 0 (not infinite) where d = 0 on the edge; d I keeps its derivative where d = 0 off it
     psi = (dI.sum(-1) - h * omega) / (4 * math.pi)
-    on_face = on_plane & (d >= -tol).all(dim=-1) & ok
     psi, omega = torch.where(ok, psi, 0.0), torch.where(ok, omega, 0.0)
     return torch.where(ok[..., None], phi_face, 0.0), psi, omega, on_face, alpha
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import ON_CAGE_TOLERANCE
+from ._common import ON_CAGE_TOLERANCE, outside_point, records_graph, safe_div, safe_sqrt
 
 
 @dataclass(frozen=True)
@@ -38,39 +38,70 @@ def polygon_data(cage: Cage, dtype: torch.dtype) -> PolygonData:
     )
 
 
-def mvc2d_chunk(x: torch.Tensor, data: PolygonData) -> tuple[torch.Tensor, torch.Tensor]:
-    """2D counterpart of :func:`mvc3d_chunk`: ``x`` ``(n, 2)`` -> weights ``(V, n)`` and on-cage mask."""
-    V = data.vertices.shape[1]
-    n = x.shape[0]
+def _pair_terms(x: torch.Tensor, data: PolygonData) -> dict[str, torch.Tensor]:
+    """Per edge-point quantities ``(E, n)``: ``a = p - x`` at both ends, their lengths, the cross
+    and dot products of the two."""
     a_all = data.vertices[:, :, None] - x.T[:, None, :]  # (2, V, n)
-    R_all = torch.sqrt((a_all * a_all).sum(dim=0))
+    R_all = safe_sqrt((a_all * a_all).sum(dim=0))
     j, k = data.edges[:, 0], data.edges[:, 1]
     ajx, ajy = a_all[0].index_select(0, j), a_all[1].index_select(0, j)
     akx, aky = a_all[0].index_select(0, k), a_all[1].index_select(0, k)
-    Rj, Rk = R_all.index_select(0, j), R_all.index_select(0, k)
     ex, ey = data.edge_vec[0], data.edge_vec[1]
-    cross = ajx * ey - ajy * ex  # a_j ^ a_k = a_j ^ (p_k - p_j): twice the signed area (x, p_j, p_k)
-    dot = ajx * akx + ajy * aky
+    return {
+        "ajx": ajx,
+        "ajy": ajy,
+        "Rj": R_all.index_select(0, j),
+        "Rk": R_all.index_select(0, k),
+        "cross": ajx * ey - ajy * ex,  # a_j ^ a_k = a_j ^ (p_k - p_j): twice the signed area (x, p_j, p_k)
+        "dot": ajx * akx + ajy * aky,
+    }
+
+
+def _regular_weights(q: dict[str, torch.Tensor], data: PolygonData, V: int) -> torch.Tensor:
+    """Unnormalised weights ``(V, n)`` of points off the cage."""
+    cross, dot, Rj, Rk = q["cross"], q["dot"], q["Rj"], q["Rk"]
     RR = Rj * Rk
-    safe_cross = torch.where(cross != 0, cross, 1.0)
-    tan_half = torch.where(dot >= 0, cross / (RR + dot), torch.where(cross != 0, (RR - dot) / safe_cross, 0.0))
-    W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
-    W.index_add_(0, j, tan_half / torch.where(Rj > 0, Rj, 1.0))
-    W.index_add_(0, k, tan_half / torch.where(Rk > 0, Rk, 1.0))
+    tan_half = torch.where(dot >= 0, safe_div(cross, RR + dot, RR + dot > 0), safe_div(RR - dot, cross, cross != 0))
+    W = cross.new_zeros((V, cross.shape[1]))
+    W.index_add_(0, data.edges[:, 0], safe_div(tan_half, Rj, Rj > 0))
+    W.index_add_(0, data.edges[:, 1], safe_div(tan_half, Rk, Rk > 0))
+    return W
+
+
+def mvc2d_chunk(x: torch.Tensor, data: PolygonData) -> tuple[torch.Tensor, torch.Tensor]:
+    """2D counterpart of :func:`mvc3d_chunk`: ``x`` ``(n, 2)`` -> weights ``(V, n)`` and on-cage mask.
+
+    Points on the cage get the linear interpolation along the edge holding them, differentiable in
+    the point and the edge's ends (the coordinates of the point's projection on the edge; constant
+    at a vertex); their regular formula, which is singular there, is evaluated at a point off the
+    cage instead when a graph is recorded, so that no NaN reaches the gradients.
+    """
+    V = data.vertices.shape[1]
+    q = _pair_terms(x, data)
+    j, k = data.edges[:, 0], data.edges[:, 1]
+    ex, ey = data.edge_vec[0], data.edge_vec[1]
+    Rj, Rk = q["Rj"], q["Rk"]
     # Points on an edge (or a vertex): linear interpolation along the edge.
     ell2 = data.edge_len2
-    t = -(ajx * ex + ajy * ey) / ell2  # projection parameter of x on the edge, 0 at p_j
-    dist = cross.abs() / torch.sqrt(ell2)
+    t = -(q["ajx"] * ex + q["ajy"] * ey) / ell2  # projection parameter of x on the edge, 0 at p_j
+    dist = q["cross"].abs() / torch.sqrt(ell2)
     tol = data.tol
     on_edge = (dist <= tol) & (t >= -tol / torch.sqrt(ell2)) & (t <= 1 + tol / torch.sqrt(ell2))
     on_edge |= (Rj <= tol) | (Rk <= tol)
     on_cage = on_edge.any(dim=0)
-    if bool(on_cage.any()):
-        cols = torch.nonzero(on_cage).squeeze(1)
-        f = on_edge[:, cols].to(torch.int8).argmax(dim=0)
-        tt = t[f, cols].clamp(0.0, 1.0)
-        tt = torch.where(Rj[f, cols] <= tol, 0.0, torch.where(Rk[f, cols] <= tol, 1.0, tt))
-        Wc = torch.zeros((V, cols.shape[0]), dtype=x.dtype, device=x.device)
-        Wc.scatter_add_(0, torch.stack([j[f], k[f]]), torch.stack([1.0 - tt, tt]))
-        W[:, cols] = Wc
+    if not bool(on_cage.any()):
+        return _regular_weights(q, data, V), on_cage
+    if records_graph(x, data.vertices):
+        W = _regular_weights(
+            _pair_terms(torch.where(on_cage[:, None], outside_point(data.vertices.T), x), data), data, V
+        )
+    else:
+        W = _regular_weights(q, data, V)
+    cols = torch.nonzero(on_cage).squeeze(1)
+    f = on_edge[:, cols].to(torch.int8).argmax(dim=0)
+    tt = t[f, cols].clamp(0.0, 1.0)
+    tt = torch.where(Rj[f, cols] <= tol, 0.0, torch.where(Rk[f, cols] <= tol, 1.0, tt))
+    Wc = torch.zeros((V, cols.shape[0]), dtype=x.dtype, device=x.device)
+    Wc = Wc.scatter_add(0, torch.stack([j[f], k[f]]), torch.stack([1.0 - tt, tt]))
+    W = W.index_copy(1, cols, Wc)
     return W, on_cage

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import ON_CAGE_TOLERANCE, triangle_geometry
+from ._common import ON_CAGE_TOLERANCE, outside_point, records_graph, triangle_geometry
 
 #: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
 NEAR_PLANE = 0.01
@@ -334,14 +334,18 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, 
     """
     V, n = data.vertices.shape[1], x.shape[0]
     w, q = face_weights(x, data)
-    W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
-    for i in range(3):
-        W.index_add_(0, data.tri[:, i], w[i])
-
     # Points on the cage: barycentric coordinates in a face that contains them.
     on_face = _on_cage(q, data)
     on_cage = on_face.any(dim=0)
-    if bool(on_cage.any()):
+    any_on = bool(on_cage.any())
+    if any_on and records_graph(x, data.vertices):
+        # The regular formula is singular on the cage: evaluate it off the cage for those points,
+        # so that the discarded values carry finite derivatives (no NaN through torch.where).
+        w, _ = face_weights(torch.where(on_cage[:, None], outside_point(data.vertices.T), x), data)
+    W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
+    for i in range(3):
+        W.index_add_(0, data.tri[:, i], w[i])
+    if any_on:
         cols = torch.nonzero(on_cage).squeeze(1)
         f = on_face[:, cols].to(torch.int8).argmax(dim=0)  # first face holding each point
         bary = torch.stack([q["s"][i][f, cols] for i in range(3)]).clamp_min(0.0)  # (3, m)
@@ -349,6 +353,6 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, 
         bary = torch.where(at_vertex.any(dim=0, keepdim=True), at_vertex.to(bary.dtype), bary)
         bary = bary / bary.sum(dim=0, keepdim=True)
         Wc = torch.zeros((V, cols.shape[0]), dtype=x.dtype, device=x.device)
-        Wc.scatter_(0, data.tri[f].T, bary)
-        W[:, cols] = Wc
+        Wc = Wc.scatter(0, data.tri[f].T, bary)
+        W = W.index_copy(1, cols, Wc)
     return W, on_cage

@@ -12,7 +12,7 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ..errors import PointsError
-from ._common import check_points, chunks, default_chunk, result_dtype
+from ._common import check_points, chunks, default_chunk, records_graph, result_dtype
 from ._mvc2d import mvc2d_chunk, polygon_data
 from ._mvc3d import mvc3d_chunk, triangle_cage_data
 from ._mvc3d_native import native_chunk, native_tables
@@ -138,7 +138,7 @@ def mean_value_coordinates(
     """
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
-    if _records_graph(flat, cage.vertices):
+    if records_graph(flat, cage.vertices):
         from ..autograd.mean_value import mean_value_function
 
         if cage.dim == 3:  # the same checks as the plain path (a triangle cage)
@@ -147,12 +147,3 @@ def mean_value_coordinates(
     else:
         lam = _coordinates_flat(flat.to(compute), cage, chunk_size, progress, backend)
     return lam.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
-
-
-def _records_graph(points: torch.Tensor, vertices: torch.Tensor) -> bool:
-    """True when autograd (or a torch.func transform) differentiates through this call."""
-    from torch._C._functorch import is_functorch_wrapped_tensor
-
-    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(vertices):
-        return True
-    return torch.is_grad_enabled() and (points.requires_grad or vertices.requires_grad)

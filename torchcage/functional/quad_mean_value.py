@@ -12,10 +12,10 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ..errors import CageError, PointsError
-from ._common import ON_CAGE_TOLERANCE, check_points, chunks, result_dtype
+from ._common import ON_CAGE_TOLERANCE, check_points, chunks, outside_point, records_graph, result_dtype
 from ._mvc3d import TriangleCageData, mvc3d_chunk, triangle_data
 from ._mvc3d_native import native_chunk, native_tables
-from ._qmvc3d import QuadData, quad_data, quad_weights_chunk
+from ._qmvc3d import QuadData, project, quad_data, quad_weights_chunk
 
 __all__ = ["quad_mean_value_coordinates"]
 
@@ -138,7 +138,15 @@ def quad_mean_value_coordinates(
 def _torch_chunk(
     c: torch.Tensor, V: int, tdata: TriangleCageData | None, qdata: QuadData | None, n: int
 ) -> torch.Tensor:
-    """Normalised coordinates ``(m, V)`` of a chunk ``c`` ``(m, 3)`` with the torch kernels."""
+    """Normalised coordinates ``(m, V)`` of a chunk ``c`` ``(m, 3)`` with the torch kernels.
+
+    Points on a quad get the bilinear coordinates of their parameters ``(u, v)`` on it (Lagrange at
+    a corner). When a graph is recorded, the regular formula of those points (singular there) is
+    evaluated at a point off the cage, and their ``(u, v)`` carry the derivative of the surface's
+    inverse parametrisation: one Gauss-Newton step ``(u, v) + J^+ (x - xi(u, v))`` from the detached
+    projection, exact in value (the residual is zero on the quad) and differentiable in the point
+    and the corners. Corners get constant Lagrange values (derivative 0).
+    """
     m = c.shape[0]
     if tdata is not None:
         W, on = mvc3d_chunk(c, tdata)  # (V, m); columns on a triangle are final
@@ -147,11 +155,22 @@ def _torch_chunk(
         on = torch.zeros(m, dtype=torch.bool, device=c.device)
     if qdata is None:
         return torch.where(on[:, None], W.T, W.T / W.sum(dim=0)[:, None])
-    w, onq, u, v, vertex = quad_weights_chunk(c, qdata, n)
+    graph = records_graph(c, qdata.corners)
+    creg = c
+    if graph:
+        with torch.no_grad():
+            pr = project(c, qdata)
+        onq_any = (pr.on & ~on[None, :]).any(dim=0) | on
+        if bool(onq_any.any()):
+            creg = torch.where(onq_any[:, None], outside_point(qdata.corners[:, :, :, 0].flatten(1).T), c)
+    w, onq, u, v, vertex = quad_weights_chunk(creg, qdata, n)
+    if creg is not c:  # the projection of the points themselves (not of their stand-ins)
+        onq, u, v, vertex = pr.on, pr.u, pr.v, pr.vertex
     quads = qdata.quads
     for i in range(4):
         W = W.index_add(0, quads[:, i], torch.where(on[None, :], torch.zeros_like(w[i]), w[i]))
-    W = torch.where(on[:, None], W.T, W.T / W.sum(dim=0)[:, None])
+    total = W.sum(dim=0)
+    W = torch.where(on[:, None], W.T, W.T / torch.where(on, 1.0, total)[:, None])
     onq = onq & ~on[None, :]
     has = onq.any(dim=0)
     if bool(has.any()):
@@ -159,11 +178,30 @@ def _torch_chunk(
         f = onq.to(torch.int8).argmax(dim=0)
         cols = torch.arange(m, device=c.device)
         uu, vv, vx = u[f, cols], v[f, cols], vertex[f, cols]
+        if graph:
+            uu, vv = _newton_uv(c, qdata.corners[..., 0][:, :, f], uu.detach(), vv.detach())
         b = torch.stack([(1 - uu) * (1 - vv), uu * (1 - vv), uu * vv, (1 - uu) * vv], dim=1)
         b = torch.where((vx >= 0)[:, None], torch.nn.functional.one_hot(vx.clamp_min(0), 4).to(b.dtype), b)
         Wq = torch.zeros((m, V), dtype=c.dtype, device=c.device).scatter_add(1, quads[f], b)
         W = torch.where(has[:, None], Wq, W)
     return W
+
+
+def _newton_uv(x: torch.Tensor, q: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """One Gauss-Newton step of the inverse bilinear map: ``(u, v) + J^+ (x - xi(u, v))`` for points
+    ``x`` ``(m, 3)`` on the sheets with corners ``q`` ``(3, 4, m)`` at detached parameters ``u, v``
+    ``(m,)``; finite where the sheet is degenerate (the step is skipped)."""
+    q0, q1, q2, q3 = (q[:, i, :] for i in range(4))  # (3, m)
+    xi = (1 - u) * (1 - v) * q0 + u * (1 - v) * q1 + u * v * q2 + (1 - u) * v * q3
+    xu = (1 - v) * (q1 - q0) + v * (q2 - q3)
+    xv = (1 - u) * (q3 - q0) + u * (q2 - q1)
+    r = x.T - xi
+    a, b, d = (xu * xu).sum(0), (xu * xv).sum(0), (xv * xv).sum(0)
+    det = a * d - b * b
+    ok = det > 0
+    inv = torch.where(ok, 1.0 / torch.where(ok, det, 1.0), 0.0)
+    ru, rv = (xu * r).sum(0), (xv * r).sum(0)
+    return u + (d * ru - b * rv) * inv, v + (a * rv - b * ru) * inv
 
 
 def _native_kernel(

@@ -5,56 +5,18 @@ from __future__ import annotations
 import torch
 
 from ..cage import Cage
+from ..functional._stretch import conformal_stretch, stretched_normals, stretched_triangle_normals, triangle_frames
 from ..functional.green import green_coordinates
 from .base import CageModule
 
-__all__ = ["GreenCoordinates", "conformal_stretch", "stretched_normals", "stretched_triangle_normals"]
-
-
-def stretched_normals(rest: torch.Tensor, deformed: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
-    """Outward edge normals of a deformed polygon scaled by the edge stretch ``|a'| / |a|``
-    (the 2D Green deformation's ``s_j n'_j``), differentiable in ``deformed``.
-
-    Args:
-        rest: ``(V, 2)`` rest vertices.
-        deformed: ``(*, V, 2)`` deformed vertices.
-        edges: ``(E, 2)`` counter-clockwise edges.
-
-    Returns:
-        ``(*, E, 2)``.
-    """
-    a0 = rest[edges[:, 1]] - rest[edges[:, 0]]
-    a1 = deformed[..., edges[:, 1], :] - deformed[..., edges[:, 0], :]
-    return torch.stack([a1[..., 1], -a1[..., 0]], dim=-1) / a0.norm(dim=-1).to(deformed.dtype)[:, None]
-
-
-def triangle_frames(vertices: torch.Tensor, triangles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Edge vectors ``u = p1 - p0``, ``v = p2 - p0`` and unit normals of triangles, for vertices
-    ``(*, V, 3)`` and triangles ``(T, 3)``: each ``(*, T, 3)``."""
-    p = vertices[..., triangles, :]  # (*, T, 3, 3)
-    u, v = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]
-    n = torch.nn.functional.normalize(torch.linalg.cross(u, v, dim=-1), dim=-1)
-    return u, v, n
-
-
-def conformal_stretch(u0: torch.Tensor, v0: torch.Tensor, u1: torch.Tensor, v1: torch.Tensor) -> torch.Tensor:
-    """Lipman's stretch factor of the linear map taking the tangent pair ``(u0, v0)`` to ``(u1, v1)``
-    (all ``(..., 3)``): ``sqrt(|u1|^2 |v0|^2 - 2 (u1.v1)(u0.v0) + |v1|^2 |u0|^2) / (sqrt(2) |u0 x v0|)``,
-    the root mean square of its two singular values (``s`` for a similarity of scale ``s``)."""
-    s2 = (
-        u1.square().sum(-1) * v0.square().sum(-1)
-        - 2 * (u1 * v1).sum(-1) * (u0 * v0).sum(-1)
-        + v1.square().sum(-1) * u0.square().sum(-1)
-    )
-    return torch.sqrt(s2.clamp_min(0.0)) / (2**0.5 * torch.linalg.cross(u0, v0, dim=-1).norm(dim=-1))
-
-
-def stretched_triangle_normals(rest: torch.Tensor, deformed: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
-    """Unit outward normals of deformed triangles times Lipman's stretch factors (the 3D Green
-    deformation's ``s_t n'_t``), ``(*, T, 3)`` for vertices ``(V, 3)`` / ``(*, V, 3)``."""
-    u0, v0, _ = triangle_frames(rest.to(deformed.dtype), triangles)
-    u1, v1, n1 = triangle_frames(deformed, triangles)
-    return conformal_stretch(u0, v0, u1, v1)[..., None] * n1
+# The stretch helpers live in functional/_stretch.py; they are re-exported here for existing imports.
+__all__ = [
+    "GreenCoordinates",
+    "conformal_stretch",
+    "stretched_normals",
+    "stretched_triangle_normals",
+    "triangle_frames",
+]
 
 
 class GreenCoordinates(CageModule):

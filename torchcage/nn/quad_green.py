@@ -5,10 +5,11 @@ from __future__ import annotations
 import torch
 
 from ..cage import Cage
+from ..functional._common import safe_norm
 from ..functional._qgc3d import corner_normals
+from ..functional._stretch import conformal_stretch, stretched_triangle_normals
 from ..functional.quad_green import quad_green_coordinates
 from .base import CageModule
-from .green import conformal_stretch, stretched_triangle_normals
 
 __all__ = ["QuadGreenCoordinates", "quad_corner_factors"]
 
@@ -43,8 +44,8 @@ def quad_corner_factors(rest: torch.Tensor, deformed: torch.Tensor) -> torch.Ten
 
     du0, dv0 = tangents(rest.to(deformed.dtype))
     du1, dv1 = tangents(deformed)
-    area0 = torch.linalg.cross(du0, dv0, dim=-1).norm(dim=-1)
-    area1 = torch.linalg.cross(du1, dv1, dim=-1).norm(dim=-1)
+    area0 = safe_norm(torch.linalg.cross(du0, dv0, dim=-1))
+    area1 = safe_norm(torch.linalg.cross(du1, dv1, dim=-1))
     num = torch.einsum("...s,sk->...k", conformal_stretch(du0, dv0, du1, dv1) * area0, b)
     den = torch.einsum("...s,sk->...k", area1, b)
     return torch.where(den > 0, num / torch.where(den > 0, den, 1.0), 0.0)
