@@ -12,9 +12,19 @@ Example:
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-__all__ = ["assert_interpolates", "assert_linear_precision", "assert_partition_of_unity"]
+__all__ = [
+    "assert_interpolates",
+    "assert_linear_precision",
+    "assert_partition_of_unity",
+    "adversarial_points",
+    "hard_cages",
+    "sliver_cube",
+    "twisted_bar",
+]
 
 
 def assert_partition_of_unity(weights: torch.Tensor, *, atol: float = 1e-12) -> None:
@@ -47,3 +57,166 @@ def assert_interpolates(weights: torch.Tensor, expected: torch.Tensor, *, atol: 
     err = float((weights - expected).abs().max()) if weights.numel() else 0.0
     if not err <= atol:
         raise AssertionError(f"interpolation violated: max error {err:.3e} > {atol:.1e}")
+
+
+# ----------------------------------------------------------------------------- hard cages
+# Cages that put kernels under numerical stress; used by the tests and benchmarks/robustness.py.
+_CUBE = [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]]
+_CUBE_SIDES = [[4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]  # all but the bottom
+
+
+def sliver_cube(gap: float = 1e-9, dtype: torch.dtype = torch.float64):
+    """The cube ``[-1, 1]^3`` whose bottom face is fanned around an extra vertex ``gap`` from the
+    bottom face's edge ``y = -1``: one triangle of height ``gap`` (a sliver), all faces coplanar
+    with a neighbour.
+
+    Returns:
+        A :class:`torchcage.Cage` of 9 vertices and 14 triangles.
+
+    Example:
+        >>> from torchcage.testing import sliver_cube
+        >>> sliver_cube().triangles.shape
+        torch.Size([14, 3])
+    """
+    from .cage import Cage
+
+    v = torch.tensor([*_CUBE, [0.0, -1.0 + gap, -1.0]], dtype=dtype)
+    faces = []
+    for a, b, c, d in _CUBE_SIDES:
+        faces += [[a, b, c], [a, c, d]]
+    faces += [[8, 1, 0], [8, 2, 1], [8, 3, 2], [8, 0, 3]]  # the bottom fan (outward normal -z)
+    return Cage(v, torch.tensor(faces))
+
+
+def twisted_bar(levels: int = 4, twist: float = 90.0, quads: bool = True, dtype: torch.dtype = torch.float64):
+    """A square bar of side 1 along ``z`` (``0 <= z <= levels / 2``) made of ``levels`` segments,
+    its square sections turned progressively by ``twist`` degrees in all: non-planar side quads.
+
+    Args:
+        levels: segments along the bar.
+        twist: total twist in degrees.
+        quads: keep the quads (a quad cage for QMVC/QGC); ``False`` triangulates them.
+
+    Example:
+        >>> from torchcage.testing import twisted_bar
+        >>> bar = twisted_bar()
+        >>> bar.num_vertices, bar.quads.shape[0]
+        (20, 18)
+    """
+    from .cage import Cage
+
+    verts = []
+    for k in range(levels + 1):
+        a = math.radians(twist) * k / levels
+        for cx, cy in ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5)):
+            verts.append([cx * math.cos(a) - cy * math.sin(a), cx * math.sin(a) + cy * math.cos(a), 0.5 * k])
+    faces = [[0, 3, 2, 1], [4 * levels, 4 * levels + 1, 4 * levels + 2, 4 * levels + 3]]
+    for k in range(levels):
+        for i in range(4):
+            j = (i + 1) % 4
+            faces.append([4 * k + i, 4 * k + j, 4 * (k + 1) + j, 4 * (k + 1) + i])
+    cage = Cage(torch.tensor(verts, dtype=dtype), faces)
+    return cage if quads else cage.triangulated()
+
+
+def hard_cages(dtype: torch.dtype = torch.float64) -> dict:
+    """Named hard cages (triangle cages unless the name says quads): slivers, coplanar neighbours,
+    twisted quads, tiny and huge scales, a far translation.
+
+    Example:
+        >>> from torchcage.testing import hard_cages
+        >>> sorted(hard_cages())[:3]
+        ['cube_1e-6', 'cube_1e6', 'cube_shift_1e6']
+    """
+    from . import data
+    from .io import load_cage
+
+    cube = load_cage(data.path("cube.obj")).triangulated().to(dtype)
+    from .cage import Cage
+
+    def moved(s: float, t: float = 0.0):
+        return Cage(cube.vertices * s + t, cube.triangles)
+
+    return {
+        "cube_1e-6": moved(1e-6),
+        "cube_1e6": moved(1e6),
+        "cube_shift_1e6": moved(1.0, 1e6),
+        "sliver_cube": sliver_cube(dtype=dtype),
+        "twisted_bar": twisted_bar(quads=False, dtype=dtype),
+        "twisted_bar_quads": twisted_bar(dtype=dtype),
+    }
+
+
+def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True) -> dict[str, torch.Tensor]:
+    """Query points that stress coordinate kernels, by category, in the cage's dtype.
+
+    Categories: ``vertex``, ``edge``, ``face`` (exactly on the cage, up to rounding); ``near_vertex``,
+    ``near_edge``, ``near_face`` (offsets of ``1e-15 .. 1e-3`` times the cage size, both sides);
+    ``plane`` (on faces' support planes, off the faces), ``edge_line`` (on edges' lines beyond
+    their ends); ``far`` (``1e2 .. 1e9`` cage sizes away, only with ``far=True``). 2D cages use
+    their edges as faces. Each category has about ``n`` points (``(m, D)``).
+
+    Example:
+        >>> import torchcage
+        >>> from torchcage.testing import adversarial_points
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+        >>> pts = adversarial_points(cube, 16)
+        >>> sorted(pts)[:3], pts["vertex"].shape[1]
+        (['edge', 'edge_line', 'face'], 3)
+    """
+    g = torch.Generator().manual_seed(seed)
+    v = cage.vertices.detach()
+    dt, D = v.dtype, v.shape[1]
+    size = cage.scale
+    faces = cage.triangles if D == 3 else cage.edges
+    if D == 3 and cage.has_quads:
+        faces = cage.triangulated().triangles
+    edges = torch.cat([faces[:, [i, (i + 1) % faces.shape[1]]] for i in range(faces.shape[1])]) if D == 3 else faces
+
+    def rand(*shape: int) -> torch.Tensor:
+        return torch.rand(*shape, generator=g, dtype=dt)
+
+    def pick(m: int, k: int) -> torch.Tensor:
+        return torch.randint(0, m, (k,), generator=g)
+
+    def unit(k: int) -> torch.Tensor:
+        d = torch.randn(k, D, generator=g, dtype=dt)
+        return d / d.norm(dim=1, keepdim=True)
+
+    def offsets(k: int) -> torch.Tensor:
+        exp = -3.0 - 12.0 * rand(k)
+        sign = torch.where(rand(k) < 0.5, -1.0, 1.0).to(dt)
+        return (sign * size * 10.0**exp)[:, None]
+
+    e = edges[pick(edges.shape[0], n)]
+    t = rand(n, 1)
+    on_edge = (1 - t) * v[e[:, 0]] + t * v[e[:, 1]]
+    f = faces[pick(faces.shape[0], n)]
+    if D == 3:
+        b = -torch.log(rand(n, 3))
+        b = b / b.sum(dim=1, keepdim=True)
+        on_face = torch.einsum("ni,nic->nc", b, v[f])
+        nrm = torch.linalg.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0], dim=-1)
+        tang = torch.linalg.cross(nrm, unit(n), dim=-1)
+        plane = on_face + tang / tang.norm(dim=1, keepdim=True) * size * (0.05 + 2 * rand(n, 1))
+    else:
+        on_face = on_edge
+        nrm = (v[e[:, 1]] - v[e[:, 0]]).flip(1) * torch.tensor([1.0, -1.0], dtype=dt)
+        plane = on_edge + (v[e[:, 1]] - v[e[:, 0]]) * (1 + 2 * rand(n, 1))
+    nrm = nrm / nrm.norm(dim=1, keepdim=True)
+    beyond = v[e[:, 1]] + (v[e[:, 1]] - v[e[:, 0]]) * (0.01 + 3 * rand(n, 1))
+    vi = pick(v.shape[0], n)
+    out = {
+        "vertex": v[vi],
+        "edge": on_edge,
+        "face": on_face,
+        "near_vertex": v[vi] + offsets(n) * unit(n),
+        "near_edge": on_edge + offsets(n) * unit(n),
+        "near_face": on_face + offsets(n) * nrm,
+        "plane": plane,
+        "edge_line": beyond,
+    }
+    if far:
+        centre = (v.max(dim=0).values + v.min(dim=0).values) / 2
+        out["far"] = centre + unit(n) * size * 10.0 ** (2 + 7 * rand(n, 1))
+    return out

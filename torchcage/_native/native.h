@@ -20,7 +20,11 @@ static inline double tc_edge_log_arg(double l_j, double l_k, double R_j, double 
     double pk = R_k + l_k, mj = R_j - l_j, pj = R_j + l_j, mk = R_k - l_k, both = pk * mj;
     double num = l_j >= 0 ? pk : (l_k <= 0 ? mj : both);
     double den = l_j >= 0 ? pj : (l_k <= 0 ? mk : c2);
-    return num / (den > 1e-300 ? den : 1e-300);
+    /* On the edge (num = 0 at an end, den = 0 inside it) I is infinite and every use multiplies it
+     * by 0: keep the log finite (log(1) = 0 for num = 0; at most log(1e300)) so that the product is
+     * 0 and not NaN. */
+    double r = num / (den > 1e-300 ? den : 1e-300);
+    return num > 0 ? (r < 1e300 ? r : 1e300) : 1.0; /* (the clamp: no inf from a large num over a 0 den) */
 }
 
 /* Stable split form of one triangle's mean value weights near its support plane (mvc3d.c). */

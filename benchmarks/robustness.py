@@ -1,0 +1,269 @@
+"""Robustness sweep: adversarial queries for every coordinate family, values and gradients.
+
+For each family and cage (the eight QMVC cages when the data set is present, and the hard cages of
+:func:`torchcage.testing.hard_cages`), queries from :func:`torchcage.testing.adversarial_points`
+(on and 1e-15..1e-3 of the size from vertices, edges and faces, on support planes and edge lines,
+far away) are evaluated with the default backend (values) and with gradients of a random linear
+functional with respect to the points and the rest cage's vertices (the torch kernels, through
+the custom autograd Functions where they exist). Prints one table: queries, non-finite values,
+non-finite gradients, the worst partition of unity and linear precision (relative to the cage
+size; far points relative to their distance) and the category where each occurs.
+
+Usage:
+    python benchmarks/robustness.py [--data ../shared/data] [--per-category 2000] [--grad-per-category 200]
+        [--dtype float64|float32] [--families mvc3d,mvc2d,...]
+
+The test suite runs a small slice (``tests/test_robustness.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+import torchcage
+from torchcage import functional as F
+from torchcage.geometry import inside_cage
+from torchcage.testing import adversarial_points, hard_cages
+
+MODELS = ["Beast", "Bench", "Cactus", "FireHydrant", "ManHead", "Ogre", "SpikyBox", "WireSphere"]
+FAMILIES = ["mvc3d", "mvc2d", "mvc_derivatives", "qmvc", "gc", "qgc", "image"]
+
+
+@dataclass
+class Stats:
+    """Running totals of one family over all its cages."""
+
+    queries: int = 0
+    bad_values: int = 0
+    grad_queries: int = 0
+    bad_grads: int = 0
+    errors: list[str] = field(default_factory=list)
+    pu: tuple[float, str] = (0.0, "")
+    lp: tuple[float, str] = (0.0, "")
+    far: tuple[float, str] = (0.0, "")
+
+    def worst(self, name: str, value: float, where: str) -> None:
+        if value > getattr(self, name)[0] or math.isnan(value):
+            setattr(self, name, (value, where))
+
+
+def _nonfinite(*ts: torch.Tensor) -> torch.Tensor:
+    """Per-row mask of rows holding NaN or inf in any of ``ts`` (each ``(N, ...)``)."""
+    bad = torch.zeros(ts[0].shape[0], dtype=torch.bool)
+    for t in ts:
+        bad |= ~torch.isfinite(t.reshape(t.shape[0], -1)).all(dim=1)
+    return bad
+
+
+def _coordinates(family: str, x: torch.Tensor, cage: torchcage.Cage, dtype: torch.dtype | None):
+    """(weights, extra) of a family; Green families return (phi, psi)."""
+    if family in ("mvc3d", "mvc2d"):
+        return F.mean_value_coordinates(x, cage, dtype=dtype), None
+    if family == "qmvc":
+        return F.quad_mean_value_coordinates(x, cage, dtype=dtype), None
+    if family == "gc":
+        return F.green_coordinates(x, cage, dtype=dtype)
+    if family == "qgc":
+        return F.quad_green_coordinates(x, cage, dtype=dtype)
+    if family == "mvc_derivatives":
+        lam, grad, hess = F.mean_value_derivatives(x, cage, order=2)
+        return lam, torch.cat([grad.flatten(1), hess.flatten(1)], dim=1)
+    raise ValueError(family)
+
+
+def _normals(family: str, cage: torchcage.Cage) -> torch.Tensor | None:
+    if family == "gc":
+        return cage.triangle_normals() if cage.dim == 3 else cage.edge_normals()
+    if family == "qgc":
+        T = cage.triangles
+        n = torch.nn.functional.normalize(
+            torch.linalg.cross(*(cage.vertices[T][:, i] - cage.vertices[T][:, 0] for i in (1, 2)), dim=-1), dim=-1
+        )
+        return torch.cat([n, cage.quad_corner_normals().reshape(-1, 3)])
+    return None
+
+
+def sweep_values(family: str, cage: torchcage.Cage, name: str, pts: dict, stats: Stats, dtype) -> None:
+    """Values of every category: finiteness, partition of unity and linear precision."""
+    size = cage.scale
+    green = family in ("gc", "qgc")
+    for cat, x in pts.items():
+        if family == "image":
+            continue
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                w, extra = _coordinates(family, x, cage, dtype)
+        except Exception as err:  # an error is a finding too: the table reports it
+            stats.errors.append(f"{name}/{cat}: {type(err).__name__}: {str(err)[:120]}")
+            continue
+        stats.queries += x.shape[0]
+        w64 = w.to(torch.float64)
+        bad = _nonfinite(w64, *([extra] if extra is not None else []))
+        stats.bad_values += int(bad.sum())
+        ok = ~bad
+        if green:  # Green coordinates reproduce points inside the cage (and on it)
+            ok &= inside_cage(x, cage) | (cat in ("vertex", "edge", "face"))
+        if not bool(ok.any()):
+            continue
+        w64, xv = w64[ok], x[ok].to(torch.float64)
+        pu = (w64.sum(dim=1) - 1).abs()
+        rec = w64 @ cage.vertices.to(torch.float64)
+        if green:
+            rec = rec + extra[ok].to(torch.float64) @ _normals(family, cage).to(torch.float64)
+        err = (rec - xv).norm(dim=1)
+        if cat == "far":
+            stats.worst("far", float((err / (xv - cage.vertices.mean(0).to(xv)).norm(dim=1)).max()), f"{name}/{cat}")
+        else:
+            stats.worst("lp", float(err.max()) / size, f"{name}/{cat}")
+        if not green or cat != "far":
+            stats.worst("pu", float(pu.max()), f"{name}/{cat}")
+
+
+def sweep_grads(family: str, cage: torchcage.Cage, name: str, pts: dict, stats: Stats, dtype, k: int) -> None:
+    """Gradients of a random linear functional with respect to the points and the rest vertices."""
+    g = torch.Generator().manual_seed(1)
+    for cat, x in pts.items():
+        x = x[:k].clone().requires_grad_()
+        V = cage.vertices.clone().requires_grad_()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                if family == "image":
+                    continue
+                c = torchcage.Cage(V, cage.faces)
+                w, extra = _coordinates(family if family != "mvc_derivatives" else "mvc3d", x, c, dtype)
+                loss = (w * torch.randn(w.shape, generator=g, dtype=w.dtype)).sum()
+                if extra is not None:
+                    loss = loss + (extra * torch.randn(extra.shape, generator=g, dtype=extra.dtype)).sum()
+                gx, gV = torch.autograd.grad(loss, (x, V), allow_unused=True)
+        except Exception as err:
+            stats.errors.append(f"grad {name}/{cat}: {type(err).__name__}: {str(err)[:120]}")
+            continue
+        stats.grad_queries += x.shape[0]
+        stats.bad_grads += int(_nonfinite(gx if gx is not None else torch.zeros_like(x)).sum())
+        if gV is not None and not bool(torch.isfinite(gV).all()):
+            stats.bad_grads += 1
+            stats.errors.append(f"grad {name}/{cat}: non-finite gradient w.r.t. the rest vertices")
+
+
+def sweep_image(cage2d: torchcage.Cage, name: str, stats: Stats, dtype) -> None:
+    """warp_image gradients with respect to the deformed cage, on a cage drawn on pixel centres."""
+    from torchcage.image import warp_image
+
+    P = cage2d.vertices
+    lo = P.min(dim=0).values
+    Pint = torch.round((P - lo) / (P.max(dim=0).values - lo).max() * 20 + 2)  # integer pixel coordinates
+    try:
+        cage = torchcage.Cage(Pint.to(torch.float64), cage2d.edges)
+    except ValueError:
+        return
+    img = torch.rand(1, 1, 26, 26, dtype=torch.float64)
+    for method in ("mvc", "gc"):
+        D = Pint[None].to(torch.float64).clone().requires_grad_()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                out = warp_image(img, cage, D, method=method)
+                (out * torch.rand_like(out)).sum().backward()
+        except Exception as err:
+            stats.errors.append(f"image {name}/{method}: {type(err).__name__}: {str(err)[:120]}")
+            continue
+        stats.queries += img.shape[-1] * img.shape[-2]
+        stats.bad_values += int((~torch.isfinite(out)).sum())
+        stats.grad_queries += img.shape[-1] * img.shape[-2]
+        stats.bad_grads += int((~torch.isfinite(D.grad)).sum())
+
+
+def cages_for(family: str, data: Path | None) -> dict[str, torchcage.Cage]:
+    """The cages a family is swept on."""
+    out: dict[str, torchcage.Cage] = {}
+    hard = hard_cages()
+    if family in ("mvc2d", "image"):
+        out["blob2d"] = torchcage.load_cage(torchcage.data.path("blob2d.obj"))
+        out["square_px"] = torchcage.Cage(
+            torch.tensor([[4.0, 4], [19, 4], [19, 19], [4, 19]], dtype=torch.float64), None
+        )
+        if data is not None and (data / "lbc2d").is_dir():
+            for f in sorted((data / "lbc2d").glob("*.obj")):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    out[f.stem] = torchcage.load_cage(f)
+        return out
+    quads = family in ("qmvc", "qgc")
+    for k, c in hard.items():
+        if quads == c.has_quads or (quads and k == "sliver_cube"):
+            out[k] = c
+    if quads:
+        out["cube_quads"] = torchcage.load_cage(torchcage.data.path("cube.obj"))
+    if data is not None:
+        for m in MODELS:
+            f = data / "qmvc" / f"{m}_Cage.obj"
+            if f.exists():
+                c = torchcage.load_cage(f)
+                out[m] = c if quads else c.triangulated()
+    return out
+
+
+def run(families: list[str], data: Path | None, per_category: int, grad_k: int, dtype, seed: int = 0) -> dict:
+    results = {}
+    for fam in families:
+        st = Stats()
+        t0 = time.perf_counter()
+        for name, cage in cages_for(fam, data).items():
+            if fam == "image":
+                sweep_image(cage, name, st, dtype)
+                continue
+            pts = adversarial_points(cage, per_category, seed=seed)
+            sweep_values(fam, cage, name, pts, st, dtype)
+            if grad_k > 0:
+                sweep_grads(fam, cage, name, pts, st, dtype, grad_k)
+        results[fam] = (st, time.perf_counter() - t0)
+    return results
+
+
+def print_table(results: dict) -> None:
+    head = f"{'family':16s} {'queries':>9s} {'bad val':>8s} {'grad q':>8s} {'bad grad':>8s} {'worst PU':>10s} {'at':24s} {'worst LP':>10s} {'at':24s} {'far rel':>9s} {'time s':>7s}"
+    print(head)
+    print("-" * len(head))
+    for fam, (st, dt) in results.items():
+        print(
+            f"{fam:16s} {st.queries:9d} {st.bad_values:8d} {st.grad_queries:8d} {st.bad_grads:8d} "
+            f"{st.pu[0]:10.2e} {st.pu[1][:24]:24s} {st.lp[0]:10.2e} {st.lp[1][:24]:24s} {st.far[0]:9.1e} {dt:7.1f}"
+        )
+    for fam, (st, _) in results.items():
+        for e in st.errors[:8]:
+            print(f"  {fam}: {e}")
+        if len(st.errors) > 8:
+            print(f"  {fam}: ... {len(st.errors) - 8} more")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--data", default=os.environ.get("TORCHCAGE_DATA", str(Path(__file__).resolve().parents[2] / "shared" / "data"))
+    )
+    ap.add_argument("--per-category", type=int, default=2000)
+    ap.add_argument("--grad-per-category", type=int, default=200)
+    ap.add_argument("--dtype", choices=["float64", "float32"], default="float64")
+    ap.add_argument("--families", default=",".join(FAMILIES))
+    args = ap.parse_args(argv)
+    data = Path(args.data) if Path(args.data).is_dir() else None
+    dtype = None if args.dtype == "float64" else torch.float32
+    results = run(args.families.split(","), data, args.per_category, args.grad_per_category, dtype)
+    print_table(results)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
