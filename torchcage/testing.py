@@ -17,10 +17,10 @@ import math
 import torch
 
 __all__ = [
+    "adversarial_points",
     "assert_interpolates",
     "assert_linear_precision",
     "assert_partition_of_unity",
-    "adversarial_points",
     "hard_cages",
     "sliver_cube",
     "twisted_bar",
@@ -168,10 +168,11 @@ def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True) ->
     v = cage.vertices.detach()
     dt, D = v.dtype, v.shape[1]
     size = cage.scale
-    faces = cage.triangles if D == 3 else cage.edges
-    if D == 3 and cage.has_quads:
-        faces = cage.triangulated().triangles
-    edges = torch.cat([faces[:, [i, (i + 1) % faces.shape[1]]] for i in range(faces.shape[1])]) if D == 3 else faces
+    faces = cage.triangulated().triangles if D == 3 else cage.edges
+    if D == 3:
+        edges = cage.unique_edges()
+    else:
+        edges = faces
 
     def rand(*shape: int) -> torch.Tensor:
         return torch.rand(*shape, generator=g, dtype=dt)
@@ -197,6 +198,19 @@ def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True) ->
         b = b / b.sum(dim=1, keepdim=True)
         on_face = torch.einsum("ni,nic->nc", b, v[f])
         nrm = torch.linalg.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0], dim=-1)
+        if cage.has_quads:  # points on the bilinear quads themselves (not on their split triangles)
+            quads = cage.quads
+            nt = cage.triangles.shape[0]
+            use = torch.rand(n, generator=g) < quads.shape[0] / (quads.shape[0] + nt)
+            q = v[quads[pick(quads.shape[0], n)]]  # (n, 4, D)
+            uu, vv = rand(n, 1), rand(n, 1)
+            sheet = (
+                (1 - uu) * (1 - vv) * q[:, 0] + uu * (1 - vv) * q[:, 1] + uu * vv * q[:, 2] + (1 - uu) * vv * q[:, 3]
+            )
+            xu = (1 - vv) * (q[:, 1] - q[:, 0]) + vv * (q[:, 2] - q[:, 3])
+            xv = (1 - uu) * (q[:, 3] - q[:, 0]) + uu * (q[:, 2] - q[:, 1])
+            on_face = torch.where(use[:, None], sheet, on_face)
+            nrm = torch.where(use[:, None], torch.linalg.cross(xu, xv, dim=-1), nrm)
         tang = torch.linalg.cross(nrm, unit(n), dim=-1)
         plane = on_face + tang / tang.norm(dim=1, keepdim=True) * size * (0.05 + 2 * rand(n, 1))
     else:

@@ -179,6 +179,9 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                         memcpy(a[1], qp.p[(e + 1) & 3], sizeof(a[1]));
                         memcpy(a[2], apex, sizeof(a[2]));
                         double two_area = tc_tri_frame(a, nf, ell, edir, eout, gbary);
+                        /* The apex on this edge (a point on the quad's boundary): the triangle is
+                         * empty, up to rounding that would make it a sliver seen from its own edge. */
+                        if (two_area <= tol * ell[2]) continue;
                         tc_tri_green(a, nf, two_area, ell, edir, eout, gbary, tol, ph, &ps, &om, al);
                         for (int i = 0; i < 3; ++i) {
                             for (int c = 0; c < 3; ++c) rhs[c] += ph[i] * (a[i][c] + x[c] - origin[c]);

@@ -17,6 +17,15 @@ from ..errors import CageError, PointsError
 ON_CAGE_TOLERANCE = 16 * torch.finfo(torch.float64).eps
 
 
+def on_cage_tolerance(cage: Cage) -> float:
+    """Absolute on-cage tolerance: ``ON_CAGE_TOLERANCE`` times the larger of the cage's size and its
+    largest coordinate (a point on a face of a cage far from the origin carries a rounding error of
+    about ``eps * |x|``, which is larger than ``eps * size`` there)."""
+    v = cage.vertices.detach()
+    extent = float(v.abs().max()) if v.numel() else 0.0
+    return ON_CAGE_TOLERANCE * max(cage.scale, extent)
+
+
 def records_graph(*tensors: torch.Tensor) -> bool:
     """True when autograd (or a torch.func transform) differentiates through a call on ``tensors``."""
     if any(is_functorch_wrapped_tensor(t) for t in tensors):

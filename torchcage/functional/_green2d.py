@@ -36,7 +36,7 @@ import torch
 
 from ..cage import Cage
 from ..errors import CageError
-from ._common import ON_CAGE_TOLERANCE
+from ._common import on_cage_tolerance
 
 
 def green_coordinates_2d(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor, torch.Tensor]:
@@ -72,7 +72,7 @@ def green_coordinates_2d(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor
     R = 2 * (a * b).sum(-1)
     cross = b[..., 0] * a[..., 1] - b[..., 1] * a[..., 0]  # b x a = c |a|, > 0 on the inner side
     norm_a = torch.sqrt(Q)
-    tol = ON_CAGE_TOLERANCE * cage.scale
+    tol = on_cage_tolerance(cage)
     # Edges whose line holds the point contribute their principal value (no angle term).
     on_line = cross.abs() <= tol * norm_a
     theta = torch.atan2(2 * (b[..., 0] * bp[..., 1] - b[..., 1] * bp[..., 0]).abs(), 2 * (b * bp).sum(-1))

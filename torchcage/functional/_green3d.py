@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import ON_CAGE_TOLERANCE, records_graph, safe_atan2, safe_norm, triangle_geometry
+from ._common import on_cage_tolerance, records_graph, safe_atan2, safe_norm, triangle_geometry
 
 
 @dataclass(frozen=True)
@@ -63,9 +63,7 @@ def triangle_green_data(cage: Cage, dtype: torch.dtype) -> TriangleGreenData:
         cage, dtype, "triangulate it with cage.triangulated() (quad Green coordinates are a separate system)"
     )
     _, _, edge_dir, edge_out, grad_bary = triangle_frame(p)
-    return TriangleGreenData(
-        p, n, two_area, edge_dir, edge_out, grad_bary, cage.triangles, ON_CAGE_TOLERANCE * cage.scale
-    )
+    return TriangleGreenData(p, n, two_area, edge_dir, edge_out, grad_bary, cage.triangles, on_cage_tolerance(cage))
 
 
 def triangle_frame(p: torch.Tensor) -> tuple[torch.Tensor, ...]:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import ON_CAGE_TOLERANCE, outside_point, records_graph, safe_div, safe_sqrt
+from ._common import on_cage_tolerance, outside_point, records_graph, safe_div, safe_sqrt
 
 
 @dataclass(frozen=True)
@@ -34,7 +34,7 @@ def polygon_data(cage: Cage, dtype: torch.dtype) -> PolygonData:
         edges=e,
         edge_vec=d.T.contiguous()[:, :, None],
         edge_len2=(d * d).sum(dim=1)[:, None],
-        tol=ON_CAGE_TOLERANCE * cage.scale,
+        tol=on_cage_tolerance(cage),
     )
 
 

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import ON_CAGE_TOLERANCE, outside_point, records_graph, triangle_geometry
+from ._common import on_cage_tolerance, outside_point, records_graph, safe_sqrt, triangle_geometry
 
 #: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
 NEAR_PLANE = 0.01
@@ -82,7 +82,7 @@ def triangle_cage_data(cage: Cage, dtype: torch.dtype) -> TriangleCageData:
     triangle_geometry(  # checks: a 3D triangle cage
         cage, dtype, "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated() to split quads"
     )
-    return triangle_data(cage.vertices.to(dtype), cage.triangles, ON_CAGE_TOLERANCE * cage.scale)
+    return triangle_data(cage.vertices.to(dtype), cage.triangles, on_cage_tolerance(cage))
 
 
 def triangle_data(v: torch.Tensor, tri: torch.Tensor, tol: float) -> TriangleCageData:
@@ -207,7 +207,7 @@ def _pair_terms(x: torch.Tensor, data: TriangleCageData) -> dict[str, list[torch
     """
     xt = x.T[:, None, :]  # (3, 1, n)
     a_all = data.vertices[:, :, None] - xt  # (3, V, n)
-    R_all = torch.sqrt((a_all * a_all).sum(dim=0))  # (V, n)
+    R_all = safe_sqrt((a_all * a_all).sum(dim=0))  # (V, n); derivative 0 (not NaN) at a vertex
     tri = data.tri
     a = [tuple(a_all[c].index_select(0, tri[:, i]) for c in range(3)) for i in range(3)]
     R = [R_all.index_select(0, tri[:, i]) for i in range(3)]

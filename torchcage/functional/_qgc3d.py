@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ._common import records_graph, safe_norm
 from ._green3d import triangle_frame, triangle_integrals
 from ._mvc3d import _cross
 from ._qmvc3d import QuadData, Vec, project, quad_data
@@ -39,7 +40,8 @@ class QuadGreenData:
     quads: torch.Tensor  # (Q, 4)
     origin: torch.Tensor  # (3,) the cage's centre: A_q is built on corners relative to it
     pinv: torch.Tensor  # (Q, 8, 4) pseudo-inverse of A_q
-    null: torch.Tensor  # (Q, 8, 4) orthonormal basis of A_q's null space (columns)
+    null: torch.Tensor  # (Q, 8, 4) orthonormal basis of A_q's null space (columns), detached
+    null_proj: torch.Tensor | None  # (Q, 8, 8) projector onto the null space, when differentiated
     proj: QuadData  # the projection operator's constants
     pattern: torch.Tensor  # (P, 3, 2) sub-triangles of the Riemann sum as (u index, v index)
     K: int
@@ -98,15 +100,26 @@ def quad_green_data(vertices: torch.Tensor, quads: torch.Tensor, tol: float, n: 
     A[:, :3, :4] = p.transpose(1, 2)
     A[:, :3, 4:] = corner_normals(p).transpose(1, 2)
     A[:, 3, :4] = 1.0
-    U, S, Vh = torch.linalg.svd(A, full_matrices=True)
+    U, S, Vh = torch.linalg.svd(A.detach(), full_matrices=True)
     pinv = Vh[:, :4].transpose(1, 2) @ (U.transpose(1, 2) / S[:, :, None])
     null = Vh[:, 4:].transpose(1, 2)
+    null_proj = None
+    if records_graph(A):
+        # The null-space basis is not unique (the SVD's backward is NaN there): differentiate the
+        # unique objects instead, A^+ = A^T (A A^T)^-1 and the projector I - A^+ A onto the null
+        # space, with the SVD's values and the closed forms' derivatives.
+        At = A.transpose(1, 2)
+        pinv_f = At @ torch.linalg.inv(A @ At)
+        proj_f = -pinv_f @ A
+        pinv = pinv + (pinv_f - pinv_f.detach())
+        null_proj = null @ null.transpose(1, 2) + (proj_f - proj_f.detach())
     K = n + 1
     return QuadGreenData(
         quads=quads,
         origin=origin,
         pinv=pinv,
         null=null,
+        null_proj=null_proj,
         proj=quad_data(vertices, quads, tol),
         pattern=tessellation_pattern(K).to(vertices.device),
         K=K,
@@ -146,6 +159,11 @@ def quad_green_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor
     )  # (Q, m, 4 triangles, 3 corners, 3)
     frame = triangle_frame(fan)
     phi_f, psi_f, _, _, _ = triangle_integrals(fan, frame, tol)
+    # The apex on a quad edge (a point on the quad's boundary): that fan triangle is empty, up to
+    # rounding that would make it a sliver seen from its own edge (garbage solid angle): drop it.
+    base = safe_norm(fan[..., 1, :] - fan[..., 0, :])
+    live = frame[1] > tol * base  # (Q, m, 4)
+    phi_f, psi_f = torch.where(live[..., None], phi_f, 0.0), torch.where(live, psi_f, 0.0)
     normal_f = frame[0]
     xo = (x - data.origin)[None, :, None, None, :]  # positions relative to the cage centre
     rhs_pos = (phi_f[..., None] * (fan + xo)).sum(dim=(-2, -3)) + (psi_f[..., None] * normal_f).sum(dim=-2)
@@ -163,18 +181,21 @@ def quad_green_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor
     bc = _bilinear(uc, vc)  # (Q, m, P, 4)
     N0, Nu, Nv = _cross(b, c), _cross(b, dd), _cross(dd, c)
     Nc = torch.stack([N0[i][..., None] + uc * Nu[i][..., None] + vc * Nv[i][..., None] for i in range(3)], dim=-1)
-    Nn = Nc.norm(dim=-1)
+    Nn = safe_norm(Nc)
     est_phi = (bc * (omega_t / (4 * math.pi))[..., None]).sum(dim=-2)
     est_psi = (bc * torch.where(Nn > 0, psi_t / torch.where(Nn > 0, Nn, 1.0), 0.0)[..., None]).sum(dim=-2)
     est = torch.cat([est_phi, est_psi], dim=-1)  # (Q, m, 8)
 
     # --- Phi = Phi_bar + sum_i lambda_i kappa_i, with the norm correction. ---
-    coef = torch.einsum("qji,qmj->qmi", data.null, est)  # est . kappa_i
     eb = (est * phi_bar).sum(-1)
     bb = (phi_bar * phi_bar).sum(-1)
     ok = eb != 0
     scale = torch.where(ok, bb / torch.where(ok, eb, 1.0), 0.0)
-    Phi = phi_bar + torch.einsum("qij,qmj->qmi", data.null, coef * scale[..., None])
+    if data.null_proj is None:
+        coef = torch.einsum("qji,qmj->qmi", data.null, est)  # est . kappa_i
+        Phi = phi_bar + torch.einsum("qij,qmj->qmi", data.null, coef * scale[..., None])
+    else:
+        Phi = phi_bar + torch.einsum("qij,qmj->qmi", data.null_proj, est) * scale[..., None]
     hat = _bilinear(u, v)
     corner = torch.nn.functional.one_hot(pr.vertex.clamp_min(0), 4).to(hat.dtype)
     return Phi, pr.on, torch.where((pr.vertex >= 0)[..., None], corner, hat)

@@ -39,7 +39,7 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ..errors import PointsError
-from ._common import ON_CAGE_TOLERANCE, check_points, chunks, triangle_geometry
+from ._common import check_points, chunks, on_cage_tolerance, triangle_geometry
 from ._mvc3d import _collapsed_gauss
 from ._mvc3d_native import unique_face_edges
 
@@ -122,7 +122,7 @@ def derivatives_flat(
     lam = torch.empty((n, V), dtype=torch.float64)
     grad = torch.empty((n, V, D), dtype=torch.float64)
     hess = torch.empty((n, V, D, D) if order == 2 else (0,), dtype=torch.float64)
-    tol = ON_CAGE_TOLERANCE * cage.scale
+    tol = on_cage_tolerance(cage)
     threads = torch.get_num_threads()
     if D == 3:
         tb = _tables3d(cage)

@@ -12,7 +12,7 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ..errors import CageError, PointsError
-from ._common import ON_CAGE_TOLERANCE, check_points, chunks, outside_point, records_graph, result_dtype
+from ._common import check_points, chunks, on_cage_tolerance, outside_point, records_graph, result_dtype
 from ._mvc3d import TriangleCageData, mvc3d_chunk, triangle_data
 from ._mvc3d_native import native_chunk, native_tables
 from ._qmvc3d import QuadData, project, quad_data, quad_weights_chunk
@@ -56,7 +56,7 @@ def prepare_quad_call(
     flat = check_points(points, cage)
     check_quads(cage, allow_invalid)
     compute, out_dtype = result_dtype(flat, cage, dtype)
-    return flat.to(compute), out_dtype, cage.vertices.to(compute), ON_CAGE_TOLERANCE * cage.scale
+    return flat.to(compute), out_dtype, cage.vertices.to(compute), on_cage_tolerance(cage)
 
 
 def quad_mean_value_coordinates(
