@@ -194,7 +194,18 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
         for (int d = 0; d < 3; ++d) m[d] += g[i][j] * c[i][j][d];
     }
     double kabs = fabs(k[0]) + fabs(k[1]) + fabs(k[2]) + fabs(k[3]);
-    int flat = kabs <= tol * size * size;
+    /* kappa vanishes only for a planar quad and a point on its plane: |kappa|_1 = |h| sum_i 2 A_i
+     * there (A_i the corner triangles' areas), so the test below is |h| <= tol (as in _qmvc3d.py). */
+    double area2 = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        const double *a1 = P + 3 * qi[(i + 1) & 3], *a2 = P + 3 * qi[(i + 2) & 3], *a3 = P + 3 * qi[(i + 3) & 3];
+        double e1[3] = {a2[0] - a1[0], a2[1] - a1[1], a2[2] - a1[2]}, e2[3] = {a3[0] - a1[0], a3[1] - a1[1], a3[2] - a1[2]};
+        double cr[3];
+        cross3(e1, e2, cr);
+        area2 += sqrt(dot3(cr, cr));
+    }
+    int flat = kabs <= tol * area2;
+    (void)size;
     double alpha = k[0] + k[1] + k[2] + k[3], sgn = alpha >= 0 ? 1.0 : -1.0;
     int inside = alpha != 0;
     for (int i = 0; i < 4; ++i) inside = inside && (k[i] * sgn >= -1e-13 * kabs);

@@ -142,13 +142,21 @@ def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol:
     ``a``'s leading shape). Returns ``(phi_face (..., 3), psi (...), omega (...), on_face (...),
     alpha (..., 3))`` as :func:`green3d_chunk`."""
     normal, two_area, edge_dir, edge_out, grad_bary = geometry
-    h = (a[..., 0, :] * normal).sum(-1)  # > 0 on the inner side
     R = safe_norm(a)  # (..., 3)
     aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]  # edge e runs from corner e + 1 to e + 2
+    # The perpendicular w from the point to each edge's line, from the edge's midpoint: the same bits
+    # for both faces of an edge (whatever their orientation), so that near an edge two faces see the
+    # point on consistent sides (coplanar neighbours split their solid angle without a gap). The
+    # distances to the plane and to the edge lines are w's components: d_e = w . eout_e and
+    # h = w . n, taken from the nearest edge's w (the most accurate near an edge or a vertex).
+    mid = 0.5 * (aj + ak)
+    w = mid - (mid * edge_dir).sum(-1, keepdim=True) * edge_dir  # (..., 3 edges, 3)
+    h_e = (w * normal[..., None, :]).sum(-1)  # (..., 3), each = h up to rounding
+    h = h_e.gather(-1, (w * w).sum(-1).argmin(-1, keepdim=True)).squeeze(-1)  # > 0 on the inner side
     # Edge integrals and signed foot-to-edge distances (positive inside).
     ok = two_area > 0  # a degenerate triangle integrates to nothing
     I = torch.where(ok[..., None], _edge_integrals(aj, ak, edge_dir), 0.0)  # (..., 3)
-    d = (aj * edge_out).sum(-1)
+    d = (w * edge_out).sum(-1)
     # Signed solid angle as a sum over edges (no ratio that vanishes near an edge or the plane):
     # Omega = sign(h) sum_e [atan(d l_k / (R0^2 + |h| R_k)) - atan(d l_j / (R0^2 + |h| R_j))].
     l_j, l_k = (aj * edge_dir).sum(-1), (ak * edge_dir).sum(-1)

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import on_cage_tolerance, outside_point, records_graph, safe_sqrt, triangle_geometry
+from ._common import on_cage_tolerance, outside_point, records_graph, safe_atan2, safe_div, safe_sqrt, triangle_geometry
 
 #: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
 NEAR_PLANE = 0.01
@@ -230,9 +230,9 @@ def _direct_face_weights(q: dict, two_area: torch.Tensor) -> list[torch.Tensor]:
     m = [torch.zeros_like(q["h"]) for _ in range(3)]
     for e in range(3):
         j, k = (e + 1) % 3, (e + 2) % 3
-        theta = torch.atan2(Nn[e], dots[e])
-        safe = torch.where(Nn[e] > 0, Nn[e], 1.0)
-        g = torch.where(Nn[e] > 0, theta / safe, 1.0 / (R[j] * R[k])) * 0.5
+        theta = safe_atan2(Nn[e], dots[e])  # (finite derivatives at a corner of the face: R = 0)
+        RR = R[j] * R[k]
+        g = torch.where(Nn[e] > 0, safe_div(theta, Nn[e], Nn[e] > 0), safe_div(torch.ones_like(RR), RR, RR > 0)) * 0.5
         for c in range(3):
             m[c] = m[c] + g * N[e][c]
     det = two_area * q["h"]

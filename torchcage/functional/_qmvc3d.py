@@ -49,6 +49,7 @@ class QuadData:
     hull: TriangleCageData  # the 4Q triangles of the quads' tetrahedra (4 per quad, quad-major)
     split: TriangleCageData  # the 2Q triangles (q0, q1, q2), (q0, q2, q3) (2 per quad, quad-major)
     size: torch.Tensor  # (Q, 1) longest edge or diagonal
+    area2: torch.Tensor  # (Q, 1) sum of the four corner triangles' doubled areas
     tol: float  # absolute on-cage tolerance
 
 
@@ -72,12 +73,15 @@ def quad_data(vertices: torch.Tensor, quads: torch.Tensor, tol: float) -> QuadDa
     split_tri = torch.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
     diff = p[:, :, None, :] - p[:, None, :, :]
     size = diff.norm(dim=-1).flatten(1).max(dim=1).values
+    corner_tri = [p[:, [(i + 1) % 4, (i + 2) % 4, (i + 3) % 4]] for i in range(4)]
+    area2 = sum(torch.linalg.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], dim=-1).norm(dim=-1) for t in corner_tri)
     return QuadData(
         quads=quads,
         corners=p.permute(2, 1, 0).contiguous()[..., None],
         hull=triangle_data(vertices, hull_tri, tol),
         split=triangle_data(vertices, split_tri, tol),
         size=size[:, None],
+        area2=area2[:, None],
         tol=tol,
     )
 
@@ -270,8 +274,10 @@ def project(x: torch.Tensor, data: QuadData) -> Projection:
     mvec = mean_vector(p)
     k, rows, D = kernel_and_pinv(p)
     kabs = k[0].abs() + k[1].abs() + k[2].abs() + k[3].abs()
-    # kappa vanishes only for a planar quad and a point on its plane (|kappa| ~ distance x area).
-    flat = kabs <= tol * data.size * data.size
+    # kappa vanishes only for a planar quad and a point on its plane: |kappa|_1 = |h| sum_i 2 A_i
+    # there (A_i the corner triangles' areas), so this is |h| <= tol: the on-quad tolerance (a
+    # looser test left points just above a planar quad, off it by the tolerance, with no weight).
+    flat = kabs <= tol * data.area2
     alpha = k[0] + k[1] + k[2] + k[3]  # 6 x signed volume of the tetrahedron (independent of x)
     sgn = torch.where(alpha >= 0, 1.0, -1.0).to(x.dtype)
     inside = (alpha != 0) & (torch.stack(k) * sgn >= -1e-13 * kabs).all(dim=0)
