@@ -253,9 +253,11 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         const int c3[3] = {t0[f], t1[f], t2[f]};
         const double d[3] = {D0[f], D1[f], D2[f]}, *ed = g->edir + 9 * f;
         double h = H[f], habs = fabs(h), beta = 0.0;
-        if (habs <= tol) { /* on the plane: principal value, no solid angle */
+        if (habs <= tol && d[0] >= -tol && d[1] >= -tol && d[2] >= -tol) {
+            /* on the face: principal value, no solid angle. (On its plane off the face, the solid
+             * angle is computed below: near an edge it is of order 1 even where h <= tol.) */
             OM[f] = 0.0;
-            if (on_face < 0 && d[0] >= -tol && d[1] >= -tol && d[2] >= -tol) {
+            if (on_face < 0) {
                 on_face = f;
                 double sum = 0.0;
                 for (int i = 0; i < 3; ++i) {

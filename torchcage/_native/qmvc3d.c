@@ -8,6 +8,7 @@
  * against the torch kernel.
  */
 #define _GNU_SOURCE
+#include <float.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -209,6 +210,10 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     double alpha = k[0] + k[1] + k[2] + k[3], sgn = alpha >= 0 ? 1.0 : -1.0;
     int inside = alpha != 0;
     for (int i = 0; i < 4; ++i) inside = inside && (k[i] * sgn >= -1e-13 * kabs);
+    /* The signs of kappa mean nothing when it is at the level of its rounding error (a point on
+     * the plane of a nearly planar quad, off it): not inside then (as in _qmvc3d.py). */
+    double noise = 16.0 * DBL_EPSILON * (R[1] * R[2] * R[3] + R[0] * R[2] * R[3] + R[0] * R[1] * R[3] + R[0] * R[1] * R[2]);
+    inside = inside && kabs > noise;
     double b[3], cc[3], dd[3];
     for (int c = 0; c < 3; ++c) {
         b[c] = p[1][c] - p[0][c];

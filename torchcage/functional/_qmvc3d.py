@@ -281,6 +281,13 @@ def project(x: torch.Tensor, data: QuadData) -> Projection:
     alpha = k[0] + k[1] + k[2] + k[3]  # 6 x signed volume of the tetrahedron (independent of x)
     sgn = torch.where(alpha >= 0, 1.0, -1.0).to(x.dtype)
     inside = (alpha != 0) & (torch.stack(k) * sgn >= -1e-13 * kabs).all(dim=0)
+    # The signs of kappa mean nothing at the level of its rounding error (a point on the plane of
+    # a nearly planar quad, off it, came out "inside" and got weights of order 1): not inside then.
+    Rs = R2.sqrt()
+    noise = (16 * torch.finfo(x.dtype).eps) * (
+        Rs[1] * Rs[2] * Rs[3] + Rs[0] * Rs[2] * Rs[3] + Rs[0] * Rs[1] * Rs[3] + Rs[0] * Rs[1] * Rs[2]
+    )
+    inside = inside & (kabs > noise)
 
     # x' = x inside the tetrahedron, else the |MVC| average over its faces.
     outside = ~inside & ~flat & (vertex < 0)
