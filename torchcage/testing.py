@@ -147,7 +147,7 @@ def hard_cages(dtype: torch.dtype = torch.float64) -> dict:
     }
 
 
-def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True) -> dict[str, torch.Tensor]:
+def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True, sides: bool = False):
     """Query points that stress coordinate kernels, by category, in the cage's dtype.
 
     Categories: ``vertex``, ``edge``, ``face`` (exactly on the cage, up to rounding); ``near_vertex``,
@@ -155,6 +155,12 @@ def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True) ->
     ``plane`` (on faces' support planes, off the faces), ``edge_line`` (on edges' lines beyond
     their ends); ``far`` (``1e2 .. 1e9`` cage sizes away, only with ``far=True``). 2D cages use
     their edges as faces. Each category has about ``n`` points (``(m, D)``).
+
+    With ``sides=True`` returns ``(points, sides)``: ``sides[cat]`` ``(m,)`` is ``-1`` for points
+    known to be inside the cage, ``+1`` outside, ``0`` on it and NaN where the construction does not
+    tell (offsets in random directions near vertices and edges, points off the cage's surface).
+    ``near_face`` points are offset along the outward normal of the surface (of the bilinear sheet
+    for quads), so their side is the offset's sign (for offsets below the local feature size).
 
     Example:
         >>> import torchcage
@@ -192,7 +198,8 @@ def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True) ->
     e = edges[pick(edges.shape[0], n)]
     t = rand(n, 1)
     on_edge = (1 - t) * v[e[:, 0]] + t * v[e[:, 1]]
-    f = faces[pick(faces.shape[0], n)]
+    true_tri = cage.triangles if D == 3 and cage.triangles.shape[0] else faces
+    f = true_tri[pick(true_tri.shape[0], n)]  # (quad cages: only their real triangles here)
     if D == 3:
         b = -torch.log(rand(n, 3))
         b = b / b.sum(dim=1, keepdim=True)
@@ -201,7 +208,11 @@ def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True) ->
         if cage.has_quads:  # points on the bilinear quads themselves (not on their split triangles)
             quads = cage.quads
             nt = cage.triangles.shape[0]
-            use = torch.rand(n, generator=g) < quads.shape[0] / (quads.shape[0] + nt)
+            use = (
+                torch.rand(n, generator=g) < quads.shape[0] / (quads.shape[0] + nt)
+                if nt
+                else torch.ones(n, dtype=torch.bool)
+            )
             q = v[quads[pick(quads.shape[0], n)]]  # (n, 4, D)
             uu, vv = rand(n, 1), rand(n, 1)
             sheet = (
@@ -218,6 +229,7 @@ def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True) ->
         nrm = (v[e[:, 1]] - v[e[:, 0]]).flip(1) * torch.tensor([1.0, -1.0], dtype=dt)
         plane = on_edge + (v[e[:, 1]] - v[e[:, 0]]) * (1 + 2 * rand(n, 1))
     nrm = nrm / nrm.norm(dim=1, keepdim=True)
+    face_off = offsets(n)
     beyond = v[e[:, 1]] + (v[e[:, 1]] - v[e[:, 0]]) * (0.01 + 3 * rand(n, 1))
     vi = pick(v.shape[0], n)
     out = {
@@ -226,11 +238,17 @@ def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True) ->
         "face": on_face,
         "near_vertex": v[vi] + offsets(n) * unit(n),
         "near_edge": on_edge + offsets(n) * unit(n),
-        "near_face": on_face + offsets(n) * nrm,
+        "near_face": on_face + face_off * nrm,
         "plane": plane,
         "edge_line": beyond,
     }
     if far:
         centre = (v.max(dim=0).values + v.min(dim=0).values) / 2
         out["far"] = centre + unit(n) * size * 10.0 ** (2 + 7 * rand(n, 1))
-    return out
+    if not sides:
+        return out
+    side = {k: torch.full((p.shape[0],), float("nan"), dtype=dt) for k, p in out.items()}
+    for k in ("vertex", "edge", "face"):
+        side[k] = torch.zeros(out[k].shape[0], dtype=dt)
+    side["near_face"] = torch.sign(face_off[:, 0])
+    return out, side

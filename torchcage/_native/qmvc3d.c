@@ -295,7 +295,9 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     qp->u = u;
     qp->v = v;
     qp->vertex = vertex;
-    qp->on = vertex >= 0 || dot3(xi, xi) <= tol * tol;
+    /* (A point within tol of a planar quad's plane gets no weight from it off the quad: within tol of
+     * its boundary too, it is on the quad, or it would get no weight from either face of an edge.) */
+    qp->on = vertex >= 0 || dot3(xi, xi) <= (flat ? 2.0 : 1.0) * tol * tol;
 }
 
 /*

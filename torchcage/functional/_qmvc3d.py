@@ -309,7 +309,9 @@ def project(x: torch.Tensor, data: QuadData) -> Projection:
 
     # On the quad: the bilinear coordinates of the projection reproduce the point.
     xi = _add(_add(p[0], _scale(u, b)), _add(_scale(v, c), _scale(u * v, dd)))
-    on = (_dot(xi, xi) <= tol * tol) | (vertex >= 0)
+    # (A point within tol of a planar quad's plane gets no weight from it off the quad: within tol
+    # of its boundary too, it is on the quad, or it would get no weight from either face of an edge.)
+    on = (_dot(xi, xi) <= torch.where(flat, 2.0, 1.0) * (tol * tol)) | (vertex >= 0)
     return Projection(p, R2, vertex, mvec, k, rows, D, kabs, flat, inside, b, c, dd, nq, u, v, on)  # type: ignore[arg-type]
 
 
