@@ -200,9 +200,15 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         double l_j = Ax[j] * ux + Ay[j] * uy + Az[j] * uz, l_k = Ax[k] * ux + Ay[k] * uy + Az[k] * uz;
         double cx = Ay[j] * uz - Az[j] * uy, cy = Az[j] * ux - Ax[j] * uz, cz = Ax[j] * uy - Ay[j] * ux;
         IE[q] = tc_edge_log_arg(l_j, l_k, RA[j], RA[k], cx * cx + cy * cy + cz * cz);
-        /* The perpendicular from the point to the edge's line, from the midpoint: the same for the
-         * edge's two faces, which then see the point on consistent sides (torch: triangle_integrals). */
+        /* The perpendicular from the point to the edge's line: the same for the edge's two faces,
+         * which then see the point on consistent sides (torch: _edge_perpendicular). */
+        /* (from the nearer end, accurate near a vertex; from the midpoint when both are as near) */
         double mx = 0.5 * (Ax[j] + Ax[k]), my = 0.5 * (Ay[j] + Ay[k]), mz = 0.5 * (Az[j] + Az[k]);
+        if (RA[j] < RA[k]) {
+            mx = Ax[j], my = Ay[j], mz = Az[j];
+        } else if (RA[k] < RA[j]) {
+            mx = Ax[k], my = Ay[k], mz = Az[k];
+        }
         double mu = mx * ux + my * uy + mz * uz;
         double wx = mx - mu * ux, wy = my - mu * uy, wz = mz - mu * uz;
         WX[q] = wx;

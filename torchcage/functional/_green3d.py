@@ -102,6 +102,18 @@ def _edge_integrals(a_j: torch.Tensor, a_k: torch.Tensor, u: torch.Tensor) -> to
     return torch.where(l_j >= 0, ahead, torch.where(l_k <= 0, behind, straddle))
 
 
+def _edge_perpendicular(aj: torch.Tensor, ak: torch.Tensor, Rj: torch.Tensor, Rk: torch.Tensor, u: torch.Tensor):
+    """The perpendicular ``w`` ``(..., 3)`` from the point to the line of the edge ``p_j p_k`` (unit
+    direction ``u``), from the nearer end (accurate near a vertex: its error is ``eps`` times the
+    distance to that end), or from the midpoint when both are as near. The same bits whichever way
+    a face runs along the edge: both faces of an edge see the point on consistent sides."""
+    wj = aj - (aj * u).sum(-1, keepdim=True) * u
+    wk = ak - (ak * u).sum(-1, keepdim=True) * u
+    mid = 0.5 * (aj + ak)
+    wm = mid - (mid * u).sum(-1, keepdim=True) * u
+    return torch.where((Rj < Rk)[..., None], wj, torch.where((Rk < Rj)[..., None], wk, wm))
+
+
 def _vos_solid_angle(a: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     """Signed solid angle ``2 atan2(det, den)`` (Van Oosterom-Strackee) of triangles with corners
     ``a`` ``(..., 3, 3)`` relative to the point and their lengths ``R`` ``(..., 3)``; positive for
@@ -144,13 +156,12 @@ def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol:
     normal, two_area, edge_dir, edge_out, grad_bary = geometry
     R = safe_norm(a)  # (..., 3)
     aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]  # edge e runs from corner e + 1 to e + 2
-    # The perpendicular w from the point to each edge's line, from the edge's midpoint: the same bits
-    # for both faces of an edge (whatever their orientation), so that near an edge two faces see the
+    # The perpendicular w from the point to each edge's line, the same bits for both faces of an edge
+    # (whatever their orientation), so that near an edge two faces see the
     # point on consistent sides (coplanar neighbours split their solid angle without a gap). The
     # distances to the plane and to the edge lines are w's components: d_e = w . eout_e and
     # h = w . n, taken from the nearest edge's w (the most accurate near an edge or a vertex).
-    mid = 0.5 * (aj + ak)
-    w = mid - (mid * edge_dir).sum(-1, keepdim=True) * edge_dir  # (..., 3 edges, 3)
+    w = _edge_perpendicular(aj, ak, R[..., [1, 2, 0]], R[..., [2, 0, 1]], edge_dir)  # (..., 3 edges, 3)
     h_e = (w * normal[..., None, :]).sum(-1)  # (..., 3), each = h up to rounding
     h = h_e.gather(-1, (w * w).sum(-1).argmin(-1, keepdim=True)).squeeze(-1)  # > 0 on the inner side
     # Edge integrals and signed foot-to-edge distances (positive inside).
