@@ -10,6 +10,7 @@
 
 #define FOUR_PI 12.566370614359172953850573533118
 #define GC_NEAR_PLANE 0.01 /* pairs closer to a face plane than this x min R: edge-sum solid angle */
+#define GC_NEAR_VERTEX 1e-3 /* pairs nearer a corner than this x the farthest corner: edge-sum solid angle */
 
 #include "native.h"
 
@@ -245,8 +246,12 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         OM[f] = 2.0 * atan2(a0x * c12x + a0y * c12y + a0z * c12z, den);
         double rmin = R0 < R1 ? R0 : R1;
         rmin = rmin < R2 ? rmin : R2;
+        double rmax = R0 > R1 ? R0 : R1;
+        rmax = rmax > R2 ? rmax : R2;
         double ha = h >= 0 ? h : -h;
-        FL[f] = (ha < THR[f] * rmin || ha <= tol || THR[f] < 0) ? 1.0 : 0.0;
+        /* Near its plane, or much nearer one corner than the others (the one-atan2 form loses
+         * digits there too: 5e-9 of partition of unity at 3e-14 from a sliver's apex): edge sum. */
+        FL[f] = (ha < THR[f] * rmin || ha <= tol || THR[f] < 0 || rmin < GC_NEAR_VERTEX * rmax) ? 1.0 : 0.0;
     }
     long on_face = -1;
     on_alpha[0] = on_alpha[1] = on_alpha[2] = 0.0;
@@ -263,7 +268,7 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
             /* on the face: principal value, no solid angle. (On its plane off the face, the solid
              * angle is computed below: near an edge it is of order 1 even where h <= tol.) */
             OM[f] = 0.0;
-            if (on_face < 0) {
+            if (on_face < 0 || two_area[f] > two_area[on_face]) { /* the largest face: best conditioned */
                 on_face = f;
                 double sum = 0.0;
                 for (int i = 0; i < 3; ++i) {

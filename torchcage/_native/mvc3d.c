@@ -155,6 +155,8 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
                 double r01 = r0 < r1 ? r0 : r1;
                 RM[f] = r01 < r2 ? r01 : r2;
             }
+            long best = -1; /* the largest face holding the point (its barycentric values are the best conditioned) */
+            double best_bc[3] = {0, 0, 0};
             for (long f = 0; f < T; ++f) {
                 double h = H[f], rmin = RM[f];
                 if (!(fabs(h) >= near_c * rmin && rmin > tol)) {
@@ -174,11 +176,12 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
                         double bc[3];
                         for (int i = 0; i < 3; ++i)
                             bc[i] = rmin <= tol ? (R[i] <= tol ? 1.0 : 0.0) : (s[i] > 0 ? s[i] : 0.0);
-                        double sum = bc[0] + bc[1] + bc[2];
-                        memset(w, 0, sizeof(double) * (size_t)V);
-                        for (int i = 0; i < 3; ++i) w[t[i]] += bc[i] / sum;
-                        on[p] = 1;
-                        break;
+                        if (rmin <= tol || best < 0 || two_area[f] > two_area[best]) {
+                            best = f;
+                            for (int i = 0; i < 3; ++i) best_bc[i] = bc[i];
+                        }
+                        if (rmin <= tol) break; /* a vertex: its Lagrange values whichever face */
+                        continue;
                     }
                     double wf[3];
                     tc_stable_face(h, s, dots, R, lf, gram + 9 * f, two_area[f], wf);
@@ -187,7 +190,15 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
                     W2[f] = wf[2];
                 }
             }
-            if (on[p]) continue;
+            if (best >= 0) {
+                double sum = best_bc[0] + best_bc[1] + best_bc[2];
+                memset(w, 0, sizeof(double) * (size_t)V);
+                w[t0[best]] += best_bc[0] / sum;
+                w[t1[best]] += best_bc[1] / sum;
+                w[t2[best]] += best_bc[2] / sum;
+                on[p] = 1;
+                continue;
+            }
             /* Gather the face-corner weights (W0, W1, W2 are contiguous) into the vertices. */
             double total = 0.0, abs_sum = 0.0;
             for (long v = 0; v < V; ++v) {

@@ -213,7 +213,7 @@ def green3d_coordinates(
     on_cage = on_face.any(dim=1)
     if bool(on_cage.any()):
         rows = torch.nonzero(on_cage).squeeze(1)
-        f = on_face[rows].to(torch.int8).argmax(dim=1)
+        f = (on_face[rows] * data.two_area).argmax(dim=1)  # the largest face: the best conditioned
         bary = alpha[rows, f].clamp_min(0.0)
         bary = bary / bary.sum(dim=1, keepdim=True)
         jump = 1 - omega[rows].sum(dim=1, keepdim=True) / (4 * math.pi)

@@ -347,7 +347,8 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, 
         W.index_add_(0, data.tri[:, i], w[i])
     if any_on:
         cols = torch.nonzero(on_cage).squeeze(1)
-        f = on_face[:, cols].to(torch.int8).argmax(dim=0)  # first face holding each point
+        # the largest face holding each point: its barycentric values are the best conditioned
+        f = (on_face[:, cols] * data.two_area).argmax(dim=0)
         bary = torch.stack([q["s"][i][f, cols] for i in range(3)]).clamp_min(0.0)  # (3, m)
         at_vertex = torch.stack([q["R"][i][f, cols] for i in range(3)]) <= data.tol
         bary = torch.where(at_vertex.any(dim=0, keepdim=True), at_vertex.to(bary.dtype), bary)

@@ -1,0 +1,312 @@
+"""Finite and right everywhere: the robustness issue's reproducers and a fast slice of the sweep.
+
+Each reproducer is an example of a class of inputs (points on the cage, on support planes and edge
+lines, near edges of coplanar faces, slivers, collapsed poses, large coordinates); the slice at the
+end runs ``benchmarks/robustness.py`` on a few thousand adversarial queries.
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import data_path
+
+import torchcage as tc
+from torchcage import functional as F
+from torchcage.testing import adversarial_points, sliver_cube, twisted_bar
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+D64 = torch.float64
+
+
+def _cube() -> tc.Cage:
+    return tc.load_cage(tc.data.path("cube.obj")).triangulated().to(D64)
+
+
+def _finite(*ts: torch.Tensor | None) -> bool:
+    return all(t is None or bool(torch.isfinite(t).all()) for t in ts)
+
+
+def _fd_grad(f, x: torch.Tensor, h: float = 1e-6) -> torch.Tensor:
+    """Central differences of a scalar function of ``x`` ``(1, 3)``."""
+    return torch.stack([(f(x + h * e) - f(x - h * e)) / (2 * h) for e in torch.eye(x.shape[1], dtype=x.dtype)])
+
+
+# ------------------------------------------------------------------------------ gradients
+def test_warp_image_gradient_on_integer_polygon() -> None:
+    """Reproducer 1: a 2D cage on pixel coordinates (points on its vertices and edges)."""
+    pytest.importorskip("kornia")
+    from torchcage.image import warp_image
+
+    P = torch.tensor([[4.0, 4], [19, 4], [19, 19], [4, 19]], dtype=D64)
+    D = P[None].clone().requires_grad_()
+    out = warp_image(torch.rand(1, 1, 24, 24, dtype=D64), tc.Cage(P, None), D, method="mvc")
+    out.sum().backward()
+    assert _finite(D.grad)
+
+
+def test_mvc2d_vertex_gradient_on_the_polygon() -> None:
+    """2D MVC w.r.t. the polygon at points on its vertices and edges: finite, and along an edge
+    the derivative of the linear interpolant (the foot's parameter on the edge)."""
+    P = torch.tensor([[0.0, 0], [2, 0], [2, 2], [0, 2]], dtype=D64)
+    x = torch.tensor([[0.0, 0.0], [1.0, 0.0], [2.0, 0.5]], dtype=D64)
+    V = P.clone().requires_grad_()
+    lam = F.mean_value_coordinates(x, tc.Cage(V, None))
+    (gV,) = torch.autograd.grad(lam[1, 1], V)
+    assert _finite(gV)
+
+    # lam_1 at x on edge (p0, p1) is t = (x - p0).(p1 - p0) / |p1 - p0|^2: d/dp1 = -(t / L) e - ..., check by FD
+    def f(v1x: float) -> torch.Tensor:
+        Q = P.clone()
+        Q[1, 0] = v1x
+        return F.mean_value_coordinates(x[1:2], tc.Cage(Q, None))[0, 1]
+
+    fd = (f(2.0 + 1e-6) - f(2.0 - 1e-6)) / 2e-6
+    assert abs(float(gV[1, 0]) - float(fd)) < 1e-8
+
+
+def test_mvc3d_rest_vertex_gradient_at_a_cage_vertex() -> None:
+    """Reproducer 2: MVC w.r.t. the rest cage at a point on a cage vertex."""
+    cube = _cube()
+    V = cube.vertices.clone().requires_grad_()
+    lam = F.mean_value_coordinates(cube.vertices[:1], tc.Cage(V, cube.triangles))
+    (g,) = torch.autograd.grad((lam * torch.arange(8.0, dtype=D64)).sum(), V)
+    assert _finite(g)
+
+
+@pytest.mark.parametrize(
+    "x0",
+    [(1.0, -4.0, -1.0), (3.0, 0.2, -1.0), (0.3, -1.001, 0.2), (0.2, 0.1, 0.3)],
+    ids=["edge_line", "support_plane", "near_face", "inside"],
+)
+def test_green_point_gradient_agrees_with_finite_differences(x0) -> None:
+    """Reproducer 3: GC w.r.t. the point on an edge's support line and a face's support plane
+    outside the cage (derivatives kept there, not zeroed), near a face and inside."""
+    cube = _cube()
+    c1 = torch.arange(8.0, dtype=D64) + 1
+    c2 = torch.arange(12.0, dtype=D64) * 0.1
+
+    def f(y: torch.Tensor) -> torch.Tensor:
+        phi, psi = F.green_coordinates(y, cube, backend="torch")
+        return (phi @ c1 + psi @ c2).sum()
+
+    x = torch.tensor([x0], dtype=D64, requires_grad=True)
+    (g,) = torch.autograd.grad(f(x), x)
+    fd = _fd_grad(f, x.detach())
+    assert torch.allclose(g[0], fd, rtol=1e-6, atol=1e-8)
+
+
+def test_green_point_gradient_at_a_cage_corner_is_finite() -> None:
+    cube = _cube()
+    x = cube.vertices[:1].clone().requires_grad_()
+    phi, psi = F.green_coordinates(x, cube)
+    (g,) = torch.autograd.grad((phi * torch.arange(8.0, dtype=D64)).sum() + psi.sum(), x)
+    assert _finite(g)
+
+
+def test_green_module_on_a_sliver_cage() -> None:
+    """Reproducer 4: a sliver triangle (height 1e-9): finite backward, rest pose reproduced."""
+    cage = sliver_cube()
+    pts = torch.rand(40, 3, dtype=D64, generator=torch.Generator().manual_seed(0)) * 1.8 - 0.9
+    m = tc.GreenCoordinates(cage, pts)
+    V = cage.vertices.clone().requires_grad_()
+    m(V).sum().backward()
+    assert _finite(V.grad)
+    assert torch.allclose(m(cage.vertices), pts, atol=1e-10)
+
+
+def test_conformal_stretch_is_exact_on_slivers_and_zero_when_collapsed() -> None:
+    from torchcage.functional._stretch import conformal_stretch
+
+    u0 = torch.tensor([1.0, 0.0, 0.0], dtype=D64)
+    v0 = torch.tensor([0.5, 1e-9, 0.0], dtype=D64)
+    assert abs(float(conformal_stretch(u0, v0, u0, v0)) - 1.0) < 1e-6  # the published form gave 0 or NaN
+    R = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=D64)
+    assert abs(float(conformal_stretch(u0, v0, 3 * R @ u0, 3 * R @ v0)) - 3.0) < 1e-6
+    z = torch.zeros(3, dtype=D64, requires_grad=True)
+    s = conformal_stretch(u0, v0, z, z)
+    (g,) = torch.autograd.grad(s, z)
+    assert float(s) == 0.0 and _finite(g)
+
+
+@pytest.mark.parametrize("kind", ["gc", "qgc"])
+def test_green_modules_at_a_collapsed_pose(kind: str) -> None:
+    """Reproducer 5: all deformed vertices equal: finite gradients (zero stretch derivative)."""
+    cq = tc.load_cage(tc.data.path("cube.obj")).to(D64)
+    pts = torch.rand(20, 3, dtype=D64, generator=torch.Generator().manual_seed(1)) * 1.6 - 0.8
+    m = tc.GreenCoordinates(cq.triangulated(), pts) if kind == "gc" else tc.QuadGreenCoordinates(cq, pts)
+    V = torch.zeros(8, 3, dtype=D64, requires_grad=True)
+    out = m(V)
+    out.sum().backward()
+    assert _finite(out, V.grad)
+
+
+def test_qgc_rest_vertex_gradient_matches_finite_differences() -> None:
+    """Reproducer 6 (QGC w.r.t. the cage): the SVD basis of A's null space had NaN gradients; the
+    pseudo-inverse and the null-space projector are differentiated instead. gradcheck in float64."""
+    bar = twisted_bar(levels=4)
+    x = torch.tensor([[0.2571, 0.1355, 1.4445]], dtype=D64)
+
+    def f(V: torch.Tensor):
+        return F.quad_green_coordinates(x, tc.Cage(V, bar.faces))
+
+    assert torch.autograd.gradcheck(f, (bar.vertices.clone().requires_grad_(),), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_qgc_rest_vertex_gradient_on_the_cage_is_finite() -> None:
+    cq = tc.load_cage(tc.data.path("cube.obj")).to(D64)
+    pts = adversarial_points(cq, 4, seed=3)
+    x = torch.cat([pts[k] for k in ("vertex", "edge", "face", "near_edge")])
+    V = cq.vertices.clone().requires_grad_()
+    phi, psi = F.quad_green_coordinates(x, tc.Cage(V, cq.faces))
+    (g,) = torch.autograd.grad(phi.sum() + psi.sum(), V)
+    assert _finite(g)
+
+
+def test_qmvc_gradients_on_the_cage() -> None:
+    """Reproducer 7: QMVC at a cage corner (w.r.t. the point); on a quad the derivative is the
+    tangential derivative of the bilinear interpolant (finite differences along the face)."""
+    cq = tc.load_cage(tc.data.path("cube.obj")).to(D64)
+    c = torch.arange(8.0, dtype=D64) + 1
+    x = cq.vertices[:1].clone().requires_grad_()
+    (g,) = torch.autograd.grad(F.quad_mean_value_coordinates(x, cq) @ c, x)
+    assert _finite(g)
+    x0 = torch.tensor([[0.2, 0.3, 1.0]], dtype=D64)
+    x = x0.clone().requires_grad_()
+    V = cq.vertices.clone().requires_grad_()
+    gx, gV = torch.autograd.grad((F.quad_mean_value_coordinates(x, tc.Cage(V, cq.faces)) @ c).sum(), (x, V))
+    assert _finite(gx, gV)
+
+    def f(y: torch.Tensor) -> torch.Tensor:
+        return (F.quad_mean_value_coordinates(y, cq) @ c).sum()
+
+    fd = _fd_grad(f, x0)
+    assert torch.allclose(gx[0, :2], fd[:2], atol=1e-8)
+
+
+@pytest.mark.parametrize("model", ["Beast", "Ogre"])
+def test_qmvc_rest_vertex_gradient_at_vertices_of_a_triquad_cage(model: str) -> None:
+    """A point on a quad-only vertex of a triquad cage: the triangles' kernel took sqrt(0)."""
+    cage = tc.load_cage(data_path("qmvc", f"{model}_Cage.obj")).to(D64)
+    V = cage.vertices.clone().requires_grad_()
+    w = F.quad_mean_value_coordinates(cage.vertices[:40], tc.Cage(V, cage.faces))
+    (g,) = torch.autograd.grad((w * torch.arange(w.shape[1], dtype=D64)).sum(), V)
+    assert _finite(g)
+
+
+# ------------------------------------------------------------------------------ values
+def test_qgc_torch_at_cage_vertices() -> None:
+    """Reproducer 11."""
+    cage = tc.load_cage(data_path("qmvc", "FireHydrant_Cage.obj")).to(D64)
+    phi, psi = F.quad_green_coordinates(cage.vertices[:20], cage, backend="torch")
+    assert _finite(phi, psi)
+
+
+def test_green_native_on_an_edge_at_large_coordinates(backend: str) -> None:
+    """Reproducer 12: the edge integral's log argument overflowed to inf (then 0 * inf)."""
+    bench = tc.load_cage(data_path("qmvc", "Bench_Cage.obj")).triangulated().to(D64)
+    big = tc.Cage(bench.vertices * 1e6, bench.triangles)
+    e = bench.triangles[0]
+    x = (0.5 * (big.vertices[e[0]] + big.vertices[e[1]]))[None]
+    phi, psi = F.green_coordinates(x, big, backend=backend)
+    assert _finite(phi, psi)
+    assert abs(float(phi.sum()) - 1) < 1e-12
+
+
+@pytest.mark.parametrize("offset", [1e-14, 1e-13, 3e-15])
+def test_green_near_the_edge_of_coplanar_faces(backend: str, offset: float) -> None:
+    """Reproducer 13: two coplanar faces split the solid angle near their shared edge without a
+    gap (each edge's perpendicular is computed once for both faces)."""
+    cage = tc.load_cage(data_path("qmvc", "SpikyBox_Cage.obj")).triangulated().to(D64)
+    pts = adversarial_points(cage, 400, seed=0)
+    from torchcage.geometry import inside_cage
+
+    x = pts["near_edge"]
+    x = x[inside_cage(x, cage)]
+    phi, psi = F.green_coordinates(x, cage, backend=backend)
+    assert float((phi.sum(1) - 1).abs().max()) < 1e-12
+    # and the cube's face diagonals (coplanar triangles), just inside
+    cube = _cube()
+    y = torch.tensor([[0.3, 0.3, 1 - offset], [-0.5, 0.5, 1 - offset]], dtype=D64)
+    phi, psi = F.green_coordinates(y, cube, backend=backend)
+    assert float((phi.sum(1) - 1).abs().max()) < 1e-12
+    assert torch.allclose(phi @ cube.vertices + psi @ cube.triangle_normals(), y, atol=1e-12)
+
+
+def test_green_near_a_vertex(backend: str) -> None:
+    """Points 1e-15..1e-3 of the size from vertices of a twisted bar: the perpendicular to each edge
+    from its nearer end keeps the sides right (the midpoint form lost 1e-4 of partition of unity)."""
+    from torchcage.geometry import inside_cage
+
+    bar = twisted_bar(quads=False)
+    x = adversarial_points(bar, 300, seed=0)["near_vertex"]
+    x = x[inside_cage(x, bar)]
+    phi, _ = F.green_coordinates(x, bar, backend=backend)
+    assert float((phi.sum(1) - 1).abs().max()) < 1e-12
+
+
+def test_qgc_on_the_edges_of_twisted_quads(backend: str) -> None:
+    """Points on a quad edge: the fan triangle over that edge is empty (it was a sliver seen from its
+    own edge, with a garbage solid angle: linear precision 45 native, 1.3 torch)."""
+    bar = twisted_bar()
+    x = adversarial_points(bar, 60, seed=0)["edge"]
+    phi, psi = F.quad_green_coordinates(x, bar, backend=backend)
+    N = bar.quad_corner_normals().reshape(-1, 3)
+    assert float((phi @ bar.vertices + psi @ N - x).abs().max()) < 1e-12
+
+
+def test_qmvc_just_off_planar_quads(backend: str) -> None:
+    """Reproducer 10's class: points within a few tolerances of a planar quad (above it, and near
+    its edges outside) got no weight from it (linear precision 0.04 on Bench, 0.15 on the cube)."""
+    cube = tc.load_cage(tc.data.path("cube.obj")).to(D64)
+    e = torch.tensor([-1.0, -0.785, 1.0], dtype=D64)
+    vals = [4e-15, 9e-15, 1.2e-14, 2e-14, 1e-13]
+    x = torch.stack([e + torch.tensor([-a, 0.0, b], dtype=D64) for a in vals for b in vals])
+    w = F.quad_mean_value_coordinates(x, cube, backend=backend)
+    assert float((w @ cube.vertices - x).abs().max()) < 1e-12
+    bench = tc.load_cage(data_path("qmvc", "Bench_Cage.obj")).to(D64)
+    y = adversarial_points(bench, 200, seed=0)["near_face"]
+    w = F.quad_mean_value_coordinates(y, bench, backend=backend)
+    assert float((w @ bench.vertices - y).abs().max()) / bench.scale < 1e-10
+
+
+def test_qmvc_on_the_plane_of_a_nearly_planar_quad(backend: str) -> None:
+    """A point on a nearly planar quad's plane far from it came out "inside" its tetrahedron (the
+    signs of kappa at their rounding level) and got O(1) weights (linear precision 1.5)."""
+    cactus = tc.load_cage(data_path("qmvc", "Cactus_Cage.obj")).to(D64)
+    y = adversarial_points(cactus, 60, seed=0)["plane"]
+    w = F.quad_mean_value_coordinates(y, cactus, backend=backend)
+    assert float((w @ cactus.vertices - y).abs().max()) / cactus.scale < 1e-10
+
+
+def test_on_cage_tolerance_follows_the_coordinates() -> None:
+    """A cage translated by 1e6: points on its faces carry rounding errors of eps * 1e6."""
+    cube = _cube()
+    far = tc.Cage(cube.vertices + 1e6, cube.triangles)
+    x = adversarial_points(far, 50, seed=0)["face"]
+    phi, psi = F.green_coordinates(x, far)
+    assert float((phi @ far.vertices + psi @ far.triangle_normals() - x).abs().max()) < 1e-8
+
+
+# ------------------------------------------------------------------------------ the sweep's slice
+@pytest.mark.parametrize("family", ["mvc3d", "mvc2d", "mvc_derivatives", "qmvc", "gc", "qgc", "image"])
+def test_robustness_slice(family: str) -> None:
+    """A few thousand adversarial queries per family: no non-finite value or gradient, and the
+    float64 bounds met by every family outside the far field (see docs/accuracy.md)."""
+    import robustness
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        results = robustness.run([family], None, per_category=40, grad_k=6, dtype=None)
+    st, _ = results[family]
+    assert st.queries > 0
+    assert st.bad_values == 0 and st.bad_grads == 0, st.errors[:5]
+    assert not [e for e in st.errors if "far" not in e], st.errors[:5]
+    if family != "image":
+        assert st.pu[0] < 1e-9, st.pu
+        assert st.lp[0] < 1e-8, st.lp
