@@ -320,3 +320,12 @@ def test_robustness_slice_qgc_bounds() -> None:
         warnings.simplefilter("ignore")
         st, _ = robustness.run(["qgc"], None, per_category=40, grad_k=0, dtype=None)["qgc"]
     assert st.pu[0] < 1e-9 and st.lp[0] < 1e-8, (st.pu, st.lp)
+
+
+@pytest.mark.parametrize("kind", ["gc", "qgc"])
+def test_green_modules_warn_about_points_outside(kind: str) -> None:
+    """Reproducer 14 (until the exterior extension lands): a warning with the count."""
+    cq = tc.load_cage(tc.data.path("cube.obj")).to(D64)
+    pts = torch.tensor([[0.1, 0.2, 0.3], [3.0, 0.0, 0.0], [0.0, -2.5, 0.1]], dtype=D64)
+    with pytest.warns(tc.OutsideCageWarning, match="2 of 3 points lie outside"):
+        tc.GreenCoordinates(cq.triangulated(), pts) if kind == "gc" else tc.QuadGreenCoordinates(cq, pts)

@@ -12,7 +12,14 @@ Example:
 
 from . import data, functional, variational
 from .cage import Cage
-from .errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError, PointsError
+from .errors import (
+    CageError,
+    CageOrientationError,
+    CageTopologyError,
+    DegenerateFaceError,
+    OutsideCageWarning,
+    PointsError,
+)
 from .io import load_cage, load_mesh, save_cage, save_mesh
 from .nn import (
     GreenCoordinates,
@@ -33,6 +40,7 @@ __all__ = [
     "GreenCoordinates",
     "LocalBarycentricCoordinates",
     "MeanValueCoordinates",
+    "OutsideCageWarning",
     "PointsError",
     "QuadGreenCoordinates",
     "QuadMeanValueCoordinates",

@@ -6,7 +6,14 @@ them with the builtin classes; the message names the problem and the way to fix 
 
 from __future__ import annotations
 
-__all__ = ["CageError", "CageOrientationError", "CageTopologyError", "DegenerateFaceError", "PointsError"]
+__all__ = [
+    "CageError",
+    "CageOrientationError",
+    "CageTopologyError",
+    "DegenerateFaceError",
+    "OutsideCageWarning",
+    "PointsError",
+]
 
 
 class CageError(ValueError):
@@ -27,3 +34,24 @@ class DegenerateFaceError(CageError):
 
 class PointsError(ValueError):
     """Query points are unusable: wrong shape, non-finite values, or a mismatched device."""
+
+
+class OutsideCageWarning(UserWarning):
+    """Points lie outside a cage whose coordinates are defined inside only (Green coordinates map
+    them to nearly the origin); the message gives their count."""
+
+
+def warn_outside(phi_sum, what: str) -> None:
+    """Warn with the count of points whose Green coordinates sum to less than 1/2 (their winding
+    number: 1 inside the cage, 0 outside). ``phi_sum`` ``(N,)``."""
+    import warnings
+
+    outside = int((phi_sum < 0.5).sum())
+    if outside:
+        warnings.warn(
+            f"{outside} of {phi_sum.shape[0]} points lie outside the cage: {what} are defined inside it and "
+            "map these points to (nearly) the origin; enlarge the cage around them or use mean value "
+            "coordinates (defined everywhere)",
+            OutsideCageWarning,
+            stacklevel=3,
+        )

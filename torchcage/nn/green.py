@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from ..cage import Cage
+from ..errors import warn_outside
 from ..functional._stretch import conformal_stretch, stretched_normals, stretched_triangle_normals, triangle_frames
 from ..functional.green import green_coordinates
 from .base import CageModule
@@ -33,7 +34,8 @@ class GreenCoordinates(CageModule):
     Args:
         cage: a closed triangle cage (triangulate quad cages with ``cage.triangulated()``), or a
             closed polygon (then the stretch of an edge is ``|a'| / |a|`` and the warp is conformal).
-        points: ``(N, D)`` points inside the cage.
+        points: ``(N, D)`` points inside the cage (points outside it warn with their count
+            (:class:`torchcage.OutsideCageWarning`): Green coordinates map them to nearly the origin).
         chunk_size: points per chunk while computing the coordinates.
         dtype: dtype of the stored coordinates (float64 by default).
 
@@ -63,6 +65,7 @@ class GreenCoordinates(CageModule):
         phi, psi = green_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype)
         super().__init__(cage, torch.as_tensor(points).reshape(-1, cage.dim))
         phi = phi.reshape(-1, cage.num_vertices)
+        warn_outside(phi.sum(dim=1), "Green coordinates")
         self.register_buffer("phi", phi)
         self.register_buffer("psi", psi.reshape(phi.shape[0], -1))
         self.register_buffer("triangles", cage.triangles.clone())

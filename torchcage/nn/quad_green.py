@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from ..cage import Cage
+from ..errors import warn_outside
 from ..functional._common import safe_norm
 from ..functional._qgc3d import corner_normals
 from ..functional._stretch import conformal_stretch, stretched_triangle_normals
@@ -63,7 +64,8 @@ class QuadGreenCoordinates(CageModule):
 
     Args:
         cage: a closed 3D cage of triangles and/or valid quads.
-        points: ``(N, 3)`` points inside the cage.
+        points: ``(N, 3)`` points inside the cage (points outside it warn with their count
+            (:class:`torchcage.OutsideCageWarning`)).
         n: tessellation parameter of the coordinates (see
             :func:`torchcage.functional.quad_green_coordinates`).
         correction: ``"conformal"`` (default): the corner factors of Eq. 22, which mimic Lipman's
@@ -110,6 +112,7 @@ class QuadGreenCoordinates(CageModule):
         phi, psi = quad_green_coordinates(pts, cage, n, chunk_size=chunk_size, dtype=dtype, allow_invalid=allow_invalid)
         super().__init__(cage, pts.reshape(-1, cage.dim))
         self.correction = correction
+        warn_outside(phi.reshape(-1, cage.num_vertices).sum(dim=1), "quad Green coordinates")
         self.register_buffer("phi", phi.reshape(-1, cage.num_vertices))
         self.register_buffer("psi", psi.reshape(self.phi.shape[0], -1))
         self.register_buffer("triangles", cage.triangles.clone())
