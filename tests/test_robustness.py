@@ -329,3 +329,25 @@ def test_green_modules_warn_about_points_outside(kind: str) -> None:
     pts = torch.tensor([[0.1, 0.2, 0.3], [3.0, 0.0, 0.0], [0.0, -2.5, 0.1]], dtype=D64)
     with pytest.warns(tc.OutsideCageWarning, match="2 of 3 points lie outside"):
         tc.GreenCoordinates(cq.triangulated(), pts) if kind == "gc" else tc.QuadGreenCoordinates(cq, pts)
+
+
+@pytest.mark.parametrize("scale", [1e6, 1e9])
+def test_mvc_far_field_relative_linear_precision(backend: str, scale: float) -> None:
+    """Reproducer 9: far points are normalised by the weights' first moment (the sum cancels to
+    size / distance of its terms), and faces seen tiny always take the far-field rule."""
+    for cage in (_cube(), sliver_cube()):
+        g = torch.Generator().manual_seed(0)
+        d = torch.randn(50, 3, dtype=D64, generator=g)
+        x = d / d.norm(dim=1, keepdim=True) * scale * cage.scale
+        w = F.mean_value_coordinates(x, cage, backend=backend)
+        rel = (w @ cage.vertices - x).norm(dim=1) / x.norm(dim=1)
+        assert float(rel.max()) < 1e-12
+
+
+def test_mvc2d_far_field(backend: str) -> None:
+    P = tc.load_cage(tc.data.path("blob2d.obj")).to(D64)
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(50, 2, dtype=D64, generator=g)
+    x = d / d.norm(dim=1, keepdim=True) * 1e9 * P.scale
+    w = F.mean_value_coordinates(x, P, backend=backend)
+    assert float(((w @ P.vertices - x).norm(dim=1) / x.norm(dim=1)).max()) < 1e-12

@@ -7,12 +7,16 @@
 #include <math.h>
 #include <string.h>
 
+#include "native.h"
+
 /*
  * P: (V, 2) vertices; edges: (E, 2) int32 directed edges (counter-clockwise); X: (n, 2) points.
  * Output W: (n, V) normalised coordinates; on[p] = 1 for points on the polygon.
  */
 void tc_mvc2d(const double *P, long V, const int *edges, long E, const double *X, long n, double tol,
               int nthreads, double *W, unsigned char *on) {
+    double centre[2];
+    const double far2 = tc_far_centre(P, V, 2, 1, 2, centre);
 #pragma omp parallel for num_threads(nthreads) schedule(static)
     for (long p = 0; p < n; ++p) {
         const double x0 = X[2 * p], x1 = X[2 * p + 1];
@@ -40,9 +44,7 @@ void tc_mvc2d(const double *P, long V, const int *edges, long E, const double *X
             w[k] += tan_half / Rk;
         }
         if (on[p]) continue;
-        double total = 0.0;
-        for (long v = 0; v < V; ++v) total += w[v];
-        double inv = 1.0 / total;
+        double inv = 1.0 / tc_mv_total(w, V, P, 2, 1, 2, X + 2 * p, centre, far2);
         for (long v = 0; v < V; ++v) w[v] *= inv;
     }
 }

@@ -13,6 +13,9 @@
 
 #include "native.h"
 
+/* Faces seen from more than this many times their longest edge always take the far-field rule. */
+#define FAR_ALWAYS 1e3
+
 #define TWO_PI 6.283185307179586476925286766559
 
 #ifdef TC_LIBMVEC
@@ -88,6 +91,8 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
     const int *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
     const double *s0 = fs, *s1 = fs + T, *s2 = fs + 2 * T;
     const double *nx = nrm, *ny = nrm + T, *nz = nrm + 2 * T;
+    double centre[3];
+    const double far2 = tc_far_centre(P, V, 1, V, 3, centre);
 #pragma omp parallel num_threads(nthreads)
     {
         /* Per-thread scratch: vertex (4V), edge (8E) and face (4T) arrays. */
@@ -207,11 +212,16 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
                 w[v] = acc;
                 total += acc;
             }
-#pragma omp simd reduction(+ : abs_sum)
-            for (long f = 0; f < T; ++f) abs_sum += fabs(W0[f] + W1[f] + W2[f]);
-            if (abs_sum > cancel_c * fabs(total)) {
-                /* The face weights cancel (far outside): redo faces seen small by quadrature,
-                 * w_i = h * sum_q c_qi / |p_q - x|^4. */
+            int seen_tiny = 0; /* some face seen below 1e-3 of its distance: its vector form cancels */
+#pragma omp simd reduction(+ : abs_sum) reduction(| : seen_tiny)
+            for (long f = 0; f < T; ++f) {
+                abs_sum += fabs(W0[f] + W1[f] + W2[f]);
+                seen_tiny |= longest[f] * FAR_ALWAYS < RM[f];
+            }
+            if (abs_sum > cancel_c * fabs(total) || seen_tiny) {
+                /* The face weights cancel (far outside), or faces are seen so small that the vector
+                 * form's error eps (r / edge)^3 would hide the cancellation: redo faces seen small
+                 * by quadrature, w_i = h * sum_q c_qi / |p_q - x|^4, and gather again. */
                 for (long f = 0; f < T; ++f) {
                     if (!(longest[f] < far_c * RM[f])) continue;
                     const double *nq = far_nodes + 3 * Q * f, *cq = far_coef + 3 * Q * f;
@@ -225,15 +235,19 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
                         acc2 += cq[3 * k + 2] * inv;
                     }
                     double h = H[f];
-                    w[t0[f]] += h * acc0 - W0[f];
-                    w[t1[f]] += h * acc1 - W1[f];
-                    w[t2[f]] += h * acc2 - W2[f];
+                    W0[f] = h * acc0;
+                    W1[f] = h * acc1;
+                    W2[f] = h * acc2;
                 }
-                total = 0.0;
-                for (long v = 0; v < V; ++v) total += w[v];
+                for (long v = 0; v < V; ++v) {
+                    double acc = 0.0;
+                    for (int k = inc_ptr[v]; k < inc_ptr[v + 1]; ++k) acc += W0[inc_idx[k]];
+                    w[v] = acc;
+                }
             }
             if (!normalize) continue;
-            double inv = 1.0 / total;
+            const double xp[3] = {x0, x1, x2};
+            double inv = 1.0 / tc_mv_total(w, V, P, 1, V, 3, xp, centre, far2);
             for (long v = 0; v < V; ++v) w[v] *= inv;
         }
         free(buf);

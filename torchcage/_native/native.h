@@ -27,6 +27,57 @@ static inline double tc_edge_log_arg(double l_j, double l_k, double R_j, double 
     return num > 0 ? (r < 1e300 ? r : 1e300) : 1.0; /* (the clamp: no inf from a large num over a 0 den) */
 }
 
+/* Beyond TC_FAR_MOMENT times the cage's radius from its centre, mean value weights are normalised by
+ * their first moment (tc_mv_total): there the sum has lost more than eps * TC_FAR_MOMENT to
+ * cancellation, and the moment's own error (a partition of unity off by eps * distance / size, which
+ * moves a cage far from the origin) is no larger. */
+#define TC_FAR_MOMENT 1e3
+
+/* The centre (bounding-box middle) c (D,) of vertices P (component k of vertex v at P[v * sv + k * sc])
+ * and the square of TC_FAR_MOMENT times their largest distance from it. */
+static inline double tc_far_centre(const double *P, long V, long sv, long sc, int D, double *c) {
+    double r2 = 0.0;
+    for (int k = 0; k < D; ++k) {
+        double lo = P[k * sc], hi = lo;
+        for (long v = 1; v < V; ++v) {
+            double t = P[v * sv + k * sc];
+            lo = t < lo ? t : lo;
+            hi = t > hi ? t : hi;
+        }
+        c[k] = 0.5 * (lo + hi);
+    }
+    for (long v = 0; v < V; ++v) {
+        double d2 = 0.0;
+        for (int k = 0; k < D; ++k) d2 += (P[v * sv + k * sc] - c[k]) * (P[v * sv + k * sc] - c[k]);
+        r2 = d2 > r2 ? d2 : r2;
+    }
+    return TC_FAR_MOMENT * TC_FAR_MOMENT * r2;
+}
+
+/* The normaliser of mean value weights w (V,) at x: their sum, or far from the cage (|x - c|^2 >
+ * far2) the first moment (sum_v w_v (P_v - c)) . (x - c) / |x - c|^2, equal to it by linear
+ * precision: the sum cancels to (size / distance) of its terms there, the moment does not (torch:
+ * functional/_common.py, normalise_weights). */
+static inline double tc_mv_total(const double *w, long V, const double *P, long sv, long sc, int D, const double *x,
+                                 const double *c, double far2) {
+    double y[3] = {0, 0, 0}, y2 = 0.0;
+    for (int k = 0; k < D; ++k) {
+        y[k] = x[k] - c[k];
+        y2 += y[k] * y[k];
+    }
+    double total = 0.0;
+    if (!(y2 > far2)) {
+        for (long v = 0; v < V; ++v) total += w[v];
+        return total;
+    }
+    for (long v = 0; v < V; ++v) {
+        double m = 0.0;
+        for (int k = 0; k < D; ++k) m += (P[v * sv + k * sc] - c[k]) * y[k];
+        total += w[v] * m;
+    }
+    return total / y2;
+}
+
 /* Stable split form of one triangle's mean value weights near its support plane (mvc3d.c). */
 void tc_stable_face(double h, const double *s, const double *dots, const double *R, const double *ell,
                     const double *gram, double two_area, double *w);

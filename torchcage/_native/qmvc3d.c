@@ -309,6 +309,8 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
 void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *X, long npts,
                double tol, int n, int nthreads, double *W, unsigned char *on) {
     const int K = 2 * n + 1;
+    double centre[3];
+    const double far2 = tc_far_centre(P, V, 3, 1, 3, centre);
 #pragma omp parallel num_threads(nthreads)
     {
         double *un = (double *)malloc(sizeof(double) * 4 * (size_t)K), *ua = un + K, *vn = ua + K, *va = vn + K;
@@ -431,9 +433,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                 for (int i = 0; i < 4; ++i) w[qi[i]] += wq[i];
             }
             if (on[pt]) continue;
-            double total = 0;
-            for (long c = 0; c < V; ++c) total += w[c];
-            double inv = 1.0 / total;
+            double inv = 1.0 / tc_mv_total(w, V, P, 3, 1, 3, x, centre, far2);
             for (long c = 0; c < V; ++c) w[c] *= inv;
         }
         free(un);

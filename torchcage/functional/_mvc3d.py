@@ -57,6 +57,8 @@ NEAR_PLANE = 0.01
 #: |p_i - x|``.
 CANCELLATION = 4.0
 FAR_FIELD = 1.0
+#: Faces seen from more than ``FAR_ALWAYS`` times their longest edge always take the far-field rule.
+FAR_ALWAYS = 1e3
 #: Gauss–Legendre order (per direction of the collapsed square) of the far-field rule: its error
 #: decays like ``(FAR_FIELD / 4)^(2 * order)``.
 FAR_FIELD_ORDER = 14
@@ -311,7 +313,10 @@ def face_weights(x: torch.Tensor, data: TriangleCageData, far_field: bool = True
     total = w[0] + w[1] + w[2]
     cancels = total.abs().sum(dim=0) > CANCELLATION * total.sum(dim=0).abs()
     R = q["R"]
-    far = (data.longest < FAR_FIELD * torch.minimum(torch.minimum(R[0], R[1]), R[2])) & cancels
+    rmin = torch.minimum(torch.minimum(R[0], R[1]), R[2])
+    # (faces seen below 1/FAR_ALWAYS of their distance: the vector form's error eps (r / edge)^3 can
+    # hide the cancellation from the test above, so they always take the rule)
+    far = (data.longest < FAR_FIELD * rmin) & (cancels | (data.longest * FAR_ALWAYS < rmin))
     if bool(far.any()):
         idx = torch.nonzero(far.reshape(-1)).squeeze(1)
         face, col = torch.div(idx, n, rounding_mode="floor"), idx % n

@@ -12,17 +12,12 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ..errors import PointsError
-from ._common import check_points, chunks, default_chunk, records_graph, result_dtype
+from ._common import check_points, chunks, default_chunk, normalise_weights, records_graph, result_dtype
 from ._mvc2d import mvc2d_chunk, polygon_data
 from ._mvc3d import mvc3d_chunk, triangle_cage_data
 from ._mvc3d_native import native_chunk, native_tables
 
 __all__ = ["mean_value_coordinates"]
-
-
-def _normalise(W: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
-    """Rows of ``W`` ``(n, V)`` divided by their sum, except rows on the cage (already final)."""
-    return torch.where(on[:, None], W, W / W.sum(dim=1, keepdim=True))
 
 
 def _coordinates_flat(
@@ -44,7 +39,7 @@ def _coordinates_flat(
                 native_chunk(c, data3, tables, lib, out)
                 return
             Wc, onc = mvc3d_chunk(c, data3)
-            out.copy_(_normalise(Wc.T, onc))
+            out.copy_(normalise_weights(Wc.T, onc, cage.vertices.to(c.dtype), c))
     else:
         data2 = polygon_data(cage, x.dtype)
         nf = data2.edges.shape[0]
@@ -61,7 +56,7 @@ def _coordinates_flat(
                 _native.call(lib.tc_mvc2d, args)  # type: ignore[union-attr]
                 return
             Wc, onc = mvc2d_chunk(c, data2)
-            out.copy_(_normalise(Wc.T, onc))
+            out.copy_(normalise_weights(Wc.T, onc, cage.vertices.to(c.dtype), c))
 
     # The native kernel needs no temporaries beyond its output: chunks only pace the progress bar.
     # Pairs per chunk, measured on 2 cores: ~130k (3D torch) and ~250k (2D) amortise the per-op

@@ -12,7 +12,15 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ..errors import CageError, PointsError
-from ._common import check_points, chunks, on_cage_tolerance, outside_point, records_graph, result_dtype
+from ._common import (
+    check_points,
+    chunks,
+    normalise_weights,
+    on_cage_tolerance,
+    outside_point,
+    records_graph,
+    result_dtype,
+)
 from ._mvc3d import TriangleCageData, mvc3d_chunk, triangle_data
 from ._mvc3d_native import native_chunk, native_tables
 from ._qmvc3d import QuadData, project, quad_data, quad_weights_chunk
@@ -121,7 +129,7 @@ def quad_mean_value_coordinates(
         kernel = _native_kernel(lib, verts, tdata, qdata, n)
         size = chunk_size or 1 << 14
     else:
-        kernel = functools.partial(_torch_chunk, V=cage.num_vertices, tdata=tdata, qdata=qdata, n=n)
+        kernel = functools.partial(_torch_chunk, verts=verts, tdata=tdata, qdata=qdata, n=n)
         size = chunk_size or max(16, (1 << 19) // (max(Q, 1) * (2 * n + 1) ** 2) + 1)
     parts = [kernel(x[sl]) for sl in chunks(x.shape[0], size, progress, desc="quad mean value coordinates")]
     out = torch.cat(parts) if parts else x.new_zeros((0, cage.num_vertices))
@@ -136,7 +144,7 @@ def quad_mean_value_coordinates(
 
 
 def _torch_chunk(
-    c: torch.Tensor, V: int, tdata: TriangleCageData | None, qdata: QuadData | None, n: int
+    c: torch.Tensor, verts: torch.Tensor, tdata: TriangleCageData | None, qdata: QuadData | None, n: int
 ) -> torch.Tensor:
     """Normalised coordinates ``(m, V)`` of a chunk ``c`` ``(m, 3)`` with the torch kernels.
 
@@ -147,14 +155,14 @@ def _torch_chunk(
     projection, exact in value (the residual is zero on the quad) and differentiable in the point
     and the corners. Corners get constant Lagrange values (derivative 0).
     """
-    m = c.shape[0]
+    m, V = c.shape[0], verts.shape[0]
     if tdata is not None:
         W, on = mvc3d_chunk(c, tdata)  # (V, m); columns on a triangle are final
     else:
         W = torch.zeros((V, m), dtype=c.dtype, device=c.device)
         on = torch.zeros(m, dtype=torch.bool, device=c.device)
     if qdata is None:
-        return torch.where(on[:, None], W.T, W.T / W.sum(dim=0)[:, None])
+        return normalise_weights(W.T, on, verts, c)
     graph = records_graph(c, qdata.corners)
     creg = c
     if graph:
@@ -169,8 +177,7 @@ def _torch_chunk(
     quads = qdata.quads
     for i in range(4):
         W = W.index_add(0, quads[:, i], torch.where(on[None, :], torch.zeros_like(w[i]), w[i]))
-    total = W.sum(dim=0)
-    W = torch.where(on[:, None], W.T, W.T / torch.where(on, 1.0, total)[:, None])
+    W = normalise_weights(W.T, on, verts, c)
     onq = onq & ~on[None, :]
     has = onq.any(dim=0)
     if bool(has.any()):
