@@ -164,7 +164,7 @@ void tc_gc_free(gc_tables *g) {
 }
 
 /* Doubles of workspace tc_gc_point needs. */
-size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + 5 * (size_t)g->E + 5 * (size_t)g->T; }
+size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g->E + 5 * (size_t)g->T; }
 
 /*
  * The Green integrals of all faces seen from the point x: psi (T,) and each face's corner terms
@@ -182,8 +182,7 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
     const double *M = fc + FC_M * T, *S = fc + FC_S * T, *THR = fc + FC_THR * T;
     const double inv4pi = 1.0 / FOUR_PI;
     double *Ax = ws, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V, *IE = RA + V;
-    double *WX = IE + E, *WY = WX + E, *WZ = WY + E, *W2 = WZ + E;
-    double *H = W2 + E, *D0 = H + T, *D1 = D0 + T, *D2 = D1 + T, *FL = D2 + T;
+    double *H = IE + E, *D0 = H + T, *D1 = D0 + T, *D2 = D1 + T, *FL = D2 + T;
     double *P0 = P, *P1 = P + T, *P2 = P + 2 * T;
 #pragma omp simd
     for (long v = 0; v < V; ++v) {
@@ -201,21 +200,6 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         double l_j = Ax[j] * ux + Ay[j] * uy + Az[j] * uz, l_k = Ax[k] * ux + Ay[k] * uy + Az[k] * uz;
         double cx = Ay[j] * uz - Az[j] * uy, cy = Az[j] * ux - Ax[j] * uz, cz = Ax[j] * uy - Ay[j] * ux;
         IE[q] = tc_edge_log_arg(l_j, l_k, RA[j], RA[k], cx * cx + cy * cy + cz * cz);
-        /* The perpendicular from the point to the edge's line: the same for the edge's two faces,
-         * which then see the point on consistent sides (torch: _edge_perpendicular). */
-        /* (from the nearer end, accurate near a vertex; from the midpoint when both are as near) */
-        double mx = 0.5 * (Ax[j] + Ax[k]), my = 0.5 * (Ay[j] + Ay[k]), mz = 0.5 * (Az[j] + Az[k]);
-        if (RA[j] < RA[k]) {
-            mx = Ax[j], my = Ay[j], mz = Az[j];
-        } else if (RA[k] < RA[j]) {
-            mx = Ax[k], my = Ay[k], mz = Az[k];
-        }
-        double mu = mx * ux + my * uy + mz * uz;
-        double wx = mx - mu * ux, wy = my - mu * uy, wz = mz - mu * uz;
-        WX[q] = wx;
-        WY[q] = wy;
-        WZ[q] = wz;
-        W2[q] = wx * wx + wy * wy + wz * wz;
     }
 #pragma omp simd
     for (long q = 0; q < E; ++q) IE[q] = log(IE[q]);
@@ -225,21 +209,11 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         int i0 = t0[f], i1 = t1[f], i2 = t2[f];
         double a0x = Ax[i0], a0y = Ay[i0], a0z = Az[i0], a1x = Ax[i1], a1y = Ay[i1], a1z = Az[i1];
         double a2x = Ax[i2], a2y = Ay[i2], a2z = Az[i2], R0 = RA[i0], R1 = RA[i1], R2 = RA[i2];
-        /* d_e and h from the edges' perpendiculars; h from the nearest edge's (most accurate there). */
-        int q0 = f0[f], q1 = f1[f], q2 = f2[f];
-        double w0x = WX[q0], w0y = WY[q0], w0z = WZ[q0], w1x = WX[q1], w1y = WY[q1], w1z = WZ[q1];
-        double w2x = WX[q2], w2y = WY[q2], w2z = WZ[q2];
-        double n2_0 = W2[q0], n2_1 = W2[q1], n2_2 = W2[q2];
-        double hx = w0x, hy = w0y, hz = w0z, best = n2_0;
-        if (n2_1 < best) {
-            hx = w1x, hy = w1y, hz = w1z, best = n2_1;
-        }
-        if (n2_2 < best) hx = w2x, hy = w2y, hz = w2z;
-        double h = hx * Nx[f] + hy * Ny[f] + hz * Nz[f];
+        double h = a0x * Nx[f] + a0y * Ny[f] + a0z * Nz[f];
         H[f] = h;
-        D0[f] = w0x * O[f] + w0y * O[T + f] + w0z * O[2 * T + f];
-        D1[f] = w1x * O[3 * T + f] + w1y * O[4 * T + f] + w1z * O[5 * T + f];
-        D2[f] = w2x * O[6 * T + f] + w2y * O[7 * T + f] + w2z * O[8 * T + f];
+        D0[f] = a1x * O[f] + a1y * O[T + f] + a1z * O[2 * T + f];
+        D1[f] = a2x * O[3 * T + f] + a2y * O[4 * T + f] + a2z * O[5 * T + f];
+        D2[f] = a0x * O[6 * T + f] + a0y * O[7 * T + f] + a0z * O[8 * T + f];
         double c12x = a1y * a2z - a1z * a2y, c12y = a1z * a2x - a1x * a2z, c12z = a1x * a2y - a1y * a2x;
         double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
                      (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
@@ -262,8 +236,35 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
             continue;
         }
         const int c3[3] = {t0[f], t1[f], t2[f]};
-        const double d[3] = {D0[f], D1[f], D2[f]}, *ed = g->edir + 9 * f;
-        double h = H[f], habs = fabs(h), beta = 0.0;
+        const double *ed = g->edir + 9 * f;
+        /* Near the plane, d_e and h again from each edge's perpendicular w_e (from its nearer end,
+         * or its midpoint when both are as near): the same bits for both faces of an edge (the two
+         * run it in opposite directions, u' = -u exactly), so that coplanar neighbours split their
+         * solid angle without a gap near it; h from the nearest edge's w (torch: _edge_perpendicular). */
+        double d[3], h = 0.0, best = INFINITY;
+        for (int e = 0; e < 3; ++e) {
+            int j = c3[(e + 1) % 3], k = c3[(e + 2) % 3];
+            const double *u = ed + 3 * e;
+            double m[3] = {0.5 * (Ax[j] + Ax[k]), 0.5 * (Ay[j] + Ay[k]), 0.5 * (Az[j] + Az[k])};
+            if (RA[j] < RA[k]) {
+                m[0] = Ax[j], m[1] = Ay[j], m[2] = Az[j];
+            } else if (RA[k] < RA[j]) {
+                m[0] = Ax[k], m[1] = Ay[k], m[2] = Az[k];
+            }
+            double mu = m[0] * u[0] + m[1] * u[1] + m[2] * u[2];
+            double w[3] = {m[0] - mu * u[0], m[1] - mu * u[1], m[2] - mu * u[2]};
+            d[e] = w[0] * O[(3 * e) * T + f] + w[1] * O[(3 * e + 1) * T + f] + w[2] * O[(3 * e + 2) * T + f];
+            double w2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+            if (w2 < best) {
+                best = w2;
+                h = w[0] * Nx[f] + w[1] * Ny[f] + w[2] * Nz[f];
+            }
+        }
+        D0[f] = d[0];
+        D1[f] = d[1];
+        D2[f] = d[2];
+        H[f] = h;
+        double habs = fabs(h), beta = 0.0;
         if (habs <= tol && d[0] >= -tol && d[1] >= -tol && d[2] >= -tol) {
             /* on the face: principal value, no solid angle. (On its plane off the face, the solid
              * angle is computed below: near an edge it is of order 1 even where h <= tol.) */
