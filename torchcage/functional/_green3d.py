@@ -43,6 +43,11 @@ import torch
 from ..cage import Cage
 from ._common import on_cage_tolerance, records_graph, safe_atan2, safe_norm, triangle_geometry
 
+#: Pairs with ``|h| < NEAR_PLANE * min R`` or ``min R < NEAR_VERTEX * max R`` take their distances
+#: to the plane and the edge lines from the edges' perpendiculars (the native kernel's fix-up set).
+NEAR_PLANE = 0.01
+NEAR_VERTEX = 1e-3
+
 
 @dataclass(frozen=True)
 class TriangleGreenData:
@@ -102,16 +107,33 @@ def _edge_integrals(a_j: torch.Tensor, a_k: torch.Tensor, u: torch.Tensor) -> to
     return torch.where(l_j >= 0, ahead, torch.where(l_k <= 0, behind, straddle))
 
 
+def _near_distances(aj, ak, R, normal, edge_dir, edge_out, near, h, d) -> tuple[torch.Tensor, torch.Tensor]:
+    """``h`` ``(...)`` and ``d`` ``(..., 3)`` recomputed from the edges' perpendiculars for the pairs
+    in ``near`` (near a face's plane or a corner): see :func:`triangle_integrals`."""
+    shape = near.shape
+    idx = torch.nonzero(near.reshape(-1)).squeeze(1)
+
+    def pick(t: torch.Tensor, tail: int) -> torch.Tensor:
+        t = t.expand(*shape, *t.shape[t.dim() - tail :])
+        return t.reshape(-1, *t.shape[len(shape) :]).index_select(0, idx)
+
+    Rs = pick(R, 1)
+    w = _edge_perpendicular(pick(aj, 2), pick(ak, 2), Rs[:, [1, 2, 0]], Rs[:, [2, 0, 1]], pick(edge_dir, 2))
+    h_e = (w * pick(normal, 1)[:, None, :]).sum(-1)  # (k, 3), each = h up to rounding
+    hs = h_e.gather(-1, (w * w).sum(-1).argmin(-1, keepdim=True)).squeeze(-1)
+    ds = (w * pick(edge_out, 2)).sum(-1)
+    h = h.reshape(-1).index_put((idx,), hs).reshape(shape)
+    d = d.reshape(-1, 3).index_put((idx,), ds).reshape(*shape, 3)
+    return h, d
+
+
 def _edge_perpendicular(aj: torch.Tensor, ak: torch.Tensor, Rj: torch.Tensor, Rk: torch.Tensor, u: torch.Tensor):
     """The perpendicular ``w`` ``(..., 3)`` from the point to the line of the edge ``p_j p_k`` (unit
     direction ``u``), from the nearer end (accurate near a vertex: its error is ``eps`` times the
     distance to that end), or from the midpoint when both are as near. The same bits whichever way
     a face runs along the edge: both faces of an edge see the point on consistent sides."""
-    wj = aj - (aj * u).sum(-1, keepdim=True) * u
-    wk = ak - (ak * u).sum(-1, keepdim=True) * u
-    mid = 0.5 * (aj + ak)
-    wm = mid - (mid * u).sum(-1, keepdim=True) * u
-    return torch.where((Rj < Rk)[..., None], wj, torch.where((Rk < Rj)[..., None], wk, wm))
+    m = torch.where((Rj < Rk)[..., None], aj, torch.where((Rk < Rj)[..., None], ak, 0.5 * (aj + ak)))
+    return m - (m * u).sum(-1, keepdim=True) * u
 
 
 def _vos_solid_angle(a: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
@@ -156,18 +178,20 @@ def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol:
     normal, two_area, edge_dir, edge_out, grad_bary = geometry
     R = safe_norm(a)  # (..., 3)
     aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]  # edge e runs from corner e + 1 to e + 2
-    # The perpendicular w from the point to each edge's line, the same bits for both faces of an edge
-    # (whatever their orientation), so that near an edge two faces see the
+    # Near a face's plane or a corner, the perpendicular w from the point to each edge's line, the same
+    # bits for both faces of an edge (whatever their orientation), so that near an edge two faces see the
     # point on consistent sides (coplanar neighbours split their solid angle without a gap). The
     # distances to the plane and to the edge lines are w's components: d_e = w . eout_e and
     # h = w . n, taken from the nearest edge's w (the most accurate near an edge or a vertex).
-    w = _edge_perpendicular(aj, ak, R[..., [1, 2, 0]], R[..., [2, 0, 1]], edge_dir)  # (..., 3 edges, 3)
-    h_e = (w * normal[..., None, :]).sum(-1)  # (..., 3), each = h up to rounding
-    h = h_e.gather(-1, (w * w).sum(-1).argmin(-1, keepdim=True)).squeeze(-1)  # > 0 on the inner side
+    h = (a[..., 0, :] * normal).sum(-1)  # > 0 on the inner side
+    d = (aj * edge_out).sum(-1)
+    Rmin, Rmax = R.min(dim=-1).values, R.max(dim=-1).values
+    near = (h.abs() < NEAR_PLANE * Rmin) | (h.abs() <= tol) | (Rmin < NEAR_VERTEX * Rmax)
+    if bool(near.any()):  # (the native kernel does the same in its fix-up of these pairs)
+        h, d = _near_distances(aj, ak, R, normal, edge_dir, edge_out, near, h, d)
     # Edge integrals and signed foot-to-edge distances (positive inside).
     ok = two_area > 0  # a degenerate triangle integrates to nothing
     I = torch.where(ok[..., None], _edge_integrals(aj, ak, edge_dir), 0.0)  # (..., 3)
-    d = (w * edge_out).sum(-1)
     # Signed solid angle as a sum over edges (no ratio that vanishes near an edge or the plane):
     # Omega = sign(h) sum_e [atan(d l_k / (R0^2 + |h| R_k)) - atan(d l_j / (R0^2 + |h| R_j))].
     l_j, l_k = (aj * edge_dir).sum(-1), (ak * edge_dir).sum(-1)
