@@ -351,3 +351,18 @@ def test_mvc2d_far_field(backend: str) -> None:
     x = d / d.norm(dim=1, keepdim=True) * 1e9 * P.scale
     w = F.mean_value_coordinates(x, P, backend=backend)
     assert float(((w @ P.vertices - x).norm(dim=1) / x.norm(dim=1)).max()) < 1e-12
+
+
+def test_float32_dtype_is_accurate_and_does_not_raise_far_away() -> None:
+    """Reproducer 8: ``dtype=torch.float32`` (computed in float64, returned in float32): linear
+    precision within 1e-4 of the size on the cage and near it, far points do not raise."""
+    bar = twisted_bar(quads=False)
+    pts = adversarial_points(bar, 100, seed=0)
+    x = torch.cat([pts[k] for k in ("edge", "near_edge", "near_vertex", "plane", "face")])
+    for backend in ("torch", "auto"):
+        w = F.mean_value_coordinates(x.float(), bar.to(torch.float32), dtype=torch.float32, backend=backend)
+        assert w.dtype == torch.float32
+        assert float((w.double() @ bar.vertices - x).abs().max()) / bar.scale < 1e-4
+    far = pts["far"].float()
+    w = F.mean_value_coordinates(far, bar.to(torch.float32), dtype=torch.float32, backend="torch")
+    assert _finite(w)

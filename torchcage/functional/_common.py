@@ -146,11 +146,20 @@ def check_finite(flat: torch.Tensor) -> None:
 
 
 def result_dtype(points: torch.Tensor, cage: Cage, dtype: torch.dtype | None) -> tuple[torch.dtype, torch.dtype]:
-    """(compute dtype, output dtype): compute in ``dtype`` (float64 by default); return in the
-    promoted dtype of the inputs unless ``dtype`` is given explicitly."""
-    compute = torch.float64 if dtype is None else dtype
-    if not compute.is_floating_point:
-        raise TypeError(f"dtype must be a floating-point dtype, got {compute}")
+    """(compute dtype, output dtype): compute in float64; return in the promoted dtype of the inputs
+    unless ``dtype`` is given explicitly.
+
+    A lower ``dtype`` (float32, float16, bfloat16) is the output dtype: the kernels still compute
+    in float64 (an automatic promotion, documented in docs/accuracy.md). Evaluated in float32, these
+    closed forms lose up to the whole cage size in linear precision near the cage (cancellations of
+    order ``eps32 * size / distance``) and their total weight underflows far away; float64 keeps
+    them within 1e-9. Devices without float64 (MPS) compute in the requested dtype.
+    """
+    if dtype is not None and not dtype.is_floating_point:
+        raise TypeError(f"dtype must be a floating-point dtype, got {dtype}")
+    compute = torch.float64
+    if dtype is not None and (dtype.itemsize > 8 or points.device.type == "mps"):
+        compute = dtype
     out = torch.promote_types(points.dtype, cage.dtype) if dtype is None else dtype
     return compute, out
 

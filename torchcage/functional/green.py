@@ -41,7 +41,8 @@ def green_coordinates(
         cage: a closed triangle cage (quad cages are refused: use ``cage.triangulated()``) or a
             closed polygon.
         chunk_size: points per chunk (default: about 130k point–face pairs).
-        dtype: compute dtype. Default: float64, returned in the dtype of the inputs.
+        dtype: dtype of the result (default: that of the inputs). The kernels compute in float64
+            whatever it is (float32 would lose accuracy near the cage: see docs/accuracy.md).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (the native CPU kernel for 3D float64 on the CPU when it can be built
             and no autograd graph is needed, else torch), ``"native"`` or ``"torch"``.

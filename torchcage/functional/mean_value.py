@@ -97,7 +97,8 @@ def mean_value_coordinates(
             :func:`torchcage.functional.quad_mean_value_coordinates` or ``cage.triangulated()``.
         chunk_size: points per chunk; peak memory grows with ``chunk_size x faces``. Default: about
             130k (3D) or 260k (2D) point–face pairs per chunk in the torch kernel.
-        dtype: compute dtype. Default: compute in float64 and return in the dtype of the inputs.
+        dtype: dtype of the result (default: that of the inputs). The kernels compute in float64
+            whatever it is (float32 would lose accuracy near the cage: see docs/accuracy.md).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): for float64 on the CPU, torchcage's native C kernel
             (compiled on first use, about a second) when a C compiler is present and no autograd

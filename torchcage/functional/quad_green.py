@@ -156,7 +156,8 @@ def quad_green_coordinates(
         cage: a closed 3D cage of triangles and/or valid quads.
         n: tessellation parameter, ``n >= 1`` (cost grows like ``(n+1)^2``).
         chunk_size: points per chunk (memory grows with ``chunk_size x quads x (n+1)^2``).
-        dtype: compute dtype. Default: float64, returned in the dtype of the inputs.
+        dtype: dtype of the result (default: that of the inputs). The kernels compute in float64
+            whatever it is (float32 would lose accuracy near the cage: see docs/accuracy.md).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): the native C kernel for the quads with float64 CPU points
             when no autograd graph is needed, else the torch kernel; ``"torch"`` or ``"native"``.

@@ -94,7 +94,8 @@ def quad_mean_value_coordinates(
         n: grid parameter, ``n >= 1``; the cost grows like ``(2n+1)^2`` per point and quad.
         chunk_size: points per chunk (peak memory of the torch kernel grows with
             ``chunk_size x quads x (2n+1)^2``).
-        dtype: compute dtype. Default: float64, returned in the dtype of the inputs.
+        dtype: dtype of the result (default: that of the inputs). The kernels compute in float64
+            whatever it is (float32 would lose accuracy near the cage: see docs/accuracy.md).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): the native C kernel for float64 CPU points when no autograd
             graph is needed, else the torch kernel; ``"torch"`` or ``"native"`` to force one.
