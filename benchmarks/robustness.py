@@ -140,7 +140,10 @@ def sweep_values(family: str, cage: torchcage.Cage, name: str, pts: dict, side: 
         if green:  # Green coordinates reproduce points inside the cage (and on it)
             known = side[cat]
             inside, sure = _inside(x, cage)
-            ok &= torch.where(torch.isnan(known), sure & inside, known <= 0)
+            # a side known by construction (an offset along the normal) holds only within the local
+            # feature size: where the winding numbers are sure and disagree (a thin part), skip
+            agree = (known == 0) | ~sure | (inside == (known < 0))
+            ok &= torch.where(torch.isnan(known), sure & inside, (known <= 0) & agree)
         if not bool(ok.any()):
             continue
         w64, xv = w64[ok], x[ok].to(torch.float64)

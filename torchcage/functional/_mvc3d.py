@@ -269,7 +269,9 @@ def _far_field_weights(x: torch.Tensor, h: torch.Tensor, face: torch.Tensor, dat
     return h[:, None] * torch.einsum("mq,mqi->mi", 1.0 / (r2 * r2), data.far_coef.index_select(0, face))
 
 
-def face_weights(x: torch.Tensor, data: TriangleCageData, far_field: bool = True) -> tuple[list[torch.Tensor], dict]:
+def face_weights(
+    x: torch.Tensor, data: TriangleCageData, far_field: bool = True, q: dict | None = None
+) -> tuple[list[torch.Tensor], dict]:
     """Per-face corner weights ``w_i^T`` of a chunk of points (eager: the stable form is evaluated
     only on the point–face pairs that need it). Points on a face get non-finite values there: the
     caller handles them (``mvc3d_chunk`` replaces them by the interpolating values).
@@ -279,12 +281,13 @@ def face_weights(x: torch.Tensor, data: TriangleCageData, far_field: bool = True
         data: the triangles' constants.
         far_field: redo faces seen small by quadrature where the face weights cancel (only
             meaningful when the triangles form a closed cage).
+        q: the pair terms of ``x`` when the caller has them (:func:`_pair_terms`).
 
     Returns:
         ``(w, q)``: three ``(T, n)`` tensors (corner ``i`` of every face) and the pair terms.
     """
     T, n = data.tri.shape[0], x.shape[0]
-    q = _pair_terms(x, data)
+    q = _pair_terms(x, data) if q is None else q
     w = _direct_face_weights(q, data.two_area)
     near = _near_plane(q)
     if bool(near.any()):
@@ -338,7 +341,7 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, 
         points on the cage, whose columns of ``W`` hold their final (interpolating) coordinates.
     """
     V, n = data.vertices.shape[1], x.shape[0]
-    w, q = face_weights(x, data)
+    q = _pair_terms(x, data)
     # Points on the cage: barycentric coordinates in a face that contains them.
     on_face = _on_cage(q, data)
     on_cage = on_face.any(dim=0)
@@ -347,6 +350,8 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, 
         # The regular formula is singular on the cage: evaluate it off the cage for those points,
         # so that the discarded values carry finite derivatives (no NaN through torch.where).
         w, _ = face_weights(torch.where(on_cage[:, None], outside_point(data.vertices.T), x), data)
+    else:
+        w, _ = face_weights(x, data, q=q)
     W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
     for i in range(3):
         W.index_add_(0, data.tri[:, i], w[i])

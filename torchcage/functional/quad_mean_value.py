@@ -171,7 +171,7 @@ def _torch_chunk(
             pr = project(c, qdata)
         onq_any = (pr.on & ~on[None, :]).any(dim=0) | on
         if bool(onq_any.any()):
-            creg = torch.where(onq_any[:, None], outside_point(qdata.corners[:, :, :, 0].flatten(1).T), c)
+            creg = torch.where(onq_any[:, None], outside_point(verts), c)
     w, onq, u, v, vertex = quad_weights_chunk(creg, qdata, n)
     if creg is not c:  # the projection of the points themselves (not of their stand-ins)
         onq, u, v, vertex = pr.on, pr.u, pr.v, pr.vertex
