@@ -8,7 +8,7 @@ import mpmath as mp
 import torch
 
 import torchcage
-from torchcage.functional._green2d import green_coordinates_2d
+from torchcage.functional._green2d import green2d_coordinates
 
 
 def inside_polygon(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -29,7 +29,7 @@ def test_identity_inside_zero_outside_and_similarity():
     cage = blob()
     x = (torch.rand(3000, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 2 - 1) * 1.5
     inside = inside_polygon(x, cage.vertices)
-    phi, psi = green_coordinates_2d(x, cage)
+    phi, psi = green2d_coordinates(x, cage)
     rec = phi @ cage.vertices + psi @ cage.edge_normals()
     assert (rec[inside] - x[inside]).abs().max() < 1e-12
     assert rec[~inside].abs().max() < 1e-12  # Green's identity outside: zero
@@ -67,7 +67,7 @@ def test_near_and_on_edges():
     mid = 0.3 * v[e[:, 0]] + 0.7 * v[e[:, 1]]
     for d in [0.0, 1e-15, 1e-9, 1e-4]:
         x = torch.cat([mid - d * n, v])  # on the edges, then just inside; and the vertices
-        phi, psi = green_coordinates_2d(x, cage)
+        phi, psi = green2d_coordinates(x, cage)
         assert torch.isfinite(phi).all() and torch.isfinite(psi).all()
         assert (phi @ v + psi @ n - x).abs().max() < 1e-12
         assert (phi.sum(1) - 1).abs().max() < 1e-12
@@ -79,7 +79,7 @@ def test_agrees_with_quadrature_of_the_definition():
     v = cage.vertices.tolist()
     E = len(v)
     x = torch.tensor([[0.1, 0.2], [-0.5, 0.3], [0.9, -0.1]], dtype=torch.float64)
-    phi, psi = green_coordinates_2d(x, cage)
+    phi, psi = green2d_coordinates(x, cage)
     for p in range(x.shape[0]):
         eta = [mp.mpf(float(c)) for c in x[p]]
         ref_phi = [mp.mpf(0)] * E

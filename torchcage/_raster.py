@@ -49,9 +49,21 @@ def rasterize_triangles(
     if lib is not None:
         out = torch.empty((B, height, width), dtype=torch.int32)
         val = torch.zeros((B, height, width, S.shape[1]), dtype=torch.float64)
-        args = [P.contiguous(), B, P.shape[1], triangles.to(torch.int32).contiguous(), triangles.shape[0], height,
-                width, S.contiguous(), S.shape[1], torch.get_num_threads(), out, val]  # fmt: skip
-        _native.call(lib.tc_raster2d, args)  # type: ignore[union-attr]
+        _native.call(
+            lib,
+            "tc_raster2d",
+            P=P.contiguous(),
+            B=B,
+            Nv=P.shape[1],
+            tri=triangles.to(torch.int32).contiguous(),
+            T=triangles.shape[0],
+            H=height,
+            W=width,
+            S=S.contiguous(),
+            C=S.shape[1],
+            out=out,
+            val=val,
+        )
         return out.to(torch.int64), val
     which = torch.stack([_rasterize_one(P[b], triangles, height, width) for b in range(B)])
     return which, _interpolate(P, triangles, which, S)

@@ -25,66 +25,12 @@ from pathlib import Path
 
 import torch
 
+from . import abi
+
 __all__ = ["available", "call", "failure_reason", "library", "select"]
 
 _SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c", "qmvc3d.c", "qgc3d.c", "mvcd3d.c", "mvcd2d.c")
 _HEADERS = ("native.h", "jet.h")
-
-#: Arguments of ``tc_mvc3d`` in mvc3d.c, in order (names as there; see its comment for layouts).
-TC_MVC3D_SIGNATURE = {
-    "P": "ptr", "V": "i64", "tri": "ptr", "T": "i64", "edges": "ptr", "E": "i64", "fe": "ptr",
-    "inc_ptr": "ptr", "inc_idx": "ptr", "fs": "ptr", "nrm": "ptr", "two_area": "ptr", "ell": "ptr",
-    "gram": "ptr", "far_nodes": "ptr", "far_coef": "ptr", "longest": "ptr", "Q": "i64", "far_c": "f64",
-    "cancel_c": "f64", "X": "ptr", "n": "i64", "tol": "f64", "near_c": "f64", "nthreads": "i32",
-    "W": "ptr", "on": "ptr", "normalize": "i32",
-}  # fmt: skip
-
-#: Arguments of ``tc_qmvc3d`` in qmvc3d.c, in order.
-TC_QMVC3D_SIGNATURE = {
-    "P": "ptr", "V": "i64", "quads": "ptr", "Q": "i64", "size": "ptr", "X": "ptr", "n": "i64", "tol": "f64",
-    "grid": "i32", "nthreads": "i32", "W": "ptr", "on": "ptr",
-}  # fmt: skip
-
-#: Arguments of ``tc_qgc3d`` in qgc3d.c, in order.
-TC_QGC3D_SIGNATURE = {
-    "P": "ptr", "V": "i64", "quads": "ptr", "Q": "i64", "size": "ptr", "pinv": "ptr", "null": "ptr", "origin": "ptr",
-    "pattern": "ptr", "Pn": "i64", "K": "i32", "X": "ptr", "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr",
-    "PSIQ": "ptr", "ONQ": "ptr", "UV": "ptr", "s_Pv": "ptr", "s_tri": "ptr", "s_edges": "ptr", "s_E": "i64",
-    "s_eu": "ptr", "s_fe": "ptr", "s_nrm": "ptr", "s_two_area": "ptr", "s_ell": "ptr", "s_edir": "ptr",
-    "s_eout": "ptr", "s_gbary": "ptr",
-}  # fmt: skip
-
-#: Arguments of ``tc_mvc2d`` in mvc2d.c, in order.
-TC_MVC2D_SIGNATURE = {
-    "P": "ptr", "V": "i64", "edges": "ptr", "E": "i64", "X": "ptr", "n": "i64", "tol": "f64", "nthreads": "i32",
-    "W": "ptr", "on": "ptr",
-}  # fmt: skip
-
-#: Arguments of ``tc_gc3d`` in gc3d.c, in order.
-TC_GC3D_SIGNATURE = {
-    "Pv": "ptr", "V": "i64", "tri": "ptr", "T": "i64", "edges": "ptr", "E": "i64", "eu": "ptr", "fe": "ptr",
-    "nrm": "ptr", "two_area": "ptr", "ell": "ptr", "edir": "ptr", "eout": "ptr", "gbary": "ptr", "X": "ptr",
-    "n": "i64", "tol": "f64", "nthreads": "i32", "PHI": "ptr", "PSI": "ptr", "ONF": "ptr", "AL": "ptr",
-}  # fmt: skip
-#: Arguments of ``tc_mvcd3d`` in mvcd3d.c (mean value coordinates with their derivatives), in order.
-TC_MVCD3D_SIGNATURE = {
-    "P": "ptr", "V": "i64", "tri": "ptr", "T": "i64", "fe": "ptr", "NE": "i64", "E": "ptr", "nrm": "ptr",
-    "two_area": "ptr", "ell": "ptr", "gram": "ptr", "longest": "ptr", "far_nodes": "ptr", "far_coef": "ptr",
-    "Q": "i64", "far_c": "f64", "near_c": "f64", "gl_y": "ptr", "gl_w": "ptr", "ng": "i32", "X": "ptr", "n": "i64",
-    "tol": "f64", "order": "i32", "nthreads": "i32", "L": "ptr", "G": "ptr", "H": "ptr", "on": "ptr",
-}  # fmt: skip
-
-#: Arguments of ``tc_mvcd2d`` in mvcd2d.c, in order.
-TC_MVCD2D_SIGNATURE = {
-    "P": "ptr", "V": "i64", "edges": "ptr", "E": "i64", "X": "ptr", "n": "i64", "tol": "f64", "order": "i32",
-    "nthreads": "i32", "L": "ptr", "G": "ptr", "H": "ptr", "on": "ptr",
-}  # fmt: skip
-
-#: Arguments of ``tc_raster2d`` in raster.c, in order.
-TC_RASTER2D_SIGNATURE = {
-    "P": "ptr", "B": "i64", "Nv": "i64", "tri": "ptr", "T": "i64", "H": "i64", "W": "i64", "S": "ptr", "C": "i64",
-    "nthreads": "i32", "out": "ptr", "val": "ptr",
-}  # fmt: skip
 
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
@@ -163,22 +109,9 @@ def _build() -> ctypes.CDLL:
                 raise RuntimeError("\n".join(errors))
             os.replace(out, target)  # atomic: concurrent builders never see a half-written library
     lib = ctypes.CDLL(str(target))
-    kinds = {"ptr": ctypes.c_void_p, "i64": ctypes.c_long, "i32": ctypes.c_int, "f64": ctypes.c_double}
-    lib.tc_mvc3d.argtypes = [kinds[kind] for kind in TC_MVC3D_SIGNATURE.values()]
-    lib.tc_gc3d.argtypes = [kinds[kind] for kind in TC_GC3D_SIGNATURE.values()]
-    lib.tc_mvc2d.argtypes = [kinds[kind] for kind in TC_MVC2D_SIGNATURE.values()]
-    lib.tc_raster2d.argtypes = [kinds[kind] for kind in TC_RASTER2D_SIGNATURE.values()]
-    lib.tc_mvc2d.restype = None
-    lib.tc_raster2d.restype = None
-    lib.tc_gc3d.restype = None
-    lib.tc_mvc3d.restype = None
-    lib.tc_qmvc3d.argtypes = [kinds[kind] for kind in TC_QMVC3D_SIGNATURE.values()]
-    lib.tc_qmvc3d.restype = None
-    lib.tc_qgc3d.argtypes = [kinds[kind] for kind in TC_QGC3D_SIGNATURE.values()]
-    lib.tc_qgc3d.restype = None
-    for name, sig in (("tc_mvcd3d", TC_MVCD3D_SIGNATURE), ("tc_mvcd2d", TC_MVCD2D_SIGNATURE)):
+    for name in abi.SIGNATURES:
         fn = getattr(lib, name)
-        fn.argtypes = [kinds[kind] for kind in sig.values()]
+        fn.argtypes = abi.argtypes(name)
         fn.restype = None
     return lib
 
@@ -249,7 +182,13 @@ def select(
     return lib
 
 
-def call(fn: object, args: list) -> None:
-    """Call a native function with tensors passed as their data pointers (they must be contiguous
-    CPU tensors of the types the C signature expects) and other arguments as they are."""
-    fn(*[a.data_ptr() if isinstance(a, torch.Tensor) else a for a in args])  # type: ignore[operator]
+def call(lib: ctypes.CDLL, name: str, **arguments: object) -> None:
+    """Call native entry point ``name`` of ``lib`` by keyword (the names of its C prototype, see
+    :mod:`torchcage._native.abi`); ``nthreads`` defaults to ``torch.get_num_threads()``. Every
+    argument is checked (dtype, device, contiguity, shape) before a pointer is taken.
+
+    Raises:
+        TypeError, ValueError: an argument that does not match the entry point's signature.
+    """
+    arguments.setdefault("nthreads", torch.get_num_threads())
+    getattr(lib, name)(*abi.check_arguments(name, arguments))

@@ -9,8 +9,8 @@
 #include <string.h>
 
 #define FOUR_PI 12.566370614359172953850573533118
-#define GC_NEAR_PLANE 0.01 /* pairs closer to a face plane than this x min R: edge-sum solid angle */
-#define GC_NEAR_VERTEX 1e-3 /* pairs nearer a corner than this x the farthest corner: edge-sum solid angle */
+#define GC_PERPENDICULAR_PLANE_RATIO 0.01 /* pairs closer to a face plane than this x min R: edge-sum solid angle */
+#define GC_PERPENDICULAR_VERTEX_RATIO 1e-3 /* pairs nearer a corner than this x the farthest corner: edge-sum solid angle */
 
 #include "native.h"
 
@@ -66,9 +66,9 @@ int tc_tri_green(const double a[3][3], const double *nf, double two_area, const 
     for (int i = 0; i < 3; ++i) R[i] = sqrt(dot3(a[i], a[i]));
     double h = dot3(a[0], nf), habs = fabs(h);
     int on_plane = habs <= tol, inside = 1;
-    /* Away from the plane (|h| >= NEAR_PLANE min R) the solid angle takes Van Oosterom and
+    /* Away from the plane (|h| >= GC_PERPENDICULAR_PLANE_RATIO min R) the solid angle takes Van Oosterom and
      * Strackee's one-atan2 form; near it, the edge sum below, which does not cancel there. */
-    int far = habs >= GC_NEAR_PLANE * fmin(R[0], fmin(R[1], R[2]));
+    int far = habs >= GC_PERPENDICULAR_PLANE_RATIO * fmin(R[0], fmin(R[1], R[2]));
     double d[3], I[3], beta = 0.0;
     for (int e = 0; e < 3; ++e) {
         int j = (e + 1) % 3, k = (e + 2) % 3;
@@ -153,7 +153,7 @@ void tc_gc_prepare(gc_tables *g) {
                 fc[(FC_M + 3 * i + e) * T + f] = live ? -dot3(gbary + 3 * i, eout + 3 * e) * inv4pi : 0.0;
         }
         fc[FC_S * T + f] = live ? inv4pi : 0.0;         /* psi's scale: degenerate faces integrate to nothing */
-        fc[FC_THR * T + f] = live ? GC_NEAR_PLANE : -1.0; /* ... and always go to the fix-up */
+        fc[FC_THR * T + f] = live ? GC_PERPENDICULAR_PLANE_RATIO : -1.0; /* ... and always go to the fix-up */
     }
     g->fc = fc;
 }
@@ -225,7 +225,7 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         double ha = h >= 0 ? h : -h;
         /* Near its plane, or much nearer one corner than the others (the one-atan2 form loses
          * digits there too: 5e-9 of partition of unity at 3e-14 from a sliver's apex): edge sum. */
-        FL[f] = (ha < THR[f] * rmin || ha <= tol || THR[f] < 0 || rmin < GC_NEAR_VERTEX * rmax) ? 1.0 : 0.0;
+        FL[f] = (ha < THR[f] * rmin || ha <= tol || THR[f] < 0 || rmin < GC_PERPENDICULAR_VERTEX_RATIO * rmax) ? 1.0 : 0.0;
     }
     long on_face = -1;
     on_alpha[0] = on_alpha[1] = on_alpha[2] = 0.0;

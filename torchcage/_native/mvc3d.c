@@ -1,7 +1,7 @@
 /*
  * Native CPU kernel of torchcage's 3D mean value weights (float64).
  *
- * The same formulas as torchcage/functional/mean_value.py (see its module docstring): the direct
+ * The same formulas as torchcage/functional/_mvc3d.py (see its module docstring): the direct
  * vector form away from a face's support plane, the stable split form near it, and the
  * interpolating values for points on the cage. One point per iteration, OpenMP over points.
  * The tests check this kernel against the torch kernel and an mpmath reference.
@@ -14,7 +14,7 @@
 #include "native.h"
 
 /* Faces seen from more than this many times their longest edge always take the far-field rule. */
-#define FAR_ALWAYS 1e3
+#define FAR_ALWAYS_RATIO 1e3
 
 #define TWO_PI 6.283185307179586476925286766559
 
@@ -30,7 +30,7 @@ static inline double angle_of(double y, double x) {
     return x < 0 ? M_PI : 0.0;
 }
 
-/* Stable split form of one face's weights (see _stable_face_weights in mean_value.py). The angle
+/* Stable split form of one face's weights (see _stable_face_weights in functional/_mvc3d.py). The angle
  * theta = theta0 + delta is rebuilt here from the planar angle theta0 and the small delta rather
  * than taken from the edge pass: the terms delta / h^2 and theta * eps / h^2 cancel where x nears
  * an edge's line, and only a theta consistent with delta keeps that cancellation exact. */
@@ -216,7 +216,7 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
 #pragma omp simd reduction(+ : abs_sum) reduction(| : seen_tiny)
             for (long f = 0; f < T; ++f) {
                 abs_sum += fabs(W0[f] + W1[f] + W2[f]);
-                seen_tiny |= longest[f] * FAR_ALWAYS < RM[f];
+                seen_tiny |= longest[f] * FAR_ALWAYS_RATIO < RM[f];
             }
             if (abs_sum > cancel_c * fabs(total) || seen_tiny) {
                 /* The face weights cancel (far outside), or faces are seen so small that the vector

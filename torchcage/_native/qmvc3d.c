@@ -15,7 +15,7 @@
 
 #include "native.h"
 
-#define NEAR_PLANE 0.01
+#define SPLIT_FORM_RATIO 0.01
 #define REFINE 3       /* as REFINE in _qmvc3d.py */
 #define NEAR_FLAT 1e-3 /* as NEAR_FLAT in _qmvc3d.py */
 
@@ -67,7 +67,7 @@ static void triangle_weights(const double *a0, const double *a1, const double *a
     for (int c = 0; c < 3; ++c) nrm[c] = cr[c] / two_area;
     double h = dot3(nrm, a0);
     double rmin = fmin(R[0], fmin(R[1], R[2]));
-    if (fabs(h) < NEAR_PLANE * rmin) {
+    if (fabs(h) < SPLIT_FORM_RATIO * rmin) {
         double s[3], ell[3], gram[9];
         for (int e = 0; e < 3; ++e) {
             s[e] = dot3(N[e], nrm);
@@ -247,7 +247,7 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
             cross3(e1, e2, cr);
             double two_area = sqrt(dot3(cr, cr));
             double rmin = fmin(R[h[0]], fmin(R[h[1]], R[h[2]]));
-            if (fabs(det) < NEAR_PLANE * rmin * two_area) {
+            if (fabs(det) < SPLIT_FORM_RATIO * rmin * two_area) {
                 triangle_weights(p[h[0]], p[h[1]], p[h[2]], wt); /* stable form near the plane */
             } else {
                 double mt[3] = {0, 0, 0};

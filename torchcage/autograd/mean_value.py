@@ -25,6 +25,8 @@ from torch import Tensor
 
 from ..cage import Cage
 from ..functional._common import check_finite, result_dtype
+from ..functional._mvc_dispatch import coordinates_flat
+from ..functional.mean_value_derivatives import derivatives_flat
 
 __all__ = ["MeanValueFunction", "MeanValueGradFunction", "MeanValueHessFunction", "mean_value_function"]
 
@@ -34,22 +36,18 @@ _cage = Cage._from_faces  # (vertices, faces of a validated cage) -> Cage
 
 def _torch_coordinates(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:
     """Coordinates by the torch kernel, recording autograd with respect to points and vertices."""
-    from ..functional.mean_value import _coordinates_flat
-
     compute, out = result_dtype(points, _cage(vertices, faces), None)
-    return _coordinates_flat(points.to(compute), _cage(vertices.to(compute), faces), None, False, "torch").to(out)
+    return coordinates_flat(points.to(compute), _cage(vertices.to(compute), faces), None, False, "torch").to(out)
 
 
 # ----------------------------------------------------------------------------------- custom ops
 @torch.library.custom_op("torchcage::mean_value_coordinates", mutates_args=())
 def _coordinates_op(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int, backend: str) -> Tensor:
-    from ..functional.mean_value import _coordinates_flat
-
     check_finite(points)
     cage = _cage(vertices, faces)
     compute, out = result_dtype(points, cage, None)
     with torch.no_grad():
-        lam = _coordinates_flat(points.to(compute), cage, chunk_size if chunk_size > 0 else None, False, backend)
+        lam = coordinates_flat(points.to(compute), cage, chunk_size if chunk_size > 0 else None, False, backend)
     return lam.to(out)
 
 
@@ -61,8 +59,6 @@ def _(points, vertices, faces, chunk_size, backend):
 
 @torch.library.custom_op("torchcage::mean_value_derivatives", mutates_args=())
 def _derivatives_op(points: Tensor, vertices: Tensor, faces: Tensor, order: int) -> Tensor:
-    from ..functional.mean_value_derivatives import derivatives_flat
-
     check_finite(points)
     _, grad, hess, _ = derivatives_flat(points, _cage(vertices.detach(), faces), order)
     out = grad if order == 1 else hess

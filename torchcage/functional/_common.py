@@ -197,3 +197,20 @@ def chunks(n: int, size: int, progress: bool | Callable[[int, int], None] = Fals
             print(f"\r{desc} {stop}/{n}", end="", file=sys.stderr)
     if bar is not None:
         bar.close()
+
+
+def unique_face_edges(tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Unique edges of triangles ``tri`` ``(T, 3)``: ``(edges (E, 2)`` sorted pairs,
+    ``face_edge (T, 3)`` the index of the edge opposite each corner, ``sign (T, 3)`` +1 where that
+    edge is stored as ``(t[i+1], t[i+2])``, else -1 (float64)``)``.
+
+    Example:
+        >>> edges, face_edge, sign = unique_face_edges(torch.tensor([[0, 1, 2], [0, 2, 3]]))
+        >>> edges.shape[0], face_edge.tolist()
+        (5, [[3, 1, 0], [4, 2, 1]])
+    """
+    opp = torch.stack([tri.roll(-1, dims=1), tri.roll(-2, dims=1)], dim=-1)  # (T, 3, 2)
+    lo, hi = opp.min(dim=-1).values, opp.max(dim=-1).values
+    uniq, inv = torch.unique(torch.stack([lo, hi], dim=-1).reshape(-1, 2), dim=0, return_inverse=True)
+    sign = torch.where(opp[..., 0] == lo, 1.0, -1.0).to(torch.float64)
+    return uniq, inv.reshape(-1, 3), sign

@@ -39,7 +39,7 @@ from ..errors import CageError
 from ._common import on_cage_tolerance
 
 
-def green_coordinates_2d(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor, torch.Tensor]:
+def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor, torch.Tensor]:
     """2D Green coordinates of points inside a closed polygon.
 
     Args:
@@ -52,15 +52,15 @@ def green_coordinates_2d(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor
 
     Example:
         >>> import torch, torchcage
-        >>> from torchcage.functional._green2d import green_coordinates_2d
+        >>> from torchcage.functional._green2d import green2d_coordinates
         >>> cage = torchcage.Cage([[0.0, 0], [2, 0], [2, 1], [0, 1]])
         >>> x = torch.tensor([[0.5, 0.25], [1.5, 0.5]], dtype=torch.float64)
-        >>> phi, psi = green_coordinates_2d(x, cage)
+        >>> phi, psi = green2d_coordinates(x, cage)
         >>> torch.allclose(phi @ cage.vertices + psi @ cage.edge_normals(), x)
         True
     """
     if cage.dim != 2:
-        raise CageError("green_coordinates_2d needs a 2D cage")
+        raise CageError("green2d_coordinates needs a 2D cage")
     v = cage.vertices.to(points.dtype)
     j, k = cage.edges[:, 0], cage.edges[:, 1]
     a = (v[k] - v[j])[None]  # (1, E, 2)

@@ -43,10 +43,11 @@ import torch
 from ..cage import Cage
 from ._common import on_cage_tolerance, records_graph, safe_atan2, safe_norm, triangle_geometry
 
-#: Pairs with ``|h| < NEAR_PLANE * min R`` or ``min R < NEAR_VERTEX * max R`` take their distances
-#: to the plane and the edge lines from the edges' perpendiculars (the native kernel's fix-up set).
-NEAR_PLANE = 0.01
-NEAR_VERTEX = 1e-3
+#: Pairs with ``|h| < PERPENDICULAR_PLANE_RATIO * min R`` or ``min R < PERPENDICULAR_VERTEX_RATIO *
+#: max R`` take their distances to the plane and the edge lines from the edges' perpendiculars
+#: (the native kernel's fix-up set).
+PERPENDICULAR_PLANE_RATIO = 0.01
+PERPENDICULAR_VERTEX_RATIO = 1e-3
 
 
 @dataclass(frozen=True)
@@ -67,11 +68,11 @@ def triangle_green_data(cage: Cage, dtype: torch.dtype) -> TriangleGreenData:
     p, n, two_area = triangle_geometry(
         cage, dtype, "triangulate it with cage.triangulated() (quad Green coordinates are a separate system)"
     )
-    _, _, edge_dir, edge_out, grad_bary = triangle_frame(p)
+    _, _, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
     return TriangleGreenData(p, n, two_area, edge_dir, edge_out, grad_bary, cage.triangles, on_cage_tolerance(cage))
 
 
-def triangle_frame(p: torch.Tensor) -> tuple[torch.Tensor, ...]:
+def triangle_green_geometry(p: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """``(normal (..., 3), two_area (...), edge_dir, edge_out, grad_bary (..., 3, 3))`` of triangles
     with corners ``p`` ``(..., 3, 3)``: unit normal, twice the area, and for the edge opposite each
     corner (``p_{i+1} -> p_{i+2}``) its unit direction, its outward in-plane unit normal and the
@@ -172,7 +173,7 @@ def green3d_chunk(x: torch.Tensor, data: TriangleGreenData) -> tuple[torch.Tenso
 
 def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol: float) -> tuple[torch.Tensor, ...]:
     """Green integrals of triangles seen from points: ``a`` ``(..., 3, 3)`` holds the corners
-    minus the point, ``geometry`` is :func:`triangle_frame` of the corners (broadcastable to
+    minus the point, ``geometry`` is :func:`triangle_green_geometry` of the corners (broadcastable to
     ``a``'s leading shape). Returns ``(phi_face (..., 3), psi (...), omega (...), on_face (...),
     alpha (..., 3))`` as :func:`green3d_chunk`."""
     normal, two_area, edge_dir, edge_out, grad_bary = geometry
@@ -186,7 +187,7 @@ def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol:
     h = (a[..., 0, :] * normal).sum(-1)  # > 0 on the inner side
     d = (aj * edge_out).sum(-1)
     Rmin, Rmax = R.min(dim=-1).values, R.max(dim=-1).values
-    near = (h.abs() < NEAR_PLANE * Rmin) | (h.abs() <= tol) | (Rmin < NEAR_VERTEX * Rmax)
+    near = (h.abs() < PERPENDICULAR_PLANE_RATIO * Rmin) | (h.abs() <= tol) | (Rmin < PERPENDICULAR_VERTEX_RATIO * Rmax)
     if bool(near.any()):  # (the native kernel does the same in its fix-up of these pairs)
         h, d = _near_distances(aj, ak, R, normal, edge_dir, edge_out, near, h, d)
     # Edge integrals and signed foot-to-edge distances (positive inside).

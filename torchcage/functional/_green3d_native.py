@@ -1,25 +1,33 @@
 """Glue to the native CPU kernel of 3D Green coordinates (``torchcage/_native/gc3d.c``): its
-tables in the layouts it expects, and the call on a chunk of points."""
+tables, keyed by ``tc_gc3d``'s argument names (layouts in ``torchcage/_native/abi.py``), and the
+call on a chunk of points."""
 
 from __future__ import annotations
+
+import ctypes
 
 import torch
 
 from .. import _native
-from ._green3d import TriangleGreenData, triangle_frame
-from ._mvc3d_native import unique_face_edges
+from ._common import unique_face_edges
+from ._green3d import TriangleGreenData, triangle_green_geometry
+
+__all__ = ["native_chunk", "native_subset_tables", "native_tables"]
 
 
-def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Tables for ``tc_gc3d`` (layouts in gc3d.c): among them the unique edges with their unit
-    directions and, for each face, the edge opposite each corner."""
+def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, object]:
+    """``tc_gc3d``'s per-cage arguments: among them the unique edges with their unit directions
+    and, for each face, the edge opposite each corner."""
     edges, face_edge, _ = unique_face_edges(data.tri)
     edges = edges.T  # (2, E)
     direction = vertices[edges[1]] - vertices[edges[0]]
     return {
         "Pv": vertices.T.contiguous(),
+        "V": vertices.shape[0],
         "tri": data.tri.T.to(torch.int32).contiguous(),
+        "T": data.tri.shape[0],
         "edges": edges.to(torch.int32).contiguous(),
+        "E": edges.shape[1],
         "eu": (direction / direction.norm(dim=1, keepdim=True)).T.contiguous(),
         "fe": face_edge.T.to(torch.int32).contiguous(),
         "nrm": data.normal.contiguous(),
@@ -28,23 +36,23 @@ def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, 
         "edir": data.edge_dir.contiguous(),
         "eout": data.edge_out.contiguous(),
         "gbary": data.grad_bary.contiguous(),
+        "tol": data.tol,
     }
 
 
-def native_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: float) -> dict[str, torch.Tensor]:
+def native_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: float) -> dict[str, object]:
     """:func:`native_tables` of triangles ``tri`` ``(T, 3)`` over ``vertices`` ``(V, 3)`` float64
     that need not close a cage (a triquad cage's triangles, the split triangles of its quads)."""
     p = vertices[tri]
-    return native_tables(TriangleGreenData(p, *triangle_frame(p), tri, tol), vertices)
+    return native_tables(TriangleGreenData(p, *triangle_green_geometry(p), tri, tol), vertices)
 
 
 def native_chunk(
     x: torch.Tensor,
-    tables: dict[str, torch.Tensor],
-    lib: object,
+    tables: dict[str, object],
+    lib: ctypes.CDLL,
     phi: torch.Tensor,
     psi: torch.Tensor,
-    tol: float,
     on_face: torch.Tensor | None = None,
     alpha: torch.Tensor | None = None,
 ) -> None:
@@ -53,9 +61,4 @@ def native_chunk(
     and ``alpha`` ``(n, 3)`` float64 given, the triangles are part of a larger cage: ``phi`` keeps
     the principal values and those receive the first face each point lies on (-1: none) and the
     point's barycentric coordinates there, for the caller's jump term."""
-    x = x.contiguous()
-    t = tables
-    args = [t["Pv"], phi.shape[1], t["tri"], psi.shape[1], t["edges"], t["edges"].shape[1], t["eu"], t["fe"],
-            t["nrm"], t["two_area"], t["ell"], t["edir"], t["eout"], t["gbary"], x, x.shape[0], tol,
-            torch.get_num_threads(), phi, psi, on_face, alpha]  # fmt: skip
-    _native.call(lib.tc_gc3d, args)  # type: ignore[attr-defined]
+    _native.call(lib, "tc_gc3d", **tables, X=x.contiguous(), n=x.shape[0], PHI=phi, PSI=psi, ONF=on_face, AL=alpha)

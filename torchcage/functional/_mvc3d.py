@@ -50,17 +50,17 @@ import torch
 from ..cage import Cage
 from ._common import on_cage_tolerance, outside_point, records_graph, safe_atan2, safe_div, safe_sqrt, triangle_geometry
 
-#: Point–face pairs with ``|h| < NEAR_PLANE * min_i |p_i - x|`` use the stable form.
-NEAR_PLANE = 0.01
-#: Points whose face weights sum, in absolute value, to more than ``CANCELLATION`` times their
-#: total get the far-field rule on every face whose longest edge is below ``FAR_FIELD * min_i
+#: Point–face pairs with ``|h| < SPLIT_FORM_RATIO * min_i |p_i - x|`` use the stable form.
+SPLIT_FORM_RATIO = 0.01
+#: Points whose face weights sum, in absolute value, to more than ``CANCELLATION_RATIO`` times their
+#: total get the far-field rule on every face whose longest edge is below ``FAR_FIELD_RATIO * min_i
 #: |p_i - x|``.
-CANCELLATION = 4.0
-FAR_FIELD = 1.0
-#: Faces seen from more than ``FAR_ALWAYS`` times their longest edge always take the far-field rule.
-FAR_ALWAYS = 1e3
+CANCELLATION_RATIO = 4.0
+FAR_FIELD_RATIO = 1.0
+#: Faces seen from more than ``FAR_ALWAYS_RATIO`` times their longest edge always take the far-field rule.
+FAR_ALWAYS_RATIO = 1e3
 #: Gauss–Legendre order (per direction of the collapsed square) of the far-field rule: its error
-#: decays like ``(FAR_FIELD / 4)^(2 * order)``.
+#: decays like ``(FAR_FIELD_RATIO / 4)^(2 * order)``.
 FAR_FIELD_ORDER = 14
 
 
@@ -244,7 +244,7 @@ def _direct_face_weights(q: dict, two_area: torch.Tensor) -> list[torch.Tensor]:
 
 def _near_plane(q: dict) -> torch.Tensor:
     R = q["R"]
-    return q["h"].abs() < NEAR_PLANE * torch.minimum(torch.minimum(R[0], R[1]), R[2])
+    return q["h"].abs() < SPLIT_FORM_RATIO * torch.minimum(torch.minimum(R[0], R[1]), R[2])
 
 
 def _on_cage(q: dict, data: TriangleCageData) -> torch.Tensor:
@@ -314,12 +314,12 @@ def face_weights(
     if not far_field:
         return w, q
     total = w[0] + w[1] + w[2]
-    cancels = total.abs().sum(dim=0) > CANCELLATION * total.sum(dim=0).abs()
+    cancels = total.abs().sum(dim=0) > CANCELLATION_RATIO * total.sum(dim=0).abs()
     R = q["R"]
     rmin = torch.minimum(torch.minimum(R[0], R[1]), R[2])
-    # (faces seen below 1/FAR_ALWAYS of their distance: the vector form's error eps (r / edge)^3 can
+    # (faces seen below 1/FAR_ALWAYS_RATIO of their distance: the vector form's error eps (r / edge)^3 can
     # hide the cancellation from the test above, so they always take the rule)
-    far = (data.longest < FAR_FIELD * rmin) & (cancels | (data.longest * FAR_ALWAYS < rmin))
+    far = (data.longest < FAR_FIELD_RATIO * rmin) & (cancels | (data.longest * FAR_ALWAYS_RATIO < rmin))
     if bool(far.any()):
         idx = torch.nonzero(far.reshape(-1)).squeeze(1)
         face, col = torch.div(idx, n, rounding_mode="floor"), idx % n

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import torch
 
 from ._common import records_graph, safe_norm
-from ._green3d import triangle_frame, triangle_integrals
+from ._green3d import triangle_green_geometry, triangle_integrals
 from ._mvc3d import _cross
 from ._qmvc3d import QuadData, Vec, project, quad_data
 
@@ -136,7 +136,7 @@ def _bilinear(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return torch.stack([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=-1)
 
 
-def quad_green_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def qgc3d_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-quad Green coordinates of a chunk of points.
 
     Args:
@@ -157,7 +157,7 @@ def quad_green_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor
     fan = torch.stack(
         [torch.stack([corners[..., k, :], corners[..., (k + 1) % 4, :], apex], dim=-2) for k in range(4)], dim=-3
     )  # (Q, m, 4 triangles, 3 corners, 3)
-    frame = triangle_frame(fan)
+    frame = triangle_green_geometry(fan)
     phi_f, psi_f, _, _, _ = triangle_integrals(fan, frame, tol)
     # The apex on a quad edge (a point on the quad's boundary): that fan triangle is empty, up to
     # rounding that would make it a sliver seen from its own edge (garbage solid angle): drop it.
@@ -176,7 +176,7 @@ def quad_green_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor
     pat = data.pattern  # (P, 3, 2)
     uu, vv = un[..., pat[..., 0]], vn[..., pat[..., 1]]  # (Q, m, P, 3)
     sub = _sheet(*(tuple(t[..., None, None] for t in vec) for vec in (p0, b, c, dd)), uu, vv)  # (Q, m, P, 3, 3)
-    _, psi_t, omega_t, _, _ = triangle_integrals(sub, triangle_frame(sub), tol)
+    _, psi_t, omega_t, _, _ = triangle_integrals(sub, triangle_green_geometry(sub), tol)
     uc, vc = uu.mean(-1), vv.mean(-1)  # sub-triangle centres (Q, m, P)
     bc = _bilinear(uc, vc)  # (Q, m, P, 4)
     N0, Nu, Nv = _cross(b, c), _cross(b, dd), _cross(dd, c)

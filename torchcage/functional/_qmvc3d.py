@@ -315,7 +315,7 @@ def project(x: torch.Tensor, data: QuadData) -> Projection:
     return Projection(p, R2, vertex, mvec, k, rows, D, kabs, flat, inside, b, c, dd, nq, u, v, on)  # type: ignore[arg-type]
 
 
-def quad_weights_chunk(
+def qmvc3d_chunk(
     x: torch.Tensor, data: QuadData, n: int
 ) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Unnormalised QMVC weights of every quad corner for a chunk of points.

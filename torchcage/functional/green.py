@@ -12,7 +12,7 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ._common import check_points, chunks, default_chunk, result_dtype
-from ._green2d import green_coordinates_2d
+from ._green2d import green2d_coordinates
 from ._green3d import green3d_coordinates, triangle_green_data
 from ._green3d_native import native_chunk, native_tables
 
@@ -81,7 +81,7 @@ def green_coordinates(
         poly = cage.to(compute)
 
         def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            return green_coordinates_2d(c, poly)
+            return green2d_coordinates(c, poly)
 
     # The native kernel needs no temporaries beyond its outputs: chunks only pace the progress bar.
     size = chunk_size if chunk_size is not None else default_chunk(T, 1 << 23 if lib is not None else 1 << 17)
@@ -89,7 +89,7 @@ def green_coordinates(
     psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
         if lib is not None:  # writes straight into the row blocks (contiguous): no copies
-            native_chunk(x[sl], tables, lib, phi[sl], psi[sl], data.tol)
+            native_chunk(x[sl], tables, lib, phi[sl], psi[sl])
         else:
             phi[sl], psi[sl] = kernel(x[sl])
     lead = points.shape[:-1]

@@ -1,6 +1,8 @@
 r"""Mean value coordinates for closed triangle cages (3D) and closed polygons (2D): the public
 function. The kernels live beside it: ``_mvc3d`` (torch, 3D: the formulation and its numerical
-care are described there), ``_mvc3d_native`` (the native CPU kernel's glue), ``_mvc2d`` (2D).
+care are described there), ``_mvc2d`` (2D), ``_mvc3d_native`` and ``_mvc2d_native`` (the native
+CPU kernels' glue), chosen in ``_mvc_dispatch``; with a graph, the call goes through
+:mod:`torchcage.autograd.mean_value`.
 """
 
 from __future__ import annotations
@@ -9,71 +11,13 @@ from collections.abc import Callable
 
 import torch
 
-from .. import _native
+from ..autograd.mean_value import mean_value_function
 from ..cage import Cage
-from ..errors import PointsError
-from ._common import check_points, chunks, default_chunk, normalise_weights, records_graph, result_dtype
-from ._mvc2d import mvc2d_chunk, polygon_data
-from ._mvc3d import mvc3d_chunk, triangle_cage_data
-from ._mvc3d_native import native_chunk, native_tables
+from ._common import check_points, records_graph, result_dtype
+from ._mvc3d import triangle_cage_data
+from ._mvc_dispatch import coordinates_flat
 
 __all__ = ["mean_value_coordinates"]
-
-
-def _coordinates_flat(
-    x: torch.Tensor,
-    cage: Cage,
-    chunk_size: int | None,
-    progress: bool | Callable[[int, int], None],
-    backend: str,
-) -> torch.Tensor:
-    """Mean value coordinates ``(N, V)`` of checked points ``x`` ``(N, D)`` in their dtype."""
-    lib = _native.select(backend, x, cage.vertices, dims=(2, 3))
-    if cage.dim == 3:
-        data3 = triangle_cage_data(cage, x.dtype)
-        tables = native_tables(data3) if lib is not None else {}
-        nf = data3.tri.shape[0]
-
-        def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
-            if lib is not None:
-                native_chunk(c, data3, tables, lib, out)
-                return
-            Wc, onc = mvc3d_chunk(c, data3)
-            out.copy_(normalise_weights(Wc.T, onc, cage.vertices.to(c.dtype), c))
-    else:
-        data2 = polygon_data(cage, x.dtype)
-        nf = data2.edges.shape[0]
-
-        edges32 = cage.edges.to(torch.int32).contiguous()
-        verts = cage.vertices.to(x.dtype).contiguous()
-
-        def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
-            if lib is not None:
-                c = c.contiguous()
-                on = torch.empty(c.shape[0], dtype=torch.uint8)
-                args = [verts, verts.shape[0], edges32, edges32.shape[0], c, c.shape[0], data2.tol,
-                        torch.get_num_threads(), out, on]  # fmt: skip
-                _native.call(lib.tc_mvc2d, args)  # type: ignore[union-attr]
-                return
-            Wc, onc = mvc2d_chunk(c, data2)
-            out.copy_(normalise_weights(Wc.T, onc, cage.vertices.to(c.dtype), c))
-
-    # The native kernel needs no temporaries beyond its output: chunks only pace the progress bar.
-    # Pairs per chunk, measured on 2 cores: ~130k (3D torch) and ~250k (2D) amortise the per-op
-    # overhead while the temporaries stay in cache.
-    target = 1 << 23 if lib is not None else (1 << 17 if cage.dim == 3 else 1 << 18)
-    size = chunk_size if chunk_size is not None else default_chunk(nf, target)
-    out = torch.empty((x.shape[0], cage.num_vertices), dtype=x.dtype, device=x.device)
-    for sl in chunks(x.shape[0], size, progress, desc="mean value coordinates"):
-        kernel(x[sl], out[sl])
-        bad = ~torch.isfinite(out[sl].sum(dim=1))  # a row sum is finite iff every entry is
-        if bool(bad.any()):
-            idx = (torch.nonzero(bad).flatten()[:10] + sl.start).tolist()
-            raise PointsError(
-                f"mean value coordinates are undefined at points {idx} (the total weight vanishes there, "
-                "which happens only outside the cage); move these points"
-            )
-    return out
 
 
 def mean_value_coordinates(
@@ -135,11 +79,9 @@ def mean_value_coordinates(
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     if records_graph(flat, cage.vertices):
-        from ..autograd.mean_value import mean_value_function
-
         if cage.dim == 3:  # the same checks as the plain path (a triangle cage)
             triangle_cage_data(cage, compute)
         lam = mean_value_function(flat, cage, chunk_size, backend)
     else:
-        lam = _coordinates_flat(flat.to(compute), cage, chunk_size, progress, backend)
+        lam = coordinates_flat(flat.to(compute), cage, chunk_size, progress, backend)
     return lam.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)

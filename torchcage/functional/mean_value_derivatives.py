@@ -15,88 +15,50 @@ all exact up to rounding:
   the cross products ``N_e`` in ``m`` are affine in ``x``, so only the scalars
   ``theta_e / (2|N_e|)`` need derivatives (by the chain rule, through
   ``G(t) = atan(sqrt t)/sqrt t``, smooth through the edges' support lines);
-* **near the face's support plane** (``|h| < 0.2 min |a_i|``, the published formulas' weak spot:
+* **near the face's support plane** (``|h| < DERIVATIVE_SPLIT_FORM_RATIO min |a_i|``, the published formulas' weak spot:
   the ratio of two vanishing quantities), the split form of the coordinates (see ``_mvc3d``), in
   which every term carries its power of the distance ``h`` explicitly, is differentiated as it
   stands; where an edge is seen under a small angle its two large terms are combined through a
   divided difference of ``G``, so the form stays exact through the edge's support line;
-* **far field** (longest edge below ``FAR_RATIO`` times the distance): the defining integral
-  ``h int phi_i / |p - x|^4 dA`` by a collapsed Gauss rule, differentiated under the integral (the
+* **far field** (longest edge below ``DERIVATIVE_FAR_FIELD_RATIO`` times the distance): the
+  defining integral ``h int phi_i / |p - x|^4 dA`` by a collapsed Gauss rule, differentiated under the integral (the
   vector form loses ``(r / edge)^k`` digits there).
 
 In 2D each edge adds ``tan(alpha/2) / r`` to its two vertices, with ``tan(alpha/2)`` in one of two
-cancellation-free forms. The kernels are native C (``_native/mvcd3d.c``, ``mvcd2d.c``), with a
-small second-order jet type doing the chain rule.
+cancellation-free forms. The kernels are native C (``_native/mvcd3d.c``, ``mvcd2d.c``, glue and
+thresholds in ``_mvcd_native``), with a small second-order jet type doing the chain rule. Where
+they cannot serve (a GPU, no C compiler), ``_mvcd_torch`` differentiates the torch kernel of the
+coordinates instead.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-import numpy as np
 import torch
 
 from .. import _native
 from ..cage import Cage
 from ..errors import PointsError
-from ._common import check_points, chunks, on_cage_tolerance, triangle_geometry
-from ._mvc3d import _collapsed_gauss
-from ._mvc3d_native import unique_face_edges
+from . import _mvcd_native
+from ._common import check_points, chunks, triangle_geometry
+from ._mvcd_torch import torch_derivatives
 
 __all__ = ["derivatives_flat", "mean_value_derivatives", "mean_value_gradients", "mean_value_hessians"]
 
-#: Faces whose longest edge is below ``FAR_RATIO`` times their distance use the far-field rule
-#: (measured against 60-digit references: the direct form's Hessians lose up to 4e-10 relative at
-#: 0.125, nothing visible at 0.25).
-FAR_RATIO = 0.25
-#: Gauss–Legendre order per direction of the far-field rule (error about ``(FAR_RATIO/4)^(2 order)``).
-FAR_ORDER = 6
-#: Pairs with ``|h| < NEAR_PLANE * min |a_i|`` use the split form (the direct form's Hessians lose
-#: 1e-10 relative at 0.01, 1e-12 at 0.05, nothing visible at 0.2).
-NEAR_PLANE = 0.05
-#: Gauss–Legendre nodes of ``G(t) = int_0^1 dy / (1 + t y^2)``, ``t <= 1``.
-G_ORDER = 16
 
-
-def _gauss01(order: int) -> tuple[torch.Tensor, torch.Tensor]:
-    y, w = np.polynomial.legendre.leggauss(order)
-    return torch.as_tensor((y + 1) / 2), torch.as_tensor(w / 2)
-
-
-def _tables3d(cage: Cage) -> dict[str, torch.Tensor]:
-    p, normal, two_area = triangle_geometry(
-        cage, torch.float64, "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated()"
-    )
-    p, normal, two_area = p.cpu(), normal.cpu(), two_area.cpu()
-    E = p.roll(-1, dims=1) - p.roll(-2, dims=1)  # (T, 3, 3): E_e = p_{e+1} - p_{e+2}
-    ell = E.norm(dim=-1)
-    bary, qw = _collapsed_gauss(FAR_ORDER, torch.float64, torch.device("cpu"))
-    gy, gw = _gauss01(G_ORDER)
-    tri = cage.triangles.cpu()
-    _, face_edge, _ = unique_face_edges(tri)
-    return {
-        "P": cage.vertices.detach().to("cpu", torch.float64).contiguous(),
-        "tri": tri.to(torch.int32).contiguous(),
-        "fe": face_edge.to(torch.int32).contiguous(),
-        "E": E.contiguous(),
-        "nrm": normal.contiguous(),
-        "two_area": two_area.contiguous(),
-        "ell": ell.contiguous(),
-        "gram": (E @ E.transpose(1, 2)).contiguous(),
-        "longest": ell.max(dim=1).values.contiguous(),
-        "far_nodes": torch.einsum("qi,tic->tqc", bary, p).contiguous(),
-        "far_coef": ((two_area[:, None, None] * qw[None, :, None]) * bary[None]).contiguous(),
-        "gl_y": gy.contiguous(),
-        "gl_w": gw.contiguous(),
-    }
-
-
-def _library() -> object:
+def _library(backend: str, x: torch.Tensor) -> object | None:
+    """The native library when it serves this call (``"auto"``: CPU points and a loadable
+    library), else ``None`` (the torch path)."""
+    if backend not in ("auto", "native", "torch"):
+        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
+    if backend == "torch" or (backend == "auto" and x.device.type != "cpu"):
+        return None
     lib = _native.library()
-    if lib is None:
+    if lib is None and backend == "native":
         raise RuntimeError(
-            "the analytic derivatives of mean value coordinates need torchcage's native kernel, which could "
-            f"not be built ({_native.failure_reason()}); install a C compiler with OpenMP (gcc or clang)"
+            "the native kernel of mean value derivatives is unavailable "
+            f"({_native.failure_reason()}); use backend='torch' (or 'auto', which falls back to it)"
         )
     return lib
 
@@ -107,43 +69,32 @@ def derivatives_flat(
     order: int,
     chunk_size: int | None = None,
     progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The kernel on checked points ``x`` ``(n, D)``: float64 CPU tensors ``lam (n, V)``,
+    """The kernel on checked points ``x`` ``(n, D)``: float64 tensors ``lam (n, V)``,
     ``grad (n, V, D)``, ``hess (n, V, D, D)`` (empty for ``order=1``) and the ``(n,)`` bool mask of
-    points on the cage (their rows hold the interpolant and its derivatives: see mvcd3d.c).
+    points on the cage (their rows hold the interpolant and its derivatives: see mvcd3d.c). The
+    native kernel (CPU) or, where it cannot serve, autograd of the torch kernel
+    (:mod:`._mvcd_torch`, on the points' device).
 
     Raises:
         PointsError: points where the coordinates are undefined (the total weight vanishes).
     """
-    lib = _library()
+    lib = _library(backend, x)
+    if lib is None:
+        return torch_derivatives(x, cage, order, chunk_size, progress)
     D, V = cage.dim, cage.num_vertices
     x = x.detach().to("cpu", torch.float64)
     n = x.shape[0]
     lam = torch.empty((n, V), dtype=torch.float64)
     grad = torch.empty((n, V, D), dtype=torch.float64)
     hess = torch.empty((n, V, D, D) if order == 2 else (0,), dtype=torch.float64)
-    tol = on_cage_tolerance(cage)
-    threads = torch.get_num_threads()
-    if D == 3:
-        tb = _tables3d(cage)
-        T, Q = tb["tri"].shape[0], tb["far_nodes"].shape[1]
-    else:
-        P2 = cage.vertices.detach().to("cpu", torch.float64).contiguous()
-        edges = cage.edges.cpu().to(torch.int32).contiguous()
+    tables = _mvcd_native.native_tables(cage)
     flags = torch.empty(n, dtype=torch.uint8)
     size = chunk_size if chunk_size is not None else 4096
     for sl in chunks(n, size, progress, desc="mean value derivatives"):
-        xc, m = x[sl].contiguous(), sl.stop - sl.start
-        H = hess[sl] if order == 2 else hess
-        if D == 3:
-            args = [tb["P"], V, tb["tri"], T, tb["fe"], int(tb["fe"].max()) + 1, tb["E"], tb["nrm"],
-                    tb["two_area"], tb["ell"], tb["gram"], tb["longest"], tb["far_nodes"], tb["far_coef"], Q,
-                    FAR_RATIO, NEAR_PLANE, tb["gl_y"], tb["gl_w"], G_ORDER, xc, m, tol, order, threads, lam[sl],
-                    grad[sl], H, flags[sl]]  # fmt: skip
-            _native.call(lib.tc_mvcd3d, args)  # type: ignore[attr-defined]
-        else:
-            args = [P2, V, edges, edges.shape[0], xc, m, tol, order, threads, lam[sl], grad[sl], H, flags[sl]]
-            _native.call(lib.tc_mvcd2d, args)  # type: ignore[attr-defined]
+        H = hess[sl] if order == 2 else None
+        _mvcd_native.native_chunk(x[sl], tables, lib, order, lam[sl], grad[sl], H, flags[sl])
     bad = torch.nonzero(flags == 2).flatten()[:10].tolist()
     if bad:
         raise PointsError(
@@ -159,6 +110,7 @@ def mean_value_derivatives(
     *,
     chunk_size: int | None = None,
     progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Mean value coordinates with their analytic gradients and (``order=2``) Hessians.
 
@@ -168,8 +120,11 @@ def mean_value_derivatives(
         order: 1 (gradients) or 2 (gradients and Hessians).
         chunk_size: points per chunk (memory grows with ``chunk_size x V x D^2``). Default: 4096.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
+        backend: ``"auto"`` (default): the native kernel for CPU points when it is loadable, else
+            autograd of the torch kernel on the points' device (the same values to about 1e-10);
+            ``"native"`` or ``"torch"`` to force one.
 
-    Computed in float64 on the CPU by the native kernel, returned in the points' dtype and device.
+    Computed in float64, returned in the points' dtype and device.
     These values are plain tensors (no autograd graph): to differentiate through the coordinates,
     call :func:`mean_value_coordinates` on points that require grad.
 
@@ -198,7 +153,7 @@ def mean_value_derivatives(
     flat = check_points(points, cage)
     if cage.dim == 3:
         triangle_geometry(cage, torch.float64, "use cage.triangulated() to split quads")
-    lam, grad, hess, on = derivatives_flat(flat, cage, order, chunk_size, progress)
+    lam, grad, hess, on = derivatives_flat(flat, cage, order, chunk_size, progress, backend)
     idx = torch.nonzero(on).flatten()[:10].tolist()
     if idx:
         raise PointsError(

@@ -10,9 +10,10 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ._common import chunks
-from ._green3d import triangle_frame, triangle_integrals
-from ._green3d_native import native_chunk, native_subset_tables
-from ._qgc3d import QuadGreenData, quad_green_chunk, quad_green_data
+from ._green3d import triangle_green_geometry, triangle_integrals
+from ._green3d_native import native_subset_tables
+from ._qgc3d import QuadGreenData, qgc3d_chunk, quad_green_data
+from ._qgc3d_native import native_quad_part, native_quad_tables, native_tri_part
 from .quad_mean_value import prepare_quad_call
 
 __all__ = ["quad_green_coordinates"]
@@ -22,7 +23,7 @@ def _quad_part_torch(x: torch.Tensor, qdata: QuadGreenData, V: int) -> tuple[tor
     """Quads' ``phi`` ``(m, V)`` and ``psi`` ``(m, 4Q)``, the first quad each point lies on (or -1)
     and the interpolating values ``(m, V)`` there, with the torch kernel."""
     m = x.shape[0]
-    Phi, on_q, b = quad_green_chunk(x, qdata)  # (Q, m, 8), (Q, m), (Q, m, 4)
+    Phi, on_q, b = qgc3d_chunk(x, qdata)  # (Q, m, 8), (Q, m), (Q, m, 4)
     quads = qdata.quads
     phi = torch.zeros(m, V, dtype=x.dtype, device=x.device)
     for k in range(4):
@@ -33,40 +34,6 @@ def _quad_part_torch(x: torch.Tensor, qdata: QuadGreenData, V: int) -> tuple[tor
     hat = torch.zeros(m, V, dtype=x.dtype, device=x.device).scatter_add(
         1, quads[f], b[f, torch.arange(m, device=x.device)]
     )
-    return phi, psi, onq, hat
-
-
-def _split_tables(verts: torch.Tensor, quads: torch.Tensor, tol: float) -> dict[str, torch.Tensor]:
-    """Green-kernel tables of the triangles ``(q0 q1 q2)``, ``(q0 q2 q3)`` of every quad (rows
-    ``2q``, ``2q + 1``): outside a quad's tetrahedron they give its invariants (see qgc3d.c)."""
-    split = torch.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
-    return native_subset_tables(verts, split, tol)
-
-
-def _quad_part_native(
-    x: torch.Tensor, qdata: QuadGreenData, V: int, verts: torch.Tensor, lib: object, split: dict[str, torch.Tensor]
-) -> tuple:  # fmt: skip
-    """As :func:`_quad_part_torch`, with the native kernel (float64, CPU); ``split``: the tables
-    of :func:`_split_tables`."""
-    x = x.contiguous()
-    m, Q = x.shape[0], qdata.quads.shape[0]
-    phi = torch.zeros(m, V, dtype=x.dtype)
-    psi = torch.empty(m, 4 * Q, dtype=x.dtype)
-    onq = torch.empty(m, dtype=torch.int32)
-    uv = torch.zeros(m, 2, dtype=x.dtype)
-    args = [
-        verts.contiguous(), V, qdata.quads.to(torch.int32).contiguous(), Q, qdata.proj.size[:, 0].contiguous(),
-        qdata.pinv.contiguous(), qdata.null.contiguous(), qdata.origin.contiguous(),
-        qdata.pattern.to(torch.int32).contiguous(), qdata.pattern.shape[0], qdata.K, x, m, qdata.tol,
-        torch.get_num_threads(), phi, psi, onq, uv, split["Pv"], split["tri"], split["edges"],
-        split["edges"].shape[1], split["eu"], split["fe"], split["nrm"], split["two_area"], split["ell"], split["edir"],
-        split["eout"], split["gbary"],
-    ]  # fmt: skip
-    _native.call(lib.tc_qgc3d, args)  # type: ignore[attr-defined]
-    onq = onq.long()
-    u, v = uv[:, 0:1], uv[:, 1:2]
-    b = torch.cat([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=1)
-    hat = torch.zeros(m, V, dtype=x.dtype).scatter_add(1, qdata.quads[onq.clamp_min(0)], b)
     return phi, psi, onq, hat
 
 
@@ -86,21 +53,6 @@ def _tri_part_torch(
     bary = bary / bary.sum(dim=1, keepdim=True).clamp_min(1e-300)
     hat = torch.zeros(m, V, dtype=x.dtype, device=x.device).scatter_add(1, triangles[f], bary)
     return phi, psi_t, on_face.any(dim=1), hat
-
-
-def _tri_part_native(
-    x: torch.Tensor, tables: dict[str, torch.Tensor], triangles: torch.Tensor, V: int, tol: float, lib: object
-) -> tuple[torch.Tensor, ...]:  # fmt: skip
-    """As :func:`_tri_part_torch`, with the native Green kernel (float64, CPU)."""
-    m = x.shape[0]
-    phi = torch.empty(m, V, dtype=x.dtype)
-    psi = torch.empty(m, triangles.shape[0], dtype=x.dtype)
-    onf = torch.empty(m, dtype=torch.int32)
-    alpha = torch.empty(m, 3, dtype=x.dtype)
-    native_chunk(x, tables, lib, phi, psi, tol, onf, alpha)
-    onf = onf.long()
-    hat = torch.zeros(m, V, dtype=x.dtype).scatter_add(1, triangles[onf.clamp_min(0)], alpha)
-    return phi, psi, onf >= 0, hat
 
 
 def _chunk(x: torch.Tensor, tri_part, quad_part, V: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -189,21 +141,21 @@ def quad_green_coordinates(
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
     T, Q, V = cage.triangles.shape[0], cage.quads.shape[0], cage.num_vertices
     tri_p = verts[cage.triangles]
-    tri_geometry = triangle_frame(tri_p)
+    tri_geometry = triangle_green_geometry(tri_p)
     qdata = quad_green_data(verts, cage.quads, tol, n) if Q else None
     lib = _native.select(backend, x, cage.vertices)
     tri_part = quad_part = None
     if T and lib is not None:
         tables = native_subset_tables(verts, cage.triangles, tol)
-        tri_part = functools.partial(_tri_part_native, tables=tables, triangles=cage.triangles, V=V, tol=tol, lib=lib)
+        tri_part = functools.partial(native_tri_part, tables=tables, triangles=cage.triangles, lib=lib)
     elif T:
         tri_part = functools.partial(
             _tri_part_torch, tri_p=tri_p, tri_geometry=tri_geometry, triangles=cage.triangles, V=V, tol=tol
         )
     if qdata is not None:
         if lib is not None:
-            split = _split_tables(verts, cage.quads, tol)
-            quad_part = functools.partial(_quad_part_native, qdata=qdata, V=V, verts=verts, lib=lib, split=split)
+            tables_q = native_quad_tables(verts, qdata)
+            quad_part = functools.partial(native_quad_part, qdata=qdata, tables=tables_q, lib=lib)
         else:
             quad_part = functools.partial(_quad_part_torch, qdata=qdata, V=V)
     if lib is not None:

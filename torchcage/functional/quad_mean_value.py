@@ -22,8 +22,8 @@ from ._common import (
     result_dtype,
 )
 from ._mvc3d import TriangleCageData, mvc3d_chunk, triangle_data
-from ._mvc3d_native import native_chunk, native_tables
-from ._qmvc3d import QuadData, project, quad_data, quad_weights_chunk
+from ._qmvc3d import QuadData, project, qmvc3d_chunk, quad_data
+from ._qmvc3d_native import native_kernel
 
 __all__ = ["quad_mean_value_coordinates"]
 
@@ -127,7 +127,7 @@ def quad_mean_value_coordinates(
     tdata = triangle_data(verts, cage.triangles, tol) if T else None
     qdata = quad_data(verts, cage.quads, tol) if Q else None
     if lib is not None:
-        kernel = _native_kernel(lib, verts, tdata, qdata, n)
+        kernel = native_kernel(lib, verts, tdata, qdata, n)
         size = chunk_size or 1 << 14
     else:
         kernel = functools.partial(_torch_chunk, verts=verts, tdata=tdata, qdata=qdata, n=n)
@@ -172,7 +172,7 @@ def _torch_chunk(
         onq_any = (pr.on & ~on[None, :]).any(dim=0) | on
         if bool(onq_any.any()):
             creg = torch.where(onq_any[:, None], outside_point(verts), c)
-    w, onq, u, v, vertex = quad_weights_chunk(creg, qdata, n)
+    w, onq, u, v, vertex = qmvc3d_chunk(creg, qdata, n)
     if creg is not c:  # the projection of the points themselves (not of their stand-ins)
         onq, u, v, vertex = pr.on, pr.u, pr.v, pr.vertex
     quads = qdata.quads
@@ -210,30 +210,3 @@ def _newton_uv(x: torch.Tensor, q: torch.Tensor, u: torch.Tensor, v: torch.Tenso
     inv = torch.where(ok, 1.0 / torch.where(ok, det, 1.0), 0.0)
     ru, rv = (xu * r).sum(0), (xv * r).sum(0)
     return u + (d * ru - b * rv) * inv, v + (a * rv - b * ru) * inv
-
-
-def _native_kernel(
-    lib: object, verts: torch.Tensor, tdata: TriangleCageData | None, qdata: QuadData | None, n: int
-) -> Callable[[torch.Tensor], torch.Tensor]:
-    """The native kernels (triangles: tc_mvc3d, raw weights; quads: tc_qmvc3d) as a chunk function."""
-    V = verts.shape[0]
-    tables = native_tables(tdata) if tdata is not None else None
-    P = verts.contiguous()
-    if qdata is not None:
-        quads32 = qdata.quads.to(torch.int32).contiguous()
-        size = qdata.size[:, 0].contiguous()
-
-    def kernel(c: torch.Tensor) -> torch.Tensor:
-        c = c.contiguous()
-        m = c.shape[0]
-        out = torch.zeros((m, V), dtype=c.dtype)
-        if tdata is not None:
-            on = native_chunk(c, tdata, tables, lib, out, normalize=qdata is None)  # type: ignore[arg-type]
-        else:
-            on = torch.zeros(m, dtype=torch.uint8)
-        if qdata is not None:
-            args = [P, V, quads32, quads32.shape[0], size, c, m, qdata.tol, n, torch.get_num_threads(), out, on]
-            _native.call(lib.tc_qmvc3d, args)  # type: ignore[attr-defined]
-        return out
-
-    return kernel

@@ -1,0 +1,70 @@
+"""Mean value coordinates with their gradients and Hessians by autograd of the torch kernel: the
+derivatives wherever the native kernel (``_mvcd_native``) cannot serve (any device, no C
+compiler, ``TORCHCAGE_NATIVE=0``). The torch kernel is finite under autograd everywhere (see
+docs/accuracy.md), its far-field and split forms included, so these are the derivatives of the
+same coordinates; they agree with the native analytic ones to about 1e-10 relative."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from ..cage import Cage
+from ._common import chunks
+from ._mvc2d import mvc2d_chunk, polygon_data
+from ._mvc3d import mvc3d_chunk, triangle_cage_data
+from ._mvc_dispatch import coordinates_flat
+
+__all__ = ["torch_derivatives"]
+
+
+def _jacobian_rows(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> torch.Tensor:
+    """``d y[p, v] / d x[p, c]`` ``(n, V, D)`` of a row-wise map ``y (n, V) = f(x (n, D))`` (row
+    ``p`` of ``y`` depends on row ``p`` of ``x`` only): one batched backward pass over ``V``."""
+    V = y.shape[1]
+    onehot = torch.eye(V, dtype=y.dtype, device=y.device)[:, None, :].expand(V, *y.shape)
+    (g,) = torch.autograd.grad(y, x, onehot, is_grads_batched=True, create_graph=create_graph)
+    return g.movedim(0, 1)  # (n, V, D)
+
+
+def _on_cage(x: torch.Tensor, cage: Cage) -> torch.Tensor:
+    with torch.no_grad():
+        if cage.dim == 3:
+            return mvc3d_chunk(x, triangle_cage_data(cage, x.dtype))[1]
+        return mvc2d_chunk(x, polygon_data(cage, x.dtype))[1]
+
+
+def torch_derivatives(
+    x: torch.Tensor,
+    cage: Cage,
+    order: int,
+    chunk_size: int | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """As :func:`torchcage.functional.mean_value_derivatives.derivatives_flat`, on the points'
+    device: float64 ``lam (n, V)``, ``grad (n, V, D)``, ``hess (n, V, D, D)`` (empty for
+    ``order=1``) and the ``(n,)`` bool mask of points on the cage (there: the derivatives of the
+    interpolant, as the native kernel gives them, Hessians 0)."""
+    D, V = cage.dim, cage.num_vertices
+    rest = Cage._from_faces(cage.vertices.detach().to(torch.float64), cage.triangles if D == 3 else cage.edges)
+    x = x.detach().to(torch.float64)
+    n = x.shape[0]
+    lam = x.new_empty((n, V))
+    grad = x.new_empty((n, V, D))
+    hess = x.new_empty((n, V, D, D) if order == 2 else (0,))
+    on = torch.zeros(n, dtype=torch.bool, device=x.device)
+    # The batched backward holds V one-hot cotangents of (chunk, V): keep that near 2^22 entries.
+    size = chunk_size or max(1, min(4096, (1 << 22) // (V * V)))
+    for sl in chunks(n, size, progress, desc="mean value derivatives"):
+        xc = x[sl].clone().requires_grad_()
+        with torch.enable_grad():
+            lc = coordinates_flat(xc, rest, backend="torch")
+            gc = _jacobian_rows(lc, xc, create_graph=order == 2)
+            if order == 2:
+                hess[sl] = torch.stack([_jacobian_rows(gc[..., c], xc, False) for c in range(D)], dim=2)
+        lam[sl], grad[sl] = lc.detach(), gc.detach()
+        on[sl] = _on_cage(x[sl], rest)
+    if order == 2 and bool(on.any()):
+        hess[on] = 0.0
+    return lam, grad, hess, on
