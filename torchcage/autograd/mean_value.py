@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+from torch._C._functorch import is_functorch_wrapped_tensor
 
+from .. import _native
 from ..cage import Cage
 from ..functional._common import check_finite, result_dtype
 from ..functional._mvc_dispatch import coordinates_flat
@@ -63,6 +65,23 @@ def _derivatives_op(points: Tensor, vertices: Tensor, faces: Tensor, order: int)
     _, grad, hess, _ = derivatives_flat(points, _cage(vertices.detach(), faces), order)
     out = grad if order == 1 else hess
     return out.to(points.device, torch.promote_types(points.dtype, vertices.dtype))
+
+
+def _derivatives(points: Tensor, vertices: Tensor, faces: Tensor, order: int) -> Tensor:
+    """The analytic gradients (``order=1``) or Hessians (2) through the custom op, or where the
+    native kernel cannot serve, autograd of the torch kernel (it needs autograd, which a custom
+    op's body does not have)."""
+    if _analytic(points):
+        return _derivatives_op(points, vertices, faces, order)
+    if is_functorch_wrapped_tensor(points):
+        raise NotImplementedError(
+            "forward-mode derivatives (torch.func.jvp, jacfwd, hessian) of mean value coordinates need the "
+            f"native CPU kernel, which is unavailable here ({_native.failure_reason() or 'points not on the CPU'}); "
+            "reverse mode (backward, double backward) works on any device"
+        )
+    check_finite(points)
+    _, grad, hess, _ = derivatives_flat(points, _cage(vertices.detach(), faces), order, backend="torch")
+    return (grad if order == 1 else hess).to(torch.promote_types(points.dtype, vertices.dtype))
 
 
 @_derivatives_op.register_fake
@@ -108,6 +127,23 @@ def _vertex_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> T
     return gP
 
 
+def _analytic(points: Tensor) -> bool:
+    """Whether the native analytic derivatives serve points ``(N, D)`` (CPU, library loadable);
+    else the point derivatives come from autograd of the torch kernel, on any device."""
+    return points.device.type == "cpu" and _native.library() is not None
+
+
+def _point_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:
+    """``sum g * d lam / d points`` by autograd of the torch kernel: where the native derivatives
+    cannot serve (a GPU, no C compiler). Kept differentiable when the caller records a graph."""
+    create = torch.is_grad_enabled()
+    with torch.enable_grad():
+        x = points if create and points.requires_grad else points.detach().requires_grad_()
+        lam = _torch_coordinates(x, vertices if create else vertices.detach(), faces)
+        (gx,) = torch.autograd.grad(lam, x, g, create_graph=create)
+    return gx
+
+
 def _vertex_grad_vjp(points: Tensor, vertices: Tensor, faces: Tensor, G: Tensor) -> Tensor:
     """``sum G * d(grad_x lam) / d vertices``: the mixed second derivatives, by double autograd of
     the torch kernel (``d lam / d x_c`` as the derivative of a vector-Jacobian product)."""
@@ -148,7 +184,7 @@ class MeanValueHessFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:
-        return _derivatives_op(points, vertices, faces, 2)
+        return _derivatives(points, vertices, faces, 2)
 
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
@@ -169,7 +205,7 @@ class MeanValueGradFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:
-        return _derivatives_op(points, vertices, faces, 1)
+        return _derivatives(points, vertices, faces, 1)
 
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
@@ -214,8 +250,10 @@ class MeanValueFunction(torch.autograd.Function):
     def backward(ctx, g: Tensor):
         x, P = ctx.saved_tensors
         gx = gP = None
-        if ctx.needs_input_grad[0]:
+        if ctx.needs_input_grad[0] and _analytic(x):
             gx = torch.einsum("nv,nvc->nc", g, MeanValueGradFunction.apply(x, P, ctx.faces))
+        elif ctx.needs_input_grad[0]:
+            gx = _point_vjp(x, P, ctx.faces, g)
         if ctx.needs_input_grad[1]:
             gP = _vertex_vjp(x, P, ctx.faces, g)
         return gx, gP, None, None, None
@@ -228,7 +266,12 @@ class MeanValueFunction(torch.autograd.Function):
 
 
 def mean_value_function(points: Tensor, cage: Cage, chunk_size: int | None = None, backend: str = "auto") -> Tensor:
-    """Mean value coordinates ``(N, V)`` of checked points ``(N, D)`` through
-    :class:`MeanValueFunction` (differentiable with respect to the points and ``cage.vertices``)."""
+    """Mean value coordinates ``(N, V)`` of checked points ``(N, D)``, differentiable with respect to
+    the points and ``cage.vertices``: through :class:`MeanValueFunction` (analytic derivatives)
+    where the native kernel serves, else by plain autograd of the torch kernel (any device; the
+    same values, derivatives to about 1e-12 relative off the faces' support planes; see
+    docs/accuracy.md). The one place that chooses between them."""
+    if not _analytic(points):
+        return _torch_coordinates(points, cage.vertices, cage.triangles if cage.dim == 3 else cage.edges)
     faces = cage.triangles if cage.dim == 3 else cage.edges
     return MeanValueFunction.apply(points, cage.vertices, faces, chunk_size or 0, backend)

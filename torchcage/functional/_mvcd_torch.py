@@ -19,13 +19,14 @@ from ._mvc_dispatch import coordinates_flat
 __all__ = ["torch_derivatives"]
 
 
-def _jacobian_rows(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> torch.Tensor:
-    """``d y[p, v] / d x[p, c]`` ``(n, V, D)`` of a row-wise map ``y (n, V) = f(x (n, D))`` (row
-    ``p`` of ``y`` depends on row ``p`` of ``x`` only): one batched backward pass over ``V``."""
-    V = y.shape[1]
-    onehot = torch.eye(V, dtype=y.dtype, device=y.device)[:, None, :].expand(V, *y.shape)
-    (g,) = torch.autograd.grad(y, x, onehot, is_grads_batched=True, create_graph=create_graph)
-    return g.movedim(0, 1)  # (n, V, D)
+def _jacobian_rows(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> list[torch.Tensor]:
+    """``[d y / d x[:, c]`` ``(n, V)`` for each ``c]`` of a row-wise map ``y (n, V) = f(x (n, D))``
+    (row ``p`` of ``y`` depends on row ``p`` of ``x`` only), by differentiating the vector-Jacobian
+    product ``r(Z) = J^T Z`` (linear in ``Z``) with respect to ``Z``: ``D + 1`` backward passes."""
+    Z = torch.zeros_like(y, requires_grad=True)
+    (r,) = torch.autograd.grad(y, x, Z, create_graph=True)
+    D = x.shape[1]
+    return [torch.autograd.grad(r[:, c].sum(), Z, retain_graph=True, create_graph=create_graph)[0] for c in range(D)]
 
 
 def _on_cage(x: torch.Tensor, cage: Cage) -> torch.Tensor:
@@ -54,16 +55,15 @@ def torch_derivatives(
     grad = x.new_empty((n, V, D))
     hess = x.new_empty((n, V, D, D) if order == 2 else (0,))
     on = torch.zeros(n, dtype=torch.bool, device=x.device)
-    # The batched backward holds V one-hot cotangents of (chunk, V): keep that near 2^22 entries.
-    size = chunk_size or max(1, min(4096, (1 << 22) // (V * V)))
+    size = chunk_size or 1024
     for sl in chunks(n, size, progress, desc="mean value derivatives"):
         xc = x[sl].clone().requires_grad_()
         with torch.enable_grad():
             lc = coordinates_flat(xc, rest, backend="torch")
             gc = _jacobian_rows(lc, xc, create_graph=order == 2)
             if order == 2:
-                hess[sl] = torch.stack([_jacobian_rows(gc[..., c], xc, False) for c in range(D)], dim=2)
-        lam[sl], grad[sl] = lc.detach(), gc.detach()
+                hess[sl] = torch.stack([torch.stack(_jacobian_rows(g, xc, False), dim=-1) for g in gc], dim=2)
+        lam[sl], grad[sl] = lc.detach(), torch.stack(gc, dim=-1).detach()
         on[sl] = _on_cage(x[sl], rest)
     if order == 2 and bool(on.any()):
         hess[on] = 0.0

@@ -1,0 +1,111 @@
+"""The native calling interface: the Python tables in ``torchcage/_native/abi.py`` agree with the
+C prototypes (names and types, in order), and calls are checked before any pointer is taken."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchcage._native import abi
+
+NATIVE = Path(abi.__file__).parent
+
+
+def _c_prototypes() -> dict[str, list[tuple[str, str]]]:
+    """``{name: [(C type, argument name), ...]}`` of every exported ``void tc_*(...)`` definition."""
+    out = {}
+    for src in sorted(NATIVE.glob("*.c")):
+        text = re.sub(r"/\*.*?\*/", "", src.read_text(), flags=re.S)
+        for m in re.finditer(r"^void\s+(tc_\w+)\s*\(([^)]*)\)\s*\{", text, flags=re.M):
+            params = []
+            for p in m[2].split(","):
+                p = " ".join(p.split())
+                pm = re.fullmatch(r"(const\s+)?(unsigned char|[A-Za-z_]\w*)\s*(\*?)\s*(\w+)", p)
+                assert pm, f"{src.name}: cannot read parameter {p!r} of {m[1]}"
+                ctype = f"{pm[1] or ''}{pm[2]}{' *' if pm[3] else ''}"
+                params.append((ctype, pm[4]))
+            out[m[1]] = params
+    return out
+
+
+def test_every_signature_matches_its_c_prototype() -> None:
+    protos = _c_prototypes()
+    for name, sig in abi.SIGNATURES.items():
+        assert name in protos, f"{name} is declared in abi.py but defined in no C file"
+        assert [(a.c_type, a.name) for a in sig] == protos[name], f"{name}: abi.py and the C prototype differ"
+
+
+def test_the_prototype_reader_sees_every_entry_point() -> None:
+    # The entry points the library loads are exactly those abi.py declares; the others are shared
+    # helpers between C files (they take structs or single points, never torch's arrays).
+    basic = {"double", "long", "int", "unsigned char", "const double *", "double *", "const int *", "int *",
+             "unsigned char *"}  # fmt: skip
+    protos = _c_prototypes()
+    helpers = {name for name, params in protos.items() if any(t not in basic for t, _ in params)}
+    assert helpers, "the reader should see the struct-taking helpers too"
+    assert set(protos) - helpers - {"tc_stable_face"} == set(abi.SIGNATURES)
+
+
+def test_shapes_name_only_scalar_arguments() -> None:
+    for name, sig in abi.SIGNATURES.items():
+        scalars = {a.name for a in sig if not a.pointer}
+        for a in sig:
+            for dim in a.shape or ():
+                for tok in re.findall(r"[A-Za-z_]\w*", dim):
+                    assert tok in scalars, f"{name}.{a.name}: shape names {tok!r}, not a scalar argument"
+
+
+def _mvc2d_args(**over: object) -> dict[str, object]:
+    args: dict[str, object] = {
+        "P": torch.zeros(4, 2, dtype=torch.float64),
+        "V": 4,
+        "edges": torch.zeros(4, 2, dtype=torch.int32),
+        "E": 4,
+        "X": torch.zeros(3, 2, dtype=torch.float64),
+        "n": 3,
+        "tol": 1e-12,
+        "nthreads": 1,
+        "W": torch.zeros(3, 4, dtype=torch.float64),
+        "on": torch.zeros(3, dtype=torch.uint8),
+    }
+    args.update(over)
+    return args
+
+
+def test_a_valid_call_becomes_pointers_and_scalars() -> None:
+    args = _mvc2d_args()
+    flat = abi.check_arguments("tc_mvc2d", args)
+    assert flat[0] == args["P"].data_ptr() and flat[1] == 4 and flat[6] == 1e-12  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize(
+    ("over", "error", "match"),
+    [
+        ({"P": torch.zeros(4, 2, dtype=torch.float32)}, ValueError, "'P' must be a contiguous CPU torch.float64"),
+        ({"P": torch.zeros(2, 4, dtype=torch.float64).T}, ValueError, "contiguous: False"),
+        ({"W": torch.zeros(3, 5, dtype=torch.float64)}, ValueError, "'W' must have shape"),
+        ({"edges": torch.zeros(4, 2, dtype=torch.int64)}, ValueError, "'edges'"),
+        ({"V": torch.tensor(4)}, TypeError, "'V' is a scalar"),
+        ({"X": [[0.0, 0.0]]}, TypeError, "'X' must be a tensor"),
+        ({"on": None}, TypeError, "'on' must be a tensor"),
+        ({"extra": 1}, TypeError, "unknown arguments \\['extra'\\]"),
+    ],
+)
+def test_a_bad_argument_is_named(over: dict, error: type, match: str) -> None:
+    with pytest.raises(error, match=match):
+        abi.check_arguments("tc_mvc2d", _mvc2d_args(**over))
+
+
+def test_a_missing_argument_is_named() -> None:
+    args = _mvc2d_args()
+    del args["tol"]
+    with pytest.raises(TypeError, match="missing arguments \\['tol'\\]"):
+        abi.check_arguments("tc_mvc2d", args)
+
+
+def test_optional_outputs_may_be_null() -> None:
+    sig = {a.name: a for a in abi.SIGNATURES["tc_gc3d"]}
+    assert sig["ONF"].optional and sig["AL"].optional and not sig["PHI"].optional
