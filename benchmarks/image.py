@@ -12,9 +12,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
+import sys
+from pathlib import Path
 
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from harness import best_of
 
 
 def cage_polygon(size: int, n: int = 30) -> torch.Tensor:
@@ -24,12 +28,7 @@ def cage_polygon(size: int, n: int = 30) -> torch.Tensor:
 
 
 def best(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
+    return best_of(fn, repeat)[1]
 
 
 def main() -> None:
@@ -60,9 +59,7 @@ def main() -> None:
     t = best(lambda: remap(img, grid[..., 0], grid[..., 1], align_corners=True), args.repeat)
     print(f"{'-':<7}{'baseline: kornia remap, prebuilt map':<38}{1000 * t:>10.1f}{1000 * t / B:>11.1f}")
     for method in args.methods:
-        t0 = time.perf_counter()
-        warp = CageWarp(cage, S, S, method=method)
-        pre = time.perf_counter() - t0
+        pre, _, warp = best_of(lambda method=method: CageWarp(cage, S, S, method=method), 1)
         print(f"{method:<7}{'precompute (forward mapping, once)':<38}{1000 * pre:>10.1f}{'':>11}")
         t = best(lambda warp=warp: warp(img, poses), args.repeat)
         print(f"{method:<7}{'forward mapping: warp':<38}{1000 * t:>10.1f}{1000 * t / B:>11.1f}")

@@ -13,11 +13,14 @@ Usage: ``python benchmarks/lbc.py [--data ../shared/data] [--large 60000] [--ski
 from __future__ import annotations
 
 import argparse
-import time
+import sys
 import warnings
 from pathlib import Path
 
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from harness import best_of
 
 import torchcage
 from torchcage import functional as F
@@ -33,21 +36,17 @@ def polygon(path: Path) -> torchcage.Cage:
 
 
 def solve_row(name: str, cage: torchcage.Cage, cells: int, baseline_iters: int) -> None:
-    t = time.perf_counter()
-    d = mesh_domain(cage, cells)
-    t_mesh = time.perf_counter() - t
-    t = time.perf_counter()
-    r = solve_lbc(d, cage.vertices)
-    t_solve = time.perf_counter() - t
+    t_mesh, _, d = best_of(lambda: mesh_domain(cage, cells), 1)
+    t_solve, _, r = best_of(lambda: solve_lbc(d, cage.vertices), 1)
     conv = "yes" if r.converged else "no"
     print(f"{name:<16}{d.vertices.shape[0]:>7}{d.cells.shape[0]:>7} | {'torchcage':<14}{t_mesh:>7.2f}"
           f"{t_solve:>8.2f}{t_mesh + t_solve:>8.2f}{r.iterations:>7}{conv:>5}{r.objective:>12.5g}")  # fmt: skip
     if baseline_iters:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            t = time.perf_counter()
-            b = solve_lbc(d, cage.vertices, mu=10.0, adaptive=False, w_scale=0.0, max_iter=baseline_iters)
-            t_b = time.perf_counter() - t
+            t_b, _, b = best_of(
+                lambda: solve_lbc(d, cage.vertices, mu=10.0, adaptive=False, w_scale=0.0, max_iter=baseline_iters), 1
+            )
         print(f"{'':<16}{'':>7}{'':>7} | {'paper, mu=10':<14}{t_mesh:>7.2f}{t_b:>8.2f}{t_mesh + t_b:>8.2f}"
               f"{b.iterations:>7}{'yes' if b.converged else 'no':>5}{b.objective:>12.5g}")  # fmt: skip
 
@@ -60,14 +59,10 @@ def deformation_rows(data: Path, repeat: int = 5) -> None:
     cage = torchcage.load_cage(path)
     pts, _ = torchcage.load_mesh(data / "qmvc" / "FireHydrant.obj")
     pts = pts.to(torch.float64)
-    t = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        lbc = torchcage.LocalBarycentricCoordinates(cage, pts, target_cells=6000)
-    t_lbc = time.perf_counter() - t
-    t = time.perf_counter()
-    mvc = torchcage.MeanValueCoordinates(cage.triangulated(), pts)
-    t_mvc = time.perf_counter() - t
+        t_lbc, _, lbc = best_of(lambda: torchcage.LocalBarycentricCoordinates(cage, pts, target_cells=6000), 1)
+    t_mvc, _, mvc = best_of(lambda: torchcage.MeanValueCoordinates(cage.triangulated(), pts), 1)
     print(f"\nDeformation, FireHydrant: {pts.shape[0]} points, {cage.num_vertices} cage vertices "
           f"(coordinates: LBC {t_lbc:.1f} s, MVC {t_mvc:.2f} s)")  # fmt: skip
     nnz = lbc.weight_values.numel()
@@ -82,13 +77,7 @@ def deformation_rows(data: Path, repeat: int = 5) -> None:
         times = []
         for batch in (1, 16):
             v = cage.vertices + 0.01 * torch.randn((batch, *cage.vertices.shape), dtype=torch.float64, generator=gen)
-            module(v)
-            best = float("inf")
-            for _ in range(repeat):
-                t = time.perf_counter()
-                module(v)
-                best = min(best, time.perf_counter() - t)
-            times.append(best)
+            times.append(best_of(lambda module=module, v=v: module(v), repeat, warmup=1)[1])
         print(f"{name:<22}{entries:>10}{mem / 2**20:>8.2f} | {1000 * times[0]:>10.2f}{1000 * times[1]:>12.2f}")
     _, P, Q = F.locality_statistics(lbc.weights)
     _, Pm, Qm = F.locality_statistics(mvc.weights)

@@ -15,39 +15,32 @@ from __future__ import annotations
 
 import argparse
 import functools
-import time
+import sys
 from pathlib import Path
 
 import torch
 
-import torchcage
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from harness import add_data_argument, best_of, load_model, qmvc_root
+
 from torchcage import functional as F
-
-
-def timed(fn) -> tuple[float, object]:
-    t = time.perf_counter()
-    out = fn()
-    return time.perf_counter() - t, out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
+    add_data_argument(ap)
     ap.add_argument("--models", nargs="*", default=["FireHydrant", "Beast"])
     ap.add_argument("--n", nargs="*", type=int, default=[1, 2])
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
-    root = Path(args.data) / "qmvc"
-    if not root.exists():
-        raise SystemExit(f"data folder {root} not found (pass --data)")
+    qmvc_root(args.data)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, float64, native kernels")
     head = f"{'model':<12} {'points':>7} | {'GC tri.':>7} {'QMVC n=4':>8} |"
     head += "".join(f" {'QGC n=' + str(n):>9} {'/QMVC':>6}" for n in args.n) + " | lin. prec."
     print(head)
     print("-" * len(head))
     for model in args.models:
-        cage = torchcage.load_cage(root / f"{model}_Cage.obj")
-        x = torchcage.load_mesh(root / f"{model}.obj")[0].to(torch.float64)
+        x, cage = load_model(args.data, model)  # type: ignore[misc]
         F.quad_green_coordinates(x[:8], cage)  # build the native library outside the timings
         tri = cage.triangulated()
         jobs = {
@@ -55,12 +48,9 @@ def main() -> None:
             "qmvc": functools.partial(F.quad_mean_value_coordinates, x, cage),
         }
         jobs.update({n: functools.partial(F.quad_green_coordinates, x, cage, n) for n in args.n})
-        best = dict.fromkeys(jobs, float("inf"))
-        out = {}
-        for _ in range(args.repeat):
-            for key, fn in jobs.items():
-                t, out[key] = timed(fn)
-                best[key] = min(best[key], t)
+        best, out = {}, {}
+        for key, fn in jobs.items():
+            _, best[key], out[key] = best_of(fn, args.repeat)
         t_q = best["qmvc"]
         row = f"{model:<12} {x.shape[0]:>7} | {best['gc']:>6.2f}s {t_q:>7.2f}s |"
         lin = 0.0

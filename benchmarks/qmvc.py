@@ -12,47 +12,37 @@ Usage: ``python benchmarks/qmvc.py [--data ../shared/data] [--models FireHydrant
 from __future__ import annotations
 
 import argparse
-import time
+import sys
 from pathlib import Path
 
 import torch
 
-import torchcage
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from harness import add_data_argument, best_of, load_model, qmvc_root
+
 from torchcage import functional as F
-
-
-def best_of(fn, repeat: int) -> tuple[float, torch.Tensor]:
-    best, out = float("inf"), None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out  # type: ignore[return-value]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
+    add_data_argument(ap)
     ap.add_argument("--models", nargs="*", default=["FireHydrant", "Beast", "Ogre", "Bench"])
     ap.add_argument("--repeat", type=int, default=2)
     args = ap.parse_args()
-    root = Path(args.data) / "qmvc"
-    if not root.exists():
-        raise SystemExit(f"data folder {root} not found (pass --data)")
+    qmvc_root(args.data)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, float64, native kernel")
     head = f"{'model':<12} {'points':>7} {'quads':>5} {'tris':>4} | {'MVC tri.':>8} |"
     head += "".join(f" {'n=' + str(n):>7}" for n in (1, 2, 4, 8)) + " | lin. prec. (n=4)"
     print(head)
     print("-" * len(head))
     for model in args.models:
-        cage = torchcage.load_cage(root / f"{model}_Cage.obj")
-        x = torchcage.load_mesh(root / f"{model}.obj")[0].to(torch.float64)
+        x, cage = load_model(args.data, model)  # type: ignore[misc]
         F.quad_mean_value_coordinates(x[:8], cage)  # build the native library outside the timings
-        t_mvc, _ = best_of(lambda x=x, c=cage: F.mean_value_coordinates(x, c.triangulated()), args.repeat)
+        _, t_mvc, _ = best_of(lambda x=x, c=cage: F.mean_value_coordinates(x, c.triangulated()), args.repeat)
         row = f"{model:<12} {x.shape[0]:>7} {cage.quads.shape[0]:>5} {cage.triangles.shape[0]:>4} | {t_mvc:>7.2f}s |"
         lin = float("nan")
         for n in (1, 2, 4, 8):
-            t, w = best_of(lambda n=n, x=x, c=cage: F.quad_mean_value_coordinates(x, c, n), args.repeat)
+            _, t, w = best_of(lambda n=n, x=x, c=cage: F.quad_mean_value_coordinates(x, c, n), args.repeat)
             row += f" {t:>6.2f}s"
             if n == 4:
                 lin = float((w @ cage.vertices.to(torch.float64) - x).abs().max()) / cage.scale

@@ -32,9 +32,9 @@ import torch
 import torchcage
 from torchcage import functional as F
 from torchcage.geometry import inside_cage
-from torchcage.testing import adversarial_points, hard_cages
+from torchcage.testing import QMVC_MODELS, adversarial_points, hard_cages
 
-MODELS = ["Beast", "Bench", "Cactus", "FireHydrant", "ManHead", "Ogre", "SpikyBox", "WireSphere"]
+MODELS = list(QMVC_MODELS)
 FAMILIES = ["mvc3d", "mvc2d", "mvc_derivatives", "qmvc", "gc", "qgc", "image"]
 
 

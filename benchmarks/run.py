@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -24,31 +22,21 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from baseline import naive_mean_value_coordinates
+from harness import MODELS, add_data_argument, best_of, load_model, peak_mb, rss_mb, run_in_child
 
 import torchcage
 from torchcage import functional as F
 
-MODELS = ["Beast", "Bench", "Cactus", "FireHydrant", "ManHead", "Ogre", "SpikyBox", "WireSphere"]
-
-
-def rss_mb() -> float:
-    with open("/proc/self/statm") as fh:
-        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-
 
 def load(data: str, model: str) -> tuple[torch.Tensor, torchcage.Cage] | None:
-    root = Path(data) / "qmvc"
-    mesh, cage_file = root / f"{model}.obj", root / f"{model}_Cage.obj"
-    if not mesh.exists() or not cage_file.exists():
-        return None
-    return torchcage.load_mesh(mesh)[0], torchcage.load_cage(cage_file).triangulated()
+    """A model's mesh vertices and its triangulated cage, or ``None`` if absent."""
+    loaded = load_model(data, model)
+    return None if loaded is None else (loaded[0], loaded[1].triangulated())
 
 
 def run_one(data: str, model: str, backend: str, repeat: int) -> dict:
     """Measure one (model, backend) in this process; meant to run in a fresh child process so that
     the peak resident memory (``ru_maxrss``) belongs to this measurement alone."""
-    import resource
-
     x, cage = load(data, model)  # type: ignore[misc]
     if backend == "naive":
 
@@ -64,10 +52,8 @@ def run_one(data: str, model: str, backend: str, repeat: int) -> dict:
             return F.mean_value_coordinates(x, cage, backend=backend)
 
     base = rss_mb()
-    t = time.perf_counter()
-    w = fn()
-    first = time.perf_counter() - t
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - base  # KiB on Linux
+    first, _, w = best_of(fn, 1)
+    peak = peak_mb() - base
     if backend == "green":  # Green coordinates hold inside only: measure there (sum of phi = 1)
         phi, psi = w
         inside = (phi.sum(1) - 1).abs() < 1e-6
@@ -77,24 +63,18 @@ def run_one(data: str, model: str, backend: str, repeat: int) -> dict:
     else:
         err = (w @ cage.vertices - x).abs().max().item() / cage.scale
     del w
-    best = first
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
+    best = min(first, best_of(fn, repeat)[1]) if repeat else first
     return {"points": x.shape[0], "tris": cage.triangles.shape[0], "first": first, "best": best, "peak": peak,
             "err": err}  # fmt: skip
 
 
 def measure(data: str, model: str, backend: str, repeat: int) -> dict:
-    cmd = [sys.executable, __file__, "--one", model, backend, "--data", data, "--repeat", str(repeat)]
-    res = subprocess.run(cmd, capture_output=True, text=True, check=True)
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    return run_in_child(__file__, ["--one", model, backend, "--data", data, "--repeat", str(repeat)])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
+    add_data_argument(ap)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--models", nargs="*", default=MODELS)
     ap.add_argument("--no-baseline", action="store_true", help="skip the naive baseline (slow, memory hungry)")
@@ -142,23 +122,19 @@ def main() -> None:
         print(f"\n{args.large} random points in the bar cage (16 vertices): the output alone is {out_mb:.0f} MB")
         for backend in (["native"] if native else []) + ["torch"]:
             for chunk in ("default", "4096"):
-                cmd = [sys.executable, __file__, "--large-one", str(args.large), backend, chunk]
-                r = json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout.splitlines()[-1])
+                r = run_in_child(__file__, ["--large-one", str(args.large), backend, chunk])
                 print(f"  {backend:<7} chunk {chunk:>7}: {r['time']:7.2f} s, peak {r['peak']:7.0f} MB "
                       f"({r['peak'] - out_mb:+.0f} MB beyond the output)")  # fmt: skip
 
 
 def run_large(n: int, backend: str, chunk: str) -> dict:
     """Peak memory of ``n`` random points in the bundled bar cage, in this (fresh) process."""
-    import resource
-
     cage = torchcage.load_cage(torchcage.data.path("bar_cage.obj")).triangulated()
     x = torch.rand(n, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.5
     base = rss_mb()
-    t = time.perf_counter()
-    F.mean_value_coordinates(x, cage, backend=backend, chunk_size=None if chunk == "default" else int(chunk))
-    dt = time.perf_counter() - t
-    return {"time": dt, "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - base}
+    size = None if chunk == "default" else int(chunk)
+    dt, _, _ = best_of(lambda: F.mean_value_coordinates(x, cage, backend=backend, chunk_size=size), 1)
+    return {"time": dt, "peak": peak_mb() - base}
 
 
 if __name__ == "__main__":

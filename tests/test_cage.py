@@ -6,7 +6,7 @@ import warnings
 
 import pytest
 import torch
-from conftest import QMVC_MODELS, box_cage, data_path
+from support import QMVC_MODELS, box_cage, data_path
 
 import torchcage
 from torchcage import Cage

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from conftest import HANDMADE, QMVC_MODELS, data_path
+from support import HANDMADE, QMVC_MODELS, data_path
 
 import torchcage
 from torchcage import functional as F

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import box_cage
+from support import box_cage
 
 import torchcage
 

@@ -10,7 +10,7 @@ import warnings
 
 import pytest
 import torch
-from conftest import box_cage, data_path, l_shape
+from support import box_cage, data_path, l_shape
 
 import torchcage
 from torchcage import functional as F

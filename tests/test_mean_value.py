@@ -6,8 +6,8 @@ import math
 
 import pytest
 import torch
-from conftest import HANDMADE, QMVC_MODELS, data_path
 from reference import mvc2d_reference, mvc3d_reference, to_tensor
+from support import HANDMADE, QMVC_MODELS, data_path
 
 import torchcage
 from torchcage import functional as F

@@ -11,8 +11,8 @@ import math
 import mpmath as mp
 import pytest
 import torch
-from conftest import HANDMADE, data_path
 from reference import distance_to_triangles, mvc2d_reference, mvc3d_reference, mvc_derivatives_reference
+from support import HANDMADE, data_path
 
 import torchcage
 from torchcage import functional as F

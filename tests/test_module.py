@@ -6,7 +6,7 @@ import io
 
 import pytest
 import torch
-from conftest import HANDMADE
+from support import HANDMADE
 
 import torchcage
 

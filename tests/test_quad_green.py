@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import QMVC_MODELS, box_cage, data_path
-from test_quad_mean_value import bent_box, box_points, quad_adversarial_points, triquad
+from support import QMVC_MODELS, bent_box, box_cage, box_points, data_path, quad_adversarial_points, triquad
 
 import torchcage
 from torchcage import functional as F

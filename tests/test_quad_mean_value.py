@@ -5,76 +5,20 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import QMVC_MODELS, box_cage, data_path
+from support import (
+    QMVC_MODELS,
+    bent_box,
+    box_cage,
+    box_points,
+    data_path,
+    quad_adversarial_points,
+    sheet_normal,
+    triquad,
+)
 
 import torchcage
 from torchcage import functional as F
 from torchcage.testing import assert_linear_precision, assert_partition_of_unity
-
-
-def bent_box() -> torchcage.Cage:
-    """A 2x2x2-subdivided box bent symmetrically in x (z += 0.15 x^2 y): non-planar quads, mirror
-    symmetric under x -> -x."""
-    cage = box_cage(2, 2, 2)
-    v = cage.vertices.clone()
-    v[:, 2] += 0.15 * v[:, 0] ** 2 * v[:, 1] + 0.1 * v[:, 1] ** 2
-    return torchcage.Cage(v, cage.quads)
-
-
-def triquad() -> torchcage.Cage:
-    """A bent box whose top quads are split into triangles: a triquad cage."""
-    cage = bent_box()
-    q = cage.quads
-    top = cage.vertices[q].mean(1)[:, 2] > 0.9
-    tris = torch.cat([q[top][:, [0, 1, 2]], q[top][:, [0, 2, 3]]])
-    return torchcage.Cage(cage.vertices, tris.tolist() + q[~top].tolist())
-
-
-def sheet(corners: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Points ``xi(u, v)`` of the bilinear sheet of ``corners`` ``(4, 3)``."""
-    b = torch.stack([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=-1)
-    return b @ corners
-
-
-def sheet_normal(corners: torch.Tensor, u: float, v: float) -> torch.Tensor:
-    q0, q1, q2, q3 = corners
-    du = (1 - v) * (q1 - q0) + v * (q2 - q3)
-    dv = (1 - u) * (q3 - q0) + u * (q2 - q1)
-    return torch.nn.functional.normalize(torch.linalg.cross(du, dv), dim=0)
-
-
-DISTANCES = (0.0, 1e-15, 1e-12, 1e-9, 1e-6, 1e-3)
-
-
-def quad_adversarial_points(cage: torchcage.Cage, seed: int = 0, distances=DISTANCES) -> torch.Tensor:
-    """Points on quads, edges and corners, 1e-15..1e-3 of the cage size off them (both sides), in
-    the tangent plane outside the quad, and two to five cage sizes away."""
-    g = torch.Generator().manual_seed(seed)
-    v, q = cage.vertices, cage.quads
-    pts = []
-    for f in torch.randperm(q.shape[0], generator=g)[:6].tolist():
-        c = v[q[f]]
-        u0, v0 = torch.rand(2, generator=g, dtype=torch.float64).tolist()
-        n = sheet_normal(c, u0, v0)
-        on_quad = sheet(c, torch.tensor(u0, dtype=torch.float64), torch.tensor(v0, dtype=torch.float64))
-        on_edge = sheet(c, torch.tensor(u0, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64))
-        centre = c.mean(0)
-        beside = centre + 2.5 * (on_edge - centre)  # tangent direction, off the quad
-        for d in distances:
-            for sgn in (1.0, -1.0):
-                off = sgn * d * cage.scale * n
-                pts += [on_quad + off, on_edge + off, c[0] + off, beside + off]
-    dirs = torch.nn.functional.normalize(torch.randn(8, 3, generator=g, dtype=torch.float64), dim=-1)
-    for k, r in enumerate([2.0, 3.0, 5.0] * 3):
-        pts.append(v.mean(0) + dirs[k % 8] * r * cage.scale)
-    return torch.stack(pts)
-
-
-def box_points(cage: torchcage.Cage, n: int, spread: float = 1.4, seed: int = 0) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    lo, hi = cage.vertices.min(0).values, cage.vertices.max(0).values
-    c, h = (lo + hi) / 2, (hi - lo) / 2 * spread
-    return c + (torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1) * h
 
 
 def dense_reference(cage: torchcage.Cage, x: torch.Tensor, m: int) -> torch.Tensor:

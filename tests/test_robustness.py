@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import data_path
+from support import data_path
 
 import torchcage as tc
 from torchcage import functional as F

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import centred_cube
+from support import centred_cube
 
 import torchcage
 

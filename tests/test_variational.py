@@ -8,7 +8,7 @@ import math
 
 import pytest
 import torch
-from conftest import HANDMADE
+from support import HANDMADE
 
 import torchcage
 from torchcage.geometry import inside_cage

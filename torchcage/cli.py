@@ -145,6 +145,7 @@ def _bench(args: argparse.Namespace) -> int:
     import torchcage
     from torchcage import _native
     from torchcage import functional as F
+    from torchcage._timing import best_of
 
     cage = torchcage.load_cage(torchcage.data.path("bar_cage.obj")).triangulated()
     g = torch.Generator().manual_seed(0)
@@ -155,11 +156,7 @@ def _bench(args: argparse.Namespace) -> int:
     print(f"{'backend':<8}{'best ms':>10}{'Mpts/s':>9}")
     for backend in backends:
         F.mean_value_coordinates(x[:1000], cage, backend=backend)  # warm up (and build the native kernel)
-        best = float("inf")
-        for _ in range(args.repeat):
-            t = time.perf_counter()
-            F.mean_value_coordinates(x, cage, backend=backend)
-            best = min(best, time.perf_counter() - t)
+        _, best, _ = best_of(lambda b=backend: F.mean_value_coordinates(x, cage, backend=b), args.repeat)
         print(f"{backend:<8}{1000 * best:>10.1f}{args.points / best / 1e6:>9.2f}")
     return 0
 

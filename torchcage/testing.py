@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from .cage import Cage
 
 __all__ = [
+    "QMVC_MODELS",
     "adversarial_points",
     "assert_interpolates",
     "assert_linear_precision",
@@ -29,6 +30,10 @@ __all__ = [
     "sliver_cube",
     "twisted_bar",
 ]
+
+#: The models of the QMVC paper's data set (``shared/data/qmvc/<model>.obj`` and ``<model>_Cage.obj``,
+#: not shipped), used by the tests and the benchmarks.
+QMVC_MODELS = ("Beast", "Bench", "Cactus", "FireHydrant", "ManHead", "Ogre", "SpikyBox", "WireSphere")
 
 
 def assert_partition_of_unity(weights: torch.Tensor, *, atol: float = 1e-12) -> None:

@@ -1,0 +1,72 @@
+"""The benchmarks' shared harness: the timer, a child process for peak memory, the data set's
+model list and loader, and the table printer. Every benchmark script imports it from here.
+
+A measurement that reports peak memory runs in a fresh child process
+(:func:`run_in_child`), so that ``ru_maxrss`` belongs to it alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+import torchcage
+from torchcage._timing import best_of
+from torchcage.testing import QMVC_MODELS
+
+__all__ = ["MODELS", "add_data_argument", "best_of", "load_model", "peak_mb", "qmvc_root", "rss_mb",
+           "run_in_child"]  # fmt: skip
+
+#: The QMVC paper's models (the data set is not shipped: ``--data`` points at it).
+MODELS = list(QMVC_MODELS)
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def add_data_argument(ap: argparse.ArgumentParser) -> None:
+    """``--data``: the shared data folder (default: ``../shared/data`` beside the checkout)."""
+    ap.add_argument("--data", default=os.environ.get("TORCHCAGE_DATA", str(DEFAULT_DATA)))
+
+
+def qmvc_root(data: str | Path) -> Path:
+    """``<data>/qmvc``; exits with a message naming the folder when it is absent."""
+    root = Path(data) / "qmvc"
+    if not root.exists():
+        raise SystemExit(f"data folder {root} not found (pass --data or set TORCHCAGE_DATA)")
+    return root
+
+
+def load_model(data: str | Path, model: str) -> tuple[torch.Tensor, torchcage.Cage] | None:
+    """A model's mesh vertices ``(N, 3)`` float64 and its (triquad) cage, or ``None`` if absent."""
+    root = Path(data) / "qmvc"
+    mesh, cage_file = root / f"{model}.obj", root / f"{model}_Cage.obj"
+    if not mesh.exists() or not cage_file.exists():
+        return None
+    return torchcage.load_mesh(mesh)[0].to(torch.float64), torchcage.load_cage(cage_file)
+
+
+def rss_mb() -> float:
+    """This process's resident memory now, in MB (Linux)."""
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def peak_mb() -> float:
+    """This process's peak resident memory so far, in MB (``ru_maxrss``; KiB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def run_in_child(script: str | Path, args: Sequence[str]) -> dict:
+    """Run ``python script *args`` in a fresh process and return the JSON object that its last
+    line of output holds (the script's measurement, peak memory its own)."""
+    res = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True)
+    if res.returncode != 0:
+        raise RuntimeError(f"{script} {' '.join(args)} failed:\n{res.stderr[-2000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
