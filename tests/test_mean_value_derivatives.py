@@ -21,6 +21,9 @@ from torchcage.geometry import inside_cage
 
 f64 = torch.float64
 
+#: The analytic derivative kernels are native C; tests/test_torch_derivatives.py covers the torch path.
+pytestmark = pytest.mark.native
+
 
 def _size(cage: torchcage.Cage) -> float:
     return cage.scale
