@@ -50,12 +50,15 @@ def mean_value_coordinates(
             device and dtype); ``"native"`` requires the native one.
 
     Gradients: when the points or ``cage.vertices`` require grad (or under ``torch.func``
-    transforms), the call goes through :class:`torchcage.autograd.MeanValueFunction`: derivatives
-    with respect to the points are the analytic gradients, and on double backward the analytic
-    Hessians (:func:`mean_value_derivatives`), finite everywhere off the cage; derivatives with
-    respect to the cage's vertices come from autograd of the torch kernel. ``gradcheck`` and
-    ``gradgradcheck`` pass in float64; ``torch.func.jacrev``, ``vmap`` and ``hessian`` work with
-    respect to the points.
+    transforms), and the native kernel serves (CPU points, a native build), the call goes through
+    :class:`torchcage.autograd.MeanValueFunction`: derivatives with respect to the points are the
+    analytic gradients, and on double backward the analytic Hessians (:func:`mean_value_derivatives`),
+    finite everywhere off the cage; derivatives with respect to the cage's vertices come from
+    autograd of the torch kernel. Elsewhere (a GPU, ``TORCHCAGE_NATIVE=0``) every derivative is
+    autograd of the torch kernel: finite, equal to the analytic ones to about 1e-12 off the
+    faces' support planes (docs/accuracy.md gives the figures near them). ``gradcheck`` and
+    ``gradgradcheck`` pass in float64; ``torch.func.jacrev``, ``jacfwd``, ``vmap`` and ``hessian``
+    work with respect to the points.
 
     Returns:
         Coordinates of shape ``(*, V)``.
