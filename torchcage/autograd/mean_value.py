@@ -177,6 +177,14 @@ def _no_vertex_tangent(dP: Tensor | None) -> None:
         )
 
 
+def _save_points_and_vertices(ctx, inputs, output) -> None:
+    """``setup_context`` of the Functions below: the points and vertices (for backward and for
+    forward mode) and the faces."""
+    ctx.save_for_backward(inputs[0], inputs[1])
+    ctx.save_for_forward(inputs[0], inputs[1])
+    ctx.faces = inputs[2]
+
+
 class MeanValueHessFunction(torch.autograd.Function):
     """``(points (N, D), vertices (V, D), faces) -> d^2 lam / dx^2 (N, V, D, D)``, analytic."""
 
@@ -207,11 +215,7 @@ class MeanValueGradFunction(torch.autograd.Function):
     def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor:
         return _derivatives(points, vertices, faces, 1)
 
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        ctx.save_for_backward(inputs[0], inputs[1])
-        ctx.save_for_forward(inputs[0], inputs[1])
-        ctx.faces = inputs[2]
+    setup_context = staticmethod(_save_points_and_vertices)
 
     @staticmethod
     def backward(ctx, G: Tensor):
@@ -240,11 +244,7 @@ class MeanValueFunction(torch.autograd.Function):
     def forward(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int, backend: str) -> Tensor:
         return _coordinates_op(points, vertices, faces, chunk_size, backend)
 
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        ctx.save_for_backward(inputs[0], inputs[1])
-        ctx.save_for_forward(inputs[0], inputs[1])
-        ctx.faces = inputs[2]
+    setup_context = staticmethod(_save_points_and_vertices)
 
     @staticmethod
     def backward(ctx, g: Tensor):

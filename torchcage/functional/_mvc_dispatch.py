@@ -36,27 +36,20 @@ def coordinates_flat(
     lib = _native.select(backend, x, cage.vertices, dims=(2, 3))
     verts = cage.vertices.to(x.dtype)
     if cage.dim == 3:
-        data3 = triangle_cage_data(cage, x.dtype)
-        nf = data3.tri.shape[0]
-        tables = _mvc3d_native.native_tables(data3) if lib is not None else {}
-
-        def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
-            if lib is not None:
-                _mvc3d_native.native_chunk(c, tables, lib, out)
-                return
-            Wc, onc = mvc3d_chunk(c, data3)
-            out.copy_(normalise_weights(Wc.T, onc, verts, c))
+        data = triangle_cage_data(cage, x.dtype)
+        nf, glue, torch_chunk = data.tri.shape[0], _mvc3d_native, mvc3d_chunk
+        tables = glue.native_tables(data) if lib is not None else {}
     else:
-        data2 = polygon_data(cage, x.dtype)
-        nf = data2.edges.shape[0]
-        tables = _mvc2d_native.native_tables(cage) if lib is not None else {}
+        data = polygon_data(cage, x.dtype)
+        nf, glue, torch_chunk = data.edges.shape[0], _mvc2d_native, mvc2d_chunk
+        tables = glue.native_tables(cage) if lib is not None else {}
 
-        def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
-            if lib is not None:
-                _mvc2d_native.native_chunk(c, tables, lib, out)
-                return
-            Wc, onc = mvc2d_chunk(c, data2)
-            out.copy_(normalise_weights(Wc.T, onc, verts, c))
+    def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
+        if lib is not None:
+            glue.native_chunk(c, tables, lib, out)
+            return
+        Wc, onc = torch_chunk(c, data)
+        out.copy_(normalise_weights(Wc.T, onc, verts, c))
 
     # The native kernel needs no temporaries beyond its output: chunks only pace the progress bar.
     # Pairs per chunk, measured on 2 cores: ~130k (3D torch) and ~250k (2D) amortise the per-op
