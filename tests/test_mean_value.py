@@ -195,7 +195,8 @@ def test_progress_reporting(capsys):
     calls = []
     w = F.mean_value_coordinates(x, cage, chunk_size=30, progress=lambda done, total: calls.append((done, total)))
     assert calls == [(30, 100), (60, 100), (90, 100), (100, 100)]
-    assert torch.equal(w, F.mean_value_coordinates(x, cage, progress=True))
+    # (bitwise equal with the native kernel; the torch kernel's reductions may round differently)
+    torch.testing.assert_close(w, F.mean_value_coordinates(x, cage, progress=True), rtol=0, atol=1e-14)
 
 
 def test_inputs_not_modified_and_errors():
