@@ -31,6 +31,23 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
             const double x0 = X[2 * p], x1 = X[2 * p + 1];
             memset(acc, 0, sizeof(double) * 6 * V);
             int flag = 0, oj = 0, ok = 0;
+            /* Next to an edge seen under an obtuse angle, t = (r_j r_k - d) / c grows like one over
+             * the distance, and so does the total weight: their ratio's derivatives would cancel
+             * (an error eps / distance). So every weight is multiplied by c* = c of the edge of
+             * smallest |c| among those (the same coordinates once normalised), and that edge's t c*
+             * is taken as r_j r_k - d, without the division. */
+            long best = -1;
+            double cbest = INFINITY;
+            jet cstar = j2(1.0, 0, 0, 0, 0, 0);
+            for (long e = 0; e < NE; e++) {
+                int j = edges[2 * e], k = edges[2 * e + 1];
+                double aj0 = P[2 * j] - x0, aj1 = P[2 * j + 1] - x1, ak0 = P[2 * k] - x0, ak1 = P[2 * k + 1] - x1;
+                double cv = aj0 * ak1 - aj1 * ak0, dv = aj0 * ak0 + aj1 * ak1;
+                if (dv < 0 && cv != 0 && fabs(cv) < cbest) {
+                    cbest = fabs(cv), best = e;
+                    cstar = j2(cv, P[2 * j + 1] - P[2 * k + 1], -(P[2 * j] - P[2 * k]), 0, 0, 0);
+                }
+            }
             for (long e = 0; e < NE; e++) {
                 int j = edges[2 * e], k = edges[2 * e + 1];
                 double aj0 = P[2 * j] - x0, aj1 = P[2 * j + 1] - x1, ak0 = P[2 * k] - x0, ak1 = P[2 * k + 1] - x1;
@@ -45,7 +62,7 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
                     break;
                 }
                 jet rr = j_mul(rj, rk);
-                jet t = d.v >= 0 ? j_div(c, j_add(rr, d)) : j_div(j_sub(rr, d), c);
+                jet t = e == best ? j_sub(rr, d) : j_mul(cstar, d.v >= 0 ? j_div(c, j_add(rr, d)) : j_div(j_sub(rr, d), c));
                 jet wj = j_div(t, rj), wk = j_div(t, rk);
                 const jet *ws[2] = {&wj, &wk};
                 int vs[2] = {j, k};

@@ -57,19 +57,32 @@ def _pair_terms(x: torch.Tensor, data: PolygonData) -> dict[str, torch.Tensor]:
     }
 
 
-def _regular_weights(q: dict[str, torch.Tensor], data: PolygonData, V: int) -> torch.Tensor:
-    """Unnormalised weights ``(V, n)`` of points off the cage."""
+def _regular_weights(q: dict[str, torch.Tensor], data: PolygonData, V: int, scaled: bool = False) -> torch.Tensor:
+    """Unnormalised weights ``(V, n)`` of points off the cage; with ``scaled``, times ``c*``, the
+    cross product of each point's edge of smallest ``|cross|`` among those seen under an obtuse
+    angle (whose ``tan(alpha/2) = (R_j R_k - d) / cross`` grows like one over the distance), that
+    edge's term taken as ``R_j R_k - d`` (no division): the same coordinates once normalised, with
+    derivatives that do not cancel next to an edge."""
     cross, dot, Rj, Rk = q["cross"], q["dot"], q["Rj"], q["Rk"]
     RR = Rj * Rk
+    obtuse = (dot < 0) & (cross != 0)
     tan_half = torch.where(dot >= 0, safe_div(cross, RR + dot, RR + dot > 0), safe_div(RR - dot, cross, cross != 0))
+    if scaled:
+        key = torch.where(obtuse, cross.detach().abs(), torch.inf)
+        best = key.argmin(dim=0)
+        found = torch.isfinite(key.min(dim=0).values)
+        cstar = torch.where(found, cross.gather(0, best[None])[0], 1.0)
+        is_best = (torch.arange(cross.shape[0], device=cross.device)[:, None] == best[None]) & found[None]
+        tan_half = torch.where(is_best, RR - dot, cstar * tan_half)
     W = cross.new_zeros((V, cross.shape[1]))
     W.index_add_(0, data.edges[:, 0], safe_div(tan_half, Rj, Rj > 0))
     W.index_add_(0, data.edges[:, 1], safe_div(tan_half, Rk, Rk > 0))
     return W
 
 
-def mvc2d_chunk(x: torch.Tensor, data: PolygonData) -> tuple[torch.Tensor, torch.Tensor]:
-    """2D counterpart of :func:`mvc3d_chunk`: ``x`` ``(n, 2)`` -> weights ``(V, n)`` and on-cage mask.
+def mvc2d_chunk(x: torch.Tensor, data: PolygonData, scaled: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """2D counterpart of :func:`mvc3d_chunk`: ``x`` ``(n, 2)`` -> weights ``(V, n)`` and on-cage mask
+    (``scaled``: see :func:`_regular_weights`).
 
     Points on the cage get the linear interpolation along the edge holding them, differentiable in
     the point and the edge's ends (the coordinates of the point's projection on the edge; constant
@@ -90,13 +103,13 @@ def mvc2d_chunk(x: torch.Tensor, data: PolygonData) -> tuple[torch.Tensor, torch
     on_edge |= (Rj <= tol) | (Rk <= tol)
     on_cage = on_edge.any(dim=0)
     if not bool(on_cage.any()):
-        return _regular_weights(q, data, V), on_cage
+        return _regular_weights(q, data, V, scaled), on_cage
     if records_graph(x, data.vertices):
         W = _regular_weights(
-            _pair_terms(torch.where(on_cage[:, None], outside_point(data.vertices.T), x), data), data, V
+            _pair_terms(torch.where(on_cage[:, None], outside_point(data.vertices.T), x), data), data, V, scaled
         )
     else:
-        W = _regular_weights(q, data, V)
+        W = _regular_weights(q, data, V, scaled)
     cols = torch.nonzero(on_cage).squeeze(1)
     f = on_edge[:, cols].to(torch.int8).argmax(dim=0)
     tt = t[f, cols].clamp(0.0, 1.0)

@@ -150,8 +150,13 @@ def _stable_face_weights(
     ell: list[torch.Tensor],
     gram: list[list[torch.Tensor]],
     two_area: torch.Tensor,
+    singular: list[torch.Tensor] | None = None,
 ) -> list[torch.Tensor]:
     """Face weights ``w_i^T`` in the stable split form, for pairs near the face's support plane.
+
+    With a list ``singular`` given, the weights returned leave out the term ``c_i / h`` of a
+    face around the point's foot (``wind != 0``) and ``singular`` receives the three ``c_i``
+    (zero elsewhere): the caller can then divide ``h`` out before differentiating.
 
     All inputs are tensors of one broadcastable shape over point–face pairs (``(M,)`` for a
     selection); ``gram[i][e] = E_i . E_e``, ``s[e] = n . N_e``, ``dots[e] = a_{e+1} . a_{e+2}``,
@@ -193,7 +198,11 @@ def _stable_face_weights(
     for i in range(3):
         B = s[i] * S_rest + theta_over_N[0] * gram[i][0] + theta_over_N[1] * gram[i][1] + theta_over_N[2] * gram[i][2]
         w = h * B * inv4A
-        w = w + torch.where(wind != 0, s[i] * (2 * math.pi) * wind / safe_h * inv4A, 0.0)
+        c = torch.where(wind != 0, s[i] * (2 * math.pi) * wind * inv4A, 0.0)
+        if singular is not None:
+            singular.append(c)
+        else:
+            w = w + c / safe_h
         # h = 0 outside the face: w = h B / (4A) = 0, kept as that product so that autograd sees
         # its derivative B dh / (4A) (a constant 0 here lost the rest vertices' gradients on planes)
         out.append(w)
@@ -270,7 +279,11 @@ def _far_field_weights(x: torch.Tensor, h: torch.Tensor, face: torch.Tensor, dat
 
 
 def face_weights(
-    x: torch.Tensor, data: TriangleCageData, far_field: bool = True, q: dict | None = None
+    x: torch.Tensor,
+    data: TriangleCageData,
+    far_field: bool = True,
+    q: dict | None = None,
+    singular: list[torch.Tensor] | None = None,
 ) -> tuple[list[torch.Tensor], dict]:
     """Per-face corner weights ``w_i^T`` of a chunk of points (eager: the stable form is evaluated
     only on the point–face pairs that need it). Points on a face get non-finite values there: the
@@ -282,6 +295,9 @@ def face_weights(
         far_field: redo faces seen small by quadrature where the face weights cancel (only
             meaningful when the triangles form a closed cage).
         q: the pair terms of ``x`` when the caller has them (:func:`_pair_terms`).
+        singular: an empty list to receive, as three ``(T, n)`` tensors, the coefficients ``c_i``
+            of the ``c_i / h`` terms of faces around the points' feet, which the weights returned
+            then leave out (see :func:`_stable_face_weights`).
 
     Returns:
         ``(w, q)``: three ``(T, n)`` tensors (corner ``i`` of every face) and the pair terms.
@@ -290,6 +306,8 @@ def face_weights(
     q = _pair_terms(x, data) if q is None else q
     w = _direct_face_weights(q, data.two_area)
     near = _near_plane(q)
+    if singular is not None:
+        singular.extend(torch.zeros_like(q["h"]) for _ in range(3))
     if bool(near.any()):
         idx = torch.nonzero(near.reshape(-1)).squeeze(1)
         face = torch.div(idx, n, rounding_mode="floor")
@@ -306,14 +324,20 @@ def face_weights(
             [data.edge_len[e, :, 0].index_select(0, face) for e in range(3)],
             [[gram[:, i, e] for e in range(3)] for i in range(3)],
             data.two_area[:, 0].index_select(0, face),
+            sing := ([] if singular is not None else None),
         )
         for i in range(3):
             w[i] = w[i].reshape(-1).index_put((idx,), ws[i]).reshape(T, n)
+            if singular is not None:
+                singular[i] = singular[i].reshape(-1).index_put((idx,), sing[i]).reshape(T, n)
     # Where the total weight is much smaller than its parts (far outside the cage), the rounding
     # errors of the vector form on faces seen small are amplified: integrate those by quadrature.
     if not far_field:
         return w, q
     total = w[0] + w[1] + w[2]
+    if singular is not None:
+        h = torch.where(q["h"] != 0, q["h"], 1.0)
+        total = total + (singular[0] + singular[1] + singular[2]) / h
     cancels = total.abs().sum(dim=0) > CANCELLATION_RATIO * total.sum(dim=0).abs()
     R = q["R"]
     rmin = torch.minimum(torch.minimum(R[0], R[1]), R[2])
@@ -329,12 +353,32 @@ def face_weights(
     return w, q
 
 
-def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, torch.Tensor]:
+def _divide_h_out(w: list[torch.Tensor], sing: list[torch.Tensor], h: torch.Tensor) -> list[torch.Tensor]:
+    """``h* (w_i + c_i / h)`` per point–face pair, with ``h*`` each point's ``h`` at the face of
+    smallest ``|h|`` among those with ``c != 0`` (1 where none), the ``c_i / h`` terms of that face
+    taken as ``c_i`` (no division, so no cancellation under autograd); shapes ``(T, n)``."""
+    has = (sing[0] != 0) | (sing[1] != 0) | (sing[2] != 0)
+    key = torch.where(has, h.detach().abs(), torch.inf)
+    best = key.argmin(dim=0)  # (n,)
+    found = torch.isfinite(key.min(dim=0).values)
+    hstar = torch.where(found, h.gather(0, best[None])[0], 1.0)  # (n,)
+    is_best = (torch.arange(h.shape[0], device=h.device)[:, None] == best[None]) & found[None]
+    safe_h = torch.where(h != 0, h, 1.0)
+    ratio = torch.where(is_best, 1.0, hstar / safe_h)
+    return [hstar * w[i] + sing[i] * ratio for i in range(3)]
+
+
+def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData, scaled: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Unnormalised mean value weights of a chunk of points.
 
     Args:
         x: ``(n, 3)`` points.
         data: the cage constants.
+        scaled: return the weights of each point times ``h``, its distance to the plane of the
+            face around its foot point nearest to it (where there is one within the split form's
+            range), with that face's ``c_i / h`` terms taken as ``c_i``: the same coordinates
+            once normalised, but their derivatives no longer cancel next to a face (the weights
+            and their total both grow like ``1 / h`` there; autograd of the ratio lost ``eps / h``).
 
     Returns:
         ``(W, on_cage)``: weights ``(V, n)`` (not yet normalised) and a ``(n,)`` bool mask of the
@@ -349,9 +393,14 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData) -> tuple[torch.Tensor, 
     if any_on and records_graph(x, data.vertices):
         # The regular formula is singular on the cage: evaluate it off the cage for those points,
         # so that the discarded values carry finite derivatives (no NaN through torch.where).
-        w, _ = face_weights(torch.where(on_cage[:, None], outside_point(data.vertices.T), x), data)
+        xs = torch.where(on_cage[:, None], outside_point(data.vertices.T), x)
+        sing: list[torch.Tensor] | None = [] if scaled else None
+        w, qw = face_weights(xs, data, singular=sing)
     else:
-        w, _ = face_weights(x, data, q=q)
+        sing = [] if scaled else None
+        w, qw = face_weights(x, data, q=q, singular=sing)
+    if sing is not None:
+        w = _divide_h_out(w, sing, qw["h"])
     W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
     for i in range(3):
         W.index_add_(0, data.tri[:, i], w[i])

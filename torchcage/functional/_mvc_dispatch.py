@@ -13,7 +13,7 @@ from .. import _native
 from ..cage import Cage
 from ..errors import PointsError
 from . import _mvc2d_native, _mvc3d_native
-from ._common import chunks, default_chunk, normalise_weights
+from ._common import chunks, default_chunk, normalise_weights, records_graph
 from ._mvc2d import mvc2d_chunk, polygon_data
 from ._mvc3d import mvc3d_chunk, triangle_cage_data
 
@@ -35,6 +35,7 @@ def coordinates_flat(
     """
     lib = _native.select(backend, x, cage.vertices, dims=(2, 3))
     verts = cage.vertices.to(x.dtype)
+    graph = records_graph(x, cage.vertices)
     if cage.dim == 3:
         data = triangle_cage_data(cage, x.dtype)
         nf, glue, torch_chunk = data.tri.shape[0], _mvc3d_native, mvc3d_chunk
@@ -48,7 +49,9 @@ def coordinates_flat(
         if lib is not None:
             glue.native_chunk(c, tables, lib, out)
             return
-        Wc, onc = torch_chunk(c, data)
+        # With a graph, the weights' 1/h next to a face (an edge in 2D) is divided out before
+        # autograd sees it (see mvc3d_chunk); the values are the same once normalised.
+        Wc, onc = torch_chunk(c, data, scaled=graph)
         out.copy_(normalise_weights(Wc.T, onc, verts, c))
 
     # The native kernel needs no temporaries beyond its output: chunks only pace the progress bar.
