@@ -269,8 +269,8 @@ def mean_value_function(points: Tensor, cage: Cage, chunk_size: int | None = Non
     """Mean value coordinates ``(N, V)`` of checked points ``(N, D)``, differentiable with respect to
     the points and ``cage.vertices``: through :class:`MeanValueFunction` (analytic derivatives)
     where the native kernel serves, else by plain autograd of the torch kernel (any device; the
-    same values, derivatives to about 1e-12 relative off the faces' support planes; see
-    docs/accuracy.md). The one place that chooses between them."""
+    same values, derivatives to about 1e-12 relative; see docs/accuracy.md). The one place that
+    chooses between them."""
     if not _analytic(points):
         return _torch_coordinates(points, cage.vertices, cage.triangles if cage.dim == 3 else cage.edges)
     faces = cage.triangles if cage.dim == 3 else cage.edges

@@ -3,9 +3,8 @@ derivatives wherever the native kernel (``_mvcd_native``) cannot serve (any devi
 compiler, ``TORCHCAGE_NATIVE=0``). The torch kernel is finite under autograd everywhere (see
 docs/accuracy.md), its far-field and split forms included, so these are the derivatives of the
 same coordinates: they agree with the native analytic ones to about 1e-12 (gradients) and 1e-10
-(Hessians) relative, but lose digits within about 1e-6 of the cage size from a face's support
-plane, where the weights and their total both grow like 1/h and autograd of their ratio cancels
-(docs/accuracy.md has the figures)."""
+(Hessians) relative, next to faces included (both divide the weights' 1/h out there first;
+docs/accuracy.md has the figures)."""
 
 from __future__ import annotations
 

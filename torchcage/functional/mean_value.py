@@ -55,8 +55,8 @@ def mean_value_coordinates(
     analytic gradients, and on double backward the analytic Hessians (:func:`mean_value_derivatives`),
     finite everywhere off the cage; derivatives with respect to the cage's vertices come from
     autograd of the torch kernel. Elsewhere (a GPU, ``TORCHCAGE_NATIVE=0``) every derivative is
-    autograd of the torch kernel: finite, equal to the analytic ones to about 1e-12 off the
-    faces' support planes (docs/accuracy.md gives the figures near them). ``gradcheck`` and
+    autograd of the torch kernel: finite, equal to the analytic ones to about 1e-12
+    (docs/accuracy.md gives the figures). ``gradcheck`` and
     ``gradgradcheck`` pass in float64; ``torch.func.jacrev``, ``jacfwd``, ``vmap`` and ``hessian``
     work with respect to the points.
 
