@@ -93,4 +93,4 @@ def green_coordinates(
         else:
             phi[sl], psi[sl] = kernel(x[sl])
     lead = points.shape[:-1]
-    return phi.to(out_dtype).reshape(*lead, -1), psi.to(out_dtype).reshape(*lead, -1)
+    return phi.to(out_dtype).reshape(*lead, cage.num_vertices), psi.to(out_dtype).reshape(*lead, T)

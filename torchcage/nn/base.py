@@ -6,8 +6,27 @@ import torch
 from torch import nn
 
 from ..cage import Cage
+from ..errors import PointsError
 
-__all__ = ["CageModule", "DenseWeightsModule"]
+__all__ = ["CageModule", "DenseWeightsModule", "module_points"]
+
+
+def module_points(points: torch.Tensor, cage: Cage) -> torch.Tensor:
+    """The point set ``(N, D)`` a coordinate module embeds (array-likes accepted).
+
+    Raises:
+        PointsError: points that are not one set ``(N, D)``: a batch ``(B, N, D)`` of point sets
+            needs one module per set (or one module of the flattened set, its output split).
+    """
+    if not isinstance(cage, Cage):
+        raise TypeError(f"cage must be a torchcage.Cage, got {type(cage).__name__}")
+    pts = torch.as_tensor(points)
+    if pts.ndim != 2 or pts.shape[-1] != cage.dim:
+        raise PointsError(
+            f"a coordinate module embeds one point set of shape (N, {cage.dim}), got {tuple(pts.shape)}; for a batch "
+            "of point sets build one module per set, or flatten them into one set and split the output"
+        )
+    return pts
 
 
 class CageModule(nn.Module):

@@ -8,7 +8,7 @@ from ..cage import Cage
 from ..errors import warn_outside
 from ..functional._stretch import conformal_stretch, stretched_normals, stretched_triangle_normals, triangle_frames
 from ..functional.green import green_coordinates
-from .base import CageModule
+from .base import CageModule, module_points
 
 # The stretch helpers live in functional/_stretch.py; they are re-exported here for existing imports.
 __all__ = [
@@ -62,12 +62,13 @@ class GreenCoordinates(CageModule):
     def __init__(
         self, cage: Cage, points: torch.Tensor, *, chunk_size: int | None = None, dtype: torch.dtype = torch.float64
     ) -> None:
+        points = module_points(points, cage)
         phi, psi = green_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype)
-        super().__init__(cage, torch.as_tensor(points).reshape(-1, cage.dim))
+        super().__init__(cage, points)
         phi = phi.reshape(-1, cage.num_vertices)
         warn_outside(phi.sum(dim=1), "Green coordinates")
         self.register_buffer("phi", phi)
-        self.register_buffer("psi", psi.reshape(phi.shape[0], -1))
+        self.register_buffer("psi", psi.reshape(phi.shape[0], psi.shape[-1]))
         self.register_buffer("triangles", cage.triangles.clone())
         self.register_buffer("edges", cage.edges.clone())
 

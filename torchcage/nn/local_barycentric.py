@@ -10,7 +10,7 @@ import torch
 from ..cage import Cage
 from ..functional.local_barycentric import local_barycentric_coordinates, solve_local_barycentric
 from ..solvers.lbc import LBCResult
-from .base import CageModule
+from .base import CageModule, module_points
 
 __all__ = ["LocalBarycentricCoordinates"]
 
@@ -61,7 +61,7 @@ class LocalBarycentricCoordinates(CageModule):
         solution: LBCResult | None = None,
         **options: Any,
     ) -> None:
-        pts = torch.as_tensor(points).reshape(-1, cage.dim)
+        pts = module_points(points, cage)
         if solution is None:
             solution = solve_local_barycentric(cage, **options)
         W = local_barycentric_coordinates(pts, cage, threshold=threshold, solution=solution)
@@ -94,7 +94,8 @@ class LocalBarycentricCoordinates(CageModule):
         batch = vertices.shape[:-2]
         flat = vertices.reshape(-1, self.num_vertices, self.dim).movedim(0, 1).reshape(self.num_vertices, -1)
         out = self._csr(vertices.dtype) @ flat  # (N, B * D)
-        return out.reshape(self.num_points, -1, self.dim).movedim(1, 0).reshape(*batch, self.num_points, self.dim)
+        B = flat.shape[1] // self.dim
+        return out.reshape(self.num_points, B, self.dim).movedim(1, 0).reshape(*batch, self.num_points, self.dim)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", nnz={self.weight_values.numel()}"

@@ -7,7 +7,7 @@ import torch
 from ..cage import Cage
 from ..functional.mean_value import mean_value_coordinates
 from ..functional.mean_value_derivatives import mean_value_derivatives
-from .base import DenseWeightsModule
+from .base import DenseWeightsModule, module_points
 
 __all__ = ["MeanValueCoordinates"]
 
@@ -65,8 +65,9 @@ class MeanValueCoordinates(DenseWeightsModule):
     ) -> None:
         if store_derivatives not in (0, 1, 2):
             raise ValueError(f"store_derivatives must be 0, 1 or 2, got {store_derivatives}")
+        points = module_points(points, cage)
         w = mean_value_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress)
-        super().__init__(cage, torch.as_tensor(points).reshape(-1, cage.dim))
+        super().__init__(cage, points)
         self.register_buffer("weights", w.reshape(-1, cage.num_vertices))
         self.register_buffer("faces", (cage.triangles if cage.dim == 3 else cage.edges).detach().clone())
         g = h = None

@@ -10,7 +10,7 @@ from ..functional._common import safe_norm
 from ..functional._qgc3d import corner_normals
 from ..functional._stretch import conformal_stretch, stretched_triangle_normals
 from ..functional.quad_green import quad_green_coordinates
-from .base import CageModule
+from .base import CageModule, module_points
 
 __all__ = ["QuadGreenCoordinates", "quad_corner_factors"]
 
@@ -108,13 +108,13 @@ class QuadGreenCoordinates(CageModule):
     ) -> None:
         if correction not in ("conformal", "area"):
             raise ValueError(f"correction must be 'conformal' or 'area', got {correction!r}")
-        pts = torch.as_tensor(points).detach()
+        pts = module_points(points, cage).detach()
         phi, psi = quad_green_coordinates(pts, cage, n, chunk_size=chunk_size, dtype=dtype, allow_invalid=allow_invalid)
-        super().__init__(cage, pts.reshape(-1, cage.dim))
+        super().__init__(cage, pts)
         self.correction = correction
         warn_outside(phi.reshape(-1, cage.num_vertices).sum(dim=1), "quad Green coordinates")
         self.register_buffer("phi", phi.reshape(-1, cage.num_vertices))
-        self.register_buffer("psi", psi.reshape(self.phi.shape[0], -1))
+        self.register_buffer("psi", psi.reshape(self.phi.shape[0], psi.shape[-1]))
         self.register_buffer("triangles", cage.triangles.clone())
         self.register_buffer("quads", cage.quads.clone())
 
