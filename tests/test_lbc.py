@@ -47,7 +47,9 @@ def random_inside(cage: torchcage.Cage, n: int, seed: int = 0) -> torch.Tensor:
     return x[inside_cage(x, cage)][:n]
 
 
-@pytest.mark.parametrize("name", LBC2D)
+@pytest.mark.parametrize(
+    "name", [*LBC2D[:2], *(pytest.param(n, marks=pytest.mark.slow) for n in LBC2D[2:])]
+)  # the two larger cages in the slow tier
 def test_2d_cages_of_the_paper(name):
     cage = load_lbc2d(name)
     result = F.solve_local_barycentric(cage, target_cells=1200)
@@ -64,7 +66,7 @@ def test_2d_cages_of_the_paper(name):
 @pytest.mark.parametrize(
     "make",
     [lambda: box_cage(), lambda: l_shape(), lambda: torchcage.load_cage(data_path("qmvc", "ManHead_Cage.obj")),
-     lambda: torchcage.load_cage(data_path("qmvc", "FireHydrant_Cage.obj"))],
+     pytest.param(lambda: torchcage.load_cage(data_path("qmvc", "FireHydrant_Cage.obj")), marks=pytest.mark.slow)],
     ids=["cube", "l_shape", "ManHead", "FireHydrant"],
 )  # fmt: skip
 def test_3d_cages(make):

@@ -87,7 +87,7 @@ def interior_points(cage: torchcage.Cage, n: int, seed: int = 1) -> torch.Tensor
 # ------------------------------------------------------------------ agreement with mpmath
 @pytest.mark.parametrize(
     ("name", "n_inside"),
-    [("cube", 3), ("l_shape", 3), ("ManHead", 2), ("FireHydrant", 1)],
+    [("cube", 3), ("l_shape", 3), ("ManHead", 2), pytest.param("FireHydrant", 1, marks=pytest.mark.slow)],
 )
 def test_3d_matches_high_precision_differences(name, n_inside):
     """Gradients and Hessians to 1e-8 relative (measured ~1e-12) at points 1e-3 .. 1e-12 of the
@@ -136,7 +136,7 @@ def test_2d_matches_high_precision_differences():
 
 
 # ------------------------------------------------------------------ manufactured solution
-@pytest.mark.parametrize("name", ["cube", "ManHead", "FireHydrant"])
+@pytest.mark.parametrize("name", ["cube", "ManHead", pytest.param("FireHydrant", marks=pytest.mark.slow)])
 def test_manufactured_solution_on_a_grid(name):
     """Sec. 7.3 of Thiery et al.: sum grad lam = 0, sum p grad lam^T = I, sum H lam = 0 and
     sum p_c H lam = 0 on a 50^3 grid over 1.25 x the cage's box (inside, outside, some points
