@@ -57,6 +57,8 @@ def torch_derivatives(
     grad = x.new_empty((n, V, D))
     hess = x.new_empty((n, V, D, D) if order == 2 else (0,))
     on = torch.zeros(n, dtype=torch.bool, device=x.device)
+    if n == 0:
+        return lam, grad, hess, on
     size = chunk_size or 1024
     for sl in chunks(n, size, progress, desc="mean value derivatives"):
         xc = x[sl].clone().requires_grad_()

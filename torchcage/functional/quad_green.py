@@ -28,7 +28,7 @@ def _quad_part_torch(x: torch.Tensor, qdata: QuadGreenData, V: int) -> tuple[tor
     phi = torch.zeros(m, V, dtype=x.dtype, device=x.device)
     for k in range(4):
         phi = phi.index_add(1, quads[:, k], Phi[..., k].T)
-    psi = Phi[..., 4:].permute(1, 0, 2).reshape(m, -1)
+    psi = Phi[..., 4:].permute(1, 0, 2).reshape(m, 4 * quads.shape[0])
     f = on_q.to(torch.int8).argmax(dim=0)
     onq = torch.where(on_q.any(dim=0), f, -1)
     hat = torch.zeros(m, V, dtype=x.dtype, device=x.device).scatter_add(
