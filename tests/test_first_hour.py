@@ -58,3 +58,39 @@ def test_modules_refuse_a_batch_of_point_sets(cubes, name: str) -> None:
     cls, triangulated = MODULES[name]
     with pytest.raises(PointsError, match=r"one point set of shape \(N, 3\), got \(2, 5, 3\).*one module per set"):
         cls(cubes[triangulated], torch.zeros(2, 5, 3, dtype=f64))
+
+
+def test_load_mesh_refuses_garbage_and_missing_files(tmp_path) -> None:
+    garbage = tmp_path / "garbage.obj"
+    garbage.write_text("this is not a mesh\n")
+    with pytest.raises(ValueError, match=r"garbage\.obj: no vertices found"):
+        torchcage.load_mesh(garbage)
+    with pytest.raises(FileNotFoundError, match=r"missing\.ply"):
+        torchcage.load_mesh(tmp_path / "missing.ply")
+    with pytest.raises(FileNotFoundError, match=r"missing\.obj"):
+        torchcage.load_mesh(tmp_path / "missing.obj")
+
+
+def test_save_mesh_validates_faces(tmp_path) -> None:
+    v = torch.rand(4, 3, dtype=f64)
+    with pytest.raises(TypeError, match="integer vertex indices"):
+        torchcage.save_mesh(tmp_path / "a.obj", v, torch.tensor([[0, 2, 3.7]]))
+    with pytest.raises(ValueError, match=r"must lie in \[0, 4\)"):
+        torchcage.save_mesh(tmp_path / "a.obj", v, torch.tensor([[0, 2, 4]]))
+    with pytest.raises(ValueError, match=r"\(F, 3\) or \(F, 4\)"):
+        torchcage.save_mesh(tmp_path / "a.obj", v, torch.tensor([0, 1, 2]))
+    torchcage.save_mesh(tmp_path / "ok.obj", v, torch.tensor([[0, 1, 2], [0, 2, 3]]))
+    v2, f2 = torchcage.load_mesh(tmp_path / "ok.obj")
+    assert torch.equal(f2, torch.tensor([[0, 1, 2], [0, 2, 3]])) and torch.allclose(v2, v)
+
+
+def test_cli_deform_fails_on_a_garbage_mesh(tmp_path, capsys) -> None:
+    from torchcage.cli import main
+
+    garbage = tmp_path / "garbage.obj"
+    garbage.write_text("nothing here\n")
+    cage, deformed = torchcage.data.path("bar_cage.obj"), torchcage.data.path("bar_cage_deformed.obj")
+    argv = ["deform", "--cage", str(cage), "--deformed", str(deformed), "--mesh", str(garbage), "--out", str(tmp_path)]
+    assert main([*argv, "--no-picture"]) == 2
+    assert "no vertices found" in capsys.readouterr().err
+    assert not list(tmp_path.glob("*deformed*"))

@@ -157,21 +157,33 @@ def load_mesh(path: PathLike, *, dtype: torch.dtype = torch.float64) -> tuple[to
     Returns:
         ``(vertices (N, 3), faces (F, 3) int64)``.
 
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: a file with no vertices or content that cannot be read (the message names it).
+
     Example:
         >>> import torchcage
         >>> v, f = torchcage.load_mesh(torchcage.data.path("bar.obj"))
         >>> v.shape[1], f.shape[1]
         (3, 3)
     """
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no such mesh file: {path}")
     if str(path).lower().endswith(".obj"):
         v, faces, _ = read_obj(path)
         tris = [[f[0], f[k], f[k + 1]] for f in faces for k in range(1, len(f) - 1)]
-        return torch.as_tensor(v, dtype=dtype), torch.as_tensor(tris, dtype=torch.long).reshape(-1, 3)
-    mesh = _trimesh().load(path, process=False, force="mesh")
-    return (
-        torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype),
-        torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long).reshape(-1, 3),
-    )
+        verts, tri = torch.as_tensor(v, dtype=dtype), torch.as_tensor(tris, dtype=torch.long).reshape(-1, 3)
+    else:
+        trimesh = _trimesh()
+        try:
+            mesh = trimesh.load(path, process=False, force="mesh")
+        except Exception as err:  # trimesh raises many kinds on unreadable content
+            raise ValueError(f"{path}: cannot read this mesh ({err})") from err
+        verts = torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype).reshape(-1, 3)
+        tri = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long).reshape(-1, 3)
+    if verts.shape[0] == 0:
+        raise ValueError(f"{path}: no vertices found (an empty or unreadable mesh file)")
+    return verts, tri
 
 
 def save_mesh(path: PathLike, vertices: torch.Tensor, faces: torch.Tensor) -> None:
@@ -180,12 +192,26 @@ def save_mesh(path: PathLike, vertices: torch.Tensor, faces: torch.Tensor) -> No
     Args:
         path: output file; the extension picks the format.
         vertices: ``(N, 3)`` positions.
-        faces: ``(F, 3)`` or ``(F, 4)`` int64 corners.
+        faces: ``(F, 3)`` or ``(F, 4)`` integer corners (0-based).
+
+    Raises:
+        TypeError: faces that are not integers.
+        ValueError: wrong shapes, or face indices out of range.
     """
-    v = vertices.detach().cpu().to(torch.float64).numpy()
-    f = torch.as_tensor(faces).cpu().numpy()
+    v = torch.as_tensor(vertices).detach().cpu().to(torch.float64).numpy()
+    ft = torch.as_tensor(faces).detach().cpu()
     if v.ndim != 2 or v.shape[1] != 3:
         raise ValueError(f"vertices must have shape (N, 3), got {v.shape}")
+    if ft.is_floating_point() or ft.is_complex() or ft.dtype == torch.bool:
+        raise TypeError(f"faces must be integer vertex indices, got dtype {ft.dtype}")
+    if ft.ndim != 2 or ft.shape[1] not in (3, 4):
+        raise ValueError(f"faces must have shape (F, 3) or (F, 4), got {tuple(ft.shape)}")
+    if ft.numel() and (int(ft.min()) < 0 or int(ft.max()) >= v.shape[0]):
+        raise ValueError(
+            f"face indices must lie in [0, {v.shape[0]}) for {v.shape[0]} vertices, "
+            f"got {int(ft.min())}..{int(ft.max())}"
+        )
+    f = ft.numpy()
     if str(path).lower().endswith(".obj"):
         Path(path).write_text(_format_rows("v", v, "%.17g") + _format_rows("f", f + 1, "%d"))
         return
