@@ -150,3 +150,18 @@ def test_next_to_an_edge_in_2d(backend: str, offset: float) -> None:
         g[0, :, 1], torch.tensor([-0.5, -0.5, 0.5, 0.5], dtype=f64), rtol=0, atol=1e-3 * offset + 1e-13
     )
     assert float(g.sum(dim=1).abs().max()) < 1e-13
+
+
+def test_mean_value_function_used_directly_without_the_native_kernel(no_native: None) -> None:
+    # MeanValueFunction is public: applied directly where the native kernel cannot serve, its
+    # backward takes autograd of the torch kernel (double backward included).
+    from torchcage.autograd import MeanValueFunction
+
+    cube = HANDMADE["cube"]()
+    x = _inside(cube, 4).requires_grad_()
+
+    def f(y: torch.Tensor) -> torch.Tensor:
+        return MeanValueFunction.apply(y, cube.vertices, cube.triangles, 0, "torch")
+
+    assert torch.autograd.gradcheck(f, (x,))
+    assert torch.autograd.gradgradcheck(f, (x,))

@@ -271,7 +271,7 @@ def mean_value_function(points: Tensor, cage: Cage, chunk_size: int | None = Non
     where the native kernel serves, else by plain autograd of the torch kernel (any device; the
     same values, derivatives to about 1e-12 relative; see docs/accuracy.md). The one place that
     chooses between them."""
-    if not _analytic(points):
-        return _torch_coordinates(points, cage.vertices, cage.triangles if cage.dim == 3 else cage.edges)
     faces = cage.triangles if cage.dim == 3 else cage.edges
+    if not _analytic(points):
+        return _torch_coordinates(points, cage.vertices, faces)
     return MeanValueFunction.apply(points, cage.vertices, faces, chunk_size or 0, backend)

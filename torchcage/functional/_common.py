@@ -90,6 +90,25 @@ def safe_atan2(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return torch.atan2(torch.where(zero, 0.0, y), torch.where(zero, 1.0, x))
 
 
+def nearest_where(mask: torch.Tensor, value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per column of ``value`` ``(F, n)``, the entry of smallest ``|value|`` among those where
+    ``mask`` ``(F, n)`` holds (chosen without a gradient, returned with one; 1 in a column where
+    none does), and the ``(F, n)`` bool mask of that entry.
+
+    Example:
+        >>> v = torch.tensor([[3.0, -1.0], [-2.0, 5.0]])
+        >>> star, at = nearest_where(torch.tensor([[True, False], [True, False]]), v)
+        >>> star.tolist(), at.tolist()
+        ([-2.0, 1.0], [[False, False], [True, False]])
+    """
+    key = torch.where(mask, value.detach().abs(), torch.inf)
+    best = key.argmin(dim=0)
+    found = torch.isfinite(key.min(dim=0).values)
+    star = torch.where(found, value.gather(0, best[None])[0], 1.0)
+    at = (torch.arange(value.shape[0], device=value.device)[:, None] == best[None]) & found[None]
+    return star, at
+
+
 def safe_div(num: torch.Tensor, den: torch.Tensor, ok: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
     """``num / den`` where ``ok``, ``fill`` elsewhere, with finite derivatives on both branches."""
     return torch.where(ok, num / torch.where(ok, den, 1.0), fill)

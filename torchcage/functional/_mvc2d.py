@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import on_cage_tolerance, outside_point, records_graph, safe_div, safe_sqrt
+from ._common import nearest_where, on_cage_tolerance, outside_point, records_graph, safe_div, safe_sqrt
 
 
 @dataclass(frozen=True)
@@ -65,14 +65,9 @@ def _regular_weights(q: dict[str, torch.Tensor], data: PolygonData, V: int, scal
     derivatives that do not cancel next to an edge."""
     cross, dot, Rj, Rk = q["cross"], q["dot"], q["Rj"], q["Rk"]
     RR = Rj * Rk
-    obtuse = (dot < 0) & (cross != 0)
     tan_half = torch.where(dot >= 0, safe_div(cross, RR + dot, RR + dot > 0), safe_div(RR - dot, cross, cross != 0))
     if scaled:
-        key = torch.where(obtuse, cross.detach().abs(), torch.inf)
-        best = key.argmin(dim=0)
-        found = torch.isfinite(key.min(dim=0).values)
-        cstar = torch.where(found, cross.gather(0, best[None])[0], 1.0)
-        is_best = (torch.arange(cross.shape[0], device=cross.device)[:, None] == best[None]) & found[None]
+        cstar, is_best = nearest_where((dot < 0) & (cross != 0), cross)
         tan_half = torch.where(is_best, RR - dot, cstar * tan_half)
     W = cross.new_zeros((V, cross.shape[1]))
     W.index_add_(0, data.edges[:, 0], safe_div(tan_half, Rj, Rj > 0))

@@ -48,7 +48,16 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import on_cage_tolerance, outside_point, records_graph, safe_atan2, safe_div, safe_sqrt, triangle_geometry
+from ._common import (
+    nearest_where,
+    on_cage_tolerance,
+    outside_point,
+    records_graph,
+    safe_atan2,
+    safe_div,
+    safe_sqrt,
+    triangle_geometry,
+)
 
 #: Point–face pairs with ``|h| < SPLIT_FORM_RATIO * min_i |p_i - x|`` use the stable form.
 SPLIT_FORM_RATIO = 0.01
@@ -357,12 +366,7 @@ def _divide_h_out(w: list[torch.Tensor], sing: list[torch.Tensor], h: torch.Tens
     """``h* (w_i + c_i / h)`` per point–face pair, with ``h*`` each point's ``h`` at the face of
     smallest ``|h|`` among those with ``c != 0`` (1 where none), the ``c_i / h`` terms of that face
     taken as ``c_i`` (no division, so no cancellation under autograd); shapes ``(T, n)``."""
-    has = (sing[0] != 0) | (sing[1] != 0) | (sing[2] != 0)
-    key = torch.where(has, h.detach().abs(), torch.inf)
-    best = key.argmin(dim=0)  # (n,)
-    found = torch.isfinite(key.min(dim=0).values)
-    hstar = torch.where(found, h.gather(0, best[None])[0], 1.0)  # (n,)
-    is_best = (torch.arange(h.shape[0], device=h.device)[:, None] == best[None]) & found[None]
+    hstar, is_best = nearest_where((sing[0] != 0) | (sing[1] != 0) | (sing[2] != 0), h)
     safe_h = torch.where(h != 0, h, 1.0)
     ratio = torch.where(is_best, 1.0, hstar / safe_h)
     return [hstar * w[i] + sing[i] * ratio for i in range(3)]

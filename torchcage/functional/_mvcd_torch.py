@@ -31,13 +31,6 @@ def _jacobian_rows(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> list
     return [torch.autograd.grad(r[:, c].sum(), Z, retain_graph=True, create_graph=create_graph)[0] for c in range(D)]
 
 
-def _on_cage(x: torch.Tensor, cage: Cage) -> torch.Tensor:
-    with torch.no_grad():
-        if cage.dim == 3:
-            return mvc3d_chunk(x, triangle_cage_data(cage, x.dtype))[1]
-        return mvc2d_chunk(x, polygon_data(cage, x.dtype))[1]
-
-
 def torch_derivatives(
     x: torch.Tensor,
     cage: Cage,
@@ -60,6 +53,9 @@ def torch_derivatives(
     if n == 0:
         return lam, grad, hess, on
     size = chunk_size or 1024
+    # (the on-cage flags come from one plain pass of the kernel, on data built once)
+    data = triangle_cage_data(rest, torch.float64) if D == 3 else polygon_data(rest, torch.float64)
+    flags = mvc3d_chunk if D == 3 else mvc2d_chunk
     for sl in chunks(n, size, progress, desc="mean value derivatives"):
         xc = x[sl].clone().requires_grad_()
         with torch.enable_grad():
@@ -68,7 +64,8 @@ def torch_derivatives(
             if order == 2:
                 hess[sl] = torch.stack([torch.stack(_jacobian_rows(g, xc, False), dim=-1) for g in gc], dim=2)
         lam[sl], grad[sl] = lc.detach(), torch.stack(gc, dim=-1).detach()
-        on[sl] = _on_cage(x[sl], rest)
+        with torch.no_grad():
+            on[sl] = flags(x[sl], data)[1]
     if order == 2 and bool(on.any()):
         hess[on] = 0.0
     return lam, grad, hess, on
