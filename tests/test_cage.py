@@ -76,7 +76,8 @@ def test_inward_cage_is_flipped_with_warning():
         (TET_V, [[0, 2, 1], [0, 1, 3], [0, 3, 2]], torchcage.CageTopologyError, "open"),
         (TET_V, [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 3, 2]], torchcage.CageOrientationError, "inconsistently"),
         (TET_V, [[0, 2, 1, 3, 1]], torchcage.CageError, "5 corners"),
-        (TET_V[:, :2].unsqueeze(0), None, torchcage.CageError, "shape"),
+        (TET_V[:, :1], None, torchcage.CageError, "shape"),
+        (TET_V[0], None, torchcage.CageError, "shape"),
     ],
 )
 def test_validation_errors(vertices, faces, error, match):

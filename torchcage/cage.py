@@ -33,18 +33,41 @@ def _as_vertices(vertices: Any) -> torch.Tensor:
         if v.dtype.is_complex or v.dtype == torch.bool:
             raise TypeError(f"cage vertices must be real numbers, got dtype {v.dtype}")
         v = v.to(torch.float64)
-    if v.ndim != 2 or v.shape[1] not in (2, 3):
+    if v.ndim < 2 or v.shape[-1] not in (2, 3):
         raise CageError(
-            f"cage vertices must have shape (V, 3) or (V, 2), got {tuple(v.shape)}; "
-            "pass one cage at a time (batch deformed cages in the modules' forward instead)"
+            f"cage vertices must have shape (V, 3) or (V, 2), or (*B, V, D) for a batch of cages with one "
+            f"topology, got {tuple(v.shape)}"
         )
-    if v.shape[0] < v.shape[1] + 1:
-        raise CageError(f"a {v.shape[1]}D cage needs at least {v.shape[1] + 1} vertices, got {v.shape[0]}")
-    bad = ~torch.isfinite(v).all(dim=1)
-    if bool(bad.any()):
-        idx = torch.nonzero(bad).flatten()[:10].tolist()
-        raise CageError(f"cage vertices contain NaN or inf (vertex indices {idx}); remove or fix them")
+    if v.shape[-2] < v.shape[-1] + 1:
+        raise CageError(f"a {v.shape[-1]}D cage needs at least {v.shape[-1] + 1} vertices, got {v.shape[-2]}")
     return v
+
+
+def _check_finite_vertices(v: torch.Tensor) -> None:
+    """Raise a CageError naming the batch element and the vertices that hold NaN or inf."""
+    bad = ~torch.isfinite(v).all(dim=-1)
+    if bool(bad.any()):
+        where = torch.nonzero(bad)
+        if v.ndim == 2:
+            idx = where.flatten()[:10].tolist()
+            raise CageError(f"cage vertices contain NaN or inf (vertex indices {idx}); remove or fix them")
+        first = tuple(where[0, :-1].tolist())
+        idx = where[(where[:, :-1] == where[0, :-1]).all(dim=1), -1][:10].tolist()
+        raise CageError(
+            f"cage vertices contain NaN or inf: batch element {first}, vertex indices {idx} "
+            f"({int(bad.flatten(0, -2).any(dim=1).sum())} element(s) affected); remove or fix them"
+        )
+
+
+def _batch_name(index: torch.Tensor, batch_shape: torch.Size) -> str:
+    """``" in batch element (i, j)"`` for a flat index into ``batch_shape`` (empty when unbatched)."""
+    if len(batch_shape) == 0:
+        return ""
+    rest, idx = int(index), []
+    for n in reversed(batch_shape):
+        idx.append(rest % n)
+        rest //= n
+    return f" in batch element {tuple(reversed(idx))}"
 
 
 def _split_faces(faces: Any, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -87,18 +110,24 @@ def _polygon_edges(n: int, device: torch.device) -> torch.Tensor:
 
 
 class Cage:
-    """A closed cage: a triangle/quad surface in 3D or a closed polygon in 2D.
+    """A closed cage: a triangle/quad surface in 3D or a closed polygon in 2D, or a batch of such
+    cages sharing one topology.
 
     Args:
-        vertices: ``(V, 3)`` or ``(V, 2)`` vertex positions: a tensor or array keeps its floating
-            dtype (integers become float64); nested lists become float64.
+        vertices: ``(V, 3)`` or ``(V, 2)`` vertex positions, or ``(*B, V, D)`` for a batch of cages
+            with the same faces (a network predicting a cage per shape): a tensor or array keeps its
+            floating dtype (integers become float64); nested lists become float64.
         faces: in 3D, a LongTensor ``(F, 3)`` or ``(F, 4)``, or a list of index lists of length 3
             or 4 (a triquad cage). In 2D, the directed edges ``(E, 2)``, or ``None`` for one closed
             polygon whose vertices are given in order.
-        validate: check topology, orientation and degenerate faces (default ``True``).
+        validate: ``True`` (default): check the topology (indices, closed, manifold, consistently
+            oriented) and every batch element's geometry (finite vertices, no zero-area face,
+            outward orientation); ``"topology"``: the topology only, no check of the vertex values and
+            no host synchronisation on a GPU (for a hot loop; see also :meth:`with_vertices`);
+            ``False``: nothing (the caller guarantees a valid cage).
 
     Attributes:
-        vertices: ``(V, D)`` vertex positions.
+        vertices: ``(*B, V, D)`` vertex positions (``B`` empty for one cage).
         triangles: ``(T, 3)`` int64 triangle corners (3D; empty in 2D).
         quads: ``(Q, 4)`` int64 quad corners (3D; empty in 2D).
         edges: ``(E, 2)`` int64 directed polygon edges (2D; empty in 3D).
@@ -107,7 +136,10 @@ class Cage:
         CageError: bad shapes, non-finite vertices, indices out of range or repeated in a face.
         DegenerateFaceError: a face of zero area (3D) or an edge of zero length (2D).
         CageTopologyError: an open or non-manifold cage (the offending edges are named).
-        CageOrientationError: inconsistently oriented faces (a face pair is named).
+        CageOrientationError: inconsistently oriented faces (a face pair is named), or a batch
+            whose elements disagree in orientation (some inside out).
+
+    Every error about the geometry of a batch names the batch element.
 
     Example:
         >>> import torch, torchcage
@@ -118,15 +150,20 @@ class Cage:
         >>> square = torchcage.Cage([[0., 0], [1, 0], [1, 1], [0, 1]])  # 2D polygon, in order
         >>> square.edges.tolist()
         [[0, 1], [1, 2], [2, 3], [3, 0]]
+        >>> batch = torchcage.Cage(torch.stack([v, 2 * v, v + 1]), cage.triangles)  # 3 cages, one topology
+        >>> batch.batch_shape, batch[1].vertices.shape, batch.signed_volume().shape
+        (torch.Size([3]), torch.Size([4, 3]), torch.Size([3]))
     """
 
-    def __init__(self, vertices: Any, faces: Any = None, *, validate: bool = True) -> None:
+    def __init__(self, vertices: Any, faces: Any = None, *, validate: bool | str = True) -> None:
+        if validate not in (True, False, "topology"):
+            raise ValueError(f'validate must be True, False or "topology", got {validate!r}')
         v = _as_vertices(vertices)
         self.vertices: torch.Tensor = v
         dev = v.device
         empty3 = torch.zeros((0, 3), dtype=torch.long, device=dev)
         empty4 = torch.zeros((0, 4), dtype=torch.long, device=dev)
-        if v.shape[1] == 3:
+        if v.shape[-1] == 3:
             if faces is None:
                 raise CageError("a 3D cage needs faces: a LongTensor (F, 3) / (F, 4) or a list of index lists")
             self.triangles, self.quads = _split_faces(faces, dev)
@@ -136,7 +173,7 @@ class Cage:
         else:
             self.triangles, self.quads = empty3, empty4
             if faces is None:
-                self.edges = _polygon_edges(v.shape[0], dev)
+                self.edges = _polygon_edges(v.shape[-2], dev)
             else:
                 e = torch.as_tensor(faces, device=dev)
                 if e.is_floating_point() or e.ndim != 2 or e.shape[1] != 2:
@@ -145,19 +182,82 @@ class Cage:
                         f"({e.dtype}); or pass faces=None for one closed polygon given in order"
                     )
                 self.edges = e.long()
+        if validate is True:
+            _check_finite_vertices(v)
+            self._validate(geometry=True)
+        elif validate == "topology":
+            self._validate(geometry=False)
+
+    def with_vertices(self, vertices: torch.Tensor, *, validate: bool = False) -> Cage:
+        """The same topology around other vertex positions ``(*B, V, D)`` (a network's output each
+        step): no topology check, and by default no geometric check either, so no host
+        synchronisation on a GPU. With ``validate=True`` the geometry is checked as in the
+        constructor (orientation included: this cage's faces are not flipped again).
+
+        Example:
+            >>> import torch, torchcage
+            >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+            >>> moved = cube.with_vertices(cube.vertices.expand(4, -1, -1) * 2)
+            >>> moved.batch_shape
+            torch.Size([4])
+        """
+        v = _as_vertices(vertices)
+        if tuple(v.shape[-2:]) != tuple(self.vertices.shape[-2:]):
+            raise CageError(
+                f"vertices must have shape (*B, {self.num_vertices}, {self.dim}) for this cage's faces, "
+                f"got {tuple(v.shape)}"
+            )
+        dev = v.device
+        c = Cage._trusted(v, self.triangles.to(dev), self.quads.to(dev), self.edges.to(dev))
         if validate:
-            self._validate()
+            _check_finite_vertices(v)
+            c._validate_geometry(flip=False)
+        return c
 
     # ------------------------------------------------------------------ basic properties
     @property
     def dim(self) -> int:
         """Ambient dimension, 2 or 3."""
-        return int(self.vertices.shape[1])
+        return int(self.vertices.shape[-1])
 
     @property
     def num_vertices(self) -> int:
         """Number of cage vertices ``V``."""
+        return int(self.vertices.shape[-2])
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Leading batch shape ``B`` of the vertices (``torch.Size([])`` for one cage)."""
+        return self.vertices.shape[:-2]
+
+    @property
+    def is_batched(self) -> bool:
+        """True when the vertices hold a batch of cages ``(*B, V, D)``."""
+        return self.vertices.ndim > 2
+
+    def __len__(self) -> int:
+        if not self.is_batched:
+            raise TypeError("len() of an unbatched cage; use cage.num_vertices")
         return int(self.vertices.shape[0])
+
+    def __getitem__(self, index: Any) -> Cage:
+        """Batch elements: ``cage[b]`` is one cage (or a smaller batch), sharing the topology
+        (no validation: the elements of a validated batch are valid). Differentiable: its vertices
+        are ``cage.vertices[b]``."""
+        if not self.is_batched:
+            raise TypeError("indexing an unbatched cage; index cage.vertices for vertex positions")
+        v = self.vertices[index]
+        if v.ndim < 2 or tuple(v.shape[-2:]) != tuple(self.vertices.shape[-2:]):
+            raise IndexError(
+                f"cage[{index!r}] must select batch elements only (batch shape {tuple(self.batch_shape)}), "
+                f"got vertices of shape {tuple(v.shape)}"
+            )
+        return Cage._trusted(v, self.triangles, self.quads, self.edges)
+
+    def unbind(self) -> list[Cage]:
+        """The batch elements as a list of cages, over the flattened batch shape."""
+        flat = self.vertices.reshape(-1, self.num_vertices, self.dim)
+        return [Cage._trusted(v, self.triangles, self.quads, self.edges) for v in flat.unbind(0)]
 
     @property
     def dtype(self) -> torch.dtype:
@@ -186,16 +286,25 @@ class Cage:
 
     @property
     def scale(self) -> float:
-        """Length of the bounding-box diagonal (the scale every tolerance is relative to)."""
+        """Length of the bounding-box diagonal (the scale every tolerance is relative to); for a
+        batch, the largest over its elements."""
+        return float(self._scales().max())
+
+    def _scales(self) -> torch.Tensor:
+        """``(*B,)`` bounding-box diagonals of the batch elements, float64."""
         v = self.vertices.detach().to(torch.float64)
-        return float((v.max(dim=0).values - v.min(dim=0).values).norm())
+        return (v.amax(dim=-2) - v.amin(dim=-2)).norm(dim=-1)
 
     def __repr__(self) -> str:
         if self.dim == 2:
             body = f"edges={self.edges.shape[0]}"
         else:
             body = f"triangles={self.triangles.shape[0]}, quads={self.quads.shape[0]}"
-        return f"Cage(dim={self.dim}, vertices={self.num_vertices}, {body}, dtype={self.dtype}, device={self.device})"
+        batch = f"batch_shape={tuple(self.batch_shape)}, " if self.is_batched else ""
+        return (
+            f"Cage(dim={self.dim}, {batch}vertices={self.num_vertices}, {body}, dtype={self.dtype}, "
+            f"device={self.device})"
+        )
 
     # ------------------------------------------------------------------ derived geometry
     def triangulated(self) -> Cage:
@@ -243,48 +352,47 @@ class Cage:
         """
         if self.dim == 2 or not self.has_quads:
             return torch.zeros(0, dtype=torch.long, device=self.device)
-        p = self.vertices[self.quads].to(torch.float64)  # (Q, 4, 3)
-        e = p.roll(-1, dims=1) - p  # e_k = q_{k+1} - q_k
-        c = torch.linalg.cross(e.roll(1, dims=1), e, dim=-1)  # corner normals c_k = e_{k-1} x e_k
+        p = self.vertices.detach().to(torch.float64)[..., self.quads, :]  # (*B, Q, 4, 3)
+        e = p.roll(-1, dims=-2) - p  # e_k = q_{k+1} - q_k
+        c = torch.linalg.cross(e.roll(1, dims=-2), e, dim=-1)  # corner normals c_k = e_{k-1} x e_k
         c = torch.nn.functional.normalize(c, dim=-1)
-        cosines = c @ c.transpose(1, 2)  # (Q, 4, 4)
-        bad = (cosines <= 1e-12).flatten(1).any(dim=1)
-        return torch.nonzero(bad).flatten()
+        cosines = c @ c.transpose(-1, -2)  # (*B, Q, 4, 4)
+        bad = (cosines <= 1e-12).flatten(-2).any(dim=-1)  # (*B, Q): invalid in any batch element
+        return torch.nonzero(bad.reshape(-1, bad.shape[-1]).any(dim=0)).flatten()
 
     def triangle_normals(self, unit: bool = True) -> torch.Tensor:
-        """Outward normals of the triangles of :meth:`triangulated`, shape ``(T + 2Q, 3)``.
+        """Outward normals of the triangles of :meth:`triangulated`, shape ``(*B, T + 2Q, 3)``.
 
         With ``unit=False`` the normals are ``(b - a) x (c - a)``, of length twice the area.
         """
         tri = self.triangulated().triangles
-        p = self.vertices[tri]
-        n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+        p = self.vertices[..., tri, :]
+        n = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
         return torch.nn.functional.normalize(n, dim=-1) if unit else n
 
     def quad_corner_normals(self) -> torch.Tensor:
-        """Unnormalised quad corner normals ``N_k = (q_{k+1} - q_k) x (q_{k+3} - q_k)``, ``(Q, 4, 3)``."""
-        p = self.vertices[self.quads]
-        return torch.linalg.cross(p.roll(-1, dims=1) - p, p.roll(1, dims=1) - p, dim=-1)
+        """Unnormalised quad corner normals ``N_k = (q_{k+1} - q_k) x (q_{k+3} - q_k)``, ``(*B, Q, 4, 3)``."""
+        p = self.vertices[..., self.quads, :]
+        return torch.linalg.cross(p.roll(-1, dims=-2) - p, p.roll(1, dims=-2) - p, dim=-1)
 
     def edge_normals(self) -> torch.Tensor:
-        """Outward unit normals of the edges of a 2D cage, ``(E, 2)`` (right of each edge, for a
+        """Outward unit normals of the edges of a 2D cage, ``(*B, E, 2)`` (right of each edge, for a
         counter-clockwise polygon)."""
         if self.dim != 2:
             raise CageError("edge_normals() is for 2D cages; use triangle_normals() in 3D")
-        d = self.vertices[self.edges[:, 1]] - self.vertices[self.edges[:, 0]]
-        return torch.nn.functional.normalize(torch.stack([d[:, 1], -d[:, 0]], dim=1), dim=1)
+        d = self.vertices[..., self.edges[:, 1], :] - self.vertices[..., self.edges[:, 0], :]
+        return torch.nn.functional.normalize(torch.stack([d[..., 1], -d[..., 0]], dim=-1), dim=-1)
 
     def signed_volume(self) -> torch.Tensor:
-        """Signed volume (3D) or signed area (2D); positive for an outward-oriented cage."""
-        if self.dim == 2:
-            a = self.vertices[self.edges[:, 0]].to(torch.float64)
-            b = self.vertices[self.edges[:, 1]].to(torch.float64)
-            return (0.5 * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()).to(self.dtype)
-        tri = self.triangulated().triangles
+        """Signed volume (3D) or signed area (2D), ``(*B,)``; positive for an outward-oriented cage."""
         p = self.vertices.to(torch.float64)
-        p = p - p.mean(dim=0)
-        a, b, c = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
-        return ((a * torch.linalg.cross(b, c, dim=-1)).sum() / 6.0).to(self.dtype)
+        p = p - p.mean(dim=-2, keepdim=True)
+        if self.dim == 2:
+            a, b = p[..., self.edges[:, 0], :], p[..., self.edges[:, 1], :]
+            return (0.5 * (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]).sum(dim=-1)).to(self.dtype)
+        tri = self.triangulated().triangles
+        a, b, c = p[..., tri[:, 0], :], p[..., tri[:, 1], :], p[..., tri[:, 2], :]
+        return ((a * torch.linalg.cross(b, c, dim=-1)).sum(dim=(-2, -1)) / 6.0).to(self.dtype)
 
     def to(self, *args: Any, **kwargs: Any) -> Cage:
         """A copy on another dtype and/or device, with ``Tensor.to`` arguments (``cage.to(torch.float32)``,
@@ -312,11 +420,19 @@ class Cage:
         return c
 
     # ------------------------------------------------------------------ validation
-    def _validate(self) -> None:
+    def _validate(self, geometry: bool = True) -> None:
+        """Topology (the faces: indices, closed, manifold, consistently oriented), then, with
+        ``geometry``, every batch element's geometry (:meth:`_validate_geometry`)."""
+        for name, idx in (("triangles", self.triangles), ("quads", self.quads), ("edges", self.edges)):
+            self._check_indices(name, idx)
+        if geometry:  # zero-area faces first: they explain most topology errors that follow
+            self._check_degenerate()
         if self.dim == 3:
-            self._validate_3d()
+            self._validate_topology_3d()
         else:
-            self._validate_2d()
+            self._validate_topology_2d()
+        if geometry:
+            self._check_orientation(flip=True)
 
     def _check_indices(self, name: str, idx: torch.Tensor) -> None:
         if idx.numel() == 0:
@@ -332,32 +448,92 @@ class Cage:
             rows = torch.nonzero(rep).flatten()[:10].tolist()
             raise CageError(f"{name} {rows} repeat a vertex index; remove these degenerate {name}")
 
-    def _validate_3d(self) -> None:
-        tri, quads = self.triangles, self.quads
-        self._check_indices("triangles", tri)
-        self._check_indices("quads", quads)
-        v = self.vertices.to(torch.float64)
-        tol = DEGENERATE_TOLERANCE * self.scale**2
-        if tri.shape[0]:
-            p = v[tri]
-            area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
-            bad = torch.nonzero(area <= tol).flatten()
-            if bad.numel():
+    def _validate_geometry(self, flip: bool) -> None:
+        """Per batch element, vectorised over the batch: no zero-area face (zero-length edge in 2D),
+        and one orientation (see :meth:`_check_orientation`)."""
+        self._check_degenerate()
+        self._check_orientation(flip)
+
+    def _check_degenerate(self) -> None:
+        """No zero-area face (zero-length edge in 2D) in any batch element."""
+        v = self.vertices.detach().to(torch.float64).reshape(-1, self.num_vertices, self.dim)
+        scales = self._scales().reshape(-1)
+        batch = self.batch_shape
+        if self.dim == 3:
+            self._check_areas_3d(v, scales, batch)
+        else:
+            e = self.edges
+            length = (v[:, e[:, 1]] - v[:, e[:, 0]]).norm(dim=-1)  # (B, E)
+            bad = length <= DEGENERATE_TOLERANCE * scales[:, None]
+            if bool(bad.any()):
+                b = int(torch.nonzero(bad.any(dim=1))[0])
                 raise DegenerateFaceError(
-                    f"triangles {bad[:10].tolist()} have zero area (corners collinear or coincident); "
+                    f"edges {torch.nonzero(bad[b]).flatten()[:10].tolist()}{_batch_name(b, batch)} have zero "
+                    "length (coincident vertices); remove duplicate vertices"
+                )
+
+    def _check_orientation(self, flip: bool) -> None:
+        """A batch that is inside out everywhere is flipped (with a warning) when ``flip``; a batch
+        whose elements disagree, or any inside-out element when not ``flip``, raises, naming them."""
+        batch = self.batch_shape
+        vol = self.signed_volume().detach().reshape(-1)
+        neg = vol < 0
+        if not bool(neg.any()):
+            return
+        if not bool(neg.all()) or not flip:
+            bad = torch.nonzero(neg).flatten()
+            what = "signed volume" if self.dim == 3 else "signed area"
+            where = "; ".join(_batch_name(int(i), batch).removeprefix(" in ") for i in bad[:10]) or "the cage"
+            raise CageOrientationError(
+                f"{where} {'is' if bad.numel() == 1 else 'are'} inside out (negative {what}) for these faces, "
+                f"while the others are outward ({bad.numel()} of {vol.numel()}); reverse the corner order of "
+                "the faces only when every cage is inside out, or fix the vertices of those elements"
+            )
+        if self.dim == 3:
+            warnings.warn(
+                "the cage is oriented inward (negative signed volume); its faces were flipped so that "
+                "normals point outward",
+                stacklevel=4,
+            )
+            self.triangles = self.triangles[:, [0, 2, 1]]
+            self.quads = self.quads[:, [0, 3, 2, 1]]
+        else:
+            warnings.warn(
+                "the 2D cage runs clockwise (negative signed area); its edges were reversed so that it runs "
+                "counter-clockwise (vertex order, and so the order of the coordinates, is unchanged)",
+                stacklevel=4,
+            )
+            self.edges = self.edges[:, [1, 0]]
+
+    def _check_areas_3d(self, v: torch.Tensor, scales: torch.Tensor, batch: torch.Size) -> None:
+        """Zero-area triangles and quads of vertices ``v`` ``(B, V, 3)``, per batch element."""
+        tri, quads = self.triangles, self.quads
+        tol = DEGENERATE_TOLERANCE * scales[:, None] ** 2
+        checks = []
+        if tri.shape[0]:
+            p = v[:, tri]  # (B, T, 3, 3)
+            area = 0.5 * torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1).norm(
+                dim=-1
+            )
+            checks.append(("triangles", area <= tol, "have zero area (corners collinear or coincident)"))
+        if quads.shape[0]:
+            p = v[:, quads]  # (B, Q, 4, 3)
+
+            def tri_area(i: int, j: int, k: int) -> torch.Tensor:
+                return torch.linalg.cross(p[..., j, :] - p[..., i, :], p[..., k, :] - p[..., i, :], dim=-1).norm(dim=-1)
+
+            area = torch.minimum(tri_area(0, 1, 2) + tri_area(0, 2, 3), tri_area(1, 2, 3) + tri_area(1, 3, 0)) * 0.5
+            checks.append(("quads", area <= tol, "have zero area"))
+        for name, bad, why in checks:
+            if bool(bad.any()):
+                b = int(torch.nonzero(bad.any(dim=1))[0])
+                raise DegenerateFaceError(
+                    f"{name} {torch.nonzero(bad[b]).flatten()[:10].tolist()}{_batch_name(b, batch)} {why}; "
                     "remove them or move their vertices apart"
                 )
-        if quads.shape[0]:
-            p = v[quads]
-            a1 = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
-            a2 = torch.linalg.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0], dim=-1).norm(dim=-1)
-            b1 = torch.linalg.cross(p[:, 2] - p[:, 1], p[:, 3] - p[:, 1], dim=-1).norm(dim=-1)
-            b2 = torch.linalg.cross(p[:, 3] - p[:, 1], p[:, 0] - p[:, 1], dim=-1).norm(dim=-1)
-            bad = torch.nonzero(torch.minimum(a1 + a2, b1 + b2) * 0.5 <= tol).flatten()
-            if bad.numel():
-                raise DegenerateFaceError(
-                    f"quads {bad[:10].tolist()} have zero area; remove them or move their vertices apart"
-                )
+
+    def _validate_topology_3d(self) -> None:
+        tri, quads = self.triangles, self.quads
         # Directed half-edges: face k contributes (f[i], f[i+1]).
         polys = [tri, quads]
         src, dst, owner = [], [], []
@@ -400,15 +576,6 @@ class Cage:
                 "reverse the corner order of the wrongly oriented faces so that normals point outward"
             )
         self._check_vertex_fans(s, d, o)
-        vol = float(self.signed_volume().detach())
-        if vol < 0:
-            warnings.warn(
-                "the cage is oriented inward (negative signed volume); its faces were flipped so that "
-                "normals point outward",
-                stacklevel=3,
-            )
-            self.triangles = self.triangles[:, [0, 2, 1]]
-            self.quads = self.quads[:, [0, 3, 2, 1]]
 
     def _check_vertex_fans(self, src: torch.Tensor, dst: torch.Tensor, owner: torch.Tensor) -> None:
         """Around every vertex the faces must form one fan (a single cycle): two surfaces touching at
@@ -442,16 +609,8 @@ class Cage:
         T = self.triangles.shape[0]
         return [f"triangle {k}" for k in range(T)] + [f"quad {k}" for k in range(self.quads.shape[0])]
 
-    def _validate_2d(self) -> None:
+    def _validate_topology_2d(self) -> None:
         e = self.edges
-        self._check_indices("edges", e)
-        v = self.vertices.to(torch.float64)
-        length = (v[e[:, 1]] - v[e[:, 0]]).norm(dim=1)
-        bad = torch.nonzero(length <= DEGENERATE_TOLERANCE * self.scale).flatten()
-        if bad.numel():
-            raise DegenerateFaceError(
-                f"edges {bad[:10].tolist()} have zero length (coincident vertices); remove duplicate vertices"
-            )
         V = self.num_vertices
         used = torch.zeros(V, dtype=torch.bool, device=e.device)
         used[e.reshape(-1)] = True
@@ -472,10 +631,3 @@ class Cage:
                 f"edges {ab} meet at vertex {k} with inconsistent directions (both start or both end "
                 "there); give every closed polygon as a consistent loop (one edge in, one edge out)"
             )
-        if float(self.signed_volume()) < 0:
-            warnings.warn(
-                "the 2D cage runs clockwise (negative signed area); its edges were reversed so that it runs "
-                "counter-clockwise (vertex order, and so the order of the coordinates, is unchanged)",
-                stacklevel=3,
-            )
-            self.edges = self.edges[:, [1, 0]]

@@ -11,6 +11,7 @@ import torch
 
 from .. import _native
 from ..cage import Cage
+from ._batch import over_cage_batch
 from ._common import check_points, chunks, default_chunk, result_dtype
 from ._green2d import green2d_coordinates
 from ._green3d import green3d_coordinates, triangle_green_data
@@ -65,6 +66,10 @@ def green_coordinates(
         >>> torch.allclose(phi @ cube.vertices + psi @ cube.triangle_normals(), x)
         True
     """
+    if cage.is_batched:
+        return over_cage_batch(
+            green_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend
+        )
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     x = flat.to(compute)

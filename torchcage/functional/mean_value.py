@@ -13,6 +13,7 @@ import torch
 
 from ..autograd.mean_value import mean_value_function
 from ..cage import Cage
+from ._batch import over_cage_batch
 from ._common import check_points, records_graph, result_dtype
 from ._mvc3d import triangle_cage_data
 from ._mvc_dispatch import coordinates_flat
@@ -79,6 +80,10 @@ def mean_value_coordinates(
         >>> torch.allclose(w @ cube.vertices, x)
         True
     """
+    if cage.is_batched:
+        return over_cage_batch(
+            mean_value_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend
+        )
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     if records_graph(flat, cage.vertices):

@@ -41,6 +41,7 @@ from .. import _native
 from ..cage import Cage
 from ..errors import PointsError
 from . import _mvcd_native
+from ._batch import over_cage_batch
 from ._common import check_points, chunks, triangle_geometry
 from ._mvcd_torch import torch_derivatives
 
@@ -150,6 +151,10 @@ def mean_value_derivatives(
     """
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order}")
+    if cage.is_batched:
+        return over_cage_batch(
+            mean_value_derivatives, points, cage, order=order, chunk_size=chunk_size, progress=progress, backend=backend
+        )
     flat = check_points(points, cage)
     if cage.dim == 3:
         triangle_geometry(cage, torch.float64, "use cage.triangulated() to split quads")

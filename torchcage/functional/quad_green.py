@@ -9,6 +9,7 @@ import torch
 
 from .. import _native
 from ..cage import Cage
+from ._batch import over_cage_batch
 from ._common import chunks
 from ._green3d import triangle_green_geometry, triangle_integrals
 from ._green3d_native import native_subset_tables
@@ -138,6 +139,18 @@ def quad_green_coordinates(
         >>> torch.allclose(phi @ cube.vertices + psi @ N, x)
         True
     """
+    if cage.is_batched:
+        return over_cage_batch(
+            quad_green_coordinates,
+            points,
+            cage,
+            n=n,
+            chunk_size=chunk_size,
+            dtype=dtype,
+            progress=progress,
+            backend=backend,
+            allow_invalid=allow_invalid,
+        )
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
     T, Q, V = cage.triangles.shape[0], cage.quads.shape[0], cage.num_vertices
     tri_p = verts[cage.triangles]

@@ -12,6 +12,7 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ..errors import CageError, PointsError
+from ._batch import over_cage_batch
 from ._common import (
     check_points,
     chunks,
@@ -121,6 +122,18 @@ def quad_mean_value_coordinates(
         >>> torch.allclose(w @ cube.vertices, x), torch.allclose(w.sum(-1), torch.ones(2, dtype=torch.float64))
         (True, True)
     """
+    if cage.is_batched:
+        return over_cage_batch(
+            quad_mean_value_coordinates,
+            points,
+            cage,
+            n=n,
+            chunk_size=chunk_size,
+            dtype=dtype,
+            progress=progress,
+            backend=backend,
+            allow_invalid=allow_invalid,
+        )
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
     lib = _native.select(backend, x, cage.vertices)
     T, Q = cage.triangles.shape[0], cage.quads.shape[0]
