@@ -29,7 +29,7 @@ from . import abi
 
 __all__ = ["available", "call", "failure_reason", "library", "select"]
 
-_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c", "qmvc3d.c", "qgc3d.c", "mvcd3d.c", "mvcd2d.c")
+_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c", "qmvc3d.c", "qgc3d.c", "mvcd3d.c", "mvcd2d.c", "mvc3d_vjp.c")
 _HEADERS = ("native.h", "jet.h")
 
 _lock = threading.Lock()

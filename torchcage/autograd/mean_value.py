@@ -26,7 +26,9 @@ from torch._C._functorch import is_functorch_wrapped_tensor
 
 from .. import _native
 from ..cage import Cage
-from ..functional._common import check_finite, result_dtype
+from ..functional._common import check_finite, on_cage_tolerance, result_dtype
+from ..functional._mvc3d_vjp import direct_vjp
+from ..functional._mvc3d_vjp_native import native_vjp
 from ..functional._mvc_dispatch import coordinates_flat
 from ..functional.mean_value_derivatives import derivatives_flat
 
@@ -116,15 +118,28 @@ torch.library.register_vmap("torchcage::mean_value_derivatives", _derivatives_vm
 
 
 # ----------------------------------------------------------------------------------- Functions
+#: Points per chunk of the autograd fallbacks below: their saved intermediates, not the points,
+#: bound the memory of a backward pass (about 1 KB per point-face pair).
+_VJP_PAIRS = 1 << 17
+
+
+def _row_chunks(points: Tensor, faces: Tensor) -> list[slice]:
+    size = max(64, _VJP_PAIRS // max(1, faces.shape[0]))
+    return [slice(s, s + size) for s in range(0, points.shape[0], size)]
+
+
 def _vertex_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:
-    """``sum g * d lam / d vertices`` by autograd of the torch kernel (kept differentiable when the
-    caller records a graph: double backward)."""
+    """``sum g * d lam / d vertices`` by autograd of the torch kernel, chunk by chunk of points (kept
+    differentiable when the caller records a graph: double backward)."""
     create = torch.is_grad_enabled()
-    with torch.enable_grad():
-        P = vertices if create and vertices.requires_grad else vertices.detach().requires_grad_()
-        lam = _torch_coordinates(points if create else points.detach(), P, faces)
-        (gP,) = torch.autograd.grad(lam, P, g, create_graph=create)
-    return gP
+    total = torch.zeros_like(vertices)
+    for sl in _row_chunks(points, faces):
+        with torch.enable_grad():
+            P = vertices if create and vertices.requires_grad else vertices.detach().requires_grad_()
+            lam = _torch_coordinates(points[sl] if create else points[sl].detach(), P, faces)
+            (gP,) = torch.autograd.grad(lam, P, g[sl], create_graph=create)
+        total = total + gP
+    return total
 
 
 def _analytic(points: Tensor) -> bool:
@@ -134,14 +149,57 @@ def _analytic(points: Tensor) -> bool:
 
 
 def _point_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:
-    """``sum g * d lam / d points`` by autograd of the torch kernel: where the native derivatives
-    cannot serve (a GPU, no C compiler). Kept differentiable when the caller records a graph."""
+    """``sum g * d lam / d points`` by autograd of the torch kernel, chunk by chunk: where the native
+    derivatives cannot serve (a GPU, no C compiler). Kept differentiable when the caller records a
+    graph."""
     create = torch.is_grad_enabled()
-    with torch.enable_grad():
-        x = points if create and points.requires_grad else points.detach().requires_grad_()
-        lam = _torch_coordinates(x, vertices if create else vertices.detach(), faces)
-        (gx,) = torch.autograd.grad(lam, x, g, create_graph=create)
-    return gx
+    parts = []
+    for sl in _row_chunks(points, faces):
+        with torch.enable_grad():
+            x = points[sl] if create and points.requires_grad else points[sl].detach().requires_grad_()
+            lam = _torch_coordinates(x, vertices if create else vertices.detach(), faces)
+            (gx,) = torch.autograd.grad(lam, x, g[sl], create_graph=create)
+        parts.append(gx)
+    return torch.cat(parts) if parts else torch.zeros_like(points)
+
+
+def _point_grad(x: Tensor, P: Tensor, faces: Tensor, g: Tensor) -> Tensor:
+    """``sum g * d lam / d points``: the analytic gradients where the native kernel serves, else
+    autograd of the torch kernel."""
+    if _analytic(x):
+        return torch.einsum("nv,nvc->nc", g, MeanValueGradFunction.apply(x, P, faces))
+    return _point_vjp(x, P, faces, g)
+
+
+def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> tuple[Tensor | None, Tensor]:
+    """First-order products with respect to the points and the rest vertices of a 3D cage at once:
+    the hand-derived reverse mode of the direct form (``_mvc3d_vjp``) for the regular points, chunk
+    by chunk; the others (near a support plane, on the cage, far outside) as in
+    :meth:`MeanValueFunction.backward`'s general path, restricted to them."""
+    dt = torch.float64 if x.device.type != "mps" else x.dtype
+    x64, P64, g64 = x.detach().to(dt), P.detach().to(dt), g.to(dt)
+    tol = on_cage_tolerance(_cage(P64, faces))
+    gx = torch.zeros_like(x64)
+    gP = torch.zeros_like(P64)
+    lib = _native.library() if x.device.type == "cpu" and dt == torch.float64 else None
+    if lib is not None:  # one pass over all points: the kernel needs no temporaries beyond its outputs
+        gx, gP, reg = native_vjp(lib, x64, P64, faces, g64, tol)
+        idx = torch.nonzero(~reg).flatten()
+    else:
+        size = max(64, (1 << 16) // max(1, faces.shape[0]))
+        irregular = []
+        for s in range(0, x.shape[0], size):
+            gxc, gPc, reg = direct_vjp(x64[s : s + size], P64, faces, g64[s : s + size], tol)
+            gx[s : s + size] = gxc
+            gP += gPc
+            irregular.append(torch.nonzero(~reg).flatten() + s)
+        idx = torch.cat(irregular) if irregular else torch.zeros(0, dtype=torch.long, device=x.device)
+    if idx.numel():
+        xi, gi = x.index_select(0, idx), g.index_select(0, idx)
+        gP += _vertex_vjp(xi, P, faces, gi).to(dt)
+        if need_x:
+            gx[idx] = _point_grad(xi, P, faces, gi).to(dt)
+    return (gx.to(x.dtype) if need_x else None), gP.to(P.dtype)
 
 
 def _vertex_grad_vjp(points: Tensor, vertices: Tensor, faces: Tensor, G: Tensor) -> Tensor:
@@ -249,13 +307,12 @@ class MeanValueFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g: Tensor):
         x, P = ctx.saved_tensors
-        gx = gP = None
-        if ctx.needs_input_grad[0] and _analytic(x):
-            gx = torch.einsum("nv,nvc->nc", g, MeanValueGradFunction.apply(x, P, ctx.faces))
-        elif ctx.needs_input_grad[0]:
-            gx = _point_vjp(x, P, ctx.faces, g)
-        if ctx.needs_input_grad[1]:
-            gP = _vertex_vjp(x, P, ctx.faces, g)
+        need_x, need_P = ctx.needs_input_grad[:2]
+        if need_P and x.shape[-1] == 3 and not torch.is_grad_enabled():
+            # first order (no double backward) with respect to the rest cage: one fused pass
+            return *_joint_vjp(x, P, ctx.faces, g, need_x), None, None, None
+        gx = _point_grad(x, P, ctx.faces, g) if need_x else None
+        gP = _vertex_vjp(x, P, ctx.faces, g) if need_P else None
         return gx, gP, None, None, None
 
     @staticmethod
@@ -272,6 +329,7 @@ def mean_value_function(points: Tensor, cage: Cage, chunk_size: int | None = Non
     same values, derivatives to about 1e-12 relative; see docs/accuracy.md). The one place that
     chooses between them."""
     faces = cage.triangles if cage.dim == 3 else cage.edges
-    if not _analytic(points):
+    if not _analytic(points) and is_functorch_wrapped_tensor(points):
+        # torch.func transforms without the native kernel: autograd of the torch kernel throughout
         return _torch_coordinates(points, cage.vertices, faces)
     return MeanValueFunction.apply(points, cage.vertices, faces, chunk_size or 0, backend)

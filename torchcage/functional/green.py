@@ -8,14 +8,14 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
+from torch._C._functorch import is_functorch_wrapped_tensor
 
-from .. import _native
+from ..autograd.green import green_function
 from ..cage import Cage
 from ._batch import over_cage_batch
-from ._common import check_points, chunks, default_chunk, result_dtype
-from ._green2d import green2d_coordinates
-from ._green3d import green3d_coordinates, triangle_green_data
-from ._green3d_native import native_chunk, native_tables
+from ._common import check_points, records_graph, result_dtype
+from ._green3d import triangle_green_data
+from ._green_dispatch import green_flat
 
 __all__ = ["green_coordinates"]
 
@@ -72,30 +72,11 @@ def green_coordinates(
         )
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
-    x = flat.to(compute)
-    lib = _native.select(backend, x, cage.vertices)
-    if cage.dim == 3:
-        data = triangle_green_data(cage, compute)
-        T = data.tri.shape[0]
-        tables = native_tables(data, cage.vertices.to(compute)) if lib is not None else {}
-
-        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            return green3d_coordinates(c, data, cage.num_vertices)
+    if records_graph(flat, cage.vertices) and not is_functorch_wrapped_tensor(flat):
+        if cage.dim == 3:
+            triangle_green_data(cage, compute)  # the same checks as the plain path (a triangle cage)
+        phi, psi = green_function(flat, cage, chunk_size, backend)
     else:
-        T = cage.edges.shape[0]
-        poly = cage.to(compute)
-
-        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            return green2d_coordinates(c, poly)
-
-    # The native kernel needs no temporaries beyond its outputs: chunks only pace the progress bar.
-    size = chunk_size if chunk_size is not None else default_chunk(T, 1 << 23 if lib is not None else 1 << 17)
-    phi = torch.empty(x.shape[0], cage.num_vertices, dtype=compute, device=x.device)
-    psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
-    for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
-        if lib is not None:  # writes straight into the row blocks (contiguous): no copies
-            native_chunk(x[sl], tables, lib, phi[sl], psi[sl])
-        else:
-            phi[sl], psi[sl] = kernel(x[sl])
+        phi, psi = green_flat(flat.to(compute), cage, chunk_size, progress, backend)
     lead = points.shape[:-1]
-    return phi.to(out_dtype).reshape(*lead, cage.num_vertices), psi.to(out_dtype).reshape(*lead, T)
+    return phi.to(out_dtype).reshape(*lead, cage.num_vertices), psi.to(out_dtype).reshape(*lead, psi.shape[-1])

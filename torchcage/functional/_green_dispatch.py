@@ -1,0 +1,55 @@
+"""Green coordinates of checked points without an autograd Function: the one place that picks a
+kernel (native C or torch) and runs it over chunks of points. Both the public function
+(:mod:`.green`) and the autograd Function (:mod:`torchcage.autograd.green`) import it."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from .. import _native
+from ..cage import Cage
+from ._common import chunks, default_chunk
+from ._green2d import green2d_coordinates
+from ._green3d import green3d_coordinates, triangle_green_data
+from ._green3d_native import native_chunk, native_tables
+
+__all__ = ["green_flat"]
+
+
+def green_flat(
+    x: torch.Tensor,
+    cage: Cage,
+    chunk_size: int | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(phi (N, V), psi (N, T))`` of checked points ``x`` ``(N, D)`` in their dtype, chunk by chunk
+    (the torch kernel records autograd when its inputs require grad; the native one never does)."""
+    compute = x.dtype
+    lib = _native.select(backend, x, cage.vertices)
+    if cage.dim == 3:
+        data = triangle_green_data(cage, compute)
+        T = data.tri.shape[0]
+        tables = native_tables(data, cage.vertices.to(compute)) if lib is not None else {}
+
+        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return green3d_coordinates(c, data, cage.num_vertices)
+    else:
+        T = cage.edges.shape[0]
+        poly = cage.to(compute)
+
+        def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return green2d_coordinates(c, poly)
+
+    # The native kernel needs no temporaries beyond its outputs: chunks only pace the progress bar.
+    size = chunk_size if chunk_size is not None else default_chunk(T, 1 << 23 if lib is not None else 1 << 17)
+    phi = torch.empty(x.shape[0], cage.num_vertices, dtype=compute, device=x.device)
+    psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
+    for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
+        if lib is not None:  # writes straight into the row blocks (contiguous): no copies
+            native_chunk(x[sl], tables, lib, phi[sl], psi[sl])
+        else:
+            phi[sl], psi[sl] = kernel(x[sl])
+    return phi, psi
