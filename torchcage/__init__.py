@@ -20,6 +20,7 @@ from .errors import (
     OutsideCageWarning,
     PointsError,
 )
+from .functional.deform import deform
 from .io import load_cage, load_mesh, save_cage, save_mesh
 from .nn import (
     GreenCoordinates,
@@ -46,6 +47,7 @@ __all__ = [
     "QuadMeanValueCoordinates",
     "__version__",
     "data",
+    "deform",
     "functional",
     "load_cage",
     "load_mesh",

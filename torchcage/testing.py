@@ -27,6 +27,7 @@ __all__ = [
     "assert_linear_precision",
     "assert_partition_of_unity",
     "hard_cages",
+    "icosphere",
     "sliver_cube",
     "twisted_bar",
 ]
@@ -126,6 +127,46 @@ def twisted_bar(levels: int = 4, twist: float = 90.0, quads: bool = True, dtype:
             faces.append([4 * k + i, 4 * k + j, 4 * (k + 1) + j, 4 * (k + 1) + i])
     cage = Cage(torch.tensor(verts, dtype=dtype), faces)
     return cage if quads else cage.triangulated()
+
+
+def icosphere(subdivisions: int = 1, radius: float = 1.0, dtype: torch.dtype = torch.float64) -> Cage:
+    """A geodesic sphere: the icosahedron with each triangle split into four ``subdivisions`` times,
+    vertices pushed onto the sphere. ``subdivisions=1`` gives 42 vertices and 80 triangles, the
+    template size of Neural Cages.
+
+    Example:
+        >>> from torchcage.testing import icosphere
+        >>> ico = icosphere()
+        >>> ico.num_vertices, ico.triangles.shape[0]
+        (42, 80)
+    """
+    from .cage import Cage
+
+    t = (1 + 5**0.5) / 2
+    verts = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t]]
+    verts += [[0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
+    verts = [[float(c) for c in v] for v in verts]
+    faces = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2]]
+    faces += [[10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5]]
+    faces += [[2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    for _ in range(subdivisions):
+        mid: dict[tuple[int, int], int] = {}
+
+        def midpoint(a: int, b: int, mid: dict[tuple[int, int], int] = mid) -> int:
+            key = (min(a, b), max(a, b))
+            if key not in mid:
+                mid[key] = len(verts)
+                verts.append([(verts[a][k] + verts[b][k]) / 2 for k in range(3)])
+            return mid[key]
+
+        split = []
+        for a, b, c in faces:
+            ab, bc, ca = midpoint(a, b), midpoint(b, c), midpoint(c, a)
+            split += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        faces = split
+    v = torch.tensor(verts, dtype=torch.float64)
+    v = radius * v / v.norm(dim=1, keepdim=True)
+    return Cage(v.to(dtype), torch.tensor(faces))
 
 
 def hard_cages(dtype: torch.dtype = torch.float64) -> dict[str, Cage]:

@@ -4,6 +4,7 @@ Every function takes query points ``(*, D)`` and a :class:`~torchcage.Cage` and 
 coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
 """
 
+from .deform import deform
 from .green import green_coordinates
 from .local_barycentric import local_barycentric_coordinates, locality_statistics, solve_local_barycentric
 from .mean_value import mean_value_coordinates
@@ -12,6 +13,7 @@ from .quad_green import quad_green_coordinates
 from .quad_mean_value import quad_mean_value_coordinates
 
 __all__ = [
+    "deform",
     "green_coordinates",
     "local_barycentric_coordinates",
     "locality_statistics",

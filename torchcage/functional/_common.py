@@ -138,6 +138,11 @@ def check_points(points: torch.Tensor, cage: Cage) -> torch.Tensor:
         TypeError: ``points`` is not a floating-point tensor.
         PointsError: wrong last dimension, non-finite values, or a device other than the cage's.
     """
+    if cage.is_batched:
+        raise CageError(
+            f"this function takes one cage, got a batch of shape {tuple(cage.batch_shape)}; call it per element "
+            "(cage[b]) or use a closed-form method (mean value, Green, quad mean value, quad Green), which take batches"
+        )
     if not isinstance(points, torch.Tensor):
         points = torch.as_tensor(points)
         if not points.is_floating_point():

@@ -39,7 +39,7 @@ def stretched_normals(rest: torch.Tensor, deformed: torch.Tensor, edges: torch.T
     (the 2D Green deformation's ``s_j n'_j``), differentiable in ``deformed``.
 
     Args:
-        rest: ``(V, 2)`` rest vertices.
+        rest: ``(V, 2)`` rest vertices (or ``(*B, V, 2)``, broadcast with ``deformed``).
         deformed: ``(*, V, 2)`` deformed vertices.
         edges: ``(E, 2)`` counter-clockwise edges.
 
@@ -53,9 +53,9 @@ def stretched_normals(rest: torch.Tensor, deformed: torch.Tensor, edges: torch.T
         >>> stretched_normals(sq, 2 * sq, e)[0]
         tensor([ 0., -2.])
     """
-    a0 = rest[edges[:, 1]] - rest[edges[:, 0]]
+    a0 = rest[..., edges[:, 1], :] - rest[..., edges[:, 0], :]
     a1 = deformed[..., edges[:, 1], :] - deformed[..., edges[:, 0], :]
-    return torch.stack([a1[..., 1], -a1[..., 0]], dim=-1) / a0.norm(dim=-1).to(deformed.dtype)[:, None]
+    return torch.stack([a1[..., 1], -a1[..., 0]], dim=-1) / a0.norm(dim=-1).to(deformed.dtype)[..., None]
 
 
 def triangle_frames(vertices: torch.Tensor, triangles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

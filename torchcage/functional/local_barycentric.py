@@ -17,7 +17,7 @@ from typing import Any
 import torch
 
 from ..cage import Cage
-from ..errors import PointsError
+from ..errors import CageError, PointsError
 from ..solvers.domain import Domain, mesh_domain, user_domain
 from ..solvers.lbc import LBCResult, make_feasible, solve_lbc
 from ._common import check_points
@@ -51,6 +51,11 @@ def solve_local_barycentric(
         The :class:`~torchcage.solvers.lbc.LBCResult` (weights at the mesh vertices, iterations,
         residuals, convergence, objective).
     """
+    if cage.is_batched:
+        raise CageError(
+            f"local barycentric coordinates are solved for one cage at a time, got a batch of shape "
+            f"{tuple(cage.batch_shape)}; solve per element (cage[b])"
+        )
     if isinstance(domain, Domain):
         dom = domain
     elif domain is not None:

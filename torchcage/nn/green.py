@@ -7,8 +7,9 @@ import torch
 from ..cage import Cage
 from ..errors import warn_outside
 from ..functional._stretch import conformal_stretch, stretched_normals, stretched_triangle_normals, triangle_frames
+from ..functional.deform import green_deformation
 from ..functional.green import green_coordinates
-from .base import CageModule, module_points
+from .base import CageModule, detached, module_points
 
 # The stretch helpers live in functional/_stretch.py; they are re-exported here for existing imports.
 __all__ = [
@@ -63,21 +64,17 @@ class GreenCoordinates(CageModule):
         self, cage: Cage, points: torch.Tensor, *, chunk_size: int | None = None, dtype: torch.dtype = torch.float64
     ) -> None:
         points = module_points(points, cage)
+        cage = detached(cage)
         phi, psi = green_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype)
         super().__init__(cage, points)
-        phi = phi.reshape(-1, cage.num_vertices)
-        warn_outside(phi.sum(dim=1), "Green coordinates")
+        warn_outside(phi.sum(dim=-1).reshape(-1), "Green coordinates")
         self.register_buffer("phi", phi)
-        self.register_buffer("psi", psi.reshape(phi.shape[0], psi.shape[-1]))
+        self.register_buffer("psi", psi)
         self.register_buffer("triangles", cage.triangles.clone())
         self.register_buffer("edges", cage.edges.clone())
 
     def forward(self, vertices: torch.Tensor) -> torch.Tensor:
         """Deformed points ``(*, N, D)`` for deformed cage vertices ``(*, V, D)``."""
         self._check_vertices(vertices, self.phi)
-        if self.dim == 2:
-            # s_j n'_j = R(-90) a'_j / |a_j|: the stretch |a'| / |a| times the unit outward normal.
-            sn = stretched_normals(self.rest_vertices, vertices, self.edges)
-        else:
-            sn = stretched_triangle_normals(self.rest_vertices, vertices, self.triangles)
-        return torch.matmul(self.phi.to(vertices.dtype), vertices) + torch.matmul(self.psi.to(vertices.dtype), sn)
+        faces = self.edges if self.dim == 2 else self.triangles
+        return green_deformation(self.phi, self.psi, self.rest_vertices, vertices, faces)

@@ -7,7 +7,7 @@ import torch
 from ..cage import Cage
 from ..functional.mean_value import mean_value_coordinates
 from ..functional.mean_value_derivatives import mean_value_derivatives
-from .base import DenseWeightsModule, module_points
+from .base import DenseWeightsModule, detached, module_points
 
 __all__ = ["MeanValueCoordinates"]
 
@@ -66,9 +66,10 @@ class MeanValueCoordinates(DenseWeightsModule):
         if store_derivatives not in (0, 1, 2):
             raise ValueError(f"store_derivatives must be 0, 1 or 2, got {store_derivatives}")
         points = module_points(points, cage)
+        cage = detached(cage)
         w = mean_value_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress)
         super().__init__(cage, points)
-        self.register_buffer("weights", w.reshape(-1, cage.num_vertices))
+        self.register_buffer("weights", w)
         self.register_buffer("faces", (cage.triangles if cage.dim == 3 else cage.edges).detach().clone())
         g = h = None
         if store_derivatives:
@@ -97,7 +98,7 @@ class MeanValueCoordinates(DenseWeightsModule):
         """
         self._check_vertices(vertices, self.weights)
         g = self._derivative(1, vertices.dtype)  # (N, V, D)
-        return torch.einsum("nvc,...va->...nac", g, vertices)
+        return torch.einsum("...nvc,...va->...nac", g, vertices)
 
     def hessian(self, vertices: torch.Tensor) -> torch.Tensor:
         """Hessian of the deformation at the embedded points, ``H[..., n, a, c, d] =
@@ -105,4 +106,4 @@ class MeanValueCoordinates(DenseWeightsModule):
         differentiable with respect to them. Zero for affine motions of the cage."""
         self._check_vertices(vertices, self.weights)
         h = self._derivative(2, vertices.dtype)  # (N, V, D, D)
-        return torch.einsum("nvcd,...va->...nacd", h, vertices)
+        return torch.einsum("...nvcd,...va->...nacd", h, vertices)

@@ -6,7 +6,7 @@ import torch
 
 from ..cage import Cage
 from ..functional.quad_mean_value import quad_mean_value_coordinates
-from .base import DenseWeightsModule, module_points
+from .base import DenseWeightsModule, detached, module_points
 
 __all__ = ["QuadMeanValueCoordinates"]
 
@@ -56,13 +56,14 @@ class QuadMeanValueCoordinates(DenseWeightsModule):
         progress: bool = False,
         allow_invalid: bool = False,
     ) -> None:
-        pts = module_points(points, cage).detach()
+        pts = module_points(points, cage)
+        cage = detached(cage)
         w = quad_mean_value_coordinates(
             pts, cage, n, chunk_size=chunk_size, dtype=dtype, progress=progress, allow_invalid=allow_invalid
         )
         super().__init__(cage, pts)
         self.n = n
-        self.register_buffer("weights", w.reshape(-1, cage.num_vertices))
+        self.register_buffer("weights", w)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", n={self.n}"

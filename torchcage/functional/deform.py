@@ -1,0 +1,170 @@
+"""Deformation by cage coordinates: the maps from coordinates and a deformed cage to deformed
+points (used by the modules' ``forward``), and :func:`deform`, which recomputes the coordinates
+under autograd on each call (rest cage and points differentiable: the Neural Cages pattern).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ..cage import Cage
+from ._common import safe_norm
+from ._qgc3d import corner_normals
+from ._stretch import conformal_stretch, stretched_normals, stretched_triangle_normals
+from .green import green_coordinates
+from .mean_value import mean_value_coordinates
+from .quad_green import quad_green_coordinates
+from .quad_mean_value import quad_mean_value_coordinates
+
+__all__ = ["deform", "green_deformation", "quad_corner_factors", "quad_green_deformation"]
+
+_PATTERN = (torch.arange(5, dtype=torch.float64) + 0.5) / 5
+
+
+def quad_corner_factors(rest: torch.Tensor, deformed: torch.Tensor) -> torch.Tensor:
+    """Per-corner correction factors of quads (Thiery and Boubekeur 2022, Eq. 22):
+    ``sigma_k = sum_s b_k(s) sigma_L(s) |N(s)| / sum_s b_k(s) |N'(s)|`` over a 5 x 5 pattern of the
+    (u, v) square, ``sigma_L`` Lipman's stretch of the sheet's tangent map and ``N`` (``N'``) the
+    rest (deformed) sheet normal. For a similarity of scale ``s`` every factor is ``1 / s``, so that
+    ``sigma_k N'_k`` is ``s R N_k``. A quad collapsed to zero area gets factors 0 (its corner
+    normals are zero anyway).
+
+    Args:
+        rest: ``(Q, 4, 3)`` rest quad corners.
+        deformed: ``(*, Q, 4, 3)`` deformed quad corners.
+
+    Returns:
+        ``(*, Q, 4)``.
+    """
+    t = _PATTERN.to(deformed)
+    u, v = (g.reshape(-1) for g in torch.meshgrid(t, t, indexing="ij"))  # (S,)
+    b = torch.stack([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=-1)  # (S, 4)
+
+    def tangents(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        q0, q1, q2, q3 = (q[..., None, i, :] for i in range(4))  # (*, Q, 1, 3)
+        du = (1 - v)[:, None] * (q1 - q0) + v[:, None] * (q2 - q3)
+        dv = (1 - u)[:, None] * (q3 - q0) + u[:, None] * (q2 - q1)
+        return du, dv  # (*, Q, S, 3)
+
+    du0, dv0 = tangents(rest.to(deformed.dtype))
+    du1, dv1 = tangents(deformed)
+    area0 = safe_norm(torch.linalg.cross(du0, dv0, dim=-1))
+    area1 = safe_norm(torch.linalg.cross(du1, dv1, dim=-1))
+    num = torch.einsum("...s,sk->...k", conformal_stretch(du0, dv0, du1, dv1) * area0, b)
+    den = torch.einsum("...s,sk->...k", area1, b)
+    return torch.where(den > 0, num / torch.where(den > 0, den, 1.0), 0.0)
+
+
+def green_deformation(
+    phi: torch.Tensor, psi: torch.Tensor, rest: torch.Tensor, deformed: torch.Tensor, faces: torch.Tensor
+) -> torch.Tensor:
+    """``phi @ V' + psi @ (s n')``: Green deformation with Lipman's stretch factors (3D; the edge
+    stretch ``|a'| / |a|`` in 2D), differentiable with respect to everything.
+
+    Args:
+        phi: ``(*B, N, V)``; psi: ``(*B, N, T)`` (``T`` triangles, or edges in 2D).
+        rest: ``(*B, V, D)`` rest vertices; deformed: ``(*, *B, V, D)``.
+        faces: ``(T, 3)`` triangles, or ``(E, 2)`` edges in 2D.
+
+    Returns:
+        ``(*, *B, N, D)`` deformed points.
+    """
+    dt = deformed.dtype
+    if deformed.shape[-1] == 2:
+        sn = stretched_normals(rest, deformed, faces)
+    else:
+        sn = stretched_triangle_normals(rest, deformed, faces)
+    return torch.matmul(phi.to(dt), deformed) + torch.matmul(psi.to(dt), sn)
+
+
+def quad_green_deformation(
+    phi: torch.Tensor,
+    psi: torch.Tensor,
+    rest: torch.Tensor,
+    deformed: torch.Tensor,
+    triangles: torch.Tensor,
+    quads: torch.Tensor,
+    correction: str = "conformal",
+) -> torch.Tensor:
+    """Quad Green deformation: ``phi @ V' + psi[:T] @ (s_t n'_t) + sum psi[T+4q+k] sigma_qk N'_qk``.
+
+    Args:
+        phi: ``(*B, N, V)``; psi: ``(*B, N, T + 4Q)``.
+        rest: ``(*B, V, 3)``; deformed: ``(*, *B, V, 3)``.
+        triangles: ``(T, 3)``; quads: ``(Q, 4)``.
+        correction: ``"conformal"`` (corner factors, Eq. 22) or ``"area"`` (factors 1).
+
+    Returns:
+        ``(*, *B, N, 3)`` deformed points.
+    """
+    dt = deformed.dtype
+    T = triangles.shape[0]
+    out = torch.matmul(phi.to(dt), deformed)
+    if T:
+        sn = stretched_triangle_normals(rest, deformed, triangles)
+        out = out + torch.matmul(psi[..., :T].to(dt), sn)
+    if quads.shape[0]:
+        q1 = deformed[..., quads, :]  # (*, Q, 4, 3)
+        N1 = corner_normals(q1)
+        if correction == "conformal":
+            N1 = quad_corner_factors(rest[..., quads, :], q1)[..., None] * N1
+        out = out + torch.matmul(psi[..., T:].to(dt), N1.flatten(-3, -2))
+    return out
+
+
+_METHODS = ("mvc", "qmvc", "gc", "qgc")
+
+
+def deform(
+    points: torch.Tensor, cage: Cage, vertices: torch.Tensor, method: str = "mvc", **options: Any
+) -> torch.Tensor:
+    """Deform points with coordinates recomputed, under autograd, on every call: differentiable
+    with respect to the points, the rest cage's vertices and the deformed vertices (a network that
+    predicts both the source cage and its deformation, as in Neural Cages).
+
+    The coordinate modules compute their coordinates once and store them as constants; use this
+    when the rest cage or the points change from call to call. Gradients with respect to the rest
+    cage and the points come from custom autograd Functions (mean value: one fused analytic pass;
+    Green: recomputation chunk by chunk) whose memory is that of the coordinates, not of autograd's
+    intermediates.
+
+    Args:
+        points: ``(N, D)``, or ``(*B, N, D)`` with a batched cage (``(N, D)`` is shared).
+        cage: the rest cage, ``(V, D)`` or batched ``(*B, V, D)``.
+        vertices: deformed vertices ``(*, V, D)`` (``(*, *B, V, D)`` for a batched cage).
+        method: ``"mvc"`` (mean value), ``"qmvc"`` (quad mean value), ``"gc"`` (Green), ``"qgc"``
+            (quad Green; ``correction=`` is passed to the deformation).
+        **options: passed to the coordinate function (``chunk_size``, ``n``, ``backend``, ...).
+
+    Returns:
+        ``(*, *B, N, D)`` deformed points.
+
+    Example:
+        >>> import torch, torchcage
+        >>> ico = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+        >>> rest = ico.vertices.expand(2, -1, -1).clone().requires_grad_()   # two predicted rest cages
+        >>> x = torch.rand(2, 10, 3, dtype=torch.float64) * 1.6 - 0.8
+        >>> y = torchcage.deform(x, torchcage.Cage(rest, ico.triangles), 2 * rest)
+        >>> torch.allclose(y, 2 * x), y.shape
+        (True, torch.Size([2, 10, 3]))
+        >>> y.sum().backward(); rest.grad.shape
+        torch.Size([2, 8, 3])
+    """
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+    if not isinstance(vertices, torch.Tensor) or tuple(vertices.shape[-2:]) != (cage.num_vertices, cage.dim):
+        shape = tuple(vertices.shape) if isinstance(vertices, torch.Tensor) else type(vertices).__name__
+        raise ValueError(f"vertices must have shape (*, {cage.num_vertices}, {cage.dim}), got {shape}")
+    if method == "mvc":
+        return torch.matmul(mean_value_coordinates(points, cage, **options).to(vertices.dtype), vertices)
+    if method == "qmvc":
+        return torch.matmul(quad_mean_value_coordinates(points, cage, **options).to(vertices.dtype), vertices)
+    if method == "gc":
+        phi, psi = green_coordinates(points, cage, **options)
+        faces = cage.edges if cage.dim == 2 else cage.triangles
+        return green_deformation(phi, psi, cage.vertices, vertices, faces)
+    correction = options.pop("correction", "conformal")
+    phi, psi = quad_green_coordinates(points, cage, **options)
+    return quad_green_deformation(phi, psi, cage.vertices, vertices, cage.triangles, cage.quads, correction)
