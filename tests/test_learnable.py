@@ -106,7 +106,7 @@ def test_batched_2d_and_derivatives():
     x = 0.2 + 0.6 * torch.rand(2, 30, 2, generator=g, dtype=D64)
     w = F.mean_value_coordinates(x, bc)
     phi, psi = F.green_coordinates(x, bc)
-    lam, grad, hess = F.mean_value_derivatives(x, bc)
+    _, grad, hess = F.mean_value_derivatives(x, bc)
     for b in range(2):
         cb = torchcage.Cage(V[b])
         assert (w[b] - F.mean_value_coordinates(x[b], cb)).abs().max() < 1e-12
