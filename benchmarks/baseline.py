@@ -60,3 +60,28 @@ def textbook_vector_form(points: torch.Tensor, vertices: torch.Tensor, triangles
     w = torch.stack([(N[i] * m).sum(-1) / det for i in range(3)], -1).reshape(points.shape[0], -1)
     W = torch.zeros(points.shape[0], vertices.shape[0], dtype=points.dtype).index_add(1, triangles.reshape(-1), w)
     return W / W.sum(-1, keepdim=True)
+
+
+def dense_batched_mean_value_coordinates(x: torch.Tensor, P: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """The batched dense formulation common in learning code (the Neural Cages pattern): the
+    half-angle formula of Ju, Schaefer and Warren (2005) on every (shape, point, face) triple at
+    once, differentiable by plain autograd with respect to points and rest cages.
+
+    ``x`` ``(B, N, 3)``, ``P`` ``(B, V, 3)``, ``faces`` ``(F, 3)`` -> ``(B, N, V)``. Written here
+    from the published formula (no special cases beyond a clamp that keeps ``sqrt`` real).
+    """
+    d = P[:, None] - x[:, :, None]  # (B, N, V, 3)
+    r = d.norm(dim=-1)
+    u = d / r[..., None]
+    uf = u[:, :, faces]  # (B, N, F, 3, 3)
+    rf = r[:, :, faces]
+    nxt, prv = [1, 2, 0], [2, 0, 1]
+    l = (uf[..., nxt, :] - uf[..., prv, :]).norm(dim=-1)  # edge opposite each corner, on the sphere
+    th = 2 * torch.asin((l / 2).clamp(max=1))
+    h = th.sum(-1, keepdim=True) / 2
+    c = 2 * torch.sin(h) * torch.sin(h - th) / (torch.sin(th[..., nxt]) * torch.sin(th[..., prv])) - 1
+    s = torch.sign(torch.linalg.det(uf))[..., None] * torch.sqrt((1 - c * c).clamp(min=1e-12))
+    w = (th - c[..., nxt] * th[..., prv] - c[..., prv] * th[..., nxt]) / (rf * torch.sin(th[..., nxt]) * s[..., prv])
+    W = torch.zeros(*x.shape[:2], P.shape[1], dtype=x.dtype, device=x.device)
+    W = W.index_add(2, faces.reshape(-1), w.reshape(*w.shape[:2], -1))
+    return W / W.sum(-1, keepdim=True)

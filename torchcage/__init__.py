@@ -10,7 +10,7 @@ Example:
     True
 """
 
-from . import data, functional, variational
+from . import data, distributed, functional, variational
 from .cage import Cage
 from .errors import (
     CageError,
@@ -48,6 +48,7 @@ __all__ = [
     "__version__",
     "data",
     "deform",
+    "distributed",
     "functional",
     "load_cage",
     "load_mesh",

@@ -1,0 +1,112 @@
+"""Multi-process training (DistributedDataParallel, gloo, CPU) with torchcage modules, and the
+sharded coordinate computation: two processes, checked against a single-process computation."""
+
+from __future__ import annotations
+
+import os
+import socket
+
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+
+import torchcage
+from torchcage import functional as F
+from torchcage.testing import icosphere
+
+pytestmark = pytest.mark.skipif(not dist.is_available() or not dist.is_gloo_available(), reason="needs gloo")
+
+STEPS, LR = 3, 0.5
+
+
+def _problem(rank: int):
+    ico = icosphere()
+    g = torch.Generator().manual_seed(100 + rank)  # each rank its own data
+    x = torch.randn(200, 3, generator=g, dtype=torch.float64)
+    x = 0.8 * x / x.norm(dim=1, keepdim=True) * torch.rand(200, 1, generator=g, dtype=torch.float64)
+    target = x * torch.tensor([1.2, 0.9, 1.0], dtype=torch.float64) + 0.1 * rank
+    return ico, x, target
+
+
+class CageModel(torch.nn.Module):
+    """A learnable deformed cage driving a mean value coordinates module and a Green one."""
+
+    def __init__(self, ico: torchcage.Cage, x: torch.Tensor) -> None:
+        super().__init__()
+        self.mvc = torchcage.MeanValueCoordinates(ico, x)
+        self.gc = torchcage.GreenCoordinates(ico, x)
+        self.offset = torch.nn.Parameter(torch.zeros(42, 3, dtype=torch.float64))
+        self.register_buffer("rest", ico.vertices.clone())
+
+    def forward(self) -> torch.Tensor:
+        v = self.rest + self.offset
+        return 0.5 * (self.mvc(v) + self.gc(v))
+
+
+def _loss(model, target):
+    return (model() - target).square().mean()
+
+
+def _worker(rank: int, world: int, port: int, out: str) -> None:
+    os.environ["MASTER_ADDR"], os.environ["MASTER_PORT"] = "127.0.0.1", str(port)
+    dist.init_process_group("gloo", rank=rank, world_size=world)
+    torch.set_num_threads(1)
+    try:
+        ico, x, target = _problem(rank)
+        # each rank embeds its own points: the modules' buffers differ by rank and must not be
+        # overwritten by rank 0's (DDP's default broadcast_buffers=True would do that)
+        model = torch.nn.parallel.DistributedDataParallel(CageModel(ico, x), broadcast_buffers=False)
+        opt = torch.optim.SGD(model.parameters(), lr=LR)
+        for _ in range(STEPS):
+            opt.zero_grad()
+            _loss(model, target).backward()
+            opt.step()
+        # the sharded coordinates of one shared point set
+        shared = _problem(7)[1]
+        w = torchcage.distributed.shard_coordinates(F.mean_value_coordinates, shared, ico)
+        phi, psi = torchcage.distributed.shard_coordinates(F.green_coordinates, shared[:101], ico)
+        torch.save({"offset": model.module.offset.detach(), "w": w, "phi": phi, "psi": psi}, f"{out}/rank{rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ddp_training_and_sharded_coordinates(tmp_path):
+    world = 2
+    mp.spawn(_worker, args=(world, _free_port(), str(tmp_path)), nprocs=world, join=True)
+    res = [torch.load(tmp_path / f"rank{r}.pt") for r in range(world)]
+    # reference: one process, the gradient averaged over the ranks' losses (what DDP computes)
+    models = [CageModel(*_problem(r)[:2]) for r in range(world)]
+    targets = [_problem(r)[2] for r in range(world)]
+    offset = torch.zeros(42, 3, dtype=torch.float64)
+    for _ in range(STEPS):
+        grads = []
+        for m, t in zip(models, targets, strict=True):
+            m.offset.data.copy_(offset)
+            m.zero_grad()
+            _loss(m, t).backward()
+            grads.append(m.offset.grad.clone())
+        offset = offset - LR * torch.stack(grads).mean(0)
+    assert offset.abs().max() > 1e-3  # training moved the cage
+    for r in res:
+        assert (r["offset"] - offset).abs().max() < 1e-12
+    ico, shared = icosphere(), _problem(7)[1]
+    w = F.mean_value_coordinates(shared, ico)
+    phi, psi = F.green_coordinates(shared[:101], ico)
+    for r in res:
+        assert torch.equal(r["w"], w) and torch.equal(r["phi"], phi) and torch.equal(r["psi"], psi)
+
+
+def test_shard_slice_covers_everything():
+    from torchcage.distributed import shard_slice
+
+    for n in (0, 1, 7, 100):
+        for world in (1, 2, 3, 8):
+            idx = [i for r in range(world) for i in range(n)[shard_slice(n, r, world)]]
+            assert idx == list(range(n))

@@ -1,0 +1,75 @@
+"""Sharding the coordinate computation of a large point set across the ranks of a
+``torch.distributed`` process group: each rank computes the coordinates of its slice of the
+points, and every rank receives all of them.
+
+Example (inside an initialised process group; see docs/learning.md)::
+
+    w = torchcage.distributed.shard_coordinates(F.mean_value_coordinates, points, cage)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from .cage import Cage
+
+__all__ = ["shard_coordinates", "shard_slice"]
+
+
+def shard_slice(n: int, rank: int, world: int) -> slice:
+    """Rank ``rank``'s contiguous slice of ``n`` items split as evenly as possible over ``world``
+    ranks (the first ``n % world`` ranks take one more).
+
+    Example:
+        >>> [shard_slice(10, r, 3) for r in range(3)]
+        [slice(0, 4, None), slice(4, 7, None), slice(7, 10, None)]
+    """
+    base, extra = divmod(n, world)
+    start = rank * base + min(rank, extra)
+    return slice(start, start + base + (1 if rank < extra else 0))
+
+
+def shard_coordinates(
+    fn: Callable[..., Any], points: torch.Tensor, cage: Cage, *, group: Any = None, **kwargs: Any
+) -> Any:
+    """``fn(points, cage, **kwargs)`` computed in slices across the ranks of ``group`` and gathered:
+    every rank returns the full result, equal to the unsharded call (each row of the coordinates
+    depends on its point only).
+
+    Args:
+        fn: a functional of torchcage (``F.mean_value_coordinates``, ``F.green_coordinates``, ...)
+            returning a tensor or a tuple of tensors with the points on the first axis.
+        points: ``(N, D)``, the same on every rank.
+        cage: one cage (not batched), the same on every rank.
+        group: the process group (default: the world).
+        **kwargs: passed to ``fn``.
+
+    Returns:
+        What ``fn`` returns for all ``N`` points, on every rank (no autograd graph: the gathered
+        results are constants, as the modules store them).
+
+    Raises:
+        RuntimeError: no initialised process group.
+    """
+    import torch.distributed as dist
+
+    if not dist.is_available() or not dist.is_initialized():
+        raise RuntimeError("shard_coordinates needs an initialised torch.distributed process group")
+    rank, world = dist.get_rank(group), dist.get_world_size(group)
+    n = points.shape[0]
+    size = -(-n // world)  # every rank sends the same number of rows (the last ones padded)
+    mine = shard_slice(n, rank, world)
+    with torch.no_grad():
+        local = fn(points[mine], cage, **kwargs)
+    parts = local if isinstance(local, tuple) else (local,)
+    gathered = []
+    for part in parts:
+        pad = part.new_zeros((size - part.shape[0], *part.shape[1:]))
+        buf = [part.new_empty((size, *part.shape[1:])) for _ in range(world)]
+        dist.all_gather(buf, torch.cat([part, pad]).contiguous(), group=group)
+        counts = [shard_slice(n, r, world) for r in range(world)]
+        gathered.append(torch.cat([b[: s.stop - s.start] for b, s in zip(buf, counts, strict=True)]))
+    return tuple(gathered) if isinstance(local, tuple) else gathered[0]
