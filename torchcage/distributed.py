@@ -24,8 +24,8 @@ def shard_slice(n: int, rank: int, world: int) -> slice:
     ranks (the first ``n % world`` ranks take one more).
 
     Example:
-        >>> [(s.start, s.stop) for s in (shard_slice(10, r, 3) for r in range(3))]
-        [(0, 4), (4, 7), (7, 10)]
+        >>> tuple(shard_slice(10, r, 3).start for r in range(3)), shard_slice(10, 2, 3).stop
+        ((0, 4, 7), 10)
     """
     base, extra = divmod(n, world)
     start = rank * base + min(rank, extra)
