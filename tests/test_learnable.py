@@ -313,3 +313,25 @@ def test_compiled_training_step():
         loss = torch.compile(fn, fullgraph=False)(off)
         (g_comp,) = torch.autograd.grad(loss, off)
         assert torch.allclose(loss, fn(off), rtol=1e-12) and torch.allclose(g_comp, g_eager, rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cuda_batched_values_and_gradients(dtype):
+    ico = icosphere()
+    rest = _jitter(ico, 3)
+    x = 0.7 * _ball(3 * 100, seed=22).reshape(3, 100, 3)
+    out = {}
+    for device in ("cpu", "cuda"):
+        r = rest.to(device, dtype).requires_grad_()
+        p = x.to(device, dtype).requires_grad_()
+        for method in ("mvc", "gc"):
+            y = torchcage.deform(
+                p, torchcage.Cage(r, ico.triangles.to(device), validate="topology"), 1.3 * r, method=method
+            )
+            gp, gr = torch.autograd.grad(y.square().sum(), [p, r])
+            out[device, method] = (y.detach().cpu(), gp.cpu(), gr.cpu())
+    tol = 1e-4 if dtype == torch.float32 else 1e-10
+    for method in ("mvc", "gc"):
+        for a, b in zip(out["cpu", method], out["cuda", method], strict=True):
+            assert torch.isfinite(b).all() and (a - b).abs().max() <= tol * max(1.0, float(a.abs().max()))
