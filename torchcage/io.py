@@ -122,9 +122,14 @@ def save_cage(path: PathLike, cage: Cage, vertices: torch.Tensor | None = None) 
         cage: the cage whose faces are written.
         vertices: optional ``(V, D)`` positions to write instead of ``cage.vertices`` (a deformed pose).
     """
+    if cage.is_batched and vertices is None:
+        raise CageError(
+            f"a batch of cages (batch shape {tuple(cage.batch_shape)}) is written one element at a time: "
+            "save_cage(path, cage[b])"
+        )
     v = (cage.vertices if vertices is None else vertices).detach().cpu().to(torch.float64).numpy()
-    if v.shape != tuple(cage.vertices.shape):
-        raise CageError(f"vertices must have shape {tuple(cage.vertices.shape)}, got {v.shape}")
+    if v.shape != tuple(cage.vertices.shape[-2:]):
+        raise CageError(f"vertices must have shape {tuple(cage.vertices.shape[-2:])}, got {v.shape}")
     if cage.dim == 2:
         v = np.concatenate([v, np.zeros((v.shape[0], 1))], axis=1)
     text = _format_rows("v", v, "%.17g")
