@@ -42,6 +42,8 @@ def test_batched_cage_basics():
     assert grid.batch_shape == (3, 2) and len(grid.unbind()) == 6
     with pytest.raises(IndexError, match="batch elements"):
         bc[0, 1]
+    with pytest.raises(torchcage.CageError, match="one element at a time"):
+        torchcage.save_cage("unused.obj", bc)
 
 
 def test_one_bad_cage_in_a_batch_is_named():
