@@ -44,9 +44,7 @@ def problem(B: int, N: int, dtype: torch.dtype, device: str):
 def child(args: argparse.Namespace) -> None:
     dtype = getattr(torch, args.dtype)
     x, P, faces, cot = problem(args.batch, args.points, dtype, args.device)
-    ref = F.mean_value_coordinates(
-        x.double().cpu(), torchcage.Cage(P.double().cpu(), faces.cpu(), validate="topology")
-    )
+    ref = F.mean_value_coordinates(x.double().cpu(), torchcage.Cage(P.double().cpu(), faces.cpu(), validate="topology"))
 
     def coords(xx, PP):
         if args.impl == "dense":
@@ -95,7 +93,8 @@ def main() -> None:
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     print(f"B = {args.batch} shapes x N = {args.points} points, 42-vertex / 80-triangle cages, "
           f"{torch.get_num_threads()} threads, best of {args.repeat}")  # fmt: skip
-    print("| device | dtype | task | torchcage | dense | speed-up | torchcage peak | dense peak | err torchcage | err dense |")
+    cols = ["device", "dtype", "task", "torchcage", "dense", "speed-up", "torchcage peak", "dense peak"]
+    print("| " + " | ".join([*cols, "err torchcage", "err dense"]) + " |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for device in devices:
         for dtype in ("float32", "float64"):

@@ -56,7 +56,7 @@ def test_functions_return_empty_results(cubes) -> None:
 @pytest.mark.parametrize("name", sorted(MODULES))
 def test_modules_refuse_a_batch_of_point_sets(cubes, name: str) -> None:
     cls, triangulated = MODULES[name]
-    with pytest.raises(PointsError, match=r"one point set of shape \(N, 3\), got \(2, 5, 3\).*one module per set"):
+    with pytest.raises(PointsError, match=r"one point set of shape \(N, 3\), got \(2, 5, 3\).*batched cage"):
         cls(cubes[triangulated], torch.zeros(2, 5, 3, dtype=f64))
 
 
@@ -94,3 +94,61 @@ def test_cli_deform_fails_on_a_garbage_mesh(tmp_path, capsys) -> None:
     assert main([*argv, "--no-picture"]) == 2
     assert "no vertices found" in capsys.readouterr().err
     assert not list(tmp_path.glob("*deformed*"))
+
+
+def test_plain_python_inputs(cubes) -> None:
+    """Item 11: lists as points; a (vertices, faces) pair as a cage is refused with what to pass."""
+    quads, tri = cubes
+    pts = [[0.1, 0.2, 0.3], [-0.5, 0.0, 0.25]]
+    x = torch.tensor(pts, dtype=f64)
+    assert torch.equal(F.mean_value_coordinates(pts, tri), F.mean_value_coordinates(x, tri))
+    assert torch.equal(F.green_coordinates(pts, tri)[1], F.green_coordinates(x, tri)[1])
+    assert torch.equal(F.quad_mean_value_coordinates(pts, quads), F.quad_mean_value_coordinates(x, quads))
+    assert torch.equal(F.quad_green_coordinates(pts, quads)[0], F.quad_green_coordinates(x, quads)[0])
+    assert torch.equal(F.mean_value_derivatives(pts, tri)[1], F.mean_value_derivatives(x, tri)[1])
+    for fn in (F.mean_value_coordinates, F.green_coordinates, F.quad_mean_value_coordinates):
+        with pytest.raises(TypeError, match=r"torchcage.Cage\(vertices, faces\)"):
+            fn(pts, (tri.vertices, tri.triangles))
+
+
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_meta_device_is_refused_clearly(cubes, name: str) -> None:
+    """Item 12: no coordinates on the meta device: a clear error instead of one from deep in torch."""
+    cls, triangulated = MODULES[name]
+    cage = cubes[triangulated].to("meta")
+    with pytest.raises(PointsError, match="meta device"):
+        cls(cage, torch.zeros(4, 3, dtype=f64, device="meta"))
+
+
+def test_cage_owns_its_vertices() -> None:
+    """Item 13: editing the caller's tensor after validation does not change the cage; gradients
+    still reach the caller's tensor."""
+    v = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated().vertices.clone().requires_grad_()
+    cage = torchcage.Cage(v, torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated().triangles)
+    with torch.no_grad():
+        v[0] = float("nan")
+    assert torch.isfinite(cage.vertices).all()
+    arr = cage.vertices.detach().numpy().copy()
+    from_array = torchcage.Cage(arr, cage.triangles)
+    arr[:] = 0.0
+    assert from_array.vertices.abs().max() > 0
+    v2 = cage.vertices.detach().clone().requires_grad_()
+    c2 = torchcage.Cage(v2, cage.triangles)
+    F.mean_value_coordinates(torch.zeros(1, 3, dtype=f64), c2).square().sum().backward()
+    assert v2.grad is not None and torch.isfinite(v2.grad).all()
+
+
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_nan_pose_is_refused(cubes, name: str) -> None:
+    """Item 9: NaN in a deformed pose raises, unless the check is switched off for a hot loop."""
+    cls, triangulated = MODULES[name]
+    cage = cubes[triangulated]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m = cls(cage, torch.tensor([[0.1, 0.2, 0.3]], dtype=f64))
+    pose = cage.vertices.clone()
+    pose[3, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"NaN or inf \(indices \[\[3\]\]\).*check_inputs = False"):
+        m(pose)
+    m.check_inputs = False
+    assert m(pose).shape == (1, 3)

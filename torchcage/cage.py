@@ -116,7 +116,8 @@ class Cage:
     Args:
         vertices: ``(V, 3)`` or ``(V, 2)`` vertex positions, or ``(*B, V, D)`` for a batch of cages
             with the same faces (a network predicting a cage per shape): a tensor or array keeps its
-            floating dtype (integers become float64); nested lists become float64.
+            floating dtype (integers become float64); nested lists become float64. The cage keeps a
+            copy (differentiable: gradients still reach the caller's tensor).
         faces: in 3D, a LongTensor ``(F, 3)`` or ``(F, 4)``, or a list of index lists of length 3
             or 4 (a triquad cage). In 2D, the directed edges ``(E, 2)``, or ``None`` for one closed
             polygon whose vertices are given in order.
@@ -159,6 +160,10 @@ class Cage:
         if validate not in (True, False, "topology"):
             raise ValueError(f'validate must be True, False or "topology", got {validate!r}')
         v = _as_vertices(vertices)
+        if isinstance(vertices, torch.Tensor) or hasattr(vertices, "__array__"):
+            # the cage owns its vertices: editing the caller's tensor (or array) in place afterwards
+            # cannot change a validated cage (clone keeps the autograd graph)
+            v = v.clone()
         self.vertices: torch.Tensor = v
         dev = v.device
         empty3 = torch.zeros((0, 3), dtype=torch.long, device=dev)
@@ -192,7 +197,8 @@ class Cage:
         """The same topology around other vertex positions ``(*B, V, D)`` (a network's output each
         step): no topology check, and by default no geometric check either, so no host
         synchronisation on a GPU. With ``validate=True`` the geometry is checked as in the
-        constructor (orientation included: this cage's faces are not flipped again).
+        constructor (orientation included: this cage's faces are not flipped again). Unlike the
+        constructor, which copies, the new cage holds ``vertices`` itself (no copy in a hot loop).
 
         Example:
             >>> import torch, torchcage

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import torch
 from torch._C._functorch import is_functorch_wrapped_tensor
@@ -129,6 +130,34 @@ def triangle_geometry(cage: Cage, dtype: torch.dtype, quad_hint: str) -> tuple[t
     cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
     two_area = cross.norm(dim=-1)
     return p, cross / two_area[:, None], two_area
+
+
+def as_inputs(points: Any, cage: Any) -> tuple[torch.Tensor, Cage]:
+    """The public functions' first step: points as a tensor (lists and arrays accepted; integers and
+    nested lists become float64) and a check that ``cage`` is a :class:`~torchcage.Cage`.
+
+    Raises:
+        TypeError: ``cage`` is not a Cage (a ``(vertices, faces)`` pair is named as such).
+        PointsError: points or cage on the ``meta`` device, which holds no values to compute with.
+    """
+    if not isinstance(cage, Cage):
+        if isinstance(cage, (tuple, list)) and len(cage) == 2:
+            raise TypeError(
+                "cage must be a torchcage.Cage; for a (vertices, faces) pair pass torchcage.Cage(vertices, faces)"
+            )
+        raise TypeError(f"cage must be a torchcage.Cage, got {type(cage).__name__}")
+    if not isinstance(points, torch.Tensor):
+        if hasattr(points, "__array__"):  # an array keeps its floating dtype
+            t = torch.as_tensor(points)
+            points = t if t.is_floating_point() else t.to(torch.float64)
+        else:  # nested lists: float64, the library's working precision
+            points = torch.as_tensor(points, dtype=torch.float64)
+    if points.device.type == "meta" or cage.device.type == "meta":
+        raise PointsError(
+            "coordinates cannot be computed on the meta device (it holds shapes, not values); compute them on a "
+            "real device (cpu, cuda) and move the module with .to(device) afterwards"
+        )
+    return points, cage
 
 
 def check_points(points: torch.Tensor, cage: Cage) -> torch.Tensor:

@@ -13,7 +13,7 @@ from torch._C._functorch import is_functorch_wrapped_tensor
 from ..autograd.green import green_function
 from ..cage import Cage
 from ._batch import over_cage_batch
-from ._common import check_points, records_graph, result_dtype
+from ._common import as_inputs, check_points, records_graph, result_dtype
 from ._green3d import triangle_green_data
 from ._green_dispatch import green_flat
 
@@ -66,6 +66,7 @@ def green_coordinates(
         >>> torch.allclose(phi @ cube.vertices + psi @ cube.triangle_normals(), x)
         True
     """
+    points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(
             green_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend

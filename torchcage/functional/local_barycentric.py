@@ -20,7 +20,7 @@ from ..cage import Cage
 from ..errors import CageError, PointsError
 from ..solvers.domain import Domain, mesh_domain, user_domain
 from ..solvers.lbc import LBCResult, make_feasible, solve_lbc
-from ._common import check_points
+from ._common import as_inputs, check_points
 
 __all__ = ["local_barycentric_coordinates", "locality_statistics", "locate", "solve_local_barycentric"]
 
@@ -51,6 +51,11 @@ def solve_local_barycentric(
         The :class:`~torchcage.solvers.lbc.LBCResult` (weights at the mesh vertices, iterations,
         residuals, convergence, objective).
     """
+    if cage.device.type == "meta":
+        raise PointsError(
+            "local barycentric coordinates cannot be solved on the meta device (it holds shapes, not values); solve "
+            "on a real device (cpu, cuda) and move the module with .to(device) afterwards"
+        )
     if cage.is_batched:
         raise CageError(
             f"local barycentric coordinates are solved for one cage at a time, got a batch of shape "
@@ -153,6 +158,7 @@ def local_barycentric_coordinates(
         >>> bool((w >= 0).all()), torch.allclose(w @ square.vertices, x), torch.allclose(w.sum(1), 1 + 0 * w[:, 0])
         (True, True, True)
     """
+    points, cage = as_inputs(points, cage)
     flat = check_points(points, cage)
     V = cage.num_vertices
     result = solution if solution is not None else solve_local_barycentric(cage, **options)

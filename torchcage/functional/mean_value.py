@@ -14,7 +14,7 @@ import torch
 from ..autograd.mean_value import mean_value_function
 from ..cage import Cage
 from ._batch import over_cage_batch
-from ._common import check_points, records_graph, result_dtype
+from ._common import as_inputs, check_points, records_graph, result_dtype
 from ._mvc3d import triangle_cage_data
 from ._mvc_dispatch import coordinates_flat
 
@@ -80,6 +80,7 @@ def mean_value_coordinates(
         >>> torch.allclose(w @ cube.vertices, x)
         True
     """
+    points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(
             mean_value_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend

@@ -42,7 +42,7 @@ from ..cage import Cage
 from ..errors import PointsError
 from . import _mvcd_native
 from ._batch import over_cage_batch
-from ._common import check_points, chunks, triangle_geometry
+from ._common import as_inputs, check_points, chunks, triangle_geometry
 from ._mvcd_torch import torch_derivatives
 
 __all__ = ["derivatives_flat", "mean_value_derivatives", "mean_value_gradients", "mean_value_hessians"]
@@ -149,6 +149,7 @@ def mean_value_derivatives(
         >>> torch.allclose(torch.einsum("nvc,vd->ncd", grad, cube.vertices), torch.eye(3, dtype=torch.float64))
         True
     """
+    points, cage = as_inputs(points, cage)
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order}")
     if cage.is_batched:

@@ -10,7 +10,7 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ._batch import over_cage_batch
-from ._common import chunks
+from ._common import as_inputs, chunks
 from ._green3d import triangle_green_geometry, triangle_integrals
 from ._green3d_native import native_subset_tables
 from ._qgc3d import QuadGreenData, qgc3d_chunk, quad_green_data
@@ -139,6 +139,7 @@ def quad_green_coordinates(
         >>> torch.allclose(phi @ cube.vertices + psi @ N, x)
         True
     """
+    points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(
             quad_green_coordinates,

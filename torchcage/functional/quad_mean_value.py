@@ -14,6 +14,7 @@ from ..cage import Cage
 from ..errors import CageError, PointsError
 from ._batch import over_cage_batch
 from ._common import (
+    as_inputs,
     check_points,
     chunks,
     normalise_weights,
@@ -122,6 +123,7 @@ def quad_mean_value_coordinates(
         >>> torch.allclose(w @ cube.vertices, x), torch.allclose(w.sum(-1), torch.ones(2, dtype=torch.float64))
         (True, True)
     """
+    points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(
             quad_mean_value_coordinates,

@@ -62,6 +62,9 @@ class CageModule(nn.Module):
 
     rest_vertices: torch.Tensor
     points: torch.Tensor
+    #: Check deformed vertices for NaN and inf on every ``forward`` (set ``False`` in hot loops; the
+    #: check is skipped inside ``torch.compile``d code, where it would break the graph).
+    check_inputs: bool = True
 
     def __init__(self, cage: Cage, points: torch.Tensor) -> None:
         super().__init__()
@@ -99,6 +102,12 @@ class CageModule(nn.Module):
         fits = lead[len(lead) - len(batch) :] == batch if len(lead) >= len(batch) else False
         if vertices.ndim < 2 or tuple(vertices.shape[-2:]) != (self.num_vertices, self.dim) or not fits:
             raise ValueError(f"vertices must have shape {want} for this module's cage, got {tuple(vertices.shape)}")
+        if self.check_inputs and not torch.compiler.is_compiling() and not bool(torch.isfinite(vertices).all()):
+            bad = torch.nonzero(~torch.isfinite(vertices).all(dim=-1))[:5].tolist()
+            raise ValueError(
+                f"deformed vertices contain NaN or inf (indices {bad}); fix the pose, or set "
+                "module.check_inputs = False to skip this check (one host synchronisation per call on a GPU)"
+            )
         if vertices.device != weights.device:
             raise ValueError(
                 f"vertices are on {vertices.device} but the module's weights are on {weights.device}; "
