@@ -88,3 +88,16 @@ def test_custom_ops_are_registered_at_import() -> None:
         "torch.ops.torchcage.mean_value_derivatives\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_docstring_examples_render_as_code():
+    """Issue 22 item 17: Google-style ``Examples:`` sections (griffe renders their ``>>>`` lines as
+    code); a singular ``Example:`` became a grey block quote in the API reference."""
+    import re
+
+    bad = []
+    for path in sorted(ROOT.rglob("*.py")):
+        for k, line in enumerate(path.read_text().splitlines(), 1):
+            if re.fullmatch(r"\s*Example:\s*", line):
+                bad.append(f"{path.relative_to(ROOT.parent)}:{k}")
+    assert not bad, f"use 'Examples:' in docstrings: {bad}"

@@ -1,7 +1,7 @@
 """torchcage: cage coordinates (mean value, quad mean value, Green, local barycentric) as PyTorch
 building blocks.
 
-Example:
+Examples:
     >>> import torch, torchcage
     >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
     >>> mvc = torchcage.MeanValueCoordinates(cage, torch.zeros(1, 3, dtype=torch.float64))

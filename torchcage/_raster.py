@@ -31,7 +31,7 @@ def rasterize_triangles(
         ``(B, H, W)`` int64 triangle indices, ``-1`` where no triangle covers the centre, and
         ``(B, H, W, C)`` float64 values interpolated linearly in that triangle (0 where none).
 
-    Example:
+    Examples:
         >>> import torch
         >>> P = torch.tensor([[[0.0, 0.0], [3.0, 0.0], [0.0, 3.0]]], dtype=torch.float64)
         >>> which, val = rasterize_triangles(P, torch.tensor([[0, 1, 2]]), 3, 3, P[0])

@@ -15,7 +15,7 @@ def best_of(fn: Callable[[], T], repeat: int = 3, warmup: int = 0) -> tuple[floa
     """Time ``fn()``: ``(first, best, result)``, the first timed call's seconds, the best of
     ``repeat`` calls (the first included) and the last call's result, after ``warmup`` untimed calls.
 
-    Example:
+    Examples:
         >>> first, best, out = best_of(lambda: sum(range(1000)), repeat=3)
         >>> best <= first and out == 499500
         True

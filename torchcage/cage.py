@@ -142,7 +142,7 @@ class Cage:
 
     Every error about the geometry of a batch names the batch element.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> v = torch.tensor([[0., 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
         >>> cage = torchcage.Cage(v, [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
@@ -200,7 +200,7 @@ class Cage:
         constructor (orientation included: this cage's faces are not flipped again). Unlike the
         constructor, which copies, the new cage holds ``vertices`` itself (no copy in a hot loop).
 
-        Example:
+        Examples:
             >>> import torch, torchcage
             >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
             >>> moved = cube.with_vertices(cube.vertices.expand(4, -1, -1) * 2)
@@ -350,7 +350,7 @@ class Cage:
         Returns:
             ``(K,)`` int64 indices into ``cage.quads`` (empty when all are valid, or in 2D).
 
-        Example:
+        Examples:
             >>> import torch, torchcage
             >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
             >>> cube.invalid_quads().tolist()

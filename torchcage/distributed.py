@@ -23,7 +23,7 @@ def shard_slice(n: int, rank: int, world: int) -> slice:
     """Rank ``rank``'s contiguous slice of ``n`` items split as evenly as possible over ``world``
     ranks (the first ``n % world`` ranks take one more).
 
-    Example:
+    Examples:
         >>> tuple(shard_slice(10, r, 3).start for r in range(3)), shard_slice(10, 2, 3).stop
         ((0, 4, 7), 10)
     """

@@ -20,7 +20,7 @@ def inside_polygon(points: torch.Tensor, vertices: torch.Tensor, edges: torch.Te
     Returns:
         ``(N,)`` bool; points exactly on an edge may go either way.
 
-    Example:
+    Examples:
         >>> import torch
         >>> sq = torch.tensor([[0.0, 0], [2, 0], [2, 2], [0, 2]])
         >>> e = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 0]])
@@ -54,7 +54,7 @@ def winding_number(points: torch.Tensor, vertices: torch.Tensor, triangles: torc
     Returns:
         ``(N,)`` winding numbers.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
         >>> w = winding_number(torch.tensor([[0.0, 0, 0], [3.0, 0, 0]]), cube.vertices.float(), cube.triangles)

@@ -82,7 +82,7 @@ def pixel_centres(
     Returns:
         ``(H * W, 2)`` coordinates.
 
-    Example:
+    Examples:
         >>> pixel_centres(2, 3)[:4]
         tensor([[0., 0.],
                 [1., 0.],
@@ -223,7 +223,7 @@ class CageWarp(nn.Module):
         - Output: the warped images ``(B, C, H, W)`` (``(C, H, W)`` when both inputs are unbatched);
           with ``outside="mask"`` also ``mask (B, 1, H, W)`` bool.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torchcage.image import CageWarp
         >>> cage = torch.tensor([[4.0, 4], [27, 4], [27, 27], [4, 27]], dtype=torch.float64)
@@ -424,7 +424,7 @@ def warp_image(
         Warped images shaped like the broadcast inputs (and the ``(B, 1, H, W)`` mask for
         ``outside="mask"``). Differentiable with respect to ``image`` and ``vertices``.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torchcage.image import warp_image
         >>> cage = torch.tensor([[2.0, 2], [13, 2], [13, 13], [2, 13]], dtype=torch.float64)

@@ -86,7 +86,7 @@ def load_cage(path: PathLike, *, dim: int | None = None, dtype: torch.dtype = to
         CageError: a face with more than four corners, a 2D polygon with non-zero z, or any
             validation error of :class:`~torchcage.Cage`.
 
-    Example:
+    Examples:
         >>> import torchcage
         >>> cage = torchcage.load_cage(torchcage.data.path("bar_cage.obj"))
         >>> cage.quads.shape
@@ -166,7 +166,7 @@ def load_mesh(path: PathLike, *, dtype: torch.dtype = torch.float64) -> tuple[to
         FileNotFoundError: no such file.
         ValueError: a file with no vertices or content that cannot be read (the message names it).
 
-    Example:
+    Examples:
         >>> import torchcage
         >>> v, f = torchcage.load_mesh(torchcage.data.path("bar.obj"))
         >>> v.shape[1], f.shape[1]

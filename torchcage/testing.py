@@ -1,6 +1,6 @@
 """Reusable property checks for cage coordinates, for this library's tests and for users' own.
 
-Example:
+Examples:
     >>> import torch, torchcage
     >>> from torchcage.testing import assert_partition_of_unity, assert_linear_precision
     >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
@@ -83,7 +83,7 @@ def sliver_cube(gap: float = 1e-9, dtype: torch.dtype = torch.float64) -> Cage:
     Returns:
         The cage: 9 vertices, 14 triangles.
 
-    Example:
+    Examples:
         >>> from torchcage.testing import sliver_cube
         >>> sliver_cube().triangles.shape
         torch.Size([14, 3])
@@ -107,7 +107,7 @@ def twisted_bar(levels: int = 4, twist: float = 90.0, quads: bool = True, dtype:
         twist: total twist in degrees.
         quads: keep the quads (a quad cage for QMVC/QGC); ``False`` triangulates them.
 
-    Example:
+    Examples:
         >>> from torchcage.testing import twisted_bar
         >>> bar = twisted_bar()
         >>> bar.num_vertices, bar.quads.shape[0]
@@ -134,7 +134,7 @@ def icosphere(subdivisions: int = 1, radius: float = 1.0, dtype: torch.dtype = t
     vertices pushed onto the sphere. ``subdivisions=1`` gives 42 vertices and 80 triangles, the
     template size of Neural Cages.
 
-    Example:
+    Examples:
         >>> from torchcage.testing import icosphere
         >>> ico = icosphere()
         >>> ico.num_vertices, ico.triangles.shape[0]
@@ -173,7 +173,7 @@ def hard_cages(dtype: torch.dtype = torch.float64) -> dict[str, Cage]:
     """Named hard cages (triangle cages unless the name says quads): slivers, coplanar neighbours,
     twisted quads, tiny and huge scales, a far translation.
 
-    Example:
+    Examples:
         >>> from torchcage.testing import hard_cages
         >>> len(hard_cages()), hard_cages()["sliver_cube"].num_vertices
         (6, 9)
@@ -212,7 +212,7 @@ def adversarial_points(cage, n: int = 64, *, seed: int = 0, far: bool = True, si
     ``near_face`` points are offset along the outward normal of the surface (of the bilinear sheet
     for quads), so their side is the offset's sign (for offsets below the local feature size).
 
-    Example:
+    Examples:
         >>> import torchcage
         >>> from torchcage.testing import adversarial_points
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()

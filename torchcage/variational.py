@@ -89,7 +89,7 @@ class VariationalMVC:
     All points must be off the cage; they are embedded once (analytic gradients and Hessians,
     float64), and the normal matrix is factored once.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
         >>> g = torch.Generator().manual_seed(0)
@@ -319,7 +319,7 @@ def design_scalar_field(
     Returns:
         :class:`ScalarFieldResult`.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage.variational import design_scalar_field
         >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()

@@ -76,7 +76,7 @@ def render_panels(
     Returns:
         A ``PIL.Image.Image``; save it with ``.save("out.png")``.
 
-    Example:
+    Examples:
         >>> import torchcage
         >>> from torchcage.viz import Panel, render_panels
         >>> v, f = torchcage.load_mesh(torchcage.data.path("bar.obj"))
@@ -159,7 +159,7 @@ def render_field_2d(
     Returns:
         An ``S x S`` ``PIL.Image.Image``.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> cage = torchcage.load_cage(torchcage.data.path("blob2d.obj"))
         >>> render_field_2d(torch.zeros(16, 16), cage, (-1.5, -1.5), (1.5, 1.5), vertex=0).size

@@ -18,7 +18,7 @@ __all__ = ["path"]
 def path(name: str) -> Path:
     """Path of a bundled data file.
 
-    Example:
+    Examples:
         >>> import torchcage
         >>> torchcage.data.path("cube.obj").name
         'cube.obj'

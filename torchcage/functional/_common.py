@@ -96,7 +96,7 @@ def nearest_where(mask: torch.Tensor, value: torch.Tensor) -> tuple[torch.Tensor
     ``mask`` ``(F, n)`` holds (chosen without a gradient, returned with one; 1 in a column where
     none does), and the ``(F, n)`` bool mask of that entry.
 
-    Example:
+    Examples:
         >>> v = torch.tensor([[3.0, -1.0], [-2.0, 5.0]])
         >>> star, at = nearest_where(torch.tensor([[True, False], [True, False]]), v)
         >>> star.tolist(), at.tolist()
@@ -257,7 +257,7 @@ def unique_face_edges(tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, to
     ``face_edge (T, 3)`` the index of the edge opposite each corner, ``sign (T, 3)`` +1 where that
     edge is stored as ``(t[i+1], t[i+2])``, else -1 (float64)``)``.
 
-    Example:
+    Examples:
         >>> edges, face_edge, sign = unique_face_edges(torch.tensor([[0, 1, 2], [0, 2, 3]]))
         >>> edges.shape[0], face_edge.tolist()
         (5, [[3, 1, 0], [4, 2, 1]])

@@ -50,7 +50,7 @@ def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor,
         ``(phi (n, V), psi (n, E))`` in the points' dtype: ``phi @ V + psi @ normals = points``
         inside, with ``normals = cage.edge_normals()`` (outward, unit).
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage.functional._green2d import green2d_coordinates
         >>> cage = torchcage.Cage([[0.0, 0], [2, 0], [2, 1], [0, 1]])

@@ -67,7 +67,7 @@ def direct_vjp(
         ``(gx (n, 3), gP (V, 3), regular (n,) bool)``: the products over the regular points only
         (rows of ``gx`` of the other points are zero and they contribute nothing to ``gP``).
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
         >>> x = torch.tensor([[0.1, 0.2, -0.3]], dtype=torch.float64)

@@ -46,7 +46,7 @@ def stretched_normals(rest: torch.Tensor, deformed: torch.Tensor, edges: torch.T
     Returns:
         ``(*, E, 2)``.
 
-    Example:
+    Examples:
         >>> import torch
         >>> sq = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
         >>> e = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 0]])
@@ -63,7 +63,7 @@ def triangle_frames(vertices: torch.Tensor, triangles: torch.Tensor) -> tuple[to
     to a segment or a point) of triangles, for vertices ``(*, V, 3)`` and triangles ``(T, 3)``:
     each ``(*, T, 3)``.
 
-    Example:
+    Examples:
         >>> import torch
         >>> p = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
         >>> triangle_frames(p, torch.tensor([[0, 1, 2]]))[2]
@@ -79,7 +79,7 @@ def conformal_stretch(u0: torch.Tensor, v0: torch.Tensor, u1: torch.Tensor, v1: 
     (all ``(..., 3)``): the root mean square of its two singular values (``s`` for a similarity of
     scale ``s``), as a sum of squares (see the module docstring). A rest pair of zero area gets 0.
 
-    Example:
+    Examples:
         >>> import torch
         >>> u0, v0 = torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.3, 1.0, 0.0])
         >>> R = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
@@ -102,7 +102,7 @@ def stretched_triangle_normals(rest: torch.Tensor, deformed: torch.Tensor, trian
     """Unit outward normals of deformed triangles times Lipman's stretch factors (the 3D Green
     deformation's ``s_t n'_t``), ``(*, T, 3)`` for vertices ``(V, 3)`` / ``(*, V, 3)``.
 
-    Example:
+    Examples:
         >>> import torch
         >>> p = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
         >>> stretched_triangle_normals(p, 3 * p, torch.tensor([[0, 1, 2]]))

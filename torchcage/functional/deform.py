@@ -141,7 +141,7 @@ def deform(
     Returns:
         ``(*, *B, N, D)`` deformed points.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> ico = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
         >>> rest = ico.vertices.expand(2, -1, -1).clone().requires_grad_()   # two predicted rest cages

@@ -55,7 +55,7 @@ def green_coordinates(
         CageError: a quad cage.
         PointsError: bad points (shape, device, NaN or inf).
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage import functional as F
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()

@@ -149,7 +149,7 @@ def local_barycentric_coordinates(
     Returns:
         A sparse COO tensor ``(N, V)`` in the points' dtype.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage import functional as F
         >>> square = torchcage.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 1], [1, 1.5], [0, 1]], dtype=torch.float64))
@@ -217,7 +217,7 @@ def locality_statistics(
     Returns:
         ``ts``, ``P (len(ts),)`` and ``Q (V + 1,)`` (``Q[k]`` for ``k = 0..V``).
 
-    Example:
+    Examples:
         >>> import torch
         >>> w = torch.tensor([[1.0, 0.0, 0.0], [0.5, 0.5, 0.0]], dtype=torch.float64)
         >>> _, P, Q = locality_statistics(w, ts=torch.tensor([0.0, 0.6]))

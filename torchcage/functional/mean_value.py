@@ -69,7 +69,7 @@ def mean_value_coordinates(
         PointsError: points of the wrong dimension or device, NaN or inf in the points, or points
             where the coordinates are undefined (outside the cage, where the total weight vanishes).
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage import functional as F
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()

@@ -138,7 +138,7 @@ def mean_value_derivatives(
             the coordinates are undefined, NaN/inf, or points of the wrong shape.
         ValueError: ``order`` not 1 or 2.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage import functional as F
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
@@ -178,7 +178,7 @@ def mean_value_gradients(points: torch.Tensor, cage: Cage, **kwargs: object) -> 
 
     Same arguments as :func:`mean_value_derivatives` (without ``order``).
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage import functional as F
         >>> square = torchcage.Cage(torch.tensor([[0., 0], [1, 0], [1, 1], [0, 1]], dtype=torch.float64),
@@ -196,7 +196,7 @@ def mean_value_hessians(points: torch.Tensor, cage: Cage, **kwargs: object) -> t
 
     Same arguments as :func:`mean_value_derivatives` (without ``order``).
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage import functional as F
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()

@@ -127,7 +127,7 @@ def quad_green_coordinates(
         CageError: a 2D cage, or invalid quads (unless ``allow_invalid``).
         PointsError: points of the wrong shape or device, NaN or inf.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage import functional as F
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))          # 6 quads

@@ -114,7 +114,7 @@ def quad_mean_value_coordinates(
         PointsError: points of the wrong shape or device, NaN or inf, or points outside the cage
             where the total weight vanishes.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage import functional as F
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))   # 6 quads

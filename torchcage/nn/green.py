@@ -44,7 +44,7 @@ class GreenCoordinates(CageModule):
         - Input: ``(*, V, D)`` deformed cage vertices.
         - Output: ``(*, N, D)`` deformed points.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
         >>> pts = torch.rand(50, 3, dtype=torch.float64) * 1.8 - 0.9

@@ -39,7 +39,7 @@ class LocalBarycentricCoordinates(CageModule):
         - Input: ``(*, V, D)`` deformed cage vertices.
         - Output: ``(*, N, D)`` deformed points.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> cage = torchcage.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 2], [0, 2]], dtype=torch.float64))
         >>> pts = torch.tensor([[0.5, 0.5], [1.0, 1.5]], dtype=torch.float64)

@@ -38,7 +38,7 @@ class MeanValueCoordinates(DenseWeightsModule):
         - Input: ``(*, V, D)`` deformed cage vertices, any leading batch shape.
         - Output: ``(*, N, D)`` deformed points.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
         >>> pts = torch.rand(100, 3, dtype=torch.float64) * 2 - 1

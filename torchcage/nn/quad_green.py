@@ -41,7 +41,7 @@ class QuadGreenCoordinates(CageModule):
         - Input: ``(*, V, 3)`` deformed cage vertices.
         - Output: ``(*, N, 3)`` deformed points.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj"))
         >>> pts = torch.rand(20, 3, dtype=torch.float64) * 1.6 - 0.8

@@ -34,7 +34,7 @@ class QuadMeanValueCoordinates(DenseWeightsModule):
         - Input: ``(*, V, 3)`` deformed cage vertices, any leading batch shape.
         - Output: ``(*, N, 3)`` deformed points.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj"))       # 6 quads
         >>> pts = torch.rand(50, 3, dtype=torch.float64) * 2 - 1

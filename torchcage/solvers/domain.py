@@ -276,7 +276,7 @@ def mesh_domain(cage: Cage, target_cells: int = 4000, *, seed: int = 0) -> Domai
     Raises:
         CageError: the Delaunay mesh does not contain the cage's boundary.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> square = torchcage.Cage(torch.tensor([[0.0, 0], [1, 0], [1, 1], [0, 1]]))
         >>> d = mesh_domain(square, target_cells=200)

@@ -94,7 +94,7 @@ def gradient_operator(vertices: torch.Tensor, cells: torch.Tensor) -> tuple[torc
     ``(G f)[C d + s] = d f / d x_d`` on cell ``s`` (component-major, so that ``(G f).reshape(D, C)``
     holds the gradients' components), and the cell volumes ``(C,)``.
 
-    Example:
+    Examples:
         >>> import torch
         >>> v = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
         >>> G, vol = gradient_operator(v, torch.tensor([[0, 1, 2]]))
