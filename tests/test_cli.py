@@ -56,3 +56,53 @@ def test_demo_with_green_coordinates(tmp_path):
     pose = torchcage.load_cage(tmp_path / "deformed_cage.obj")
     expect = torchcage.GreenCoordinates(cage.triangulated(), rest)(pose.vertices)
     assert torch.allclose(expect, moved, atol=1e-12)
+
+
+def _cube_files(tmp_path, scale: float = 0.5):
+    """A cube cage, a stretched pose and a small sphere mesh (``scale`` times the cube's half-size)."""
+    from torchcage.testing import icosphere
+
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+    torchcage.save_cage(tmp_path / "cage.obj", cube)
+    torchcage.save_cage(tmp_path / "pose.obj", cube, cube.vertices * torch.tensor([1.5, 1.0, 1.0], dtype=torch.float64))
+    ball = icosphere(1)
+    torchcage.save_mesh(tmp_path / "mesh.obj", scale * ball.vertices, ball.triangles)
+    return ["deform", "--cage", str(tmp_path / "cage.obj"), "--deformed", str(tmp_path / "pose.obj"),
+            "--mesh", str(tmp_path / "mesh.obj")]  # fmt: skip
+
+
+def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
+    """Issue 22 items 4 and 14: --method lbc, --format, --up / camera, --strict."""
+    args = _cube_files(tmp_path)
+    assert main([*args, "--out", str(tmp_path / "lbc"), "--method", "lbc", "--no-picture"]) == 0
+    rest, _ = torchcage.load_mesh(tmp_path / "lbc" / "rest_mesh.obj")
+    moved, _ = torchcage.load_mesh(tmp_path / "lbc" / "deformed_mesh.obj")
+    assert torch.allclose(moved, rest * torch.tensor([1.5, 1.0, 1.0], dtype=rest.dtype), atol=1e-6)  # linear precision
+    assert main([*args, "--out", str(tmp_path / "up"), "--up", "y", "--azimuth", "60", "--elevation", "10"]) == 0
+    assert (tmp_path / "up" / "deformation.png").exists()
+    try:
+        import trimesh  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        assert main([*args, "--out", str(tmp_path / "ply"), "--format", "ply", "--no-picture"]) == 0
+        v, f = torchcage.load_mesh(tmp_path / "ply" / "deformed_mesh.ply")
+        assert v.shape == (42, 3) and f.shape == (80, 3)
+    (tmp_path / "big").mkdir()
+    outside = _cube_files(tmp_path / "big", scale=1.4)  # the sphere pokes out of the cube
+    capsys.readouterr()
+    assert main([*outside, "--out", str(tmp_path / "gc"), "--method", "gc", "--no-picture"]) == 0
+    assert "outside the cage" in capsys.readouterr().err
+    assert main([*outside, "--out", str(tmp_path / "gc2"), "--method", "gc", "--strict"]) == 2
+    assert "--strict" in capsys.readouterr().err
+
+
+def test_bench_validates_arguments(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit) as info:
+        main(["bench", "--points", "-5"])
+    assert info.value.code == 2 and "positive integer" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["deform", "--help"])
+    assert "qgc (quad Green" in capsys.readouterr().out

@@ -17,7 +17,14 @@ import torch
 
 __all__ = ["main"]
 
-METHODS = ("mvc", "gc", "qmvc", "qgc")
+METHODS = ("mvc", "gc", "qmvc", "qgc", "lbc")
+METHOD_HELP = (
+    "coordinates: mvc (mean value, any closed cage, quads split), gc (Green, quasi-conformal, quads split), "
+    "qmvc (quad mean value, quads kept), qgc (quad Green, quads kept), lbc (local barycentric, solved on a mesh "
+    "of the cage interior; slower, with progress); default mvc"
+)
+#: Mesh formats written by ``deform --format`` (OBJ directly, the others through trimesh).
+FORMATS = ("obj", "ply", "glb", "stl", "off")
 
 
 class _Timer:
@@ -52,6 +59,8 @@ def _build_module(method: str, cage, points: torch.Tensor, progress: bool):
         return torchcage.QuadMeanValueCoordinates(cage, points, progress=progress)
     if method == "qgc":
         return torchcage.QuadGreenCoordinates(cage, points)
+    if method == "lbc":
+        return torchcage.LocalBarycentricCoordinates(cage, points, progress=progress)
     raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 
@@ -64,15 +73,36 @@ def deform_files(
     method: str = "mvc",
     picture: bool = True,
     quiet: bool = False,
+    mesh_format: str = "obj",
+    up: str = "z",
+    azimuth: float = 35.0,
+    elevation: float = 20.0,
+    strict: bool = False,
 ) -> dict[str, Path]:
     """Deform a mesh with a cage and its deformed pose; write the results into ``out_dir``.
 
-    Writes ``rest_mesh.obj``, ``deformed_mesh.obj``, ``rest_cage.obj``, ``deformed_cage.obj`` and,
-    with ``picture=True``, ``deformation.png`` (rest and deformed side by side).
+    Writes ``rest_mesh.<fmt>``, ``deformed_mesh.<fmt>`` (``mesh_format``: obj, ply, glb, stl, off;
+    all but OBJ through trimesh), ``rest_cage.obj``, ``deformed_cage.obj`` (quads kept) and, with
+    ``picture=True``, ``deformation.png`` (rest and deformed side by side, seen with ``up`` as the
+    vertical axis from the camera's ``azimuth`` and ``elevation`` in degrees).
+
+    Points outside the cage (where Green and quad Green coordinates send them to nearly the origin)
+    are reported with their count; with ``strict`` they are an error.
 
     Returns:
         The paths written, by name.
+
+    Raises:
+        ValueError: an unknown method, format or up axis; with ``strict``, points outside the cage.
     """
+    import warnings
+
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if mesh_format not in FORMATS:
+        raise ValueError(f"unknown mesh format {mesh_format!r}; choose from {', '.join(FORMATS)}")
+    if up not in ("x", "y", "z"):
+        raise ValueError(f"up must be x, y or z, got {up!r}")
     import torchcage
     from torchcage.viz import Panel, render_panels
 
@@ -90,13 +120,21 @@ def deform_files(
             f"the deformed cage {deformed_path} must have the rest cage's faces and {cage.num_vertices} vertices"
         )
     with timer(f"coordinates ({method}, {v.shape[0]} points, {cage.num_vertices} cage vertices)"):
-        module = _build_module(method, cage, v, progress=not quiet and v.shape[0] * cage.num_vertices > 5e6)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            module = _build_module(
+                method, cage, v, progress=not quiet and (method == "lbc" or v.shape[0] * cage.num_vertices > 5e6)
+            )
+    for w in caught:
+        if issubclass(w.category, torchcage.OutsideCageWarning) and strict:
+            raise ValueError(f"{w.message} (--strict)")
+        print(f"torchcage: warning: {w.message}", file=sys.stderr)
     with timer("deform"):
         with torch.no_grad():
             deformed = module(pose.vertices)
     paths = {
-        "rest_mesh": out / "rest_mesh.obj",
-        "deformed_mesh": out / "deformed_mesh.obj",
+        "rest_mesh": out / f"rest_mesh.{mesh_format}",
+        "deformed_mesh": out / f"deformed_mesh.{mesh_format}",
         "rest_cage": out / "rest_cage.obj",
         "deformed_cage": out / "deformed_cage.obj",
     }
@@ -108,11 +146,15 @@ def deform_files(
     if picture:
         with timer("picture"):
             edges = cage.unique_edges()
+            # the renderer looks at z-up worlds: turn the chosen up axis into z (a rotation)
+            turn = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}[up]
             image = render_panels(
                 [
-                    Panel(v, f, cage.vertices, edges, title="rest"),
-                    Panel(deformed, f, pose.vertices, edges, title=f"deformed ({method})"),
-                ]
+                    Panel(v[:, turn], f, cage.vertices[:, turn], edges, title="rest"),
+                    Panel(deformed[:, turn], f, pose.vertices[:, turn], edges, title=f"deformed ({method})"),
+                ],
+                azimuth=azimuth,
+                elevation=elevation,
             )
             paths["picture"] = out / "deformation.png"
             image.save(paths["picture"])
@@ -136,8 +178,30 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _deform(args: argparse.Namespace) -> int:
-    deform_files(args.cage, args.deformed, args.mesh, args.out, method=args.method, picture=not args.no_picture)
+    deform_files(
+        args.cage,
+        args.deformed,
+        args.mesh,
+        args.out,
+        method=args.method,
+        picture=not args.no_picture,
+        mesh_format=args.format,
+        up=args.up,
+        azimuth=args.azimuth,
+        elevation=args.elevation,
+        strict=args.strict,
+    )
     return 0
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
 
 
 def _bench(args: argparse.Namespace) -> int:
@@ -167,19 +231,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="deform the bundled bar with its cage; write meshes and a picture")
     demo.add_argument("--out", default="torchcage_demo", help="output folder (default: ./torchcage_demo)")
-    demo.add_argument("--method", default="mvc", choices=METHODS)
+    demo.add_argument("--method", default="mvc", choices=METHODS, help=METHOD_HELP)
     demo.set_defaults(func=_demo)
     dfm = sub.add_parser("deform", help="deform a mesh with a rest cage and a deformed cage")
     dfm.add_argument("--cage", required=True, help="rest cage (.obj, triangles and quads)")
     dfm.add_argument("--deformed", required=True, help="deformed cage (.obj, same faces)")
     dfm.add_argument("--mesh", required=True, help="mesh to deform (.obj, or any format trimesh reads)")
     dfm.add_argument("--out", required=True, help="output folder")
-    dfm.add_argument("--method", default="mvc", choices=METHODS)
+    dfm.add_argument("--method", default="mvc", choices=METHODS, help=METHOD_HELP)
+    dfm.add_argument("--format", default="obj", choices=FORMATS, help="format of the meshes written (default obj)")
+    dfm.add_argument("--up", default="z", choices=("x", "y", "z"), help="the mesh's up axis, for the picture")
+    dfm.add_argument("--azimuth", type=float, default=35.0, help="picture camera azimuth, degrees")
+    dfm.add_argument("--elevation", type=float, default=20.0, help="picture camera elevation, degrees")
     dfm.add_argument("--no-picture", action="store_true", help="skip the PNG picture")
+    dfm.add_argument(
+        "--strict", action="store_true", help="fail (exit 2) when points lie outside the cage (Green methods)"
+    )
     dfm.set_defaults(func=_deform)
     bench = sub.add_parser("bench", help="time mean value coordinates on this machine (bundled cage)")
-    bench.add_argument("--points", type=int, default=100_000)
-    bench.add_argument("--repeat", type=int, default=3)
+    bench.add_argument("--points", type=_positive_int, default=100_000)
+    bench.add_argument("--repeat", type=_positive_int, default=3)
     bench.set_defaults(func=_bench)
     args = parser.parse_args(argv)
     try:
