@@ -211,7 +211,10 @@ class CageWarp(nn.Module):
         method: ``"mvc"`` (mean value), ``"green"`` (conformal) or ``"lbc"`` (local barycentric,
             forward mapping only; ``lbc_options`` are passed to
             :func:`torchcage.functional.local_barycentric_coordinates`).
-        mapping: ``"forward"`` or ``"backward"``.
+        mapping: ``"forward"`` (default here) or ``"backward"``. The defaults differ on purpose:
+            a module is built to warp many poses, and the forward mapping computes its
+            coordinates once; :func:`warp_image` warps one pose, where the backward mapping costs
+            the same and is exact (it inverts the deformation the deformed cage defines).
         mode: ``"bilinear"`` or ``"nearest"`` sampling.
         outside: ``"keep"``, ``"zero"`` or ``"mask"`` for pixels outside the deformed cage.
         dtype: dtype of the stored coordinates (float64 by default).
@@ -415,7 +418,11 @@ def warp_image(
             coordinates ``(x, y) = (col, row)``.
         vertices: ``(B, V, 2)`` or ``(V, 2)`` deformed cage vertices.
         method: ``"mvc"``, ``"green"`` or ``"lbc"`` (forward mapping only).
-        mapping: ``"backward"`` (default here: exact, coordinates per pose) or ``"forward"``.
+        mapping: ``"backward"`` (default here) or ``"forward"``. The defaults differ on purpose:
+            one call warps one pose, where the backward mapping (coordinates of the output pixels
+            in the deformed cage, computed per pose) costs the same as the forward one and is
+            exact; :class:`CageWarp` defaults to ``"forward"``, whose coordinates are computed
+            once for all the poses a module warps.
         mode: ``"bilinear"`` or ``"nearest"``.
         outside: ``"keep"``, ``"zero"`` or ``"mask"`` (then ``(image, mask)`` is returned).
         lbc_options: keyword arguments of the LBC solve for ``method="lbc"``.
