@@ -27,6 +27,7 @@ __all__ = [
     "data_path",
     "extruded_polygon",
     "l_shape",
+    "model_points",
     "notched",
     "quad_adversarial_points",
     "sheet",
@@ -58,6 +59,22 @@ def data_path(*parts: str) -> Path:
     if not p.exists():
         pytest.skip(f"shared data not found: {p} (set TORCHCAGE_DATA)")
     return p
+
+
+def model_points(model: str, cage: torchcage.Cage, n: int, seed: int = 0) -> torch.Tensor:
+    """Points of a data-set model: its mesh vertices (float64), or, for a model whose mesh the data
+    set lacks (Cactus), ``n`` points sampled in the cage's bounding box and kept where the cage's
+    winding number is one (inside)."""
+    mesh = DATA / "qmvc" / f"{model}.obj"
+    if mesh.exists():
+        return torchcage.load_mesh(mesh)[0].to(torch.float64)
+    from torchcage.geometry import inside_cage
+
+    g = torch.Generator().manual_seed(seed)
+    v = cage.vertices.to(torch.float64)
+    lo, hi = v.min(0).values, v.max(0).values
+    x = lo + (hi - lo) * torch.rand(8 * n, 3, generator=g, dtype=torch.float64)
+    return x[inside_cage(x, cage)][:n]
 
 
 def box_cage(nx: int = 1, ny: int = 1, nz: int = 1, size=(2.0, 2.0, 2.0)) -> torchcage.Cage:

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 from reference import mvc2d_reference, mvc3d_reference, to_tensor
-from support import HANDMADE, QMVC_MODELS, data_path
+from support import HANDMADE, QMVC_MODELS, data_path, model_points
 
 import torchcage
 from torchcage import functional as F
@@ -228,8 +228,7 @@ def test_inputs_not_modified_and_errors():
 @pytest.mark.parametrize("model", QMVC_MODELS)
 def test_qmvc_cages_triangulated(model):
     cage = torchcage.load_cage(data_path("qmvc", f"{model}_Cage.obj")).triangulated()
-    mesh = data_path("qmvc", f"{model}.obj")
-    x = torchcage.load_mesh(mesh)[0] if model != "Cactus" else sample_points(cage, 2000)
+    x = model_points(model, cage, 2000)
     x = torch.cat([x[:: max(1, x.shape[0] // 20000)], sample_points(cage, 2000, spread=2.0), adversarial_points(cage)])
     w = F.mean_value_coordinates(x, cage)
     assert_partition_of_unity(w, atol=1e-12)

@@ -6,7 +6,16 @@ from __future__ import annotations
 
 import pytest
 import torch
-from support import QMVC_MODELS, bent_box, box_cage, box_points, data_path, quad_adversarial_points, triquad
+from support import (
+    QMVC_MODELS,
+    bent_box,
+    box_cage,
+    box_points,
+    data_path,
+    model_points,
+    quad_adversarial_points,
+    triquad,
+)
 
 import torchcage
 from torchcage import functional as F
@@ -116,13 +125,9 @@ def test_unit_cube_linear_precision(backend):
 @pytest.mark.parametrize("model", QMVC_MODELS)
 def test_data_cages_linear_precision(model, backend):
     cage = torchcage.load_cage(data_path("qmvc", f"{model}_Cage.obj"))
-    mesh_file = data_path("qmvc", f"{model}.obj")
     g = torch.Generator().manual_seed(0)
-    if mesh_file.exists():
-        pts = torchcage.load_mesh(mesh_file)[0].to(torch.float64)
-        pts = pts[torch.randperm(pts.shape[0], generator=g)[: 300 if backend == "native" else 60]]
-    else:
-        pts = box_points(cage, 400, spread=0.8)
+    pts = model_points(model, cage, 400)
+    pts = pts[torch.randperm(pts.shape[0], generator=g)[: 300 if backend == "native" else 60]]
     x = pts[inside_bilinear(pts, cage, (6, 12))]
     phi, psi = F.quad_green_coordinates(x, cage, backend=backend)
     assert torch.isfinite(psi).all()

@@ -11,6 +11,7 @@ from support import (
     box_cage,
     box_points,
     data_path,
+    model_points,
     quad_adversarial_points,
     sheet_normal,
     triquad,
@@ -65,13 +66,9 @@ def test_partition_linear_precision_adversarial(make, backend):
 def test_data_cages_partition_and_linear_precision(model, backend):
     cage_file = data_path("qmvc", f"{model}_Cage.obj")
     cage = torchcage.load_cage(cage_file)
-    mesh_file = data_path("qmvc", f"{model}.obj")
-    if mesh_file.exists():
-        pts = torchcage.load_mesh(mesh_file)[0].to(torch.float64)
-        if backend == "torch":
-            pts = pts[torch.randperm(pts.shape[0], generator=torch.Generator().manual_seed(0))[:1500]]
-    else:
-        pts = box_points(cage, 1500)
+    pts = model_points(model, cage, 1500)
+    if backend == "torch":
+        pts = pts[torch.randperm(pts.shape[0], generator=torch.Generator().manual_seed(0))[:1500]]
     x = torch.cat([pts, quad_adversarial_points(cage)])
     w = F.quad_mean_value_coordinates(x, cage, backend=backend)
     assert torch.isfinite(w).all()
