@@ -102,16 +102,17 @@ class CageModule(nn.Module):
         fits = lead[len(lead) - len(batch) :] == batch if len(lead) >= len(batch) else False
         if vertices.ndim < 2 or tuple(vertices.shape[-2:]) != (self.num_vertices, self.dim) or not fits:
             raise ValueError(f"vertices must have shape {want} for this module's cage, got {tuple(vertices.shape)}")
-        if self.check_inputs and not torch.compiler.is_compiling() and not bool(torch.isfinite(vertices).all()):
-            bad = torch.nonzero(~torch.isfinite(vertices).all(dim=-1))[:5].tolist()
-            raise ValueError(
-                f"deformed vertices contain NaN or inf (indices {bad}); fix the pose, or set "
-                "module.check_inputs = False to skip this check (one host synchronisation per call on a GPU)"
-            )
         if vertices.device != weights.device:
             raise ValueError(
                 f"vertices are on {vertices.device} but the module's weights are on {weights.device}; "
                 "call module.to(device) or move the vertices"
+            )
+        skip = not self.check_inputs or torch.compiler.is_compiling() or vertices.device.type == "meta"
+        if not skip and not bool(torch.isfinite(vertices).all()):
+            bad = torch.nonzero(~torch.isfinite(vertices).all(dim=-1))[:5].tolist()
+            raise ValueError(
+                f"deformed vertices contain NaN or inf (indices {bad}); fix the pose, or set "
+                "module.check_inputs = False to skip this check (one host synchronisation per call on a GPU)"
             )
 
     def extra_repr(self) -> str:
