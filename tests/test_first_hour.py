@@ -152,3 +152,53 @@ def test_nan_pose_is_refused(cubes, name: str) -> None:
         m(pose)
     m.check_inputs = False
     assert m(pose).shape == (1, 3)
+
+
+def test_messages_say_what_is_wrong(tmp_path) -> None:
+    """Item 10: an empty OBJ, a 2D cage given to quad Green coordinates, huge coordinates."""
+    (tmp_path / "empty.obj").write_text("# nothing here\n")
+    with pytest.raises(torchcage.CageError, match="no vertices"):
+        torchcage.load_cage(tmp_path / "empty.obj")
+    square = torchcage.Cage([[0.0, 0], [1, 0], [1, 1], [0, 1]])
+    with pytest.raises(torchcage.CageError, match="quad Green coordinates need a 3D cage; use green_coordinates"):
+        torchcage.QuadGreenCoordinates(square, torch.zeros(1, 2, dtype=f64))
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+    with pytest.raises(torchcage.CageError, match="overflow"):
+        torchcage.Cage(cube.vertices * 1e200, cube.faces)
+    torchcage.Cage(cube.vertices * 1e40, cube.faces)  # large but safe: accepted
+
+
+def test_self_intersecting_cages_are_refused() -> None:
+    """Item 10: a bow-tie polygon and a 3D cage pushed through itself name the crossing pair; an
+    independent check: the crossing point lies on both the edge and the face."""
+    with pytest.raises(torchcage.CageTopologyError, match=r"edges 0 \[0, 1\] and 2 \[2, 3\] cross"):
+        torchcage.Cage([[0.0, 0], [1, 1], [1, 0], [0, 1]])
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+    v = cube.vertices.clone()
+    v[0] = -1.5 * v[0]  # corner 0 pushed through the opposite corner's faces
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(torchcage.CageTopologyError, match=r"intersects itself: edge \[\d+, \d+\] passes through"):
+            torchcage.Cage(v, cube.triangles)
+        torchcage.Cage(v, cube.triangles, check_intersections=False)  # the big-cage escape hatch
+    from torchcage._intersections import edge_triangle_crossings
+
+    edges = cube.unique_edges()
+    for e, t in edge_triangle_crossings(v, edges, cube.triangles).tolist():
+        p, q = v[edges[e]]
+        a, b, c = v[cube.triangles[t]]
+        n = torch.linalg.cross(b - a, c - a)
+        s = ((a - p) @ n) / ((q - p) @ n)
+        y = p + s * (q - p)  # the segment meets the plane here: inside the triangle
+        bary = torch.linalg.solve(torch.stack([b - a, c - a, n], 1), y - a)
+        assert 0 < s < 1 and bary[0] > 0 and bary[1] > 0 and bary[0] + bary[1] < 1
+    # one batch element is named
+    from torchcage.testing import icosphere
+
+    ico = icosphere()
+    V = torch.stack([ico.vertices, ico.vertices.clone()])
+    V[1, 0] = -1.3 * V[1, 0]  # a vertex pulled through the far side of element 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(torchcage.CageError, match=r"batch element \(1,\)"):
+            torchcage.Cage(V, ico.triangles)

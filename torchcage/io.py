@@ -67,7 +67,9 @@ def read_obj(path: PathLike) -> tuple[np.ndarray, list[list[int]], list[list[int
     return np.asarray(vertices, dtype=np.float64).reshape(-1, 3), faces, lines
 
 
-def load_cage(path: PathLike, *, dim: int | None = None, dtype: torch.dtype = torch.float64) -> Cage:
+def load_cage(
+    path: PathLike, *, dim: int | None = None, dtype: torch.dtype = torch.float64, check_intersections: bool = True
+) -> Cage:
     """Load a cage from an OBJ file, keeping quads as quads.
 
     A file with ``f`` faces is a 3D cage (triangles and quads). A file without faces is a 2D
@@ -78,6 +80,9 @@ def load_cage(path: PathLike, *, dim: int | None = None, dtype: torch.dtype = to
         path: an ``.obj`` file.
         dim: 2 or 3, or ``None`` to decide from the file's content.
         dtype: vertex dtype.
+        check_intersections: refuse a self-intersecting cage (see :class:`~torchcage.Cage`); pass
+            ``False`` to read a deformed pose, which may fold through itself (the data set's
+            deformed Beast cage does), or a big cage.
 
     Returns:
         A validated :class:`~torchcage.Cage`.
@@ -93,18 +98,20 @@ def load_cage(path: PathLike, *, dim: int | None = None, dtype: torch.dtype = to
         torch.Size([14, 4])
     """
     v, faces, _ = read_obj(path)
+    if v.shape[0] == 0:
+        raise CageError(f"{path}: the file holds no vertices ('v x y z' lines); is it an OBJ cage?")
     if dim is None:
         dim = 3 if faces else 2
     if dim == 2:
         if np.abs(v[:, 2]).max(initial=0.0) > 0:
             raise CageError(f"{path}: a 2D cage needs z = 0 on every vertex; pass dim=3 for a surface cage")
-        return Cage(torch.as_tensor(v[:, :2], dtype=dtype))
+        return Cage(torch.as_tensor(v[:, :2], dtype=dtype), check_intersections=check_intersections)
     if dim != 3:
         raise CageError(f"dim must be 2 or 3, got {dim}")
     big = [k for k, f in enumerate(faces) if len(f) > 4]
     if big:
         raise CageError(f"{path}: faces {big[:10]} have more than four corners; cages support triangles and quads only")
-    return Cage(torch.as_tensor(v, dtype=dtype), faces)
+    return Cage(torch.as_tensor(v, dtype=dtype), faces, check_intersections=check_intersections)
 
 
 def _format_rows(prefix: str, rows: np.ndarray, fmt: str) -> str:

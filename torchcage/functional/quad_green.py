@@ -152,7 +152,7 @@ def quad_green_coordinates(
             backend=backend,
             allow_invalid=allow_invalid,
         )
-    x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
+    x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid, "quad Green coordinates")
     T, Q, V = cage.triangles.shape[0], cage.quads.shape[0], cage.num_vertices
     tri_p = verts[cage.triangles]
     tri_geometry = triangle_green_geometry(tri_p)

@@ -30,14 +30,16 @@ from ._qmvc3d_native import native_kernel
 __all__ = ["quad_mean_value_coordinates"]
 
 
-def check_quads(cage: Cage, allow_invalid: bool) -> None:
+def check_quads(cage: Cage, allow_invalid: bool, what: str = "quad mean value coordinates") -> None:
     """Refuse (or, with ``allow_invalid``, warn about) quads that fail the validity predicate.
 
     Raises:
-        CageError: a 2D cage, or invalid quads when ``allow_invalid`` is False.
+        CageError: a 2D cage (``what`` names the method), or invalid quads when ``allow_invalid``
+            is False.
     """
     if cage.dim != 3:
-        raise CageError("quad mean value coordinates need a 3D cage; use mean_value_coordinates for polygons")
+        other = "mean_value_coordinates" if "mean value" in what else "green_coordinates"
+        raise CageError(f"{what} need a 3D cage; use {other} for polygons")
     bad = cage.invalid_quads()
     if bad.numel():
         shown = bad[:10].tolist()
@@ -53,7 +55,12 @@ def check_quads(cage: Cage, allow_invalid: bool) -> None:
 
 
 def prepare_quad_call(
-    points: torch.Tensor, cage: Cage, n: int, dtype: torch.dtype | None, allow_invalid: bool
+    points: torch.Tensor,
+    cage: Cage,
+    n: int,
+    dtype: torch.dtype | None,
+    allow_invalid: bool,
+    what: str = "quad mean value coordinates",
 ) -> tuple[torch.Tensor, torch.dtype, torch.Tensor, float]:
     """Shared checks of the quad coordinate functions: ``n``, the points, the quads' validity.
 
@@ -63,8 +70,10 @@ def prepare_quad_call(
     """
     if not isinstance(n, int) or isinstance(n, bool) or n < 1:
         raise ValueError(f"n must be a positive integer, got {n!r}")
+    if cage.dim != 3:
+        check_quads(cage, allow_invalid, what)
     flat = check_points(points, cage)
-    check_quads(cage, allow_invalid)
+    check_quads(cage, allow_invalid, what)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     return flat.to(compute), out_dtype, cage.vertices.to(compute), on_cage_tolerance(cage)
 
