@@ -202,3 +202,14 @@ def test_self_intersecting_cages_are_refused() -> None:
         warnings.simplefilter("ignore")
         with pytest.raises(torchcage.CageError, match=r"batch element \(1,\)"):
             torchcage.Cage(V, ico.triangles)
+
+
+def test_data_set_deformed_pose_that_folds() -> None:
+    """The data set's deformed Beast cage passes through itself (found by the check above; the
+    crossings persist with either quad diagonal): refused as a cage, read as a pose."""
+    from support import data_path
+
+    path = data_path("qmvc", "Beast_Cage_Deformed.obj")
+    with pytest.raises(torchcage.CageTopologyError, match="intersects itself"):
+        torchcage.load_cage(path)
+    assert torchcage.load_cage(path, check_intersections=False).num_vertices == 152
