@@ -24,7 +24,14 @@ def test_demo_writes_everything(tmp_path, capsys):
     assert torch.allclose(expect, moved, atol=1e-12)
     from PIL import Image
 
-    assert Image.open(tmp_path / "deformation.png").size[0] > 400
+    image = Image.open(tmp_path / "deformation.png").convert("RGB")
+    assert image.size[0] == 1600  # two 800-pixel panels, titles above, a legend below (issue 22 item 15)
+    strip = {image.getpixel((x, y)) for x in range(0, 600, 2) for y in range(image.size[1] - 40, image.size[1])}
+
+    def near(rgb):
+        return any(max(abs(a - b) for a, b in zip(c, rgb, strict=True)) <= 2 for c in strip)
+
+    assert near((115, 158, 217)) and near((230, 120, 20))  # the legend's mesh and cage swatches
 
 
 def test_deform_user_files_and_errors(tmp_path, capsys):

@@ -23,6 +23,13 @@ METHOD_HELP = (
     "qmvc (quad mean value, quads kept), qgc (quad Green, quads kept), lbc (local barycentric, solved on a mesh "
     "of the cage interior; slower, with progress); default mvc"
 )
+METHOD_NAMES = {
+    "mvc": "mean value coordinates (mvc)",
+    "gc": "Green coordinates (gc)",
+    "qmvc": "quad mean value coordinates (qmvc)",
+    "qgc": "quad Green coordinates (qgc)",
+    "lbc": "local barycentric coordinates (lbc)",
+}
 #: Mesh formats written by ``deform --format`` (OBJ directly, the others through trimesh).
 FORMATS = ("obj", "ply", "glb", "stl", "off")
 
@@ -148,13 +155,24 @@ def deform_files(
             edges = cage.unique_edges()
             # the renderer looks at z-up worlds: turn the chosen up axis into z (a rotation)
             turn = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}[up]
+            from torchcage.viz import CAGE_EDGE_COLOR, MESH_COLOR
+
+            faces_desc = ", ".join(
+                f"{n} {kind}"
+                for n, kind in ((cage.triangles.shape[0], "triangles"), (cage.quads.shape[0], "quads"))
+                if n
+            )
             image = render_panels(
                 [
-                    Panel(v[:, turn], f, cage.vertices[:, turn], edges, title="rest"),
-                    Panel(deformed[:, turn], f, pose.vertices[:, turn], edges, title=f"deformed ({method})"),
+                    Panel(v[:, turn], f, cage.vertices[:, turn], edges, title=f"rest: {v.shape[0]:,} mesh vertices"),
+                    Panel(
+                        deformed[:, turn], f, pose.vertices[:, turn], edges, title=f"deformed: {METHOD_NAMES[method]}"
+                    ),
                 ],
+                size=800,
                 azimuth=azimuth,
                 elevation=elevation,
+                legend=[("mesh", MESH_COLOR), (f"cage ({cage.num_vertices} vertices, {faces_desc})", CAGE_EDGE_COLOR)],
             )
             paths["picture"] = out / "deformation.png"
             image.save(paths["picture"])

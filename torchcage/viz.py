@@ -63,6 +63,7 @@ def render_panels(
     azimuth: float = 35.0,
     elevation: float = 20.0,
     background: tuple[int, int, int] = (255, 255, 255),
+    legend: Sequence[tuple[str, Sequence[float]]] = (),
 ) -> Image.Image:
     """Render panels side by side into one image, all with the same view and scale.
 
@@ -72,6 +73,7 @@ def render_panels(
         azimuth: camera azimuth in degrees.
         elevation: camera elevation in degrees.
         background: RGB background colour.
+        legend: ``(label, rgb in [0, 1])`` entries drawn as swatches along the bottom edge.
 
     Returns:
         A ``PIL.Image.Image``; save it with ``.save("out.png")``.
@@ -93,8 +95,11 @@ def render_panels(
     centre_y = (lo[1] + hi[1]) / 2
     span = max(float((hi - lo).max()), 1e-12)
     scale = 0.82 * size / span
-    top = 24 if any(p.title for p in panels) else 0
-    image = Image.new("RGB", (size * len(panels), size + top), background)
+    font = _font(max(11, size // 28))
+    line = font.size + 10 if hasattr(font, "size") else 24
+    top = line if any(p.title for p in panels) else 0
+    bottom = line if legend else 0
+    image = Image.new("RGB", (size * len(panels), size + top + bottom), background)
     draw = ImageDraw.Draw(image)
     light = np.array([0.3, 0.5, 1.0])
     light /= np.linalg.norm(light)
@@ -125,12 +130,38 @@ def render_panels(
             cpx = to_px(c)
             if panel.cage_edges is not None:
                 for a, b in _np(panel.cage_edges).astype(np.int64):
-                    draw.line([tuple(cpx[a]), tuple(cpx[b])], fill=(230, 120, 20), width=2)
+                    draw.line([tuple(cpx[a]), tuple(cpx[b])], fill=_rgb(CAGE_EDGE_COLOR), width=max(2, size // 240))
+            r = max(3.5, size / 140)
             for x, y in cpx:
-                draw.ellipse([x - 3.5, y - 3.5, x + 3.5, y + 3.5], fill=(200, 60, 10))
+                draw.ellipse([x - r, y - r, x + r, y + r], fill=_rgb(CAGE_VERTEX_COLOR))
         if panel.title:
-            draw.text((size * k + 8, 6), panel.title, fill=(30, 30, 30))
+            draw.text((size * k + 10, 5), panel.title, fill=(30, 30, 30), font=font)
+    x = 10
+    for label, rgb in legend:
+        y = size + top + 4
+        sw = line - 12
+        draw.rectangle([x, y, x + sw, y + sw], fill=tuple(int(255 * c) for c in rgb), outline=(60, 60, 60))
+        draw.text((x + sw + 6, y - 1), label, fill=(30, 30, 30), font=font)
+        x += sw + 20 + int(draw.textlength(label, font=font))
     return image
+
+
+#: Colours of the pictures: the cage's edges and vertices, the default mesh.
+CAGE_EDGE_COLOR, CAGE_VERTEX_COLOR, MESH_COLOR = (0.9, 0.47, 0.08), (0.78, 0.24, 0.04), (0.45, 0.62, 0.85)
+
+
+def _rgb(c: Sequence[float]) -> tuple[int, ...]:
+    return tuple(round(255 * v) for v in c)
+
+
+def _font(px: int):
+    """A scalable font of ``px`` pixels (Pillow >= 10.1 ships one), else Pillow's small bitmap font."""
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=px)
+    except TypeError:  # older Pillow: fixed-size bitmap font
+        return ImageFont.load_default()
 
 
 def render_field_2d(
