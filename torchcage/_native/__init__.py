@@ -1,12 +1,14 @@
-"""Optional native CPU kernels, compiled on first use with the system C compiler.
+"""Optional native CPU kernels: built at install time, else compiled on first use.
 
 The torch kernels in :mod:`torchcage.functional` run everywhere (CPU, GPU, any dtype). For the
 hot path on CPU in float64, a plain-C version of the same formulas, parallel over points with
-OpenMP, is about ten times faster. It is compiled once (about a second) into a cache folder
-(``$TORCHCAGE_CACHE``, else ``~/.cache/torchcage``) and loaded with :mod:`ctypes`. Builds are
-tried from the fastest variant down (AVX2 with glibc's vector math, SSE2, plain C, and last
-without OpenMP, single-threaded). Without a C compiler, or with ``TORCHCAGE_NATIVE=0``, torchcage
-uses the torch kernels. Extra compiler flags: ``$TORCHCAGE_CFLAGS``.
+OpenMP, is about ten times faster. ``pip install`` builds it (``setup.py``: an AVX2 library and a
+baseline one on x86-64 Linux) and the loader takes the first that this CPU runs (:func:`variant`
+says which). Where no prebuilt library loads, it is compiled once into a cache folder
+(``$TORCHCAGE_CACHE``, else ``~/.cache/torchcage``), trying the variants from the fastest down
+(AVX2 with glibc's vector math, SSE2, plain C, and last without OpenMP, single-threaded). Without
+either, or with ``TORCHCAGE_NATIVE=0``, torchcage uses the torch kernels. Extra compiler flags of
+the run-time build: ``$TORCHCAGE_CFLAGS``.
 """
 
 from __future__ import annotations
@@ -25,16 +27,18 @@ from pathlib import Path
 
 import torch
 
+from . import _buildspec as build_spec
 from . import abi
 
-__all__ = ["available", "call", "failure_reason", "library", "select"]
+__all__ = ["available", "call", "failure_reason", "library", "select", "variant"]
 
-_SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "raster.c", "qmvc3d.c", "qgc3d.c", "mvcd3d.c", "mvcd2d.c", "mvc3d_vjp.c")
-_HEADERS = ("native.h", "jet.h")
+_SOURCES = build_spec.SOURCES
+_HEADERS = build_spec.HEADERS
 
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
 _failed: str | None = None
+_variant: str = ""
 
 
 def _compiler() -> str | None:
@@ -46,21 +50,39 @@ def _compiler() -> str | None:
     return None
 
 
-def _x86_glibc() -> bool:
-    import platform
-
-    return platform.machine().lower() in ("x86_64", "amd64") and platform.libc_ver()[0] == "glibc"
-
-
 def _cpu_flags() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("flags"):
-                    return "avx2" if " avx2" in line and " fma" in line else "base"
-    except OSError:
-        pass
-    return "base"
+    return "avx2" if build_spec.cpu_has_avx2() else "base"
+
+
+def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
+    for name in abi.SIGNATURES:
+        fn = getattr(lib, name)
+        fn.argtypes = abi.argtypes(name)
+        fn.restype = None
+    return lib
+
+
+def _load_prebuilt() -> tuple[ctypes.CDLL, str] | None:
+    """The library built at install time (``setup.py``), fastest variant this CPU runs first;
+    ``None`` when none is installed or none loads (a missing libgomp or libmvec, say)."""
+    here = Path(__file__).parent
+    suffix = sysconfig.get_config_var("EXT_SUFFIX") or (".pyd" if sys.platform == "win32" else ".so")
+    for name in build_spec.prebuilt_variants():
+        if name.endswith("_avx2") and not build_spec.cpu_has_avx2():
+            continue
+        path = here / f"{name}{suffix}"
+        if not path.exists():
+            continue
+        try:
+            lib = ctypes.CDLL(str(path))
+            lib.tc_source_digest.restype = ctypes.c_char_p
+            if lib.tc_source_digest().decode() != build_spec.source_digest(here):
+                continue  # built from other sources (an editable install whose C files changed since)
+            lib = _bind(lib)
+        except (OSError, AttributeError):  # unloadable here (a missing libgomp or libmvec, say)
+            continue
+        return lib, f"prebuilt {name.removeprefix('_kernels').removeprefix('_') or 'baseline'} ({path.name})"
+    return None
 
 
 def _cache_dir() -> Path:
@@ -77,17 +99,11 @@ def _build() -> ctypes.CDLL:
     # -fno-trapping-math: selects vectorise (nothing reads floating-point exception flags);
     # -fno-tree-loop-distribute-patterns: gcc 12.2 -O3 miscompiled a loop of in-place sums after
     # a zeroing store when it split the loop around a memset (found in qgc3d.c, reproduced alone).
-    flags = ["-O3", "-fno-math-errno", "-fno-trapping-math", "-fno-tree-loop-distribute-patterns", "-fPIC",
-             "-shared", "-fopenmp", "-std=c99"]  # fmt: skip
+    flags = [*build_spec.BASE_FLAGS, "-fPIC", "-shared", f'-DTC_SOURCE_DIGEST="{build_spec.source_digest(here)}"']
     flags += os.environ.get("TORCHCAGE_CFLAGS", "").split()
-    # (compile flags, libraries): glibc's vector atan with AVX2, then SSE2, then plain scalar code.
-    variants: list[tuple[list[str], list[str]]] = [([], [])]
-    if _x86_glibc():
-        mvec = (["-DTC_LIBMVEC"], ["-lmvec"])
-        variants = [mvec, ([], [])]
-        if _cpu_flags() == "avx2":
-            variants.insert(0, (["-mavx2", "-mfma", "-DTC_LIBMVEC"], ["-lmvec"]))
-    variants.append((["-fno-openmp"], []))  # a compiler without OpenMP: one thread, same results
+    # (compile flags, libraries): glibc's vector atan with AVX2, then SSE2, then plain scalar code,
+    # then without OpenMP (one thread, same results)
+    variants = [(cflags, [f"-l{lib}" for lib in libs]) for cflags, libs in build_spec.runtime_variants()]
     digest = hashlib.sha256()
     for src in [*sources, *(here / h for h in _HEADERS)]:
         digest.update(src.read_bytes())
@@ -108,34 +124,43 @@ def _build() -> ctypes.CDLL:
             else:
                 raise RuntimeError("\n".join(errors))
             os.replace(out, target)  # atomic: concurrent builders never see a half-written library
-    lib = ctypes.CDLL(str(target))
-    for name in abi.SIGNATURES:
-        fn = getattr(lib, name)
-        fn.argtypes = abi.argtypes(name)
-        fn.restype = None
-    return lib
+    return _bind(ctypes.CDLL(str(target)))
 
 
 def library() -> ctypes.CDLL | None:
-    """The loaded native library, building it on first use; ``None`` where it cannot be built."""
-    global _lib, _failed
+    """The loaded native library: the one built at install time, else built on first use into
+    the cache; ``None`` where neither is possible."""
+    global _lib, _failed, _variant
     if _lib is not None or _failed is not None:
         return _lib
     with _lock:
         if _lib is None and _failed is None:
             if os.environ.get("TORCHCAGE_NATIVE", "1") == "0":
                 _failed = "disabled by TORCHCAGE_NATIVE=0"
+            elif (found := _load_prebuilt()) is not None:
+                _lib, _variant = found
             else:
                 try:
                     _lib = _build()
+                    _variant = f"compiled at first use ({_cpu_flags()}) into {_cache_dir()}"
                 except Exception as err:  # no compiler, no OpenMP, read-only cache, ...
                     _failed = str(err)
+                    first = str(err).strip().splitlines()[0] if str(err).strip() else err.__class__.__name__
                     warnings.warn(
-                        f"torchcage's native CPU kernels are unavailable ({err.__class__.__name__}); "
-                        "using the (slower) torch kernels",
+                        "torchcage's native CPU kernels are unavailable: no library built at install time loads "
+                        f"here and the run-time build failed ({first[:200]}); using the torch kernels (5 to 10 "
+                        "times slower on the CPU). Reinstall with a C compiler present (pip install builds them), "
+                        "or set TORCHCAGE_NATIVE=0 to choose the torch kernels silently",
                         stacklevel=3,
                     )
     return _lib
+
+
+def variant() -> str:
+    """Which native library serves (``"prebuilt avx2 (...)"``, ``"compiled at first use ..."``), or
+    ``""`` when none is loaded."""
+    library()
+    return _variant
 
 
 def failure_reason() -> str:

@@ -46,8 +46,9 @@ def mean_value_coordinates(
             whatever it is (float32 would lose accuracy near the cage: see docs/accuracy.md).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): for float64 on the CPU, torchcage's native C kernel
-            (compiled on first use, about a second) when a C compiler is present and no autograd
-            graph is needed, else the torch kernel; ``"torch"`` forces the torch kernel (any
+            (built at install time; see the guide) when it loads and no autograd graph is needed
+            (with one, values still come from it and derivatives from the autograd Functions),
+            else the torch kernel; ``"torch"`` forces the torch kernel (any
             device and dtype); ``"native"`` requires the native one.
 
     Gradients: when the points or ``cage.vertices`` require grad (or under ``torch.func``
