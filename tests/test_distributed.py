@@ -99,8 +99,9 @@ def test_ddp_training_and_sharded_coordinates(tmp_path):
     ico, shared = icosphere(), _problem(7)[1]
     w = F.mean_value_coordinates(shared, ico)
     phi, psi = F.green_coordinates(shared[:101], ico)
-    for r in res:
-        assert torch.equal(r["w"], w) and torch.equal(r["phi"], phi) and torch.equal(r["psi"], psi)
+    for r in res:  # to rounding: the torch kernels' reductions depend on chunk sizes and threads
+        for got, want in ((r["w"], w), (r["phi"], phi), (r["psi"], psi)):
+            assert (got - want).abs().max() < 1e-13
 
 
 def test_shard_slice_covers_everything():

@@ -48,8 +48,9 @@ def shard_coordinates(
         **kwargs: passed to ``fn``.
 
     Returns:
-        What ``fn`` returns for all ``N`` points, on every rank (no autograd graph: the gathered
-        results are constants, as the modules store them).
+        What ``fn`` returns for all ``N`` points, on every rank, equal to the unsharded call (to the
+        rounding of the torch kernels' chunked reductions; bitwise with the native kernels). No
+        autograd graph: the gathered results are constants, as the modules store them.
 
     Raises:
         RuntimeError: no initialised process group.
