@@ -41,6 +41,9 @@ def green_coordinates(
         points: ``(*, 3)`` query points.
         cage: a closed triangle cage (quad cages are refused: use ``cage.triangulated()``) or a
             closed polygon.
+            Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
+            ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
+            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
         chunk_size: points per chunk (default: about 130k point–face pairs).
         dtype: dtype of the result (default: that of the inputs). The kernels compute in float64
             whatever it is (float32 would lose accuracy near the cage: see docs/accuracy.md).

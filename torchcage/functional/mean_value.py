@@ -40,6 +40,9 @@ def mean_value_coordinates(
         points: ``(*, D)`` query points, ``D = cage.dim``.
         cage: a closed triangle cage (3D) or a closed polygon (2D). Quad cages are refused: use
             :func:`torchcage.functional.quad_mean_value_coordinates` or ``cage.triangulated()``.
+            Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
+            ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
+            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
         chunk_size: points per chunk; peak memory grows with ``chunk_size x faces``. Default: about
             130k (3D) or 260k (2D) point–face pairs per chunk in the torch kernel.
         dtype: dtype of the result (default: that of the inputs). The kernels compute in float64

@@ -118,6 +118,9 @@ def mean_value_derivatives(
     Args:
         points: ``(*, D)`` query points off the cage, ``D = cage.dim``.
         cage: a closed triangle cage (3D) or a closed polygon (2D).
+            Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
+            ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
+            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
         order: 1 (gradients) or 2 (gradients and Hessians).
         chunk_size: points per chunk (memory grows with ``chunk_size x V x D^2``). Default: 4096.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.

@@ -107,6 +107,9 @@ def quad_green_coordinates(
     Args:
         points: ``(*, 3)`` points inside the cage.
         cage: a closed 3D cage of triangles and/or valid quads.
+            Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
+            ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
+            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
         n: tessellation parameter, ``n >= 1`` (cost grows like ``(n+1)^2``).
         chunk_size: points per chunk (memory grows with ``chunk_size x quads x (n+1)^2``).
         dtype: dtype of the result (default: that of the inputs). The kernels compute in float64

@@ -102,6 +102,9 @@ def quad_mean_value_coordinates(
         points: ``(*, 3)`` query points.
         cage: a closed 3D cage of triangles and/or quads, all quads valid (see
             :meth:`Cage.invalid_quads`).
+            Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
+            ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
+            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
         n: grid parameter, ``n >= 1``; the cost grows like ``(2n+1)^2`` per point and quad.
         chunk_size: points per chunk (peak memory of the torch kernel grows with
             ``chunk_size x quads x (2n+1)^2``).
