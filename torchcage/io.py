@@ -68,7 +68,11 @@ def read_obj(path: PathLike) -> tuple[np.ndarray, list[list[int]], list[list[int
 
 
 def load_cage(
-    path: PathLike, *, dim: int | None = None, dtype: torch.dtype = torch.float64, check_intersections: bool = True
+    path: PathLike,
+    *,
+    dim: int | None = None,
+    dtype: torch.dtype = torch.float64,
+    check_intersections: bool | None = None,
 ) -> Cage:
     """Load a cage from an OBJ file, keeping quads as quads.
 
@@ -80,9 +84,9 @@ def load_cage(
         path: an ``.obj`` file.
         dim: 2 or 3, or ``None`` to decide from the file's content.
         dtype: vertex dtype.
-        check_intersections: refuse a self-intersecting cage (see :class:`~torchcage.Cage`); pass
-            ``False`` to read a deformed pose, which may fold through itself (the data set's
-            deformed Beast cage does), or a big cage.
+        check_intersections: refuse a self-intersecting cage (see :class:`~torchcage.Cage`; by
+            default cages of up to 2,048 faces are tested); pass ``False`` to read a deformed
+            pose, which may fold through itself (the data set's deformed Beast cage does).
 
     Returns:
         A validated :class:`~torchcage.Cage`.
