@@ -61,7 +61,7 @@ def test_partition_and_linear_precision_handmade(name, backend):
     assert_linear_precision(w, cage.vertices, x, rtol=1e-10)
 
 
-@pytest.mark.parametrize("name", ["cube", "l_shape", "twisted_bar", "notched"])
+@pytest.mark.parametrize("name", ["cube", "l_shape", pytest.param("twisted_bar", marks=pytest.mark.slow), "notched"])
 def test_agrees_with_mpmath(name, backend):
     """Independent half-angle formulation in 60-digit arithmetic, at generic and adversarial points."""
     cage = HANDMADE[name]()
