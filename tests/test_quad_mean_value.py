@@ -209,7 +209,7 @@ def test_gradients_wrt_cage_vertices():
     x = box_points(cage, 4, spread=0.8)
 
     def f(verts: torch.Tensor) -> torch.Tensor:
-        return F.quad_mean_value_coordinates(x, torchcage.Cage(verts, cage.quads), 1)
+        return F.quad_mean_value_coordinates(x, torchcage.Cage(verts, cage.quads, validate=False), 1)
 
     torch.autograd.gradcheck(f, (cage.vertices.clone().requires_grad_(True),), eps=1e-6, atol=1e-6)
 
