@@ -22,8 +22,8 @@ import torchcage
 from torchcage._timing import best_of
 from torchcage.testing import QMVC_MODELS
 
-__all__ = ["MODELS", "add_data_argument", "best_of", "load_model", "peak_mb", "qmvc_root", "rss_mb",
-           "run_in_child"]  # fmt: skip
+__all__ = ["MODELS", "add_data_argument", "best_of", "load_model", "peak_mb", "peak_since", "qmvc_root",
+           "reset_peak", "rss_mb", "run_in_child"]  # fmt: skip
 
 #: The QMVC paper's models (the data set is not shipped: ``--data`` points at it).
 MODELS = list(QMVC_MODELS)
@@ -61,6 +61,36 @@ def rss_mb() -> float:
 def peak_mb() -> float:
     """This process's peak resident memory so far, in MB (``ru_maxrss``; KiB on Linux)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def reset_peak() -> float:
+    """Start a peak-memory measurement: hand freed memory back to the system (glibc's
+    ``malloc_trim``), reset the kernel's resident high-water mark (``/proc/self/clear_refs``) and
+    return the resident memory now, in MB. :func:`peak_since` then gives the peak above it, even
+    after warm-up calls whose own peak was higher (``ru_maxrss`` cannot be reset)."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+    except OSError:
+        pass
+    return rss_mb()
+
+
+def peak_since(before: float) -> float:
+    """Peak resident memory (``VmHWM``) above ``before`` (from :func:`reset_peak`), in MB."""
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return max(0.0, int(line.split()[1]) / 1024 - before)
+    return max(0.0, peak_mb() - before)
 
 
 def run_in_child(script: str | Path, args: Sequence[str]) -> dict:

@@ -6,10 +6,17 @@ icosphere cage per shape (each jittered), points inside. torchcage (``F.mean_val
 on a batched ``Cage``; the backward through its fused analytic pass) against a dense batched
 implementation of the half-angle formula differentiated by plain autograd
 (``baseline.dense_batched_mean_value_coordinates``), float32 and float64, every measurement in its
-own child process (its peak memory its own). *err*: the largest coordinate difference to
+own child process. *peak*: resident memory above the level after a warm-up call (freed memory
+handed back and the kernel's high-water mark reset first, so that the warm-up's own peak does not
+hide it). *err*: the largest coordinate difference to
 torchcage's float64 values. With CUDA present, the same on the GPU.
 
-Usage: ``python benchmarks/learnable.py [--batch 8] [--points 5000] [--repeat 3]``
+``--green`` adds Green coordinates (``phi`` and ``psi``; gradients with respect to points and rest
+cages): torchcage's ``GreenFunction`` (values by the native kernel, backward recomputed chunk by
+chunk) against plain autograd of the same torch kernel over all points at once, in the inputs'
+dtype (what torchcage did before, except that it computed in float64).
+
+Usage: ``python benchmarks/learnable.py [--batch 8] [--points 5000] [--repeat 3] [--green]``
 """
 
 from __future__ import annotations
@@ -27,7 +34,9 @@ from torchcage.testing import icosphere
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from baseline import dense_batched_mean_value_coordinates
-from harness import best_of, peak_mb, rss_mb, run_in_child
+from harness import best_of, peak_since, reset_peak, run_in_child
+
+from torchcage.functional._green_dispatch import green_flat
 
 
 def problem(B: int, N: int, dtype: torch.dtype, device: str):
@@ -41,15 +50,27 @@ def problem(B: int, N: int, dtype: torch.dtype, device: str):
     return x.to(device, dtype), P.to(device, dtype), ico.triangles.to(device), cot.to(device, dtype)
 
 
+def _coordinates(impl: str, x: torch.Tensor, P: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """``(B, N, K)``: mean value coordinates (``K = V``) or Green's ``[phi, psi]`` (``K = V + T``)."""
+    if impl == "dense":
+        return dense_batched_mean_value_coordinates(x, P, faces)
+    if impl == "gc-autograd":  # plain autograd of the torch kernel, every point in one graph
+        parts = [
+            green_flat(x[b], torchcage.Cage(P[b], faces, validate=False), None, False, "torch") for b in range(len(x))
+        ]
+        return torch.stack([torch.cat(part, dim=-1) for part in parts])
+    cage = torchcage.Cage(P, faces, validate="topology")
+    if impl == "gc":
+        return torch.cat(F.green_coordinates(x, cage), dim=-1)
+    return F.mean_value_coordinates(x, cage)
+
+
 def child(args: argparse.Namespace) -> None:
     dtype = getattr(torch, args.dtype)
-    x, P, faces, cot = problem(args.batch, args.points, dtype, args.device)
-    ref = F.mean_value_coordinates(x.double().cpu(), torchcage.Cage(P.double().cpu(), faces.cpu(), validate="topology"))
-
-    def coords(xx, PP):
-        if args.impl == "dense":
-            return dense_batched_mean_value_coordinates(xx, PP, faces)
-        return F.mean_value_coordinates(xx, torchcage.Cage(PP, faces, validate="topology"))
+    x, P, faces, _ = problem(args.batch, args.points, dtype, args.device)
+    green = args.impl.startswith("gc")
+    ref = _coordinates("gc" if green else "torchcage", x.double().cpu(), P.double().cpu(), faces.cpu())
+    cot = torch.randn(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64).to(args.device, dtype)
 
     def sync():
         if args.device == "cuda":
@@ -58,22 +79,45 @@ def child(args: argparse.Namespace) -> None:
     def run():
         if args.task == "forward":
             with torch.no_grad():
-                out = coords(x, P)
+                out = _coordinates(args.impl, x, P, faces)
         else:
             xx, PP = x.clone().requires_grad_(), P.clone().requires_grad_()
-            out = coords(xx, PP)
+            out = _coordinates(args.impl, xx, PP, faces)
             (out * cot).sum().backward()
         sync()
         return out.detach()
 
     run()  # warm-up: lazy imports, native library load
-    before = rss_mb()
+    before = reset_peak()
     if args.device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     _, best, out = best_of(run, repeat=args.repeat)
-    peak = torch.cuda.max_memory_allocated() / 2**20 if args.device == "cuda" else peak_mb() - before
+    peak = torch.cuda.max_memory_allocated() / 2**20 if args.device == "cuda" else peak_since(before)
     err = float((out.double().cpu() - ref).abs().max())
     print(json.dumps({"best": best, "peak": max(peak, 0.0), "err": err}))
+
+
+def _table(args: argparse.Namespace, device: str, ours: str, theirs: str) -> None:
+    cols = ["device", "dtype", "task", ours, theirs, "speed-up", f"{ours} peak", f"{theirs} peak"]
+    print("| " + " | ".join([*cols, f"err {ours}", f"err {theirs}"]) + " |")
+    print("|" + "---|" * (len(cols) + 2))
+    common = ["--batch", str(args.batch), "--points", str(args.points), "--repeat", str(args.repeat), "--child"]
+    for dtype in ("float32", "float64"):
+        for task in ("forward", "backward"):
+            res = {
+                impl: run_in_child(
+                    __file__, [*common, "--impl", impl, "--task", task, "--dtype", dtype, "--device", device]
+                )
+                for impl in (ours, theirs)
+            }
+            a, b = res[ours], res[theirs]
+            name = "forward" if task == "forward" else "forward+backward"
+            print(
+                f"| {device} | {dtype} | {name} | {a['best'] * 1e3:,.0f} ms | {b['best'] * 1e3:,.0f} ms | "
+                f"{b['best'] / a['best']:.1f}x | {a['peak']:,.0f} MB | {b['peak']:,.0f} MB | "
+                f"{a['err']:.1e} | {b['err']:.1e} |",
+                flush=True,
+            )
 
 
 def main() -> None:
@@ -81,6 +125,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--points", type=int, default=5000)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--green", action="store_true", help="also Green coordinates against plain autograd")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--impl", default="torchcage", help=argparse.SUPPRESS)
     ap.add_argument("--task", default="forward", help=argparse.SUPPRESS)
@@ -90,30 +135,14 @@ def main() -> None:
     if args.child:
         child(args)
         return
-    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     print(f"B = {args.batch} shapes x N = {args.points} points, 42-vertex / 80-triangle cages, "
           f"{torch.get_num_threads()} threads, best of {args.repeat}")  # fmt: skip
-    cols = ["device", "dtype", "task", "torchcage", "dense", "speed-up", "torchcage peak", "dense peak"]
-    print("| " + " | ".join([*cols, "err torchcage", "err dense"]) + " |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for device in devices:
-        for dtype in ("float32", "float64"):
-            for task in ("forward", "forward+backward"):
-                res = {}
-                for impl in ("torchcage", "dense"):
-                    common = ["--batch", str(args.batch), "--points", str(args.points), "--repeat", str(args.repeat)]
-                    res[impl] = run_in_child(
-                        __file__,
-                        [*common, "--child", "--impl", impl, "--task", task.split("+")[-1] if task != "forward"
-                         else "forward", "--dtype", dtype, "--device", device],
-                    )  # fmt: skip
-                a, b = res["torchcage"], res["dense"]
-                print(
-                    f"| {device} | {dtype} | {task} | {a['best'] * 1e3:,.0f} ms | {b['best'] * 1e3:,.0f} ms | "
-                    f"{b['best'] / a['best']:.1f}x | {a['peak']:,.0f} MB | {b['peak']:,.0f} MB | "
-                    f"{a['err']:.1e} | {b['err']:.1e} |",
-                    flush=True,
-                )
+    for device in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):
+        print(f"\nmean value coordinates ({device}): torchcage vs the dense batched formula")
+        _table(args, device, "torchcage", "dense")
+        if args.green:
+            print(f"\nGreen coordinates ({device}): torchcage vs plain autograd of its torch kernel")
+            _table(args, device, "gc", "gc-autograd")
 
 
 if __name__ == "__main__":
