@@ -16,35 +16,15 @@ from pathlib import Path
 import torch
 
 import torchcage
+from torchcage.testing import icosphere as _icosphere
 
 OUT = Path(__file__).resolve().parents[1] / "torchcage" / "data"
 
 
 def icosphere(level: int) -> tuple[torch.Tensor, torch.Tensor]:
-    t = (1 + 5**0.5) / 2
-    v = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
-         [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]  # fmt: skip
-    f = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2],
-         [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11],
-         [6, 2, 10], [8, 6, 7], [9, 8, 1]]  # fmt: skip
-    verts = [list(map(float, p)) for p in v]
-    for _ in range(level):
-        mid: dict[tuple[int, int], int] = {}
-
-        def midpoint(a: int, b: int, mid: dict[tuple[int, int], int] = mid) -> int:
-            key = (min(a, b), max(a, b))
-            if key not in mid:
-                mid[key] = len(verts)
-                verts.append([(verts[a][k] + verts[b][k]) / 2 for k in range(3)])
-            return mid[key]
-
-        new = []
-        for a, b, c in f:
-            ab, bc, ca = midpoint(a, b), midpoint(b, c), midpoint(c, a)
-            new += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        f = new
-    vt = torch.tensor(verts, dtype=torch.float64)
-    return vt / vt.norm(dim=1, keepdim=True), torch.tensor(f)
+    """Unit geodesic sphere ``(vertices, triangles)``: :func:`torchcage.testing.icosphere`."""
+    sphere = _icosphere(level)
+    return sphere.vertices, sphere.triangles
 
 
 def bar() -> tuple[torch.Tensor, torch.Tensor]:
