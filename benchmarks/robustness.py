@@ -137,7 +137,7 @@ def sweep_values(family: str, cage: torchcage.Cage, name: str, pts: dict, side: 
         bad = _nonfinite(w64, *([extra] if extra is not None else []))
         stats.bad_values += int(bad.sum())
         ok = ~bad
-        if green:  # Green coordinates reproduce points inside the cage (and on it)
+        if family == "qgc":  # quad Green coordinates reproduce points inside the cage (and on it)
             known = side[cat]
             inside, sure = _inside(x, cage)
             # a side known by construction (an offset along the normal) holds only within the local

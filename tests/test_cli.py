@@ -95,11 +95,19 @@ def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
         assert main([*args, "--out", str(tmp_path / "ply"), "--format", "ply", "--no-picture"]) == 0
         v, f = torchcage.load_mesh(tmp_path / "ply" / "deformed_mesh.ply")
         assert v.shape == (42, 3) and f.shape == (80, 3)
+    (tmp_path / "poke").mkdir()
+    poke = _cube_files(tmp_path / "poke", scale=1.4)  # the sphere pokes out of the cube a little
+    capsys.readouterr()
+    assert main([*poke, "--out", str(tmp_path / "gc0"), "--method", "gc", "--no-picture"]) == 0
+    assert "outside" not in capsys.readouterr().err  # within the exterior band: continued, no warning
+    v0, _ = torchcage.load_mesh(tmp_path / "gc0" / "rest_mesh.obj")
+    v1, _ = torchcage.load_mesh(tmp_path / "gc0" / "deformed_mesh.obj")
+    assert (v1 - v0).norm(dim=1).max() < 1.0  # no point sent to the origin
     (tmp_path / "big").mkdir()
-    outside = _cube_files(tmp_path / "big", scale=1.4)  # the sphere pokes out of the cube
+    outside = _cube_files(tmp_path / "big", scale=3.0)  # far outside the cube
     capsys.readouterr()
     assert main([*outside, "--out", str(tmp_path / "gc"), "--method", "gc", "--no-picture"]) == 0
-    assert "outside the cage" in capsys.readouterr().err
+    assert "outside it" in capsys.readouterr().err
     assert main([*outside, "--out", str(tmp_path / "gc2"), "--method", "gc", "--strict"]) == 2
     assert "--strict" in capsys.readouterr().err
 

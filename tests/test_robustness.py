@@ -322,13 +322,22 @@ def test_robustness_slice_qgc_bounds() -> None:
     assert st.pu[0] < 1e-9 and st.lp[0] < 1e-8, (st.pu, st.lp)
 
 
-@pytest.mark.parametrize("kind", ["gc", "qgc"])
+@pytest.mark.parametrize("kind", ["gc", "gc_none", "qgc"])
 def test_green_modules_warn_about_points_outside(kind: str) -> None:
-    """Reproducer 14 (until the exterior extension lands): a warning with the count."""
+    """Reproducer 14: points outside what the coordinates cover warn with their count (GC: beyond
+    the exterior band; bare GC and QGC: every outside point)."""
     cq = tc.load_cage(tc.data.path("cube.obj")).to(D64)
-    pts = torch.tensor([[0.1, 0.2, 0.3], [3.0, 0.0, 0.0], [0.0, -2.5, 0.1]], dtype=D64)
-    with pytest.warns(tc.OutsideCageWarning, match="2 of 3 points lie outside"):
-        tc.GreenCoordinates(cq.triangulated(), pts) if kind == "gc" else tc.QuadGreenCoordinates(cq, pts)
+    pts = torch.tensor([[0.1, 0.2, 0.3], [3.0, 0.0, 0.0], [0.0, -2.5, 0.1], [0.0, 1.2, 0.0]], dtype=D64)
+    if kind == "gc":
+        with pytest.warns(tc.OutsideCageWarning, match="2 of 4 points lie farther than 0.25 .* [(]3 outside"):
+            m = tc.GreenCoordinates(cq.triangulated(), pts)
+        assert torch.allclose(m(cq.vertices), pts, atol=1e-12)  # the rest pose reproduces all of them
+    elif kind == "gc_none":
+        with pytest.warns(tc.OutsideCageWarning, match="3 of 4 points lie outside"):
+            tc.GreenCoordinates(cq.triangulated(), pts, exterior="none")
+    else:
+        with pytest.warns(tc.OutsideCageWarning, match="3 of 4 points lie outside"):
+            tc.QuadGreenCoordinates(cq, pts)
 
 
 @pytest.mark.parametrize("scale", [1e6, 1e9])

@@ -93,8 +93,9 @@ def deform_files(
     ``picture=True``, ``deformation.png`` (rest and deformed side by side, seen with ``up`` as the
     vertical axis from the camera's ``azimuth`` and ``elevation`` in degrees).
 
-    Points outside the cage (where Green and quad Green coordinates send them to nearly the origin)
-    are reported with their count; with ``strict`` they are an error.
+    Points outside what the coordinates cover (for ``gc``, farther outside the cage than its
+    exterior band; for ``qgc``, any point outside) are reported with their count; with ``strict``
+    they are an error.
 
     Returns:
         The paths written, by name.

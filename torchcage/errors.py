@@ -37,8 +37,9 @@ class PointsError(ValueError):
 
 
 class OutsideCageWarning(UserWarning):
-    """Points lie outside a cage whose coordinates are defined inside only (Green coordinates map
-    them to nearly the origin); the message gives their count."""
+    """Points lie outside what a cage's coordinates cover: outside the cage for quad Green
+    coordinates (which map them to nearly the origin), beyond the exterior band for Green
+    coordinates (continued through the nearest faces); the message gives their count."""
 
 
 def warn_outside(phi_sum, what: str) -> None:

@@ -14,6 +14,7 @@ from ..autograd.green import green_function
 from ..cage import Cage
 from ._batch import over_cage_batch
 from ._common import as_inputs, check_points, records_graph, result_dtype
+from ._exterior import extend_outside
 from ._green3d import triangle_green_data
 from ._green_dispatch import green_flat
 
@@ -28,6 +29,7 @@ def green_coordinates(
     dtype: torch.dtype | None = None,
     progress: bool | Callable[[int, int], None] = False,
     backend: str = "auto",
+    exterior: str = "extend",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Green coordinates (Lipman, Levin, Cohen-Or 2008) of points inside a closed triangle cage
     or a closed polygon.
@@ -35,7 +37,10 @@ def green_coordinates(
     At rest, ``phi @ cage.vertices + psi @ n = points`` for points inside the cage, with ``n`` the
     unit outward normals of the triangles (``cage.triangle_normals()``) or of the polygon's edges
     (``cage.edge_normals()``); points on the cage get the limit from inside. Outside the cage the
-    same sums give 0: Green coordinates are defined inside.
+    Green integrals alone give 0; by default the coordinates of outside points are continued
+    through the cage's nearest faces (Lipman et al.'s exterior extension, blended between faces at
+    nearly the same distance: docs/accuracy.md), so that they too are reproduced at rest and move
+    continuously as they cross the cage.
 
     Args:
         points: ``(*, 3)`` query points.
@@ -50,6 +55,8 @@ def green_coordinates(
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (the native CPU kernel for 3D float64 on the CPU when it can be built
             and no autograd graph is needed, else torch), ``"native"`` or ``"torch"``.
+        exterior: ``"extend"`` (default) continues the coordinates outside the cage; ``"none"``
+            gives the bare Green integrals there (which map outside points to the origin).
 
     Returns:
         ``(phi (*, V), psi (*, T))``, ``T`` the triangles, or the edges in 2D.
@@ -57,6 +64,7 @@ def green_coordinates(
     Raises:
         CageError: a quad cage.
         PointsError: bad points (shape, device, NaN or inf).
+        ValueError: an unknown ``exterior``.
 
     Examples:
         >>> import torch, torchcage
@@ -69,10 +77,19 @@ def green_coordinates(
         >>> torch.allclose(phi @ cube.vertices + psi @ cube.triangle_normals(), x)
         True
     """
+    if exterior not in ("extend", "none"):
+        raise ValueError(f"exterior must be 'extend' or 'none', got {exterior!r}")
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(
-            green_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend
+            green_coordinates,
+            points,
+            cage,
+            chunk_size=chunk_size,
+            dtype=dtype,
+            progress=progress,
+            backend=backend,
+            exterior=exterior,
         )
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype)
@@ -82,5 +99,7 @@ def green_coordinates(
         phi, psi = green_function(flat, cage, chunk_size, backend)
     else:
         phi, psi = green_flat(flat.to(compute), cage, chunk_size, progress, backend)
+    if exterior == "extend":
+        phi, psi, _ = extend_outside(flat.to(compute), cage, phi.to(compute), psi.to(compute))
     lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, cage.num_vertices), psi.to(out_dtype).reshape(*lead, psi.shape[-1])
