@@ -21,6 +21,46 @@
 
 static const int HULL[4][3] = {{0, 1, 3}, {1, 2, 3}, {0, 2, 1}, {0, 3, 2}};
 
+/* Quads seen from more than 10^FAR_QUAD_LO times their size blend towards, and beyond 10^FAR_QUAD_HI
+ * take, the Gauss rule of the defining integrals (as FAR_QUAD_LOG and GAUSS4 in _qmvc3d.py). */
+#define FAR_QUAD_LO 1.5
+#define FAR_QUAD_HI 2.5
+static const double GAUSS_T[4] = {0.06943184420297371, 0.33000947820757187, 0.6699905217924281, 0.9305681557970262};
+static const double GAUSS_W[4] = {0.17392742256872679, 0.3260725774312732, 0.3260725774312732, 0.17392742256872679};
+
+/* Weight of the Gauss rule: a smoothstep in log10(min_i |p_i| / size) from FAR_QUAD_LO to FAR_QUAD_HI. */
+static double far_blend(const double *R, double size) {
+    double rmin = fmin(fmin(R[0], R[1]), fmin(R[2], R[3]));
+    double ratio = rmin / size;
+    if (!(ratio > 1.0)) return 0.0;
+    double s = (log10(ratio) - FAR_QUAD_LO) / (FAR_QUAD_HI - FAR_QUAD_LO);
+    s = s < 0 ? 0 : (s > 1 ? 1 : s);
+    return s * s * (3 - 2 * s);
+}
+
+/* The four corner integrals int phi_i N.(xi - x) / |xi - x|^4 du dv by the tensor Gauss rule (as
+ * gauss_weights in _qmvc3d.py): xi - x = p0 + u b + v cc + u v dd, N = N0 + u Nu + v Nv. */
+static void gauss_weights(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
+                          const double *Nu, const double *Nv, double *wg) {
+    wg[0] = wg[1] = wg[2] = wg[3] = 0.0;
+    for (int a = 0; a < 4; ++a) {
+        double u = GAUSS_T[a];
+        for (int l = 0; l < 4; ++l) {
+            double v = GAUSS_T[l], dx[3], N[3];
+            for (int c = 0; c < 3; ++c) {
+                dx[c] = p0[c] + u * b[c] + v * cc[c] + u * v * dd[c];
+                N[c] = N0[c] + u * Nu[c] + v * Nv[c];
+            }
+            double r2 = dot3(dx, dx);
+            double f = dot3(N, dx) / (r2 * r2) * GAUSS_W[a] * GAUSS_W[l];
+            wg[0] += (1 - u) * (1 - v) * f;
+            wg[1] += u * (1 - v) * f;
+            wg[2] += u * v * f;
+            wg[3] += (1 - u) * v * f;
+        }
+    }
+}
+
 /* Angle between a and b from |a x b| (cn), a . b (d) and |a| |b| (rr), through the half-angle
  * tangent (accurate for all angles, and atan is cheaper than atan2). */
 static inline double angle3(double cn, double d, double rr) {
@@ -214,11 +254,13 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
      * the plane of a nearly planar quad, off it): not inside then (as in _qmvc3d.py). */
     double noise = 16.0 * DBL_EPSILON * (R[1] * R[2] * R[3] + R[0] * R[2] * R[3] + R[0] * R[1] * R[3] + R[0] * R[1] * R[2]);
     inside = inside && kabs > noise;
+    /* (from the corners, not from p: differences of p lose eps |x - q| / size far away) */
     double b[3], cc[3], dd[3];
+    const double *q0 = P + 3 * qi[0], *q1 = P + 3 * qi[1], *q2 = P + 3 * qi[2], *q3 = P + 3 * qi[3];
     for (int c = 0; c < 3; ++c) {
-        b[c] = p[1][c] - p[0][c];
-        cc[c] = p[3][c] - p[0][c];
-        dd[c] = p[0][c] - p[1][c] + p[2][c] - p[3][c];
+        b[c] = q1[c] - q0[c];
+        cc[c] = q3[c] - q0[c];
+        dd[c] = q0[c] - q1[c] + q2[c] - q3[c];
     }
     double N0[3], Nu[3], Nv[3], nq[3];
     cross3(b, cc, N0);
@@ -343,6 +385,12 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                     break;
                 }
                 if (flat) continue; /* a planar quad seen edge-on: no weight */
+                double beta = far_blend(R, size[q]), wg[4];
+                if (beta > 0) gauss_weights(p[0], b, cc, dd, N0, Nu, Nv, wg);
+                if (beta >= 1) { /* seen small: the Gauss rule alone */
+                    for (int i = 0; i < 4; ++i) w[qi[i]] += wg[i];
+                    continue;
+                }
                 /* Least-norm solution, one refinement step (Eqs. 20, 28). */
                 double invD = 1.0 / D, wb[4], res[3];
                 for (int i = 0; i < 4; ++i) wb[i] = dot3(rows[i], m) * invD;
@@ -420,7 +468,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                                          (wp[2] - wq[2]) * p[2][c] + (wp[3] - wq[3]) * p[3][c];
                             for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
                         }
-                        for (int i = 0; i < 4; ++i) w[qi[i]] += wq[i];
+                        for (int i = 0; i < 4; ++i) w[qi[i]] += beta > 0 ? (1 - beta) * wq[i] + beta * wg[i] : wq[i];
                         continue;
                     }
                 }
@@ -430,7 +478,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                         res[c] = m[c] - (wq[0] * p[0][c] + wq[1] * p[1][c] + wq[2] * p[2][c] + wq[3] * p[3][c]);
                     for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
                 }
-                for (int i = 0; i < 4; ++i) w[qi[i]] += wq[i];
+                for (int i = 0; i < 4; ++i) w[qi[i]] += beta > 0 ? (1 - beta) * wq[i] + beta * wg[i] : wq[i];
             }
             if (on[pt]) continue;
             double inv = 1.0 / tc_mv_total(w, V, P, 3, 1, 3, x, centre, far2);

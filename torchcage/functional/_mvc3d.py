@@ -290,7 +290,7 @@ def _far_field_weights(x: torch.Tensor, h: torch.Tensor, face: torch.Tensor, dat
 def face_weights(
     x: torch.Tensor,
     data: TriangleCageData,
-    far_field: bool = True,
+    far_field: bool | str = True,
     q: dict | None = None,
     singular: list[torch.Tensor] | None = None,
 ) -> tuple[list[torch.Tensor], dict]:
@@ -302,7 +302,9 @@ def face_weights(
         x: ``(n, 3)`` points.
         data: the triangles' constants.
         far_field: redo faces seen small by quadrature where the face weights cancel (only
-            meaningful when the triangles form a closed cage).
+            meaningful when the triangles form a closed cage); ``"always"``: for every point
+            (the triangles are part of a closed cage, such as a triquad cage's triangles, whose
+            own sum does not show the cancellation).
         q: the pair terms of ``x`` when the caller has them (:func:`_pair_terms`).
         singular: an empty list to receive, as three ``(T, n)`` tensors, the coefficients ``c_i``
             of the ``c_i / h`` terms of faces around the points' feet, which the weights returned
@@ -347,7 +349,7 @@ def face_weights(
     if singular is not None:
         h = torch.where(q["h"] != 0, q["h"], 1.0)
         total = total + (singular[0] + singular[1] + singular[2]) / h
-    cancels = total.abs().sum(dim=0) > CANCELLATION_RATIO * total.sum(dim=0).abs()
+    cancels = total.abs().sum(dim=0) > (0.0 if far_field == "always" else CANCELLATION_RATIO) * total.sum(dim=0).abs()
     R = q["R"]
     rmin = torch.minimum(torch.minimum(R[0], R[1]), R[2])
     # (faces seen below 1/FAR_ALWAYS_RATIO of their distance: the vector form's error eps (r / edge)^3 can
@@ -372,7 +374,9 @@ def _divide_h_out(w: list[torch.Tensor], sing: list[torch.Tensor], h: torch.Tens
     return [hstar * w[i] + sing[i] * ratio for i in range(3)]
 
 
-def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData, scaled: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+def mvc3d_chunk(
+    x: torch.Tensor, data: TriangleCageData, scaled: bool = False, part: bool = False
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Unnormalised mean value weights of a chunk of points.
 
     Args:
@@ -383,12 +387,15 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData, scaled: bool = False) -
             range), with that face's ``c_i / h`` terms taken as ``c_i``: the same coordinates
             once normalised, but their derivatives no longer cancel next to a face (the weights
             and their total both grow like ``1 / h`` there; autograd of the ratio lost ``eps / h``).
+        part: the triangles are part of a closed cage (a triquad cage's): faces seen small take
+            the far-field rule for every point (``face_weights(far_field="always")``).
 
     Returns:
         ``(W, on_cage)``: weights ``(V, n)`` (not yet normalised) and a ``(n,)`` bool mask of the
         points on the cage, whose columns of ``W`` hold their final (interpolating) coordinates.
     """
     V, n = data.vertices.shape[1], x.shape[0]
+    far = "always" if part else True
     q = _pair_terms(x, data)
     # Points on the cage: barycentric coordinates in a face that contains them.
     on_face = _on_cage(q, data)
@@ -399,10 +406,10 @@ def mvc3d_chunk(x: torch.Tensor, data: TriangleCageData, scaled: bool = False) -
         # so that the discarded values carry finite derivatives (no NaN through torch.where).
         xs = torch.where(on_cage[:, None], outside_point(data.vertices.T), x)
         sing: list[torch.Tensor] | None = [] if scaled else None
-        w, qw = face_weights(xs, data, singular=sing)
+        w, qw = face_weights(xs, data, far_field=far, singular=sing)
     else:
         sing = [] if scaled else None
-        w, qw = face_weights(x, data, q=q, singular=sing)
+        w, qw = face_weights(x, data, far_field=far, q=q, singular=sing)
     if sing is not None:
         w = _divide_h_out(w, sing, qw["h"])
     W = torch.zeros((V, n), dtype=x.dtype, device=x.device)

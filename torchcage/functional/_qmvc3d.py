@@ -62,6 +62,20 @@ REFINE = 3
 #: form, whose mean vector loses its small normal component to cancellation there.
 NEAR_FLAT = 1e-3
 
+#: Quads seen from more than ``10^FAR_QUAD_LOG[0]`` times their size blend towards, and beyond
+#: ``10^FAR_QUAD_LOG[1]`` take, the Gauss rule of the defining integrals (the mean vector of a quad
+#: seen small cancels to ``eps (distance / size)^2`` of itself, which the far field's cancelling total
+#: amplified to weights off by their own size at 1e6 cage sizes; the rule's error there is below
+#: ``(size / (2 distance))^8``). The blend (a smoothstep in the log of the ratio) keeps the weights
+#: continuous: the Riemann estimate differs from the integral by about 1e-5 at the ratio 30.
+FAR_QUAD_LOG = (1.5, 2.5)
+
+#: Gauss–Legendre nodes and weights of order 4 on [0, 1] (per direction of the quad's domain).
+GAUSS4 = (
+    (0.06943184420297371, 0.33000947820757187, 0.6699905217924281, 0.9305681557970262),
+    (0.17392742256872679, 0.3260725774312732, 0.3260725774312732, 0.17392742256872679),
+)
+
 #: Faces of a quad's tetrahedron, as corner indices (Algorithm 1, line 4).
 HULL_FACES = ((0, 1, 3), (1, 2, 3), (0, 2, 1), (0, 3, 2))
 
@@ -237,6 +251,34 @@ def riemann_sums(p0: Vec, b: Vec, c: Vec, dd: Vec, u: torch.Tensor, v: torch.Ten
     return [S - Su - Sv + Suv, Su - Suv, Suv, Sv - Suv]
 
 
+def gauss_weights(p0: Vec, b: Vec, c: Vec, dd: Vec) -> list[torch.Tensor]:
+    """The four corner integrals ``int phi_i(u, v) N.(xi - x) / |xi - x|^4 du dv`` by the tensor
+    Gauss rule :data:`GAUSS4` (for quads seen small); vectors broadcast to the pair shape ``S``,
+    returns four ``S``. The sheet is as in :func:`riemann_sums`."""
+    N0, Nu, Nv = _cross(b, c), _cross(b, dd), _cross(dd, c)
+    t = torch.tensor(GAUSS4[0], dtype=p0[0].dtype, device=p0[0].device)
+    g = torch.tensor(GAUSS4[1], dtype=p0[0].dtype, device=p0[0].device)
+    U, V = t[:, None], t[None, :]  # (4, 1), (1, 4): u down, v across
+    dx = [p0[i][..., None, None] + U * b[i][..., None, None] + V * c[i][..., None, None] for i in range(3)]
+    dx = [dx[i] + (U * V) * dd[i][..., None, None] for i in range(3)]
+    N = [N0[i][..., None, None] + U * Nu[i][..., None, None] + V * Nv[i][..., None, None] for i in range(3)]
+    Nd = N[0] * dx[0] + N[1] * dx[1] + N[2] * dx[2]
+    r2 = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]
+    f = Nd / (r2 * r2) * (g[:, None] * g[None, :])
+    hats = ((1 - U) * (1 - V), U * (1 - V), U * V, (1 - U) * V)
+    return [(f * h).sum(dim=(-2, -1)) for h in hats]
+
+
+def far_blend(R2: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """Weight ``(Q, m)`` of the Gauss rule per pair: 0 below the ratio ``10^FAR_QUAD_LOG[0]`` of the
+    nearest corner's distance to the quad's size, 1 above ``10^FAR_QUAD_LOG[1]``, a smoothstep in
+    the log between (``R2`` ``(4, Q, m)`` squared corner distances, ``size`` ``(Q, 1)``)."""
+    ratio2 = R2.min(dim=0).values / (size * size)
+    lo, hi = FAR_QUAD_LOG
+    s = ((0.5 * torch.log10(ratio2.clamp_min(1.0)) - lo) / (hi - lo)).clamp(0.0, 1.0)
+    return s * s * (3 - 2 * s)
+
+
 @dataclass
 class Projection:
     """Per point–quad quantities of a chunk, each ``(Q, m)`` (lists by corner, ``Vec`` by component)."""
@@ -297,7 +339,9 @@ def project(x: torch.Tensor, data: QuadData) -> Projection:
     pp: list[Vec] = [tuple(cq[c, i] - xp[c] for c in range(3)) for i in range(4)]  # type: ignore[misc]
     mp = mean_vector(pp)
     # Planar quad and a point on its plane: project along the quad's normal (inverse bilinear).
-    b, c, dd = _sub(p[1], p[0]), _sub(p[3], p[0]), _add(_sub(p[0], p[1]), _sub(p[2], p[3]))
+    # (from the corners, not from p: differences of p lose eps |x - q| / size far away)
+    q: list[Vec] = [tuple(cq[comp, i] for comp in range(3)) for i in range(4)]  # type: ignore[misc]
+    b, c, dd = _sub(q[1], q[0]), _sub(q[3], q[0]), _add(_sub(q[0], q[1]), _sub(q[2], q[3]))
     nq = _add(_cross(b, c), _scale(torch.full_like(b[0], 0.5), _add(_cross(b, dd), _cross(dd, c))))
     d = tuple(torch.where(flat, nq[i], torch.where(outside, mp[i], mvec[i])) for i in range(3))
     u, v = intersect(pp, d)  # type: ignore[arg-type]
@@ -361,6 +405,10 @@ def qmvc3d_chunk(
     near_flat = okD & ~inside & (kabs < NEAR_FLAT * data.size * data.size * R2.max(dim=0).values.sqrt())
     if bool(near_flat.any()):
         w = _near_flat_weights(x, data, near_flat, w, k, D, omega, p, rows)
+    beta = far_blend(R2, data.size)
+    if bool((beta > 0).any()):
+        wg = gauss_weights(p[0], b, c, dd)
+        w = [torch.where(beta > 0, (1 - beta) * w[i] + beta * wg[i], w[i]) for i in range(4)]
     w = [torch.where(okD, w[i], torch.zeros_like(w[i])) for i in range(4)]
     return w, on, u, v, vertex
 
