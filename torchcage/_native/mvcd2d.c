@@ -14,6 +14,7 @@
 #include <string.h>
 
 #include "jet.h"
+#include "native.h"
 
 static inline jet j2(double v, double gx, double gy, double hxx, double hyy, double hxy) {
     jet r = {v, {gx, gy, 0}, {hxx, hyy, 0, hxy, 0, 0}};
@@ -23,6 +24,8 @@ static inline jet j2(double v, double gx, double gy, double hxx, double hyy, dou
 /* P (V, 2); edges (E, 2) int32; X (n, 2). Writes L (n, V), G (n, V, 2), H (n, V, 2, 2) (order 2). */
 void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double *X, long n, double tol, int order,
                int nthreads, double *L, double *G, double *H, unsigned char *on) {
+    double centre[2];
+    const double far2 = tc_far_centre(P, V, 2, 1, 2, centre);
 #pragma omp parallel num_threads(nthreads)
     {
         double *acc = (double *)malloc(sizeof(double) * 6 * V);
@@ -42,7 +45,7 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
             for (long e = 0; e < NE; e++) {
                 int j = edges[2 * e], k = edges[2 * e + 1];
                 double aj0 = P[2 * j] - x0, aj1 = P[2 * j + 1] - x1, ak0 = P[2 * k] - x0, ak1 = P[2 * k + 1] - x1;
-                double cv = aj0 * ak1 - aj1 * ak0, dv = aj0 * ak0 + aj1 * ak1;
+                double cv = aj0 * (P[2 * k + 1] - P[2 * j + 1]) - aj1 * (P[2 * k] - P[2 * j]), dv = aj0 * ak0 + aj1 * ak1;
                 if (dv < 0 && cv != 0 && fabs(cv) < cbest) {
                     cbest = fabs(cv), best = e;
                     cstar = j2(cv, P[2 * j + 1] - P[2 * k + 1], -(P[2 * j] - P[2 * k]), 0, 0, 0);
@@ -53,7 +56,9 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
                 double aj0 = P[2 * j] - x0, aj1 = P[2 * j + 1] - x1, ak0 = P[2 * k] - x0, ak1 = P[2 * k + 1] - x1;
                 double E0 = P[2 * j] - P[2 * k], E1 = P[2 * j + 1] - P[2 * k + 1];
                 double ell = sqrt(E0 * E0 + E1 * E1);
-                jet c = j2(aj0 * ak1 - aj1 * ak0, E1, -E0, 0, 0, 0);
+                /* c = a_j x (p_k - p_j): the edge from the vertices, exact far away (a_j x a_k loses
+                 * eps |a| / |E| of itself to cancellation there) */
+                jet c = j2(-aj0 * E1 + aj1 * E0, E1, -E0, 0, 0, 0);
                 jet d = j2(aj0 * ak0 + aj1 * ak1, -(aj0 + ak0), -(aj1 + ak1), 2, 2, 0);
                 jet rj = j_sqrt(j2(aj0 * aj0 + aj1 * aj1, -2 * aj0, -2 * aj1, 2, 2, 0));
                 jet rk = j_sqrt(j2(ak0 * ak0 + ak1 * ak1, -2 * ak0, -2 * ak1, 2, 2, 0));
@@ -88,6 +93,36 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
                 }
                 continue;
             }
+            static const int HI[3] = {0, 1, 0}, HJ[3] = {0, 1, 1};
+            const double y0 = x0 - centre[0], y1 = x1 - centre[1], y2 = y0 * y0 + y1 * y1;
+            if (y2 > far2) {
+                /* Far from the polygon the sum of the weights cancels: normalise by their first
+                 * moment M = (sum_v w_v (P_v - c)) . y / |y|^2, y = x - c (as in mvcd3d.c). */
+                jet S0 = j_const(0.0), S1 = j_const(0.0);
+                for (long v = 0; v < V; v++) {
+                    const double *ac = acc + 6 * v;
+                    jet wv = j2(ac[0], ac[1], ac[2], ac[3], ac[4], ac[5]);
+                    S0 = j_add(S0, j_scale(wv, P[2 * v] - centre[0]));
+                    S1 = j_add(S1, j_scale(wv, P[2 * v + 1] - centre[1]));
+                }
+                jet num = j_add(j_mul(S0, j2(y0, 1, 0, 0, 0, 0)), j_mul(S1, j2(y1, 0, 1, 0, 0, 0)));
+                jet M = j_div(num, j2(y2, 2 * y0, 2 * y1, 2, 2, 0));
+                if (!(M.v != 0.0) || !isfinite(M.v)) {
+                    on[p] = 2;
+                    continue;
+                }
+                jet iM = j_recip(M);
+                for (long v = 0; v < V; v++) {
+                    const double *ac = acc + 6 * v;
+                    jet lam = j_mul(j2(ac[0], ac[1], ac[2], ac[3], ac[4], ac[5]), iM);
+                    L[p * V + v] = lam.v;
+                    G[(p * V + v) * 2] = lam.g[0], G[(p * V + v) * 2 + 1] = lam.g[1];
+                    if (order < 2) continue;
+                    double *Hp = H + (p * V + v) * 4;
+                    Hp[0] = lam.h[0], Hp[3] = lam.h[1], Hp[1] = Hp[2] = lam.h[3];
+                }
+                continue;
+            }
             double W = 0, gW[2] = {0, 0}, HW[3] = {0, 0, 0};
             for (long v = 0; v < V; v++) {
                 W += acc[6 * v];
@@ -99,7 +134,6 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
                 continue;
             }
             double iW = 1.0 / W;
-            static const int HI[3] = {0, 1, 0}, HJ[3] = {0, 1, 1};
             for (long v = 0; v < V; v++) {
                 const double *ac = acc + 6 * v;
                 double lam = ac[0] * iW, gl[2];

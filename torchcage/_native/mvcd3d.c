@@ -291,6 +291,8 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                const double *longest, const double *far_nodes, const double *far_coef, long Q, double far_c,
                double near_c, const double *gl_y, const double *gl_w, int ng, const double *X, long n, double tol,
                int order, int nthreads, double *L, double *G, double *H, unsigned char *on) {
+    double centre[3];
+    const double far2 = tc_far_centre(P, V, 3, 1, 3, centre);
 #pragma omp parallel num_threads(nthreads)
     {
         double *acc = (double *)malloc(sizeof(double) * 10 * V);
@@ -409,6 +411,45 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                     for (int i = 0; i < 3; i++)
                         if (sidx[i] == v) num = j_add(num, ssing[i]);
                     jet lam = j_mul(num, iden);
+                    L[p * V + v] = lam.v;
+                    for (int c = 0; c < 3; c++) G[(p * V + v) * 3 + c] = lam.g[c];
+                    if (order < 2) continue;
+                    double *Hp = H + (p * V + v) * 9;
+                    for (int k = 0; k < 6; k++) Hp[3 * JI[k] + JJ[k]] = Hp[3 * JJ[k] + JI[k]] = lam.h[k];
+                }
+                continue;
+            }
+            double yc[3], y2 = 0.0;
+            for (int c = 0; c < 3; c++) {
+                yc[c] = x[c] - centre[c];
+                y2 += yc[c] * yc[c];
+            }
+            if (y2 > far2) {
+                /* Far from the cage the sum of the weights cancels: normalise by their first moment
+                 * M = (sum_v w_v (P_v - c)) . y / |y|^2, y = x - c (tc_mv_total), as a jet. */
+                jet num = j_const(0.0), den = j_const(y2);
+                for (int k = 0; k < 3; k++) {
+                    jet S = j_const(0.0), yk = j_const(yc[k]);
+                    for (long v = 0; v < V; v++) {
+                        const double *ac = acc + 10 * v;
+                        jet wv = {ac[0], {ac[1], ac[2], ac[3]}, {ac[4], ac[5], ac[6], ac[7], ac[8], ac[9]}};
+                        S = j_add(S, j_scale(wv, P[3 * v + k] - centre[k]));
+                    }
+                    yk.g[k] = 1.0;
+                    num = j_add(num, j_mul(S, yk));
+                    den.g[k] = 2.0 * yc[k];
+                    den.h[k] = 2.0;
+                }
+                jet M = j_div(num, den);
+                if (!(M.v != 0.0) || !isfinite(M.v)) {
+                    on[p] = 2;
+                    continue;
+                }
+                jet iM = j_recip(M);
+                for (long v = 0; v < V; v++) {
+                    const double *ac = acc + 10 * v;
+                    jet wv = {ac[0], {ac[1], ac[2], ac[3]}, {ac[4], ac[5], ac[6], ac[7], ac[8], ac[9]}};
+                    jet lam = j_mul(wv, iM);
                     L[p * V + v] = lam.v;
                     for (int c = 0; c < 3; c++) G[(p * V + v) * 3 + c] = lam.g[c];
                     if (order < 2) continue;
