@@ -35,7 +35,11 @@ from torchcage.geometry import inside_cage
 from torchcage.testing import QMVC_MODELS, adversarial_points, hard_cages
 
 MODELS = list(QMVC_MODELS)
-FAMILIES = ["mvc3d", "mvc2d", "mvc_derivatives", "qmvc", "gc", "qgc", "image"]
+FAMILIES = ["mvc3d", "mvc2d", "mvc_derivatives", "qmvc", "gc", "qgc", "lbc", "image"]
+
+#: Mesh size of the LBC solves in the sweep (one solve per cage, reused for every category).
+LBC_CELLS = 1500
+_LBC_SOLUTIONS: dict[int, object] = {}
 
 
 @dataclass
@@ -76,6 +80,11 @@ def _coordinates(family: str, x: torch.Tensor, cage: torchcage.Cage, dtype: torc
         return F.green_coordinates(x, cage, dtype=dtype)
     if family == "qgc":
         return F.quad_green_coordinates(x, cage, dtype=dtype)
+    if family == "lbc":
+        key = id(cage)
+        if key not in _LBC_SOLUTIONS:
+            _LBC_SOLUTIONS[key] = F.solve_local_barycentric(cage, target_cells=LBC_CELLS)
+        return F.local_barycentric_coordinates(x, cage, solution=_LBC_SOLUTIONS[key]).to_dense(), None
     if family == "mvc_derivatives":
         lam, grad, hess = F.mean_value_derivatives(x, cage, order=2)
         return lam, torch.cat([grad.flatten(1), hess.flatten(1)], dim=1)
@@ -137,7 +146,9 @@ def sweep_values(family: str, cage: torchcage.Cage, name: str, pts: dict, side: 
         bad = _nonfinite(w64, *([extra] if extra is not None else []))
         stats.bad_values += int(bad.sum())
         ok = ~bad
-        if family == "qgc":  # quad Green coordinates reproduce points inside the cage (and on it)
+        # quad Green coordinates and LBC (defined on the meshed interior, outside points clamped to
+        # it) reproduce points inside the cage and on it
+        if family in ("qgc", "lbc"):
             known = side[cat]
             inside, sure = _inside(x, cage)
             # a side known by construction (an offset along the normal) holds only within the local
@@ -221,6 +232,16 @@ def cages_for(family: str, data: Path | None) -> dict[str, torchcage.Cage]:
     """The cages a family is swept on."""
     out: dict[str, torchcage.Cage] = {}
     hard = hard_cages()
+    if family == "lbc":  # (each cage costs a solve: the 2D data set's cages and small 3D ones)
+        out["blob2d"] = torchcage.load_cage(torchcage.data.path("blob2d.obj"))
+        if data is not None and (data / "lbc2d").is_dir():
+            for f in sorted((data / "lbc2d").glob("*.obj")):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    out[f.stem] = torchcage.load_cage(f)
+        out["cube_quads"] = torchcage.load_cage(torchcage.data.path("cube.obj"))
+        out["sliver_cube"] = hard["sliver_cube"]
+        return out
     if family in ("mvc2d", "image"):
         out["blob2d"] = torchcage.load_cage(torchcage.data.path("blob2d.obj"))
         out["square_px"] = torchcage.Cage(
@@ -258,7 +279,7 @@ def run(families: list[str], data: Path | None, per_category: int, grad_k: int, 
                 continue
             pts, side = adversarial_points(cage, per_category, seed=seed, sides=True)
             sweep_values(fam, cage, name, pts, side, st, dtype)
-            if grad_k > 0:
+            if grad_k > 0 and fam != "lbc":  # (LBC has no autograd: a sparse solve)
                 sweep_grads(fam, cage, name, pts, st, dtype, grad_k)
         results[fam] = (st, time.perf_counter() - t0)
     return results

@@ -202,3 +202,17 @@ def test_conjugate_gradient_y_step_matches_the_factorisation():
     assert abs(cg.objective - lu.objective) <= 1e-6 * lu.objective
     with pytest.raises(ValueError, match="linear_solver must be"):
         solve_lbc(d, cage.vertices, linear_solver="qr")
+
+
+def test_lbc_on_a_sliver_cage_with_dangling_mesh_vertices() -> None:
+    """Issue 14 (sweep finding): the mesher leaves vertices in no cell next to the sliver cube's
+    sliver; their infinite geodesic distance made every normalised distance 0, the ADMM penalty 0
+    and the solve a ZeroDivisionError. Distances are now normalised over the cells' vertices."""
+    from torchcage.testing import sliver_cube
+
+    cage = sliver_cube()
+    x = torch.tensor([[0.1, 0.2, -0.3], [0.5, -0.5, 0.9], [-0.9, 0.0, -0.95]], dtype=torch.float64)
+    w = F.local_barycentric_coordinates(x, cage, target_cells=1500).to_dense()
+    assert bool((w >= 0).all())
+    assert float((w.sum(1) - 1).abs().max()) < 1e-12
+    assert float((w @ cage.vertices - x).abs().max()) < 1e-10

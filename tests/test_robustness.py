@@ -294,7 +294,7 @@ def test_on_cage_tolerance_follows_the_coordinates() -> None:
 
 
 # ------------------------------------------------------------------------------ the sweep's slice
-@pytest.mark.parametrize("family", ["mvc3d", "mvc2d", "mvc_derivatives", "qmvc", "gc", "qgc", "image"])
+@pytest.mark.parametrize("family", ["mvc3d", "mvc2d", "mvc_derivatives", "qmvc", "gc", "qgc", "lbc", "image"])
 def test_robustness_slice(family: str) -> None:
     """A few thousand adversarial queries per family: no non-finite value or gradient, and the
     float64 bounds met by every family outside the far field (see docs/accuracy.md)."""
@@ -306,10 +306,13 @@ def test_robustness_slice(family: str) -> None:
     st, _ = results[family]
     assert st.queries > 0
     assert st.bad_values == 0 and st.bad_grads == 0, st.errors[:5]
-    assert not [e for e in st.errors if "far" not in e], st.errors[:5]
+    assert not st.errors, st.errors[:5]
     if family not in ("image", "qgc"):
         assert st.pu[0] < 1e-9, st.pu
         assert st.lp[0] < 1e-8, st.lp
+        # relative to the distance, out to 1e9 cage sizes (1e-8 everywhere but the cube translated
+        # by 1e6, which keeps 2e-8 at 1e2 sizes: open, docs/accuracy.md)
+        assert st.far[0] < (5e-8 if "shift" in st.far[1] else 1e-8), st.far
 
 
 @pytest.mark.xfail(strict=True, reason="open: QGC loses about 1e-18 / distance near edges and corners of twisted quads")

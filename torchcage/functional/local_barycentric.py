@@ -166,7 +166,11 @@ def local_barycentric_coordinates(
     if thr < 0:
         raise ValueError(f"threshold must be >= 0, got {threshold}")
     x = flat.detach().to(torch.float64).cpu()
-    K = torch.cat([cage.vertices.to(torch.float64).cpu(), torch.ones(V, 1, dtype=torch.float64)], 1)
+    # (the constraints in coordinates centred on the cage and scaled by its size: the same rows,
+    # better conditioned; in raw coordinates of size 100 the correction left the sums off by 1e-10)
+    P = cage.vertices.to(torch.float64).cpu()
+    centre, scale = P.mean(dim=0), max(cage.scale, 1e-300)
+    K = torch.cat([(P - centre) / scale, torch.ones(V, 1, dtype=torch.float64)], 1)
     rows, cols, vals = [], [], []
     outside = 0
     for s in range(0, x.shape[0], chunk_size):
@@ -178,7 +182,7 @@ def local_barycentric_coordinates(
         if thr > 0:
             # the interpolated position of clamped points is their nearest mesh point
             target = torch.einsum("nk,nkd->nd", bary, result.domain.vertices[corners])
-            B = torch.cat([target, torch.ones(xc.shape[0], 1, dtype=torch.float64)], 1)
+            B = torch.cat([(target - centre) / scale, torch.ones(xc.shape[0], 1, dtype=torch.float64)], 1)
             cut = make_feasible(w * (w >= thr), K, B)
             # rows whose remaining support cannot reproduce the point keep every entry
             bad = ((cut @ K - B).abs().amax(dim=1) > 1e-12 * (1 + B.abs().amax(dim=1))) | (cut.amin(dim=1) < 0)

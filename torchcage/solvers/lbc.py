@@ -309,7 +309,17 @@ def solve_lbc(
     J = G @ H + E
     # weights phi_i^s A_s: tau of the normalised geodesic distance at the cell centroid
     dist = geodesic_distances(domain, torch.arange(V))  # (V, Nv), in the cage's units
-    dist = dist / dist.amax(dim=1, keepdim=True).clamp_min(1e-300)
+    # (normalised over the vertices of cells only: a mesher may leave vertices in no cell, at
+    # infinite distance, which made every distance 0 and the penalty 0; the sliver cube did)
+    used = torch.zeros(dist.shape[1], dtype=torch.bool)
+    used[domain.cells.reshape(-1)] = True
+    far = ~torch.isfinite(dist[:, used]).all(dim=1)
+    if bool(far.any()):
+        raise ValueError(
+            f"cage vertices {torch.nonzero(far).flatten()[:10].tolist()} are not connected to the meshed "
+            "interior of the cage; pass a domain= that contains them, or remove the slivers around them"
+        )
+    dist = dist / dist[:, used].amax(dim=1, keepdim=True).clamp_min(1e-300)
     at_cells = dist.T[domain.cells].mean(dim=1)  # (C, V)
     phiA = TAU[weighting](at_cells) * vol[:, None]  # (C, V)
     C = domain.cells.shape[0]
@@ -329,6 +339,8 @@ def solve_lbc(
         # variation a negligible pull per iteration and ADMM crawls towards the optimum.
         grad0 = torch.sqrt(J.view(D, C, V).square().sum(dim=0))
         mu = float(phiA.mean() / grad0.square().mean().sqrt().clamp_min(1e-300)) * mu_factor
+    if not (math.isfinite(mu) and mu > 0):
+        raise ValueError(f"the ADMM penalty mu must be finite and positive, got {mu}")
     r = V - D - 1
     Y = torch.zeros((m, r), dtype=dt)
     P1, P2 = J.clone(), H.clone()  # G Y M + J and Y M + H, kept up to date
