@@ -66,6 +66,10 @@ SPLIT_FORM_RATIO = 0.01
 #: |p_i - x|``.
 CANCELLATION_RATIO = 4.0
 FAR_FIELD_RATIO = 1.0
+#: Triangles that are part of a closed cage (``far_field="always"``) take the far-field rule when
+#: seen from more than ``1 / PART_FAR_FIELD_RATIO`` times their longest edge (nearer, the vector
+#: form's error ``eps (r / edge)^3`` is below 1e-13, and the quadrature for every pair cost 20%).
+PART_FAR_FIELD_RATIO = 0.1
 #: Faces seen from more than ``FAR_ALWAYS_RATIO`` times their longest edge always take the far-field rule.
 FAR_ALWAYS_RATIO = 1e3
 #: Gauss–Legendre order (per direction of the collapsed square) of the far-field rule: its error
@@ -354,7 +358,8 @@ def face_weights(
     rmin = torch.minimum(torch.minimum(R[0], R[1]), R[2])
     # (faces seen below 1/FAR_ALWAYS_RATIO of their distance: the vector form's error eps (r / edge)^3 can
     # hide the cancellation from the test above, so they always take the rule)
-    far = (data.longest < FAR_FIELD_RATIO * rmin) & (cancels | (data.longest * FAR_ALWAYS_RATIO < rmin))
+    ratio = PART_FAR_FIELD_RATIO if far_field == "always" else FAR_FIELD_RATIO
+    far = (data.longest < ratio * rmin) & (cancels | (data.longest * FAR_ALWAYS_RATIO < rmin))
     if bool(far.any()):
         idx = torch.nonzero(far.reshape(-1)).squeeze(1)
         face, col = torch.div(idx, n, rounding_mode="floor"), idx % n

@@ -10,7 +10,7 @@ import torch
 
 from .. import _native
 from . import _mvc3d_native
-from ._mvc3d import TriangleCageData
+from ._mvc3d import PART_FAR_FIELD_RATIO, TriangleCageData
 from ._qmvc3d import QuadData
 
 __all__ = ["native_kernel", "native_tables"]
@@ -42,6 +42,7 @@ def native_kernel(
         # The triangles are part of the cage: their own sum does not show the far field's
         # cancellation, so faces seen small always take the far-field rule.
         tri_tables["cancel_c"] = 0.0
+        tri_tables["far_c"] = PART_FAR_FIELD_RATIO
     quad_tables = native_tables(verts, qdata, n) if qdata is not None else None
 
     def kernel(x: torch.Tensor) -> torch.Tensor:
