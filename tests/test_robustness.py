@@ -260,6 +260,28 @@ def test_qgc_on_the_edges_of_twisted_quads(backend: str) -> None:
     assert float((phi @ bar.vertices + psi @ N - x).abs().max()) < 1e-12
 
 
+def test_qgc_within_a_few_tolerances_of_twisted_quad_edges(backend: str) -> None:
+    """A point 0.9 tolerances from the edge shared by two twisted quads measured 1.25 tolerances
+    from its projection (not the nearest point of a curved sheet): neither quad took it as on the
+    cage, and the fan from its projection on the edge ran along the tetrahedron's faces on both
+    sides of the sheet (PU off by 0.44, LP 0.7). Such points are now on the quad (a band of 4
+    tolerances): partition of unity is exact; linear precision keeps about 4e-5 (open: the
+    neighbouring quad's fan has a sliver over the shared edge, seen from 2.5 tolerances)."""
+    from torchcage.functional._common import on_cage_tolerance
+
+    bar = twisted_bar()
+    tol = on_cage_tolerance(bar)
+    x = adversarial_points(bar, 200, seed=3)["edge"]
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(x.shape, generator=g, dtype=D64)
+    x = x + d / d.norm(dim=1, keepdim=True) * (2.5 * tol)
+    phi, psi = F.quad_green_coordinates(x, bar, backend=backend)
+    inside = tc.geometry.inside_cage(x, bar)
+    N = bar.quad_corner_normals().reshape(-1, 3)
+    assert float((phi[inside].sum(1) - 1).abs().max()) < 1e-12
+    assert float((phi[inside] @ bar.vertices + psi[inside] @ N - x[inside]).abs().max()) < 1e-3
+
+
 def test_qmvc_just_off_planar_quads(backend: str) -> None:
     """Reproducer 10's class: points within a few tolerances of a planar quad (above it, and near
     its edges outside) got no weight from it (linear precision 0.04 on Bench, 0.15 on the cube)."""

@@ -18,6 +18,7 @@
 #define SPLIT_FORM_RATIO 0.01
 #define REFINE 3       /* as REFINE in _qmvc3d.py */
 #define NEAR_FLAT 1e-3 /* as NEAR_FLAT in _qmvc3d.py */
+#define ON_QUAD_BAND 4.0 /* as ON_QUAD_BAND in _qmvc3d.py */
 
 static const int HULL[4][3] = {{0, 1, 3}, {1, 2, 3}, {0, 2, 1}, {0, 3, 2}};
 
@@ -339,7 +340,9 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     qp->vertex = vertex;
     /* (A point within tol of a planar quad's plane gets no weight from it off the quad: within tol of
      * its boundary too, it is on the quad, or it would get no weight from either face of an edge.) */
-    qp->on = vertex >= 0 || dot3(xi, xi) <= (flat ? 2.0 : 1.0) * tol * tol;
+    /* (ON_QUAD_BAND tolerances: the projection is not the nearest point of a curved sheet; as in
+     * _qmvc3d.py) */
+    qp->on = vertex >= 0 || dot3(xi, xi) <= (flat ? 2.0 : ON_QUAD_BAND * ON_QUAD_BAND) * tol * tol;
 }
 
 /*

@@ -24,8 +24,9 @@ def _extend(
     """Continue ``phi (*B, N, V)``, ``psi (*B, N, T)`` outside the cage (one batch element at a
     time) and warn with the count of points farther out than ``band`` times the cage's size."""
     cages = cage.unbind() if cage.is_batched else [cage]
-    pts = points.expand(*cage.batch_shape, *points.shape[-2:]).reshape(-1, *points.shape[-2:])
-    phis, psis = phi.reshape(-1, *phi.shape[-2:]), psi.reshape(-1, *psi.shape[-2:])
+    B = len(cages)  # (explicit: with no points a -1 in the shapes below would be ambiguous)
+    pts = points.expand(*cage.batch_shape, *points.shape[-2:]).reshape(B, *points.shape[-2:])
+    phis, psis = phi.reshape(B, *phi.shape[-2:]), psi.reshape(B, *psi.shape[-2:])
     out_phi, out_psi, far, outside = [], [], 0, 0
     for b, c in enumerate(cages):
         p64 = pts[b].to(torch.float64)
