@@ -174,7 +174,8 @@ def sweep_values(family: str, cage: torchcage.Cage, name: str, pts: dict, side: 
 
 
 def sweep_grads(family: str, cage: torchcage.Cage, name: str, pts: dict, stats: Stats, dtype, k: int) -> None:
-    """Gradients of a random linear functional with respect to the points and the rest vertices."""
+    """Gradients of a random linear functional with respect to the points and the rest vertices,
+    and of the module's output with respect to the deformed cage (:func:`_deformed_grads`)."""
     g = torch.Generator().manual_seed(1)
     for cat, x in pts.items():
         x = x[:k].clone().requires_grad_()
@@ -198,6 +199,43 @@ def sweep_grads(family: str, cage: torchcage.Cage, name: str, pts: dict, stats: 
         if gV is not None and not bool(torch.isfinite(gV).all()):
             stats.bad_grads += 1
             stats.errors.append(f"grad {name}/{cat}: non-finite gradient w.r.t. the rest vertices")
+        _deformed_grads(family, cage, name, cat, x.detach(), stats, g)
+
+
+MODULES = {
+    "mvc3d": "MeanValueCoordinates",
+    "mvc2d": "MeanValueCoordinates",
+    "qmvc": "QuadMeanValueCoordinates",
+    "gc": "GreenCoordinates",
+    "qgc": "QuadGreenCoordinates",
+}
+
+
+def _deformed_grads(family: str, cage, name: str, cat: str, x: torch.Tensor, stats: Stats, g) -> None:
+    """Gradients of the module's output with respect to the deformed cage: a random pose, a pose
+    that collapses the cage to a point and one that flattens it onto a plane."""
+    if family not in MODULES:
+        return
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            m = getattr(torchcage, MODULES[family])(cage, x)
+            V = cage.vertices
+            poses = {
+                "random": V + 0.1 * cage.scale * torch.randn(V.shape, generator=g, dtype=V.dtype),
+                "collapsed": V.mean(0, keepdim=True).expand_as(V).clone(),
+                "flattened": V * torch.tensor([1.0] * (V.shape[1] - 1) + [0.0], dtype=V.dtype),
+            }
+            for pose_name, pose in poses.items():
+                P = pose.clone().requires_grad_()
+                y = m(P)
+                (gP,) = torch.autograd.grad((y * torch.randn(y.shape, generator=g, dtype=y.dtype)).sum(), P)
+                stats.grad_queries += x.shape[0]
+                if not (bool(torch.isfinite(y).all()) and bool(torch.isfinite(gP).all())):
+                    stats.bad_grads += 1
+                    stats.errors.append(f"grad {name}/{cat}: non-finite w.r.t. the deformed cage ({pose_name} pose)")
+    except Exception as err:
+        stats.errors.append(f"deformed {name}/{cat}: {type(err).__name__}: {str(err)[:120]}")
 
 
 def sweep_image(cage2d: torchcage.Cage, name: str, stats: Stats, dtype) -> None:

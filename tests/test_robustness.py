@@ -322,6 +322,7 @@ def test_robustness_slice(family: str) -> None:
     float64 bounds met by every family outside the far field (see docs/accuracy.md)."""
     import robustness
 
+    robustness.LBC_CELLS = 400  # (a coarse mesh keeps the three LBC solves to seconds)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         results = robustness.run([family], None, per_category=40, grad_k=6, dtype=None)
