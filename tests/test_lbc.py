@@ -216,3 +216,19 @@ def test_lbc_on_a_sliver_cage_with_dangling_mesh_vertices() -> None:
     assert bool((w >= 0).all())
     assert float((w.sum(1) - 1).abs().max()) < 1e-12
     assert float((w @ cage.vertices - x).abs().max()) < 1e-10
+
+
+def test_lbc_points_on_the_cage_faces_are_located() -> None:
+    """Issue 14 (sweep finding at 1e6 queries): points on the cube's faces beside a flat boundary
+    cell (far centroid) were not found in 48 candidate cells and got the clamped coordinates of
+    another cell, 1e-2 away. The search now widens to 384 candidates, and clamped points take the
+    nearest clamped candidate."""
+    from torchcage.testing import adversarial_points
+
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+    sol = F.solve_local_barycentric(cube, target_cells=1500)
+    x = adversarial_points(cube, 9000, seed=0)["face"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        w = F.local_barycentric_coordinates(x, cube, solution=sol).to_dense()
+    assert float((w @ cube.vertices - x).norm(dim=1).max()) < 1e-12

@@ -110,13 +110,29 @@ def locate(points: torch.Tensor, domain: Domain, k: int = 12) -> tuple[torch.Ten
         best_score[idx] = score[better]
         best_cell[idx] = cand[better, j[better]]
         best_bary[idx] = bary[better, j[better]]
-        if kk >= min(cells.shape[0], 4 * k):
+        if kk >= min(cells.shape[0], 32 * k):
             break
         todo = todo[best_score[todo] < -1e-12]
-        kk = min(cells.shape[0], 4 * k)
+        kk = min(cells.shape[0], 4 * kk)
     inside = best_score >= -1e-9
     b = best_bary.clamp_min(0.0)
-    return best_cell, b / b.sum(dim=1, keepdim=True), inside
+    b = b / b.sum(dim=1, keepdim=True)
+    out = torch.nonzero(~inside).flatten()
+    if out.numel():
+        # Points in no cell (outside the mesh, or on its boundary beside a flat cell whose centroid
+        # is far): among the candidates, the clamped point nearest to the point (the clamped
+        # coordinates of the least-negative cell were up to a cell size away: 1e-2 on the cube).
+        _, cand = tree.query(points[out].numpy(), k=kk)
+        cand = torch.from_numpy(cand.reshape(out.shape[0], kk)).to(torch.int64)
+        rel = points[out][:, None, :] - p[cand, 0]
+        bb = torch.einsum("nkij,nkj->nki", inv[cand], rel)
+        bc = torch.cat([1 - bb.sum(-1, keepdim=True), bb], -1).clamp_min(0.0)
+        bc = bc / bc.sum(dim=-1, keepdim=True)
+        near = torch.einsum("nki,nkid->nkd", bc, p[cand])
+        j = (near - points[out][:, None, :]).square().sum(-1).argmin(dim=1)
+        rows = torch.arange(out.shape[0])
+        best_cell[out], b[out] = cand[rows, j], bc[rows, j]
+    return best_cell, b, inside
 
 
 def local_barycentric_coordinates(
