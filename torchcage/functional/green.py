@@ -13,7 +13,15 @@ from torch._C._functorch import is_functorch_wrapped_tensor
 from ..autograd.green import green_function
 from ..cage import Cage
 from ._batch import over_cage_batch
-from ._common import as_inputs, check_points, records_graph, result_dtype
+from ._common import (
+    ON_CAGE_TOLERANCE,
+    VERTEX_SNAP,
+    as_inputs,
+    check_points,
+    records_graph,
+    result_dtype,
+    snap_to_vertices,
+)
 from ._exterior import extend_outside
 from ._green3d import triangle_green_data
 from ._green_dispatch import green_flat
@@ -92,6 +100,8 @@ def green_coordinates(
             exterior=exterior,
         )
     flat = check_points(points, cage)
+    if cage.dim == 3:  # (points a few tolerances from a vertex: the limit at the vertex)
+        flat = snap_to_vertices(flat, cage.vertices, VERTEX_SNAP * ON_CAGE_TOLERANCE * cage.scale)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     if records_graph(flat, cage.vertices) and not is_functorch_wrapped_tensor(flat):
         if cage.dim == 3:

@@ -10,7 +10,7 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ._batch import over_cage_batch
-from ._common import as_inputs, chunks
+from ._common import ON_CAGE_TOLERANCE, VERTEX_SNAP, as_inputs, chunks, snap_to_vertices
 from ._green3d import triangle_green_geometry, triangle_integrals
 from ._green3d_native import native_subset_tables
 from ._qgc3d import QuadGreenData, qgc3d_chunk, quad_green_data
@@ -156,6 +156,7 @@ def quad_green_coordinates(
             allow_invalid=allow_invalid,
         )
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid, "quad Green coordinates")
+    x = snap_to_vertices(x, verts, VERTEX_SNAP * ON_CAGE_TOLERANCE * cage.scale)  # (the limit at the vertex)
     T, Q, V = cage.triangles.shape[0], cage.quads.shape[0], cage.num_vertices
     tri_p = verts[cage.triangles]
     tri_geometry = triangle_green_geometry(tri_p)
