@@ -422,6 +422,17 @@ def test_qmvc_far_field_relative_linear_precision(backend: str, model: str) -> N
         assert float(rel.max()) < 1e-8, (scale, float(rel.max()))
 
 
+def test_qmvc_on_a_triangle_cage_equals_mvc(backend: str) -> None:
+    """Sweep finding at 1e6 queries: QMVC on a cage without quads took every triangle as part of a
+    triquad cage (the far-field rule for every point), LP 1.3e-8 on the sliver cube's face planes
+    where MVC has 7e-12. Without quads QMVC is MVC."""
+    cage = sliver_cube()
+    x = adversarial_points(cage, 500, seed=0)["plane"]
+    a = F.quad_mean_value_coordinates(x, cage, backend=backend)
+    b = F.mean_value_coordinates(x, cage, backend=backend)
+    assert torch.allclose(a, b, rtol=0, atol=1e-12)
+
+
 def test_qmvc_far_blend_is_continuous(backend: str) -> None:
     """Between 10^1.5 and 10^2.5 quad sizes the Riemann estimate blends into the Gauss rule: along
     a ray through the blend the coordinates are smooth. (A switch at one ratio is a jump of about

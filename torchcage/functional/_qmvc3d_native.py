@@ -38,12 +38,12 @@ def native_kernel(
     function ``x (m, 3) -> coordinates (m, V)``."""
     V = verts.shape[0]
     tri_tables = _mvc3d_native.native_tables(tdata) if tdata is not None else None
-    if tri_tables is not None:
+    quad_tables = native_tables(verts, qdata, n) if qdata is not None else None
+    if tri_tables is not None and quad_tables is not None:
         # The triangles are part of the cage: their own sum does not show the far field's
         # cancellation, so faces seen small always take the far-field rule.
         tri_tables["cancel_c"] = 0.0
         tri_tables["far_c"] = PART_FAR_FIELD_RATIO
-    quad_tables = native_tables(verts, qdata, n) if qdata is not None else None
 
     def kernel(x: torch.Tensor) -> torch.Tensor:
         x = x.contiguous()

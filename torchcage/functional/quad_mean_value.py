@@ -185,7 +185,8 @@ def _torch_chunk(
     """
     m, V = c.shape[0], verts.shape[0]
     if tdata is not None:
-        W, on = mvc3d_chunk(c, tdata, part=True)  # (V, m); columns on a triangle are final
+        # (V, m); columns on a triangle are final. With quads the triangles are part of the cage.
+        W, on = mvc3d_chunk(c, tdata, part=qdata is not None)
     else:
         W = torch.zeros((V, m), dtype=c.dtype, device=c.device)
         on = torch.zeros(m, dtype=torch.bool, device=c.device)
