@@ -211,10 +211,14 @@ MODULES = {
 }
 
 
+#: The categories whose points the deformed-cage check builds modules on (None: all of them).
+DEFORMED_CATEGORIES: tuple[str, ...] | None = None
+
+
 def _deformed_grads(family: str, cage, name: str, cat: str, x: torch.Tensor, stats: Stats, g) -> None:
     """Gradients of the module's output with respect to the deformed cage: a random pose, a pose
     that collapses the cage to a point and one that flattens it onto a plane."""
-    if family not in MODULES:
+    if family not in MODULES or (DEFORMED_CATEGORIES is not None and cat not in DEFORMED_CATEGORIES):
         return
     try:
         with warnings.catch_warnings():
