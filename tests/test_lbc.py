@@ -232,3 +232,20 @@ def test_lbc_points_on_the_cage_faces_are_located() -> None:
         warnings.simplefilter("error")
         w = F.local_barycentric_coordinates(x, cube, solution=sol).to_dense()
     assert float((w @ cube.vertices - x).norm(dim=1).max()) < 1e-12
+
+
+def test_lbc_partition_of_unity_after_dropping_small_entries() -> None:
+    """Issue 14: the reproduction correction after small entries are dropped left the sums off by
+    2e-10 (raw coordinates), then 2e-12 (centred and scaled); rows are now renormalised exactly."""
+    from torchcage.geometry import inside_cage
+    from torchcage.testing import adversarial_points
+
+    blob = torchcage.load_cage(torchcage.data.path("blob2d.obj"))
+    sol = F.solve_local_barycentric(blob, target_cells=800)
+    pts = adversarial_points(blob, 300, seed=1)
+    x = torch.cat([pts["near_vertex"], pts["near_edge"], pts["edge"]])
+    x = x[inside_cage(x, blob)]
+    w = F.local_barycentric_coordinates(x, blob, solution=sol).to_dense()
+    assert float((w.sum(1) - 1).abs().max()) < 1e-14
+    assert float((w @ blob.vertices - x).norm(dim=1).max()) < 1e-10 * blob.scale
+    assert bool((w >= 0).all())

@@ -203,6 +203,10 @@ def local_barycentric_coordinates(
             # rows whose remaining support cannot reproduce the point keep every entry
             bad = ((cut @ K - B).abs().amax(dim=1) > 1e-12 * (1 + B.abs().amax(dim=1))) | (cut.amin(dim=1) < 0)
             w = torch.where(bad[:, None], w, cut)
+            # the correction leaves the sums off by up to 2e-12: restore the partition of unity
+            # exactly (it moves the reproduced point by the same relative amount)
+            total = w.sum(dim=1, keepdim=True)
+            w = torch.where(total > 0, w / torch.where(total > 0, total, 1.0), w)
         r, c = torch.nonzero(w > 0, as_tuple=True)
         rows.append(r + s)
         cols.append(c)
