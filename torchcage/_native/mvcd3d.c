@@ -278,6 +278,21 @@ static void face_far(const double *x, const double *n, double h, const double *n
     }
 }
 
+/* The jet of vertex v's accumulated weight (acc holds value, gradient and Hessian: 10 per vertex). */
+static inline jet acc_jet(const double *ac) {
+    jet r = {ac[0], {ac[1], ac[2], ac[3]}, {ac[4], ac[5], ac[6], ac[7], ac[8], ac[9]}};
+    return r;
+}
+
+/* Writes the coordinate jet lam of vertex v at point p: L (n, V), G (n, V, 3), H (n, V, 3, 3). */
+static inline void store_lam(jet lam, long p, long V, long v, int order, double *L, double *G, double *H) {
+    L[p * V + v] = lam.v;
+    for (int c = 0; c < 3; c++) G[(p * V + v) * 3 + c] = lam.g[c];
+    if (order < 2) return;
+    double *Hp = H + (p * V + v) * 9;
+    for (int k = 0; k < 6; k++) Hp[3 * JI[k] + JJ[k]] = Hp[3 * JJ[k] + JI[k]] = lam.h[k];
+}
+
 /* Mean value coordinates and their derivatives at n points.
  * P (V, 3) vertices; tri (T, 3) int32 corners; E (T, 3, 3) edge vectors p_{e+1} - p_{e+2};
  * nrm (T, 3) unit normals; two_area (T); ell (T, 3) edge lengths; gram (T, 3, 3) E_i.E_e;
@@ -392,11 +407,7 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
             }
             if (sface >= 0) {  // lam_v = (k s_v + h r_v) / (k sum s + h sum r)
                 jet R = j_const(0.0), den;
-                for (long v = 0; v < V; v++) {
-                    const double *ac = acc + 10 * v;
-                    jet r = {ac[0], {ac[1], ac[2], ac[3]}, {ac[4], ac[5], ac[6], ac[7], ac[8], ac[9]}};
-                    R = j_add(R, r);
-                }
+                for (long v = 0; v < V; v++) R = j_add(R, acc_jet(acc + 10 * v));
                 den = j_mul(shj, R);
                 for (int i = 0; i < 3; i++) den = j_add(den, ssing[i]);
                 if (!(den.v != 0.0) || !isfinite(den.v)) {
@@ -405,17 +416,10 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 }
                 jet iden = j_recip(den);
                 for (long v = 0; v < V; v++) {
-                    const double *ac = acc + 10 * v;
-                    jet num = {ac[0], {ac[1], ac[2], ac[3]}, {ac[4], ac[5], ac[6], ac[7], ac[8], ac[9]}};
-                    num = j_mul(shj, num);
+                    jet num = j_mul(shj, acc_jet(acc + 10 * v));
                     for (int i = 0; i < 3; i++)
                         if (sidx[i] == v) num = j_add(num, ssing[i]);
-                    jet lam = j_mul(num, iden);
-                    L[p * V + v] = lam.v;
-                    for (int c = 0; c < 3; c++) G[(p * V + v) * 3 + c] = lam.g[c];
-                    if (order < 2) continue;
-                    double *Hp = H + (p * V + v) * 9;
-                    for (int k = 0; k < 6; k++) Hp[3 * JI[k] + JJ[k]] = Hp[3 * JJ[k] + JI[k]] = lam.h[k];
+                    store_lam(j_mul(num, iden), p, V, v, order, L, G, H);
                 }
                 continue;
             }
@@ -427,16 +431,15 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
             if (y2 > far2) {
                 /* Far from the cage the sum of the weights cancels: normalise by their first moment
                  * M = (sum_v w_v (P_v - c)) . y / |y|^2, y = x - c (tc_mv_total), as a jet. */
-                jet num = j_const(0.0), den = j_const(y2);
+                jet S[3] = {j_const(0.0), j_const(0.0), j_const(0.0)}, num = j_const(0.0), den = j_const(y2);
+                for (long v = 0; v < V; v++) {
+                    jet wv = acc_jet(acc + 10 * v);
+                    for (int k = 0; k < 3; k++) S[k] = j_add(S[k], j_scale(wv, P[3 * v + k] - centre[k]));
+                }
                 for (int k = 0; k < 3; k++) {
-                    jet S = j_const(0.0), yk = j_const(yc[k]);
-                    for (long v = 0; v < V; v++) {
-                        const double *ac = acc + 10 * v;
-                        jet wv = {ac[0], {ac[1], ac[2], ac[3]}, {ac[4], ac[5], ac[6], ac[7], ac[8], ac[9]}};
-                        S = j_add(S, j_scale(wv, P[3 * v + k] - centre[k]));
-                    }
+                    jet yk = j_const(yc[k]);
                     yk.g[k] = 1.0;
-                    num = j_add(num, j_mul(S, yk));
+                    num = j_add(num, j_mul(S[k], yk));
                     den.g[k] = 2.0 * yc[k];
                     den.h[k] = 2.0;
                 }
@@ -446,16 +449,7 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                     continue;
                 }
                 jet iM = j_recip(M);
-                for (long v = 0; v < V; v++) {
-                    const double *ac = acc + 10 * v;
-                    jet wv = {ac[0], {ac[1], ac[2], ac[3]}, {ac[4], ac[5], ac[6], ac[7], ac[8], ac[9]}};
-                    jet lam = j_mul(wv, iM);
-                    L[p * V + v] = lam.v;
-                    for (int c = 0; c < 3; c++) G[(p * V + v) * 3 + c] = lam.g[c];
-                    if (order < 2) continue;
-                    double *Hp = H + (p * V + v) * 9;
-                    for (int k = 0; k < 6; k++) Hp[3 * JI[k] + JJ[k]] = Hp[3 * JJ[k] + JI[k]] = lam.h[k];
-                }
+                for (long v = 0; v < V; v++) store_lam(j_mul(acc_jet(acc + 10 * v), iM), p, V, v, order, L, G, H);
                 continue;
             }
             double W = 0, gW[3] = {0, 0, 0}, HW[6] = {0, 0, 0, 0, 0, 0};

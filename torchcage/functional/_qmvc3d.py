@@ -26,7 +26,11 @@ Numerical choices (all thresholds relative to the cage's size):
   sheet (Appendix B: a quadratic in ``v``, solved in its stable form, then ``u`` in closed form).
 - A point within the on-cage tolerance of the sheet (``|xi(P(x)) - x|``) gets the bilinear
   coordinates of its projection; a point on the plane of a planar quad but off the quad (where
-  ``kappa`` vanishes) gets no weight from it, the limit of the weights there.
+  ``kappa`` vanishes) gets no weight from it, the limit of the weights there. The band is
+  ``ON_QUAD_BAND`` tolerances: the projection is not the nearest point of a curved sheet.
+- Quads seen small (beyond ``10^FAR_QUAD_LOG[0]`` of their size) blend into a tensor Gauss rule
+  of the defining integrals (:func:`gauss_weights`, :func:`far_blend`): far away Cramer's mean
+  vector cancels. The sheet's edge vectors come from the corners, not from ``corner - x``.
 """
 
 from __future__ import annotations
