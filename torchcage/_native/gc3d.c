@@ -64,16 +64,37 @@ int tc_tri_green(const double a[3][3], const double *nf, double two_area, const 
     }
     double R[3];
     for (int i = 0; i < 3; ++i) R[i] = sqrt(dot3(a[i], a[i]));
-    double h = dot3(a[0], nf), habs = fabs(h);
-    int on_plane = habs <= tol, inside = 1;
-    /* Away from the plane (|h| >= GC_PERPENDICULAR_PLANE_RATIO min R) the solid angle takes Van Oosterom and
-     * Strackee's one-atan2 form; near it, the edge sum below, which does not cancel there. */
-    int far = habs >= GC_PERPENDICULAR_PLANE_RATIO * fmin(R[0], fmin(R[1], R[2]));
+    double h = dot3(a[0], nf);
+    double rmin = fmin(R[0], fmin(R[1], R[2])), rmax = fmax(R[0], fmax(R[1], R[2]));
+    /* Away from the plane and the corners the solid angle takes Van Oosterom and Strackee's
+     * one-atan2 form; near them, the edge sum below, which does not cancel there, with h and the d_e
+     * from the edges' perpendiculars (from their nearer ends: the same bits for both triangles of an
+     * edge, as in the cage faces' fix-up and torch's _near_distances). */
+    int far = fabs(h) >= GC_PERPENDICULAR_PLANE_RATIO * rmin && fabs(h) > tol && rmin >= GC_PERPENDICULAR_VERTEX_RATIO * rmax;
     double d[3], I[3], beta = 0.0;
+    if (far) {
+        for (int e = 0; e < 3; ++e) d[e] = dot3(a[(e + 1) % 3], eout + 3 * e);
+    } else {
+        double best = INFINITY;
+        for (int e = 0; e < 3; ++e) {
+            int j = (e + 1) % 3, k = (e + 2) % 3;
+            const double *u = edir + 3 * e;
+            double m[3];
+            for (int c = 0; c < 3; ++c) m[c] = R[j] < R[k] ? a[j][c] : (R[k] < R[j] ? a[k][c] : 0.5 * (a[j][c] + a[k][c]));
+            double mu = dot3(m, u), w[3] = {m[0] - mu * u[0], m[1] - mu * u[1], m[2] - mu * u[2]};
+            d[e] = dot3(w, eout + 3 * e);
+            double w2 = dot3(w, w);
+            if (w2 < best) {
+                best = w2;
+                h = dot3(w, nf);
+            }
+        }
+    }
+    double habs = fabs(h);
+    int on_plane = habs <= tol, inside = 1;
     for (int e = 0; e < 3; ++e) {
         int j = (e + 1) % 3, k = (e + 2) % 3;
-        const double *u = edir + 3 * e, *m = eout + 3 * e;
-        d[e] = dot3(a[j], m);
+        const double *u = edir + 3 * e;
         double l_j = dot3(a[j], u), l_k = dot3(a[k], u), R0sq = d[e] * d[e] + h * h;
         if (!far) beta += edge_angle(d[e], l_j, l_k, R[j], R[k], R0sq, habs);
         I[e] = log(tc_edge_log_arg(l_j, l_k, R[j], R[k], R0sq));
@@ -96,19 +117,20 @@ int tc_tri_green(const double a[3][3], const double *nf, double two_area, const 
  * nf (3), ell (3), edir, eout, gbary (3, 3); returns twice the area (0 for a degenerate triangle,
  * whose constants are then finite placeholders and its integrals zero). */
 double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir, double *eout, double *gbary) {
-    double e1[3], e2[3], cr[3];
-    for (int c = 0; c < 3; ++c) {
-        e1[c] = a[1][c] - a[0][c];
-        e2[c] = a[2][c] - a[0][c];
+    double E[3][3], cr[3];
+    for (int i = 0; i < 3; ++i) { /* the edge opposite corner i, p_{i+1} -> p_{i+2} */
+        const double *pj = a[(i + 1) % 3], *pk = a[(i + 2) % 3];
+        for (int c = 0; c < 3; ++c) E[i][c] = pk[c] - pj[c];
+        ell[i] = sqrt(dot3(E[i], E[i]));
     }
-    cross3(e1, e2, cr);
+    /* 2 A n = E_{i+1} x E_{i+2} for every i: the two shorter edges (a needle's two long edges
+     * would leave its normal known to eps / width only). */
+    int lo = ell[0] >= ell[1] && ell[0] >= ell[2] ? 0 : (ell[1] >= ell[2] ? 1 : 2);
+    cross3(E[(lo + 1) % 3], E[(lo + 2) % 3], cr);
     double two_area = sqrt(dot3(cr, cr));
     for (int c = 0; c < 3; ++c) nf[c] = two_area > 0 ? cr[c] / two_area : (c == 2 ? 1.0 : 0.0);
     for (int i = 0; i < 3; ++i) {
-        const double *pj = a[(i + 1) % 3], *pk = a[(i + 2) % 3];
-        double E[3] = {pk[0] - pj[0], pk[1] - pj[1], pk[2] - pj[2]};
-        ell[i] = sqrt(dot3(E, E));
-        for (int c = 0; c < 3; ++c) edir[3 * i + c] = ell[i] > 0 ? E[c] / ell[i] : 0.0;
+        for (int c = 0; c < 3; ++c) edir[3 * i + c] = ell[i] > 0 ? E[i][c] / ell[i] : 0.0;
         cross3(edir + 3 * i, nf, eout + 3 * i);
         for (int c = 0; c < 3; ++c) gbary[3 * i + c] = two_area > 0 ? -eout[3 * i + c] * ell[i] / two_area : 0.0;
     }

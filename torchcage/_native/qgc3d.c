@@ -26,6 +26,36 @@ __attribute__((simd("notinbranch"))) double atan2(double, double);
 
 #define FOUR_PI 12.566370614359172953850573533118
 
+/* The fan's apex moves along the projection's ruling, away from the nearest edge, to FAN_APEX_BAND
+ * of the parameter range or to the distance of the nearest perpendicular edge (as fan_apex in
+ * _qgc3d.py: the fan triangle over a nearby edge is no longer a sliver). */
+#define FAN_APEX_BAND 0.25
+
+static void fan_apex(double u, double v, double *ua, double *va) {
+    double mu = fmin(u, 1 - u), mv = fmin(v, 1 - v);
+    *ua = u;
+    *va = v;
+    if (mv <= mu) {
+        double t = fmin(mu, FAN_APEX_BAND);
+        *va = v <= 0.5 ? fmax(v, t) : fmin(v, 1 - t);
+    } else {
+        double t = fmin(mv, FAN_APEX_BAND);
+        *ua = u <= 0.5 ? fmax(u, t) : fmin(u, 1 - t);
+    }
+}
+
+/* Whether the point (corners p relative to it) lies within 1.1 times the quad's bounding radius of
+ * its centre: every point near one of its edges does. */
+static int near_quad(const double p[4][3]) {
+    double m[3], r2 = 0;
+    for (int c = 0; c < 3; ++c) m[c] = 0.25 * (p[0][c] + p[1][c] + p[2][c] + p[3][c]);
+    for (int k = 0; k < 4; ++k) {
+        double e[3] = {p[k][0] - m[0], p[k][1] - m[1], p[k][2] - m[2]};
+        r2 = fmax(r2, dot3(e, e));
+    }
+    return dot3(m, m) <= 1.21 * r2;
+}
+
 /* Eq. 19 (m = 3): 2K + 1 nodes in [0, 1] concentrated around t. */
 static void grid19(double t, int K, double *x) {
     for (int i = 0; i <= 2 * K; ++i) {
@@ -159,8 +189,11 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 double rhs[4] = {0, 0, 0, 0}; /* the invariants */
                 /* Outside the quad's tetrahedron the point cannot lie between the sheet and the split
                  * (q0 q1 q2), (q0 q2 q3): those two triangles give the same invariants, already
-                 * computed for all quads above. */
-                if (!qp.inside && !qp.on) {
+                 * computed for all quads above. Within 1.1 times the quad's bounding radius of its
+                 * centre, the fan instead, as for the quads around: near an edge, two quads must see
+                 * it in the same form (split and fan treat the point's side of the edge with
+                 * different bits, and their errors of eps / distance did not cancel). */
+                if (!qp.inside && !qp.on && !near_quad(qp.p)) {
                     for (long t = 2 * q; t < 2 * q + 2; ++t) {
                         for (int i = 0; i < 3; ++i) {
                             double ph = SP[i * T2 + t];
@@ -171,20 +204,28 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                         for (int c = 0; c < 3; ++c) rhs[c] += SPSI[t] * s_nrm[3 * t + c];
                     }
                 } else { /* on the fan from the projection (apex) to the four edges */
-                    double apex[3];
-                    for (int c = 0; c < 3; ++c) apex[c] = qp.p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
+                    /* The fan's frames from the corners themselves (a quad edge then has the bits
+                     * of the neighbouring quad's fan or triangle face: consistent sides near it). */
+                    double apex[3], ua = u, va = v;
+                    if (!qp.on) fan_apex(u, v, &ua, &va);
+                    const double wq[4] = {(1 - ua) * (1 - va), ua * (1 - va), ua * va, (1 - ua) * va};
+                    for (int c = 0; c < 3; ++c)
+                        apex[c] = wq[0] * P[3 * qi[0] + c] + wq[1] * P[3 * qi[1] + c] + wq[2] * P[3 * qi[2] + c] +
+                                  wq[3] * P[3 * qi[3] + c];
                     for (int e = 0; e < 4; ++e) {
-                        double a[3][3], nf[3], ell[3], edir[9], eout[9], gbary[9], ph[3], ps, om, al[3];
-                        memcpy(a[0], qp.p[e], sizeof(a[0]));
-                        memcpy(a[1], qp.p[(e + 1) & 3], sizeof(a[1]));
-                        memcpy(a[2], apex, sizeof(a[2]));
-                        double two_area = tc_tri_frame(a, nf, ell, edir, eout, gbary);
+                        double ab[3][3], a[3][3], nf[3], ell[3], edir[9], eout[9], gbary[9], ph[3], ps, om, al[3];
+                        memcpy(ab[0], P + 3 * qi[e], sizeof(ab[0]));
+                        memcpy(ab[1], P + 3 * qi[(e + 1) & 3], sizeof(ab[1]));
+                        memcpy(ab[2], apex, sizeof(ab[2]));
+                        for (int i = 0; i < 3; ++i)
+                            for (int c = 0; c < 3; ++c) a[i][c] = ab[i][c] - x[c];
+                        double two_area = tc_tri_frame(ab, nf, ell, edir, eout, gbary);
                         /* The apex on this edge (a point on the quad's boundary): the triangle is
                          * empty, up to rounding that would make it a sliver seen from its own edge. */
                         if (two_area <= tol * ell[2]) continue;
                         tc_tri_green(a, nf, two_area, ell, edir, eout, gbary, tol, ph, &ps, &om, al);
                         for (int i = 0; i < 3; ++i) {
-                            for (int c = 0; c < 3; ++c) rhs[c] += ph[i] * (a[i][c] + x[c] - origin[c]);
+                            for (int c = 0; c < 3; ++c) rhs[c] += ph[i] * (ab[i][c] - origin[c]);
                             rhs[3] += ph[i];
                         }
                         for (int c = 0; c < 3; ++c) rhs[c] += ps * nf[c];

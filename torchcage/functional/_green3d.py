@@ -78,12 +78,17 @@ def triangle_green_geometry(p: torch.Tensor) -> tuple[torch.Tensor, ...]:
     corner (``p_{i+1} -> p_{i+2}``) its unit direction, its outward in-plane unit normal and the
     in-plane gradient of the corner's hat function. Degenerate triangles get finite placeholders
     (normal (0, 0, 1), zero gradients) and ``two_area = 0``: callers weight them by their area."""
-    cross = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
+    E = p.roll(-2, dims=-2) - p.roll(-1, dims=-2)  # edge opposite corner i: p_{i+1} -> p_{i+2}
+    ell = safe_norm(E, keepdim=True)
+    # 2 A n = E_{i+1} x E_{i+2} for every i: take the two shorter edges (the cross product's
+    # rounding is eps times the product of the lengths; a needle's two long edges would leave its
+    # normal known to eps / width only).
+    longest = ell[..., 0].argmax(dim=-1, keepdim=True)  # (..., 1)
+    crosses = torch.linalg.cross(E.roll(-1, dims=-2), E.roll(-2, dims=-2), dim=-1)  # E_{i+1} x E_{i+2}
+    cross = crosses.gather(-2, longest[..., None].expand(*longest.shape, 3)).squeeze(-2)
     two_area = safe_norm(cross)
     ok = two_area > 0
     n = torch.where(ok[..., None], cross / torch.where(ok, two_area, 1.0)[..., None], cross.new_tensor([0.0, 0.0, 1.0]))
-    E = p.roll(-2, dims=-2) - p.roll(-1, dims=-2)  # edge opposite corner i: p_{i+1} -> p_{i+2}
-    ell = safe_norm(E, keepdim=True)
     edge_dir = E / torch.where(ell > 0, ell, 1.0)
     edge_out = torch.linalg.cross(edge_dir, n[..., None, :].expand_as(edge_dir), dim=-1) * ok[..., None, None]
     grad_bary = -edge_out * (ell / torch.where(ok, two_area, 1.0)[..., None, None]) * ok[..., None, None]

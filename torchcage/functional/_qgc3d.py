@@ -136,6 +136,38 @@ def _bilinear(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return torch.stack([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=-1)
 
 
+#: Where the projection lies within this fraction of the quad's parameter range from an edge, the
+#: fan's apex moves along the projection's ruling to this distance from the edge (or to the
+#: distance of the nearest perpendicular edge, if smaller).
+FAN_APEX_BAND = 0.25
+
+
+def fan_apex(
+    u: torch.Tensor, v: torch.Tensor, on: torch.Tensor, band: float = FAN_APEX_BAND
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The parameters ``(u', v')`` of the fan's apex for projections ``(u, v)`` (any shape).
+
+    The fan from the projection to the quad's edges has a sliver over an edge the projection is
+    near: its plane is known only to ``eps |x - q| / width``, and a point near that edge sees it
+    from close by (partition of unity lost ``1e-18 / distance``). The sheet is ruled: ``xi(u, t)``
+    is a straight line in ``t`` (and ``xi(t, v)`` in ``t``), so the apex can move along the ruling
+    through the projection, away from the nearest edge: the fan triangle over that edge still holds
+    the projection (the segment from the edge to the apex is that ruling), its plane is the sheet's
+    tangent plane along the ruling's foot, and it is no longer thin. The move stops at ``band`` or at
+    the distance of the nearest perpendicular edge, so near a corner the fan stays as it was, and
+    it is continuous in ``(u, v)`` (the two moves agree where the nearest edge changes). Points on
+    the quad keep the projection as apex (their principal values drop the empty triangle)."""
+    mu, mv = torch.minimum(u, 1 - u), torch.minimum(v, 1 - v)
+    tv = mu.clamp(max=band)
+    tu = mv.clamp(max=band)
+    v_new = torch.where(v <= 0.5, torch.maximum(v, tv), torch.minimum(v, 1 - tv))
+    u_new = torch.where(u <= 0.5, torch.maximum(u, tu), torch.minimum(u, 1 - tu))
+    along_u = mv <= mu  # nearest edge v = 0 or 1: move v along the u-ruling
+    ua = torch.where(on | along_u, u, u_new)
+    va = torch.where(on | ~along_u, v, v_new)
+    return ua, va
+
+
 def qgc3d_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-quad Green coordinates of a chunk of points.
 
@@ -152,12 +184,19 @@ def qgc3d_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor, tor
     p0, b, c, dd, u, v = pr.p[0], pr.b, pr.c, pr.dd, pr.u, pr.v
     tol = data.tol
     # --- Invariants (right-hand side) on the fan from the projection to the edges. ---
-    apex = _sheet(p0, b, c, dd, u, v)  # (Q, m, 3)
-    corners = torch.stack([torch.stack(pr.p[i], dim=-1) for i in range(4)], dim=-2)  # (Q, m, 4, 3)
-    fan = torch.stack(
-        [torch.stack([corners[..., k, :], corners[..., (k + 1) % 4, :], apex], dim=-2) for k in range(4)], dim=-3
+    # The fan's geometry (normals, edge directions) from the corners themselves: a quad edge then
+    # has the same bits as in the neighbouring quad's fan or triangle face (cage data), so near the
+    # edge the two see the point on consistent sides; its corners relative to the point are those
+    # of the projection (corner - x).
+    ua, va = fan_apex(u, v, pr.on, FAN_APEX_BAND)
+    ring = data.proj.corners[..., 0].permute(2, 1, 0)  # (Q, 4, 3)
+    apex = torch.einsum("qmk,qkc->qmc", _bilinear(ua, va), ring)  # (Q, m, 3)
+    ring = ring[:, None].expand(-1, x.shape[0], -1, -1)  # (Q, m, 4, 3)
+    fan_abs = torch.stack(
+        [torch.stack([ring[..., k, :], ring[..., (k + 1) % 4, :], apex], dim=-2) for k in range(4)], dim=-3
     )  # (Q, m, 4 triangles, 3 corners, 3)
-    frame = triangle_green_geometry(fan)
+    frame = triangle_green_geometry(fan_abs)
+    fan = fan_abs - x[None, :, None, None, :]
     phi_f, psi_f, _, _, _ = triangle_integrals(fan, frame, tol)
     # The apex on a quad edge (a point on the quad's boundary): that fan triangle is empty, up to
     # rounding that would make it a sliver seen from its own edge (garbage solid angle): drop it.
@@ -165,8 +204,7 @@ def qgc3d_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor, tor
     live = frame[1] > tol * base  # (Q, m, 4)
     phi_f, psi_f = torch.where(live[..., None], phi_f, 0.0), torch.where(live, psi_f, 0.0)
     normal_f = frame[0]
-    xo = (x - data.origin)[None, :, None, None, :]  # positions relative to the cage centre
-    rhs_pos = (phi_f[..., None] * (fan + xo)).sum(dim=(-2, -3)) + (psi_f[..., None] * normal_f).sum(dim=-2)
+    rhs_pos = (phi_f[..., None] * (fan_abs - data.origin)).sum(dim=(-2, -3)) + (psi_f[..., None] * normal_f).sum(dim=-2)
     rhs = torch.cat([rhs_pos, phi_f.sum(dim=(-1, -2))[..., None]], dim=-1)  # (Q, m, 4)
     phi_bar = torch.einsum("qij,qmj->qmi", data.pinv, rhs)  # (Q, m, 8)
 

@@ -21,6 +21,7 @@ from ._common import (
     records_graph,
     result_dtype,
     snap_to_vertices,
+    unit_sum,
 )
 from ._exterior import extend_outside
 from ._green3d import triangle_green_data
@@ -111,5 +112,6 @@ def green_coordinates(
         phi, psi = green_flat(flat.to(compute), cage, chunk_size, progress, backend)
     if exterior == "extend":
         phi, psi, _ = extend_outside(flat.to(compute), cage, phi.to(compute), psi.to(compute))
+    phi = unit_sum(phi, flat.to(phi.dtype), cage.vertices.to(phi.dtype))
     lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, cage.num_vertices), psi.to(out_dtype).reshape(*lead, psi.shape[-1])

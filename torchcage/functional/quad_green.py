@@ -10,7 +10,7 @@ import torch
 from .. import _native
 from ..cage import Cage
 from ._batch import over_cage_batch
-from ._common import ON_CAGE_TOLERANCE, VERTEX_SNAP, as_inputs, chunks, snap_to_vertices
+from ._common import ON_CAGE_TOLERANCE, VERTEX_SNAP, as_inputs, chunks, snap_to_vertices, unit_sum
 from ._green3d import triangle_green_geometry, triangle_integrals
 from ._green3d_native import native_subset_tables
 from ._qgc3d import QuadGreenData, qgc3d_chunk, quad_green_data
@@ -185,7 +185,7 @@ def quad_green_coordinates(
         ph, ps = _chunk(x[sl], tri_part, quad_part, V)
         phis.append(ph)
         psis.append(ps)
-    phi = torch.cat(phis) if phis else x.new_zeros((0, V))
+    phi = unit_sum(torch.cat(phis), x, verts) if phis else x.new_zeros((0, V))
     psi = torch.cat(psis) if psis else x.new_zeros((0, T + 4 * Q))
     lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, V), psi.to(out_dtype).reshape(*lead, T + 4 * Q)
