@@ -109,6 +109,50 @@ def outside_point(vertices: torch.Tensor) -> torch.Tensor:
 FAR_MOMENT = 1e3
 
 
+def far_region(vertices: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(c (D,), far (n,))``: the centre (bounding-box middle) of ``vertices`` ``(V, D)`` and which
+    points ``x`` ``(n, D)`` lie beyond ``FAR_MOMENT`` times the cage's radius from it."""
+    v = vertices.detach()
+    c = (v.max(dim=0).values + v.min(dim=0).values) / 2
+    far2 = FAR_MOMENT**2 * float(((v - c) ** 2).sum(dim=1).max())
+    y = x.detach().to(c.dtype) - c
+    return c, (y * y).sum(dim=1) > far2
+
+
+def far_unity(
+    w: torch.Tensor, x: torch.Tensor, vertices: torch.Tensor, *derivatives: torch.Tensor | None
+) -> tuple[torch.Tensor | None, ...]:
+    """Mean value coordinates ``w`` ``(n, V)`` of far points made to sum to 1 without moving their
+    linear precision, and their ``derivatives`` ``(n, V, ...)`` alike.
+
+    Far from the cage (:func:`far_region`) the weights are normalised by their first moment, so
+    their sum is 1 only to ``eps * distance / size`` (3e-11 at 500 sizes); ``w @ V`` then carries
+    that defect times the distance of the cage from the origin (3e-8 relative on a cube translated
+    by 1e6). Adding the defect to every vertex in equal parts, ``w + (1 - sum w) / V``, restores the
+    sum and keeps ``w @ (V - m)`` for the vertices' mean ``m``: the derivatives lose their mean over
+    the vertices. Near points are returned as they are (their sum is already 1 to rounding).
+
+    Examples:
+        >>> V = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+        >>> x = torch.tensor([[3e3, 0.0]], dtype=torch.float64)
+        >>> w = torch.tensor([[-5999.0, 3000.0 + 1e-9, 3000.0]], dtype=torch.float64)
+        >>> round(float(w.sum() - 1), 12), abs(float(far_unity(w, x, V)[0].sum() - 1)) < 1e-12
+        (1e-09, True)
+    """
+    _, far = far_region(vertices, x)
+    if not is_functorch_wrapped_tensor(x) and not bool(far.any()):  # (no data-dependent branch under vmap)
+        return (w, *derivatives)
+    defect = torch.where(far, 1 - w.sum(dim=1), 0.0)[:, None] / w.shape[1]
+    out = [w + defect]
+    for g in derivatives:
+        if g is None:
+            out.append(None)
+            continue
+        mask = far.reshape(-1, *([1] * (g.dim() - 1)))
+        out.append(g - torch.where(mask, g.mean(dim=1, keepdim=True), 0.0))
+    return tuple(out)
+
+
 def normalise_weights(W: torch.Tensor, on: torch.Tensor, vertices: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """Mean value weights ``W`` ``(n, V)`` of points ``x`` ``(n, D)`` divided by their total, except
     rows on the cage (``on`` ``(n,)``, already final).
@@ -119,12 +163,9 @@ def normalise_weights(W: torch.Tensor, on: torch.Tensor, vertices: torch.Tensor,
     free of that cancellation (relative linear precision 1e-16 out to 1e9 cage sizes, where the
     sum gave 1e-7 to 1). Partition of unity then holds to ``eps * distance / size``.
     """
-    v = vertices.detach()
-    c = (v.max(dim=0).values + v.min(dim=0).values) / 2
-    far2 = FAR_MOMENT**2 * float(((v - c) ** 2).sum(dim=1).max())
+    c, far = far_region(vertices, x)
     y = x - c
     y2 = (y * y).sum(dim=1)
-    far = y2 > far2
     total = W.sum(dim=1)
     if bool(far.any()):
         moment = ((W @ (vertices.to(W.dtype) - c)) * y).sum(dim=1) / torch.where(far, y2, 1.0)

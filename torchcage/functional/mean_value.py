@@ -14,7 +14,7 @@ import torch
 from ..autograd.mean_value import mean_value_function
 from ..cage import Cage
 from ._batch import over_cage_batch
-from ._common import as_inputs, check_points, records_graph, result_dtype
+from ._common import as_inputs, check_points, far_unity, records_graph, result_dtype
 from ._mvc3d import triangle_cage_data
 from ._mvc_dispatch import coordinates_flat
 
@@ -97,4 +97,5 @@ def mean_value_coordinates(
         lam = mean_value_function(flat, cage, chunk_size, backend)
     else:
         lam = coordinates_flat(flat.to(compute), cage, chunk_size, progress, backend)
+    (lam,) = far_unity(lam, flat, cage.vertices.to(lam.dtype))
     return lam.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)

@@ -42,7 +42,7 @@ from ..cage import Cage
 from ..errors import PointsError
 from . import _mvcd_native
 from ._batch import over_cage_batch
-from ._common import as_inputs, check_points, chunks, triangle_geometry
+from ._common import as_inputs, check_points, chunks, far_unity, triangle_geometry
 from ._mvcd_torch import torch_derivatives
 
 __all__ = ["derivatives_flat", "mean_value_derivatives", "mean_value_gradients", "mean_value_hessians"]
@@ -168,6 +168,7 @@ def mean_value_derivatives(
         raise PointsError(
             f"points {idx} lie on the cage, where mean value coordinates are not differentiable; move them off the cage"
         )
+    lam, grad, hess = far_unity(lam, flat.to(lam), cage.vertices.to(lam), grad, hess if order == 2 else None)
     dt = flat.dtype
     lead, D, V = points.shape[:-1], cage.dim, cage.num_vertices
     out_l = lam.to(flat.device, dt).reshape(*lead, V)

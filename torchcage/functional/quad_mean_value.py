@@ -17,6 +17,7 @@ from ._common import (
     as_inputs,
     check_points,
     chunks,
+    far_unity,
     normalise_weights,
     on_cage_tolerance,
     outside_point,
@@ -168,6 +169,7 @@ def quad_mean_value_coordinates(
             f"quad mean value coordinates are undefined at points {idx} (the total weight vanishes there, "
             "which happens only outside the cage); move these points"
         )
+    (out,) = far_unity(out, x, verts)
     return out.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
 
 
