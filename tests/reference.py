@@ -20,6 +20,11 @@ def _vec(p):
     return mp.matrix([_mpf(c) for c in p])
 
 
+def _rows(vertices) -> list:
+    """Vertices as a list of rows: a tensor's floats, or rows of (mpmath) numbers as given."""
+    return vertices.tolist() if isinstance(vertices, torch.Tensor) else [list(r) for r in vertices]
+
+
 def _cross(a, b):
     return mp.matrix([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
@@ -35,7 +40,7 @@ def mvc3d_reference(x, vertices, triangles) -> list:
     vectors e, beta the angle of each edge seen from x and n the unit normals of the planes
     through x and each edge. Accurate in 60-digit arithmetic wherever x is off the support planes."""
     xv = _vec(x)
-    P = [_vec(p) - xv for p in vertices.tolist()]
+    P = [_vec(p) - xv for p in _rows(vertices)]
     r = [mp.sqrt(_dot(p, p)) for p in P]
     e = [p / rr for p, rr in zip(P, r, strict=True)]
     w = [mp.mpf(0)] * len(P)
@@ -61,7 +66,7 @@ def mvc3d_reference(x, vertices, triangles) -> list:
 def mvc2d_reference(x, vertices) -> list:
     """2D mean value coordinates of one point for a counter-clockwise polygon given in order."""
     xv = [_mpf(c) for c in x]
-    P = [[mp.mpf(float(a)) - xv[0], mp.mpf(float(b)) - xv[1]] for a, b in vertices.tolist()]
+    P = [[_mpf(a) - xv[0], _mpf(b) - xv[1]] for a, b in _rows(vertices)]
     n = len(P)
     r = [mp.sqrt(p[0] ** 2 + p[1] ** 2) for p in P]
     ang = []
@@ -71,6 +76,78 @@ def mvc2d_reference(x, vertices) -> list:
     w = [(mp.tan(ang[i - 1] / 2) + mp.tan(ang[i] / 2)) / r[i] for i in range(n)]
     total = sum(w)
     return [wi / total for wi in w]
+
+
+@mp.workdps(60)
+def green3d_reference(x, vertices, triangles) -> tuple[list, list]:
+    """Green coordinates ``(phi (V,), psi (T,))`` of one point for a triangle cage (outward
+    triangles), the bare boundary integrals (0 outside the cage), at 60 digits.
+
+    Per face, with ``a_k = v_k - x``, unit normal ``n``, ``h = a_0 . n`` (> 0 on the inner side),
+    the solid angle ``Omega`` (Van Oosterom-Strackee), and for the edge ``e`` opposite corner ``i``
+    its unit direction ``u_e``, outward in-plane normal ``m_e = u_e x n``, the foot's signed distance
+    ``d_e = a_{i+1} . m_e`` and ``I_e = int_e dl / r = asinh(l_k / R0) - asinh(l_j / R0)``: the single
+    layer ``psi = (sum_e d_e I_e - h Omega) / 4 pi`` and the double layer of corner ``i``'s hat
+    function ``(alpha_i Omega - h (m_i l_i / 2A) . K) / 4 pi`` with ``K = -sum_e m_e I_e`` and
+    ``alpha_i = d_i l_i / 2A`` (classical potentials of constant and linear densities on a flat
+    triangle). Accurate wherever ``x`` is off the faces and the edges' lines."""
+    xv = _vec(x)
+    V = [_vec(p) for p in _rows(vertices)]
+    phi = [mp.mpf(0)] * len(V)
+    psi = []
+    for t in triangles.tolist():
+        a = [V[k] - xv for k in t]
+        cr = _cross(a[1] - a[0], a[2] - a[0])
+        two_area = mp.sqrt(_dot(cr, cr))
+        n = cr / two_area
+        h = _dot(a[0], n)
+        R = [mp.sqrt(_dot(p, p)) for p in a]
+        det = _dot(a[0], _cross(a[1], a[2]))
+        den = R[0] * R[1] * R[2] + _dot(a[0], a[1]) * R[2] + _dot(a[0], a[2]) * R[1] + _dot(a[1], a[2]) * R[0]
+        omega = 2 * mp.atan2(det, den)
+        K = mp.matrix([0, 0, 0])
+        dI = mp.mpf(0)
+        m, d, ell = [], [], []
+        for i in range(3):
+            j, k = (i + 1) % 3, (i + 2) % 3
+            E = a[k] - a[j]
+            le = mp.sqrt(_dot(E, E))
+            u = E / le
+            me = _cross(u, n)
+            de = _dot(a[j], me)
+            R0 = mp.sqrt(de * de + h * h)
+            lj, lk = _dot(a[j], u), _dot(a[k], u)
+            if R0 == 0:  # on the edge's line beyond the edge: the limit of the asinh difference
+                I = mp.sign(lk) * (mp.log(abs(lk)) - mp.log(abs(lj)))
+            else:
+                I = mp.asinh(lk / R0) - mp.asinh(lj / R0)
+            K -= me * I
+            dI += de * I
+            m.append(me)
+            d.append(de)
+            ell.append(le)
+        for i in range(3):
+            alpha = d[i] * ell[i] / two_area
+            g = -m[i] * (ell[i] / two_area)
+            phi[t[i]] += (alpha * omega + h * _dot(g, K)) / (4 * mp.pi)
+        psi.append((dI - h * omega) / (4 * mp.pi))
+    return phi, psi
+
+
+@mp.workdps(60)
+def gradient_reference(f, x, scale: float, step: float = 1e-20) -> list:
+    """Central differences ``df/dx_c`` (floats) of a scalar function ``f`` of a list of mpmath
+    numbers at ``x`` (floats, taken exactly), in 60-digit arithmetic with the step ``step * scale``:
+    truncation about ``(step * scale / feature)^2``, rounding ``1e-60 / step``."""
+    x0 = [_mpf(c) for c in x]
+    h = mp.mpf(scale) * mp.mpf(step)
+    out = []
+    for c in range(len(x0)):
+        up, dn = list(x0), list(x0)
+        up[c] += h
+        dn[c] -= h
+        out.append(float((f(up) - f(dn)) / (2 * h)))
+    return out
 
 
 def to_tensor(values) -> torch.Tensor:
