@@ -128,9 +128,68 @@ def _row_chunks(points: Tensor, faces: Tensor) -> list[slice]:
     return [slice(s, s + size) for s in range(0, points.shape[0], size)]
 
 
+#: Points nearer an edge's line (outside the edge) than this fraction of their distance to the
+#: nearest vertex take the rest vertices' derivative as the mean of those at two points
+#: ``EDGE_LINE_STEP`` of that distance to either side of the line.
+EDGE_LINE_BAND = 1e-5
+EDGE_LINE_STEP = 1e-4
+
+
+def _edge_line_offsets(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor | None:
+    """``(m, 3)`` offsets off the nearest edge line for the points within ``EDGE_LINE_BAND`` of an
+    edge's line outside the edge (zero rows elsewhere), or None when there are none.
+
+    On the line of an edge (and so on both adjacent faces' planes) each face's weight in the
+    torch kernel's split form has a ``|h|`` kink that cancels only in the sum: autograd of the
+    kernel gave the edge's vertices a derivative off by a factor 7 there, and nearby it loses
+    ``eps / distance``. The coordinates are smooth there, so the symmetric mean of the
+    derivatives at ``x +- e`` (``e`` perpendicular to the edge, ``EDGE_LINE_STEP`` of the distance
+    to the nearest vertex) is their derivative to ``(EDGE_LINE_STEP)^2``."""
+    x, P = points.detach(), vertices.detach()
+    e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(dim=1).values.unique(dim=0)
+    a, b = P[e[:, 0]], P[e[:, 1]]  # (E, 3)
+    u = b - a
+    ell2 = (u * u).sum(-1)
+    rel = x[:, None, :] - a[None]  # (m, E, 3)
+    t = (rel * u).sum(-1) / ell2  # parameter of the foot on the edge
+    perp = rel - t[..., None] * u
+    r = perp.norm(dim=-1)  # distance to the edge's line
+    L = torch.cdist(x, P).min(dim=1).values  # distance to the nearest vertex
+    near = (r < EDGE_LINE_BAND * L[:, None]) & ((t < 0) | (t > 1)) & (L[:, None] > 0)
+    if not bool(near.any()):
+        return None
+    k = torch.where(near, r, torch.inf).argmin(dim=1)  # the nearest such line
+    dirn = torch.nn.functional.normalize(u[k], dim=-1)
+    generic = x.new_tensor([0.5773, -0.6711, 0.4654])
+    side = torch.linalg.cross(dirn, generic.expand_as(dirn), dim=-1)
+    side = torch.where(
+        (side.norm(dim=-1, keepdim=True) > 0.1),
+        side,
+        torch.linalg.cross(dirn, x.new_tensor([1.0, 0.0, 0.0]).expand_as(dirn), dim=-1),
+    )
+    side = torch.nn.functional.normalize(side, dim=-1)
+    return torch.where(near.any(dim=1, keepdim=True), EDGE_LINE_STEP * L[:, None] * side, 0.0)
+
+
 def _vertex_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:
     """``sum g * d lam / d vertices`` by autograd of the torch kernel, chunk by chunk of points (kept
-    differentiable when the caller records a graph: double backward)."""
+    differentiable when the caller records a graph: double backward). Points on an edge's line
+    outside the edge take the mean of the derivatives at two points beside the line
+    (:func:`_edge_line_offsets`)."""
+    off = _edge_line_offsets(points, vertices, faces) if points.shape[-1] == 3 else None
+    if off is not None:
+        rows = torch.nonzero(off.abs().sum(dim=1) > 0).flatten()
+        rest = torch.nonzero(off.abs().sum(dim=1) == 0).flatten()
+        xr, gr, o = points.index_select(0, rows), g.index_select(0, rows), off.index_select(0, rows)
+        mean = 0.5 * (_vertex_vjp_plain(xr + o, vertices, faces, gr) + _vertex_vjp_plain(xr - o, vertices, faces, gr))
+        if rest.numel() == 0:
+            return mean
+        return mean + _vertex_vjp_plain(points.index_select(0, rest), vertices, faces, g.index_select(0, rest))
+    return _vertex_vjp_plain(points, vertices, faces, g)
+
+
+def _vertex_vjp_plain(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:
+    """:func:`_vertex_vjp` without the edge-line rule."""
     create = torch.is_grad_enabled()
     total = torch.zeros_like(vertices)
     for sl in _row_chunks(points, faces):
