@@ -371,7 +371,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--grad-per-category", type=int, default=200)
     ap.add_argument("--dtype", choices=["float64", "float32"], default="float64")
     ap.add_argument("--families", default=",".join(FAMILIES))
+    ap.add_argument(
+        "--no-deformed",
+        action="store_true",
+        help="gradients with respect to the points and the rest cage only (no modules at deformed poses): "
+        "the cheap way to 10^6 gradient queries",
+    )
     args = ap.parse_args(argv)
+    global DEFORMED_CATEGORIES
+    if args.no_deformed:
+        DEFORMED_CATEGORIES = ()
     data = Path(args.data) if Path(args.data).is_dir() else None
     dtype = None if args.dtype == "float64" else torch.float32
     results = run(args.families.split(","), data, args.per_category, args.grad_per_category, dtype)

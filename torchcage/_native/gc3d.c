@@ -107,10 +107,15 @@ int tc_tri_green(const double a[3][3], const double *nf, double two_area, const 
         beta = 2.0 * atan2(dot3(a[0], c12), den); /* already signed like h */
         beta = h >= 0 ? beta : -beta;
     }
-    double om = on_plane ? 0.0 : (h >= 0 ? beta : -beta);
-    face_finish(h, om, on_plane, d, I, ell, eout, gbary, two_area, phi, psi, alpha);
+    /* On the face: its principal value, no solid angle. On its plane off the face the solid angle is
+     * kept: it is 0 exactly in the plane, but of order one near an edge within the tolerance (the
+     * fan of a planar quad seen by a point just off its boundary lost 3e-2 of partition of unity
+     * when every in-plane point got 0, as in triangle_integrals' on_face). */
+    int on_face = on_plane && inside;
+    double om = on_face ? 0.0 : (h >= 0 ? beta : -beta);
+    face_finish(h, om, on_face, d, I, ell, eout, gbary, two_area, phi, psi, alpha);
     *omega = om;
-    return on_plane && inside;
+    return on_face;
 }
 
 /* The per-face constants tc_tri_green expects, for a triangle with corners a (any common origin):
