@@ -220,6 +220,19 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                         for (int i = 0; i < 3; ++i)
                             for (int c = 0; c < 3; ++c) a[i][c] = ab[i][c] - x[c];
                         double two_area = tc_tri_frame(ab, nf, ell, edir, eout, gbary);
+                        /* The quad edge (opposite the apex) with the bits Python gave it in the split
+                         * triangles' tables, the function that made the cage faces' (a triangle face
+                         * across the edge then sees the point on the same side: PU was off by 7e-6 at
+                         * 4e-14 from such an edge of Beast, the C and torch norms differing by an ulp). */
+                        {
+                            const long t = e < 2 ? 2 * q : 2 * q + 1;
+                            const int ci = e == 0 ? 2 : (e == 3 ? 1 : 0);
+                            for (int c = 0; c < 3; ++c) edir[6 + c] = s_edir[9 * t + 3 * ci + c];
+                            ell[2] = s_ell[3 * t + ci];
+                            cross3(edir + 6, nf, eout + 6);
+                            for (int c = 0; c < 3; ++c)
+                                gbary[6 + c] = two_area > 0 ? -eout[6 + c] * ell[2] / two_area : 0.0;
+                        }
                         /* The apex on this edge (a point on the quad's boundary): the triangle is
                          * empty, up to rounding that would make it a sliver seen from its own edge. */
                         if (two_area <= tol * ell[2]) continue;
