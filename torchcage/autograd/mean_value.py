@@ -150,15 +150,20 @@ def _edge_line_offsets(points: Tensor, vertices: Tensor, faces: Tensor) -> Tenso
     a, b = P[e[:, 0]], P[e[:, 1]]  # (E, 3)
     u = b - a
     ell2 = (u * u).sum(-1)
-    rel = x[:, None, :] - a[None]  # (m, E, 3)
-    t = (rel * u).sum(-1) / ell2  # parameter of the foot on the edge
-    perp = rel - t[..., None] * u
-    r = perp.norm(dim=-1)  # distance to the edge's line
     L = torch.cdist(x, P).min(dim=1).values  # distance to the nearest vertex
-    near = (r < EDGE_LINE_BAND * L[:, None]) & ((t < 0) | (t > 1)) & (L[:, None] > 0)
-    if not bool(near.any()):
+    k = torch.full((x.shape[0],), -1, dtype=torch.long, device=x.device)  # the nearest such line
+    step = max(1, (1 << 20) // max(1, e.shape[0]))  # (rows per chunk: memory bounded by 2^20 pairs)
+    for s in range(0, x.shape[0], step):
+        rel = x[s : s + step, None, :] - a[None]  # (rows, E, 3)
+        t = (rel * u).sum(-1) / ell2  # parameter of the foot on the edge
+        r = (rel - t[..., None] * u).norm(dim=-1)  # distance to the edge's line
+        Ls = L[s : s + step, None]
+        near = (r < EDGE_LINE_BAND * Ls) & ((t < 0) | (t > 1)) & (Ls > 0)
+        k[s : s + step] = torch.where(near.any(dim=1), torch.where(near, r, torch.inf).argmin(dim=1), -1)
+    on_line = k >= 0
+    if not bool(on_line.any()):
         return None
-    k = torch.where(near, r, torch.inf).argmin(dim=1)  # the nearest such line
+    k = k.clamp_min(0)
     dirn = torch.nn.functional.normalize(u[k], dim=-1)
     generic = x.new_tensor([0.5773, -0.6711, 0.4654])
     side = torch.linalg.cross(dirn, generic.expand_as(dirn), dim=-1)
@@ -168,7 +173,7 @@ def _edge_line_offsets(points: Tensor, vertices: Tensor, faces: Tensor) -> Tenso
         torch.linalg.cross(dirn, x.new_tensor([1.0, 0.0, 0.0]).expand_as(dirn), dim=-1),
     )
     side = torch.nn.functional.normalize(side, dim=-1)
-    return torch.where(near.any(dim=1, keepdim=True), EDGE_LINE_STEP * L[:, None] * side, 0.0)
+    return torch.where(on_line[:, None], EDGE_LINE_STEP * L[:, None] * side, 0.0)
 
 
 def _vertex_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:
@@ -215,11 +220,12 @@ def _point_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Te
     off = _edge_line_offsets(points, vertices, faces) if points.shape[-1] == 3 else None
     if off is None:
         return _point_vjp_plain(points, vertices, faces, g)
-    line = (off.abs().sum(dim=1) > 0)[:, None]
-    mean = 0.5 * (
-        _point_vjp_plain(points + off, vertices, faces, g) + _point_vjp_plain(points - off, vertices, faces, g)
-    )
-    return torch.where(line, mean, _point_vjp_plain(points, vertices, faces, g))
+    line = off.abs().sum(dim=1) > 0
+    rows = torch.nonzero(line).flatten()
+    xr, gr, o = points.index_select(0, rows), g.index_select(0, rows), off.index_select(0, rows)
+    mean = 0.5 * (_point_vjp_plain(xr + o, vertices, faces, gr) + _point_vjp_plain(xr - o, vertices, faces, gr))
+    out = _point_vjp_plain(points, vertices, faces, g)  # (only the line rows are replaced)
+    return out.index_copy(0, rows, mean.to(out.dtype))
 
 
 def _point_vjp_plain(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:
