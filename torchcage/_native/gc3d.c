@@ -20,6 +20,123 @@ __attribute__((simd("notinbranch"))) double log(double);
 __attribute__((simd("notinbranch"))) double atan2(double, double);
 #endif
 
+/* ---- Thin faces (torchcage/functional/_thin_triangle.py, whose docstring derives the form) ---- */
+#define TC_THIN_ASPECT 100.0  /* longest edge over width */
+#define TC_THIN_DISTANCE 9.0  /* widths from the longest edge */
+
+static const double GL8_X[8] = {0.019855071751231912, 0.10166676129318664, 0.23723379504183562, 0.40828267875217505,
+                                0.5917173212478251,   0.7627662049581644,  0.8983332387068135,  0.980144928248768};
+static const double GL8_W[8] = {0.05061426814518814, 0.11119051722668717, 0.15685332293894366, 0.18134189168918097,
+                                0.1813418916891811,  0.15685332293894366, 0.11119051722668717, 0.05061426814518822};
+static const double GL12_X[12] = {0.009219682876640267, 0.047941371814762546, 0.1150486629028476, 0.20634102285669115,
+                                  0.31608425050091005,  0.43738329574426554,  0.5626167042557344, 0.6839157494990902,
+                                  0.7936589771433087,   0.8849513370971525,   0.9520586281852375, 0.9907803171233596};
+static const double GL12_W[12] = {0.02358766819325577, 0.053469662997659366, 0.08003916427167304, 0.1015837133615329,
+                                  0.11674626826917739, 0.12457352290670182,  0.12457352290670141, 0.11674626826917686,
+                                  0.10158371336153309, 0.08003916427167301,  0.05346966299765926, 0.023587668193255747};
+
+static inline double log_ratio(double num, double den) { return num > 0 && den > 0 ? log(num / den) : 0.0; }
+
+/* M_k = int_0^1 s^k / r^3 ds (k < 3) and N_k = int_0^1 s^k / r ds (k < 2) along p0 + s (p1 - p0), the
+ * point at the origin and off the segment (torch: segment_moments). */
+static void segment_moments(const double *p0, const double *p1, double *M, double *N) {
+    double d[3] = {p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]};
+    double ell2 = dot3(d, d), ell = sqrt(ell2);
+    double t = ell2 > 0 ? -dot3(p0, d) / ell2 : 0.0;
+    t = t < 0 ? 0.0 : (t > 1 ? 1.0 : t);
+    double q[3] = {p0[0] + t * d[0], p0[1] + t * d[1], p0[2] + t * d[2]};
+    double dist = sqrt(dot3(q, q));
+    if (ell < dist) { /* short next to its distance: Gauss */
+        M[0] = M[1] = M[2] = N[0] = N[1] = 0.0;
+        for (int k = 0; k < 12; ++k) {
+            double s = GL12_X[k], w = GL12_W[k];
+            double r[3] = {p0[0] + s * d[0], p0[1] + s * d[1], p0[2] + s * d[2]};
+            double rr = sqrt(dot3(r, r)), i1 = w / rr, i3 = i1 / (rr * rr);
+            M[0] += i3, M[1] += i3 * s, M[2] += i3 * s * s, N[0] += i1, N[1] += i1 * s;
+        }
+        return;
+    }
+    double e[3] = {d[0] / ell, d[1] / ell, d[2] / ell};
+    double ua = dot3(p0, e), ub = dot3(p1, e), Ra = sqrt(dot3(p0, p0)), Rb = sqrt(dot3(p1, p1)), cr[3];
+    cross3(Ra <= Rb ? p0 : p1, e, cr);
+    double c2 = dot3(cr, cr), sum = ell * (ub + ua);
+    double F0 = (ua > 0 || ub < 0) ? sum / (Ra * Rb * (ub * Ra + ua * Rb)) : (ub / Rb - ua / Ra) / c2;
+    double F1 = sum / (Ra * Rb * (Ra + Rb));
+    double A0 = ua >= 0 ? log_ratio(ub + Rb, ua + Ra)
+                        : (ub <= 0 ? log_ratio(Ra - ua, Rb - ub) : log_ratio((ub + Rb) * (Ra - ua), c2));
+    double F2 = A0 - c2 * F0, G1 = sum / (Ra + Rb);
+    M[0] = F0 / ell;
+    M[1] = (F1 - ua * F0) / ell2;
+    M[2] = (F2 - 2 * ua * F1 + ua * ua * F0) / (ell2 * ell);
+    N[0] = A0 / ell;
+    N[1] = (G1 - ua * A0) / ell2;
+}
+
+/* 1 when the face with corners a (minus the point) is THIN_ASPECT times longer than wide and the
+ * point THIN_DISTANCE widths or more from its longest edge (torch: thin_pairs). */
+int tc_thin_face(const double a[3][3], double two_area) {
+    if (!(two_area > 0)) return 0;
+    double E[3][3], L2 = -1.0;
+    int lo = 0;
+    for (int i = 0; i < 3; ++i) {
+        for (int c = 0; c < 3; ++c) E[i][c] = a[(i + 2) % 3][c] - a[(i + 1) % 3][c];
+        double l2 = dot3(E[i], E[i]);
+        if (l2 > L2) L2 = l2, lo = i;
+    }
+    if (!(L2 > TC_THIN_ASPECT * two_area)) return 0;
+    const double *A = a[(lo + 1) % 3], *d = E[lo];
+    double t = -dot3(A, d) / L2;
+    t = t < 0 ? 0.0 : (t > 1 ? 1.0 : t);
+    double q[3] = {A[0] + t * d[0], A[1] + t * d[1], A[2] + t * d[2]};
+    return dot3(q, q) * L2 >= (TC_THIN_DISTANCE * two_area) * (TC_THIN_DISTANCE * two_area);
+}
+
+/* The swept form of a thin face's Green integrals (torch: thin_triangle_integrals): phi (3,) (corner
+ * order, with 1 / 4 pi), psi, omega. Returns 1. */
+int tc_thin_green(const double a[3][3], double h, double two_area, double *phi, double *psi, double *omega) {
+    double L2 = -1.0;
+    int lo = 0;
+    for (int i = 0; i < 3; ++i) {
+        double E[3] = {a[(i + 2) % 3][0] - a[(i + 1) % 3][0], a[(i + 2) % 3][1] - a[(i + 1) % 3][1],
+                       a[(i + 2) % 3][2] - a[(i + 1) % 3][2]};
+        double l2 = dot3(E, E);
+        if (l2 > L2) L2 = l2, lo = i;
+    }
+    const int ord[3] = {(lo + 1) % 3, (lo + 2) % 3, lo}; /* A, B, C */
+    const double *aA = a[ord[0]], *aB = a[ord[1]], *aC = a[ord[2]];
+    double AB[3] = {aB[0] - aA[0], aB[1] - aA[1], aB[2] - aA[2]};
+    double CA[3] = {aC[0] - aA[0], aC[1] - aA[1], aC[2] - aA[2]};
+    double lam = L2 > 0 ? dot3(CA, AB) / L2 : 0.0;
+    lam = lam < 0 ? 0.0 : (lam > 1 ? 1.0 : lam);
+    double aF[3] = {aA[0] + lam * AB[0], aA[1] + lam * AB[1], aA[2] + lam * AB[2]};
+    double j1 = two_area * lam, j2 = two_area * (1 - lam), hat[3] = {0.0, 0.0, 0.0}, inv3 = 0.0, inv1 = 0.0;
+    for (int m = 0; m < 8; ++m) {
+        double tau = GL8_X[m], wt = GL8_W[m], M[3], N[2];
+        double aCt[3] = {aF[0] + tau * (aC[0] - aF[0]), aF[1] + tau * (aC[1] - aF[1]), aF[2] + tau * (aC[2] - aF[2])};
+        double bC[3] = {(1 - tau) * (1 - lam), (1 - tau) * lam, tau};
+        /* A -> C_tau: hats bA + s (bC - bA), area element j1 s */
+        segment_moments(aA, aCt, M, N);
+        for (int i = 0; i < 3; ++i) {
+            double g0 = i == 0 ? 1.0 : 0.0, g1 = bC[i] - g0;
+            hat[i] += wt * j1 * (g0 * M[1] + g1 * M[2]);
+        }
+        inv3 += wt * j1 * M[1];
+        inv1 += wt * j1 * N[1];
+        /* C_tau -> B: hats bC + s (bB - bC), area element j2 (1 - s) */
+        segment_moments(aCt, aB, M, N);
+        for (int i = 0; i < 3; ++i) {
+            double g0 = bC[i], g1 = (i == 1 ? 1.0 : 0.0) - g0;
+            hat[i] += wt * j2 * (g0 * M[0] + g1 * M[1] - g0 * M[1] - g1 * M[2]);
+        }
+        inv3 += wt * j2 * (M[0] - M[1]);
+        inv1 += wt * j2 * (N[0] - N[1]);
+    }
+    for (int i = 0; i < 3; ++i) phi[ord[i]] = h * hat[i] / FOUR_PI;
+    *psi = inv1 / FOUR_PI;
+    *omega = h * inv3;
+    return 1;
+}
+
 /* One edge's term of the solid angle's edge sum (no cancellation near the face's plane): d the
  * foot point's signed distance to the edge line, l_j, l_k, R_j, R_k as in tc_edge_log_arg, R0sq =
  * d^2 + h^2, habs = |h|. */
@@ -115,6 +232,12 @@ int tc_tri_green(const double a[3][3], const double *nf, double two_area, const 
     double om = on_face ? 0.0 : (h >= 0 ? beta : -beta);
     face_finish(h, om, on_face, d, I, ell, eout, gbary, two_area, phi, psi, alpha);
     *omega = om;
+    if (tc_thin_face(a, two_area)) { /* a thin face seen from a few widths: the swept form */
+        double ph[3];
+        tc_thin_green(a, h, two_area, ph, psi, omega);
+        if (phi)
+            for (int i = 0; i < 3; ++i) phi[i] = ph[i];
+    }
     return on_face;
 }
 
@@ -183,11 +306,21 @@ void tc_gc_prepare(gc_tables *g) {
         fc[FC_THR * T + f] = live ? GC_PERPENDICULAR_PLANE_RATIO : -1.0; /* ... and always go to the fix-up */
     }
     g->fc = fc;
+    /* Faces THIN_ASPECT times longer than wide: their pairs may take the swept form. */
+    g->thin = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1));
+    g->nthin = 0;
+    for (long f = 0; f < T; ++f) {
+        double L2 = 0.0;
+        for (int i = 0; i < 3; ++i) L2 = fmax(L2, g->ell[3 * f + i] * g->ell[3 * f + i]);
+        if (g->two_area[f] > 0 && L2 > 0.5 * TC_THIN_ASPECT * g->two_area[f]) g->thin[g->nthin++] = f;
+    }
 }
 
 void tc_gc_free(gc_tables *g) {
     free(g->fc);
+    free(g->thin);
     g->fc = NULL;
+    g->thin = NULL;
 }
 
 /* Doubles of workspace tc_gc_point needs. */
@@ -331,6 +464,15 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         P0[f] = Cc[f] * d0 * om + hk * (m[0] * I0 + m[T] * I1 + m[2 * T] * I2);
         P1[f] = Cc[T + f] * d1 * om + hk * (m[3 * T] * I0 + m[4 * T] * I1 + m[5 * T] * I2);
         P2[f] = Cc[2 * T + f] * d2 * om + hk * (m[6 * T] * I0 + m[7 * T] * I1 + m[8 * T] * I2);
+    }
+    for (long q = 0; q < g->nthin; ++q) { /* thin faces seen from a few widths: the swept form */
+        long f = g->thin[q];
+        const int c3[3] = {t0[f], t1[f], t2[f]};
+        double a[3][3], ph[3];
+        for (int i = 0; i < 3; ++i) a[i][0] = Ax[c3[i]], a[i][1] = Ay[c3[i]], a[i][2] = Az[c3[i]];
+        if (!tc_thin_face(a, two_area[f])) continue;
+        tc_thin_green(a, H[f], two_area[f], ph, psi + f, OM + f);
+        P0[f] = ph[0], P1[f] = ph[1], P2[f] = ph[2];
     }
     return on_face;
 }

@@ -101,7 +101,11 @@ typedef struct {
     const int *fe;
     const double *nrm, *two_area, *ell, *edir, *eout, *gbary;
     double *fc;
+    long *thin; /* the faces tc_thin_face flags, nthin of them (tc_gc_prepare) */
+    long nthin;
 } gc_tables;
+int tc_thin_face(const double a[3][3], double two_area);
+int tc_thin_green(const double a[3][3], double h, double two_area, double *phi, double *psi, double *omega);
 void tc_gc_prepare(gc_tables *g);
 void tc_gc_free(gc_tables *g);
 size_t tc_gc_workspace(const gc_tables *g);

@@ -42,6 +42,7 @@ import torch
 
 from ..cage import Cage
 from ._common import on_cage_tolerance, records_graph, safe_atan2, safe_norm, triangle_geometry
+from ._thin_triangle import THIN_ASPECT, thin_pairs, thin_triangle_integrals
 
 #: Pairs with ``|h| < PERPENDICULAR_PLANE_RATIO * min R`` or ``min R < PERPENDICULAR_VERTEX_RATIO *
 #: max R`` take their distances to the plane and the edge lines from the edges' perpendiculars
@@ -176,11 +177,15 @@ def green3d_chunk(x: torch.Tensor, data: TriangleGreenData) -> tuple[torch.Tenso
     return triangle_integrals(a, geometry, data.tol)
 
 
-def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol: float) -> tuple[torch.Tensor, ...]:
+def triangle_integrals(
+    a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol: float, thin: bool = True
+) -> tuple[torch.Tensor, ...]:
     """Green integrals of triangles seen from points: ``a`` ``(..., 3, 3)`` holds the corners
     minus the point, ``geometry`` is :func:`triangle_green_geometry` of the corners (broadcastable to
     ``a``'s leading shape). Returns ``(phi_face (..., 3), psi (...), omega (...), on_face (...),
-    alpha (..., 3))`` as :func:`green3d_chunk`."""
+    alpha (..., 3))`` as :func:`green3d_chunk`. ``thin``: thin faces seen from a few widths take
+    :func:`._thin_triangle.thin_triangle_integrals` (off for the quad Riemann sums' cells, whose
+    estimate only needs the closed forms' solid angles, as the native kernel's)."""
     normal, two_area, edge_dir, edge_out, grad_bary = geometry
     R = safe_norm(a)  # (..., 3)
     aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]  # edge e runs from corner e + 1 to e + 2
@@ -228,7 +233,29 @@ def triangle_integrals(a: torch.Tensor, geometry: tuple[torch.Tensor, ...], tol:
     dI = d * I  # I is 0 (not infinite) where d = 0 on the edge; d I keeps its derivative where d = 0 off it
     psi = (dI.sum(-1) - h * omega) / (4 * math.pi)
     psi, omega = torch.where(ok, psi, 0.0), torch.where(ok, omega, 0.0)
-    return torch.where(ok[..., None], phi_face, 0.0), psi, omega, on_face, alpha
+    phi_face = torch.where(ok[..., None], phi_face, 0.0)
+    # Thin faces seen from a few widths: the closed forms above cancel (module _thin_triangle).
+    # (faces first, from the constants: most cages have no thin face and pay one reduction)
+    thin_face = (grad_bary.square().sum(-1).amax(-1) * two_area > THIN_ASPECT) & ok if thin else None
+    thin_mask = thin_face & thin_pairs(a, two_area.expand(a.shape[:-2])) if thin and bool(thin_face.any()) else None
+    if thin_mask is not None and bool(thin_mask.any()):
+        phi_face, psi, omega = _put_thin(a, h, two_area, thin_mask, phi_face, psi, omega)
+    return phi_face, psi, omega, on_face, alpha
+
+
+def _put_thin(a, h, two_area, thin, phi_face, psi, omega) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``phi_face``, ``psi`` and ``omega`` with the ``thin`` pairs' entries from
+    :func:`thin_triangle_integrals` (differentiable)."""
+    shape = thin.shape
+    idx = torch.nonzero(thin.reshape(-1)).squeeze(1)
+    at = a.expand(*shape, 3, 3).reshape(-1, 3, 3).index_select(0, idx)
+    ht = h.expand(shape).reshape(-1).index_select(0, idx)
+    At = two_area.expand(shape).reshape(-1).index_select(0, idx)
+    pf, ps, om = thin_triangle_integrals(at, ht, At)
+    phi_face = phi_face.reshape(-1, 3).index_put((idx,), pf).reshape(*shape, 3)
+    psi = psi.reshape(-1).index_put((idx,), ps).reshape(shape)
+    omega = omega.reshape(-1).index_put((idx,), om).reshape(shape)
+    return phi_face, psi, omega
 
 
 def green3d_coordinates(

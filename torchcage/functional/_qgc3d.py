@@ -214,7 +214,7 @@ def qgc3d_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor, tor
     pat = data.pattern  # (P, 3, 2)
     uu, vv = un[..., pat[..., 0]], vn[..., pat[..., 1]]  # (Q, m, P, 3)
     sub = _sheet(*(tuple(t[..., None, None] for t in vec) for vec in (p0, b, c, dd)), uu, vv)  # (Q, m, P, 3, 3)
-    _, psi_t, omega_t, _, _ = triangle_integrals(sub, triangle_green_geometry(sub), tol)
+    _, psi_t, omega_t, _, _ = triangle_integrals(sub, triangle_green_geometry(sub), tol, thin=False)
     uc, vc = uu.mean(-1), vv.mean(-1)  # sub-triangle centres (Q, m, P)
     bc = _bilinear(uc, vc)  # (Q, m, P, 4)
     N0, Nu, Nv = _cross(b, c), _cross(b, dd), _cross(dd, c)
