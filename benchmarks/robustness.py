@@ -358,6 +358,10 @@ def cages_for(family: str, data: Path | None) -> dict[str, torchcage.Cage]:
     return out
 
 
+#: Skip the values pass (``--grad-only``: a gradient sweep after a values sweep).
+GRAD_ONLY = False
+
+
 def run(families: list[str], data: Path | None, per_category: int, grad_k: int, dtype, seed: int = 0) -> dict:
     results = {}
     for fam in families:
@@ -367,8 +371,9 @@ def run(families: list[str], data: Path | None, per_category: int, grad_k: int, 
             if fam == "image":
                 sweep_image(cage, name, st, dtype)
                 continue
-            pts, side = adversarial_points(cage, per_category, seed=seed, sides=True)
-            sweep_values(fam, cage, name, pts, side, st, dtype)
+            pts, side = adversarial_points(cage, max(per_category, grad_k), seed=seed, sides=True)
+            if not GRAD_ONLY:
+                sweep_values(fam, cage, name, pts, side, st, dtype)
             if grad_k > 0 and fam != "lbc":  # (LBC has no autograd: a sparse solve)
                 sweep_grads(fam, cage, name, pts, st, dtype, grad_k)
         results[fam] = (st, time.perf_counter() - t0)
@@ -425,8 +430,10 @@ def main(argv: list[str] | None = None) -> int:
         help="gradients with respect to the points and the rest cage only (no modules at deformed poses): "
         "the cheap way to 10^6 gradient queries",
     )
+    ap.add_argument("--grad-only", action="store_true", help="skip the values pass (its columns stay empty)")
     args = ap.parse_args(argv)
-    global DEFORMED_CATEGORIES
+    global DEFORMED_CATEGORIES, GRAD_ONLY
+    GRAD_ONLY = args.grad_only
     if args.no_deformed:
         DEFORMED_CATEGORIES = ()
     data = Path(args.data) if Path(args.data).is_dir() else None
