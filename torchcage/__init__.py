@@ -25,6 +25,7 @@ from .io import load_cage, load_mesh, save_cage, save_mesh
 from .nn import (
     GreenCoordinates,
     LocalBarycentricCoordinates,
+    MaximumEntropyCoordinates,
     MeanValueCoordinates,
     QuadGreenCoordinates,
     QuadMeanValueCoordinates,
@@ -40,6 +41,7 @@ __all__ = [
     "DegenerateFaceError",
     "GreenCoordinates",
     "LocalBarycentricCoordinates",
+    "MaximumEntropyCoordinates",
     "MeanValueCoordinates",
     "OutsideCageWarning",
     "PointsError",

@@ -7,6 +7,7 @@ coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
 from .deform import deform
 from .green import green_coordinates
 from .local_barycentric import local_barycentric_coordinates, locality_statistics, solve_local_barycentric
+from .maximum_entropy import maximum_entropy_coordinates
 from .mean_value import mean_value_coordinates
 from .mean_value_derivatives import mean_value_derivatives, mean_value_gradients, mean_value_hessians
 from .quad_green import quad_green_coordinates
@@ -17,6 +18,7 @@ __all__ = [
     "green_coordinates",
     "local_barycentric_coordinates",
     "locality_statistics",
+    "maximum_entropy_coordinates",
     "mean_value_coordinates",
     "mean_value_derivatives",
     "mean_value_gradients",

@@ -3,6 +3,7 @@
 from .base import CageModule
 from .green import GreenCoordinates
 from .local_barycentric import LocalBarycentricCoordinates
+from .maximum_entropy import MaximumEntropyCoordinates
 from .mean_value import MeanValueCoordinates
 from .quad_green import QuadGreenCoordinates
 from .quad_mean_value import QuadMeanValueCoordinates
@@ -11,6 +12,7 @@ __all__ = [
     "CageModule",
     "GreenCoordinates",
     "LocalBarycentricCoordinates",
+    "MaximumEntropyCoordinates",
     "MeanValueCoordinates",
     "QuadGreenCoordinates",
     "QuadMeanValueCoordinates",
