@@ -159,7 +159,7 @@ def test_errors_and_warnings() -> None:
     with pytest.raises(ValueError, match="prior"):
         F.maximum_entropy_coordinates(torch.zeros(1, 3, dtype=D64) - 0.5, cage, prior="harmonic")
     with pytest.raises(tc.PointsError, match="masses"):
-        F.maximum_entropy_coordinates(torch.zeros(1, 3, dtype=D64) - 0.5, cage, prior=-torch.ones(1, 12))
+        F.maximum_entropy_coordinates(torch.zeros(1, 3, dtype=D64) - 0.5, cage, prior=torch.ones(2, 12))
     with pytest.warns(RuntimeWarning, match="did not reach"):
         F.maximum_entropy_coordinates(_inside(cage, 10), cage, prior="uniform", max_iter=1)
 

@@ -81,7 +81,8 @@ def maximum_entropy_coordinates(
         prior: the prior masses: ``"mvc"`` (mean value coordinates; default for triangle cages and
             polygons), ``"qmvc"`` (quad mean value coordinates with grid ``n``; default for cages with
             quads), ``"uniform"`` (equal masses: the classical maximum entropy coordinates), or a
-            tensor ``(*, V)`` of nonnegative masses. Negative and zero coordinates are raised to
+            tensor ``(*, V)`` of masses (coordinates computed before, for instance). Negative and
+            zero entries are raised to
             ``PRIOR_FLOOR`` times the point's largest one (positive ones are kept as they are, so
             where the prior is a set of positive coordinates the result equals it).
         n: grid parameter of the ``"qmvc"`` prior.
@@ -135,8 +136,8 @@ def maximum_entropy_coordinates(
         masses = prior.detach().to(compute).reshape(-1, V) if prior.shape[-1] == V else None
         if masses is None or masses.shape[0] != x.shape[0]:
             raise PointsError(f"prior masses must have shape (*, {V}) matching the points, got {tuple(prior.shape)}")
-        if not bool(torch.isfinite(masses).all()) or bool((masses < 0).any()):
-            raise PointsError("prior masses must be finite and nonnegative")
+        if not bool(torch.isfinite(masses).all()):
+            raise PointsError("prior masses must be finite")
     elif prior is None:
         prior = "qmvc" if cage.dim == 3 and cage.has_quads else "mvc"
     elif prior not in ("mvc", "qmvc", "uniform"):
