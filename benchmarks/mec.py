@@ -36,9 +36,9 @@ def _points(data: str, model: str, limit: int) -> tuple[torch.Tensor, torchcage.
     else:  # (Cactus: no mesh in the data set)
         g = torch.Generator().manual_seed(0)
         lo, hi = cage.vertices.min(0).values, cage.vertices.max(0).values
-        x = lo + (hi - lo) * torch.rand(4 * limit, 3, generator=g, dtype=torch.float64)
+        x = lo + (hi - lo) * torch.rand(4 * (limit or 25000), 3, generator=g, dtype=torch.float64)
     x = x[inside_cage(x, cage)]
-    return x[:limit] if limit else x, cage
+    return (x[:limit] if limit else x[:25000] if not mesh.exists() else x), cage
 
 
 def main() -> None:

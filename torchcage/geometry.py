@@ -6,7 +6,7 @@ import math
 
 import torch
 
-__all__ = ["distance_to_cage", "inside_cage", "inside_polygon", "winding_number"]
+__all__ = ["distance_to_cage", "inside_cage", "inside_polygon", "near_cage", "winding_number"]
 
 
 def inside_polygon(points: torch.Tensor, vertices: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
@@ -126,3 +126,59 @@ def distance_to_cage(points: torch.Tensor, cage, chunk: int = 1 << 20) -> torch.
             inside &= (torch.linalg.cross(b - a, foot - a, dim=-1) * n[None]).sum(-1) >= 0
         out.append(torch.minimum(best, torch.where(inside, h.abs(), torch.inf)).amin(dim=1))
     return torch.cat(out) if out else points.new_zeros(0)
+
+
+def near_cage(points: torch.Tensor, cage, radius: float, chunk: int = 1 << 22) -> torch.Tensor:
+    """Whether points ``(N, D)`` lie within ``radius`` of a cage's boundary, ``(N,)`` bool: the
+    faces' bounding boxes (grown by ``radius``) pick candidate pairs, and only those are measured
+    (:func:`distance_to_cage` measures every pair).
+
+    Examples:
+        >>> import torchcage
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))  # [-1, 1]^3
+        >>> near_cage(torch.tensor([[0.0, 0.0, 1.0 - 1e-9], [0.0, 0.0, 0.5]]), cube, 1e-6).tolist()
+        [True, False]
+    """
+    v = cage.vertices.to(points.dtype)
+    faces = cage.edges if cage.dim == 2 else (cage.triangulated().triangles if cage.has_quads else cage.triangles)
+    corners = v[faces]  # (F, k, D)
+    lo, hi = corners.amin(dim=1) - radius, corners.amax(dim=1) + radius
+    out = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+    rows = max(1, chunk // max(1, faces.shape[0]))
+    for s in range(0, points.shape[0], rows):
+        x = points[s : s + rows]
+        cand = ((x[:, None, :] >= lo[None]) & (x[:, None, :] <= hi[None])).all(dim=-1)  # (n, F)
+        pi, fi = torch.nonzero(cand, as_tuple=True)
+        if pi.numel() == 0:
+            continue
+        d = _pair_distance(x[pi], corners[fi])
+        hit = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        hit[pi[d <= radius]] = True
+        out[s : s + rows] = hit
+    return out
+
+
+def _pair_distance(x: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """Distance ``(P,)`` from each point ``(P, D)`` to its own segment or triangle ``(P, k, D)``."""
+    k = corners.shape[1]
+    if k == 2:
+        a, b = corners[:, 0], corners[:, 1]
+        ab = b - a
+        t = (((x - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(torch.finfo(x.dtype).tiny)).clamp(0, 1)
+        return (x - a - t[:, None] * ab).norm(dim=-1)
+    best = torch.full((x.shape[0],), torch.inf, dtype=x.dtype, device=x.device)
+    for i in range(3):
+        a, b = corners[:, i], corners[:, (i + 1) % 3]
+        ab = b - a
+        t = (((x - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(torch.finfo(x.dtype).tiny)).clamp(0, 1)
+        best = torch.minimum(best, (x - a - t[:, None] * ab).norm(dim=-1))
+    p0, p1, p2 = corners[:, 0], corners[:, 1], corners[:, 2]
+    n = torch.linalg.cross(p1 - p0, p2 - p0, dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
+    h = ((x - p0) * n).sum(-1)
+    foot = x - h[:, None] * n
+    inside = torch.ones_like(h, dtype=torch.bool)
+    for i in range(3):
+        a, b = corners[:, i], corners[:, (i + 1) % 3]
+        inside &= (torch.linalg.cross(b - a, foot - a, dim=-1) * n).sum(-1) >= 0
+    return torch.minimum(best, torch.where(inside, h.abs(), torch.inf))

@@ -19,7 +19,7 @@ import torch
 
 from ..cage import Cage
 from ..errors import CageError, PointsError
-from ..geometry import distance_to_cage, inside_cage
+from ..geometry import inside_cage, near_cage
 from ..solvers.mec import solve_mec
 from ._common import as_inputs, check_points, chunks, on_cage_tolerance, result_dtype
 from .mean_value import mean_value_coordinates
@@ -144,7 +144,7 @@ def maximum_entropy_coordinates(
         raise ValueError(f"prior must be 'mvc', 'qmvc', 'uniform' or a tensor of masses (N, V), got {prior!r}")
 
     tol_on = on_cage_tolerance(cage_c)
-    on = distance_to_cage(x, cage_c) <= tol_on
+    on = near_cage(x, cage_c, tol_on)
     inside = inside_cage(x, cage_c) | on
     if not bool(inside.all()):
         bad = torch.nonzero(~inside).flatten()

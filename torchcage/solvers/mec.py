@@ -42,7 +42,7 @@ class MecSolution(NamedTuple):
 
 def _dual(log_m: torch.Tensor, d: torch.Tensor, mu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(F (n,), w (n, V))`` at ``mu`` ``(n, D)``."""
-    z = log_m + torch.einsum("nvd,nd->nv", d, mu)
+    z = log_m + torch.bmm(d, mu[:, :, None])[..., 0]
     F = torch.logsumexp(z, dim=1)
     return F, torch.exp(z - F[:, None])
 
@@ -72,42 +72,74 @@ def solve_mec(log_m: torch.Tensor, d: torch.Tensor, tol: float = 1e-13, max_iter
     mu = torch.zeros(n, D, dtype=d.dtype, device=d.device)
     iters = torch.zeros(n, dtype=torch.long, device=d.device)
     F, w = _dual(log_m, d, mu)
-    g = torch.einsum("nv,nvd->nd", w, d)
+    g = torch.bmm(w[:, None, :], d)[:, 0]
     res = g.norm(dim=1)
-    eye = torch.eye(D, dtype=d.dtype, device=d.device)
     stuck = torch.zeros(n, dtype=torch.bool, device=d.device)  # no descent left: rounding-level steps
     for _ in range(max_iter):
-        active = torch.nonzero((res > tol) & ~stuck).flatten()
-        if active.numel() == 0:
+        active = (res > tol) & ~stuck
+        count = int(active.sum())
+        if count == 0:
             break
-        wa, da, ga, ma, Fa, lm = w[active], d[active], g[active], mu[active], F[active], log_m[active]
-        H = torch.einsum("nv,nvi,nvj->nij", wa, da, da) - ga[:, :, None] * ga[:, None, :]
-        # (a tiny ridge keeps the solve finite where the covariance is singular to rounding)
-        scale = H.diagonal(dim1=1, dim2=2).sum(-1).clamp_min(torch.finfo(d.dtype).tiny)
-        H = H + (1e-15 * scale)[:, None, None] * eye
-        step = -torch.linalg.solve(H, ga[..., None])[..., 0]
-        slope = (ga * step).sum(-1)  # < 0: a descent direction
-        alpha = torch.ones_like(slope)
-        todo = torch.ones_like(slope, dtype=torch.bool)
-        Fn, wn = Fa.clone(), wa.clone()
-        for _ in range(_HALVINGS):
-            idx = torch.nonzero(todo).flatten()
-            if idx.numel() == 0:
-                break
-            Ft, wt = _dual(lm[idx], da[idx], ma[idx] + alpha[idx, None] * step[idx])
-            # Armijo's decrease, or (near the solution, where the decrease is below the rounding of
-            # F) the gradient halved
-            gt = torch.einsum("nv,nvd->nd", wt, da[idx]).norm(dim=1)
-            ok = (Ft <= Fa[idx] + _ARMIJO * alpha[idx] * slope[idx]) | (gt <= 0.5 * ga[idx].norm(dim=1))
-            good = idx[ok]
-            Fn[good], wn[good] = Ft[ok], wt[ok]
-            todo[good] = False
-            alpha[idx[~ok]] *= 0.5
-        moved = ~todo  # (rows whose line search failed keep their iterate and stop)
-        ma = torch.where(moved[:, None], ma + alpha[:, None] * step, ma)
-        mu[active], F[active], w[active] = ma, torch.where(moved, Fn, Fa), torch.where(moved[:, None], wn, wa)
-        g[active] = torch.einsum("nv,nvd->nd", w[active], da)
-        res[active] = g[active].norm(dim=1)
-        iters[active[moved]] += 1
-        stuck[active[~moved]] = True
+        if 4 * count >= n:  # most rows still move: full tensors (gathers cost more than the spare rows)
+            rows = None
+            parts = (log_m, d, mu, F, w, g)
+        else:
+            rows = torch.nonzero(active).flatten()
+            parts = tuple(t.index_select(0, rows) for t in (log_m, d, mu, F, w, g))
+        mu_n, F_n, w_n, g_n, moved = _newton_step(*parts)
+        if rows is None:
+            moved = moved & active
+            mu = torch.where(moved[:, None], mu_n, mu)
+            F = torch.where(moved, F_n, F)
+            w = torch.where(moved[:, None], w_n, w)
+            g = torch.where(moved[:, None], g_n, g)
+            iters += moved.long()
+            stuck |= active & ~moved
+        else:
+            keep = rows[moved]
+            mu[keep], F[keep], w[keep], g[keep] = mu_n[moved], F_n[moved], w_n[moved], g_n[moved]
+            iters[keep] += 1
+            stuck[rows[~moved]] = True
+        res = g.norm(dim=1)
     return MecSolution(w, iters, res, res <= tol)
+
+
+def _newton_step(log_m, d, mu, F, w, g) -> tuple[torch.Tensor, ...]:
+    """One damped Newton step of every row: ``(mu, F, w, g, moved)`` after it (``moved`` False where
+    the line search found no acceptable step; those rows' other outputs are their inputs)."""
+    D = d.shape[-1]
+    H = torch.bmm((d * w[..., None]).transpose(1, 2), d) - g[:, :, None] * g[:, None, :]
+    # (a tiny ridge keeps the solve finite where the covariance is singular to rounding)
+    scale = H.diagonal(dim1=1, dim2=2).sum(-1).clamp_min(torch.finfo(d.dtype).tiny)
+    H = H + (1e-15 * scale)[:, None, None] * torch.eye(D, dtype=d.dtype, device=d.device)
+    step = -torch.linalg.solve(H, g[..., None])[..., 0]
+    slope = (g * step).sum(-1)  # < 0: a descent direction
+    gnorm = g.norm(dim=1)
+
+    def accept(Ft, wt, gt, alpha, Fa, slope_, gn):
+        # Armijo's decrease, or (near the solution, where the decrease is below the rounding of F)
+        # the gradient halved
+        return (Ft <= Fa + _ARMIJO * alpha * slope_) | (gt.norm(dim=1) <= 0.5 * gn)
+
+    Ft, wt = _dual(log_m, d, mu + step)
+    gt = torch.bmm(wt[:, None, :], d)[:, 0]
+    ok = accept(Ft, wt, gt, 1.0, F, slope, gnorm)
+    mu_n, F_n, w_n, g_n = mu + step, Ft, wt, gt
+    todo = torch.nonzero(~ok).flatten()
+    alpha = torch.full((todo.numel(),), 0.5, dtype=d.dtype, device=d.device)
+    for _ in range(_HALVINGS):  # (few rows: gathered)
+        if todo.numel() == 0:
+            break
+        lm, dd, m0, st = log_m[todo], d[todo], mu[todo], step[todo]
+        Fs, ws = _dual(lm, dd, m0 + alpha[:, None] * st)
+        gs = torch.bmm(ws[:, None, :], dd)[:, 0]
+        good = accept(Fs, ws, gs, alpha, F[todo], slope[todo], gnorm[todo])
+        hit = todo[good]
+        mu_n[hit], F_n[hit], w_n[hit], g_n[hit] = (m0 + alpha[:, None] * st)[good], Fs[good], ws[good], gs[good]
+        ok[hit] = True
+        todo, alpha = todo[~good], alpha[~good] * 0.5
+    mu_n = torch.where(ok[:, None], mu_n, mu)
+    F_n = torch.where(ok, F_n, F)
+    w_n = torch.where(ok[:, None], w_n, w)
+    g_n = torch.where(ok[:, None], g_n, g)
+    return mu_n, F_n, w_n, g_n, ok
