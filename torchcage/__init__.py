@@ -24,6 +24,7 @@ from .functional.deform import deform
 from .io import load_cage, load_mesh, save_cage, save_mesh
 from .nn import (
     GreenCoordinates,
+    HarmonicCoordinates,
     LocalBarycentricCoordinates,
     MaximumEntropyCoordinates,
     MeanValueCoordinates,
@@ -40,6 +41,7 @@ __all__ = [
     "CageTopologyError",
     "DegenerateFaceError",
     "GreenCoordinates",
+    "HarmonicCoordinates",
     "LocalBarycentricCoordinates",
     "MaximumEntropyCoordinates",
     "MeanValueCoordinates",

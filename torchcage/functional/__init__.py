@@ -6,6 +6,7 @@ coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
 
 from .deform import deform
 from .green import green_coordinates
+from .harmonic import harmonic_coordinates, solve_harmonic_coordinates
 from .local_barycentric import local_barycentric_coordinates, locality_statistics, solve_local_barycentric
 from .maximum_entropy import maximum_entropy_coordinates
 from .mean_value import mean_value_coordinates
@@ -16,6 +17,7 @@ from .quad_mean_value import quad_mean_value_coordinates
 __all__ = [
     "deform",
     "green_coordinates",
+    "harmonic_coordinates",
     "local_barycentric_coordinates",
     "locality_statistics",
     "maximum_entropy_coordinates",
@@ -25,5 +27,6 @@ __all__ = [
     "mean_value_hessians",
     "quad_green_coordinates",
     "quad_mean_value_coordinates",
+    "solve_harmonic_coordinates",
     "solve_local_barycentric",
 ]

@@ -17,8 +17,8 @@ from typing import Any
 import torch
 
 from ..cage import Cage
-from ..errors import CageError, PointsError
-from ..solvers.domain import Domain, mesh_domain, user_domain
+from ..errors import PointsError
+from ..solvers.domain import Domain, domain_for
 from ..solvers.lbc import LBCResult, make_feasible, solve_lbc
 from ._common import as_inputs, check_points
 
@@ -51,22 +51,7 @@ def solve_local_barycentric(
         The :class:`~torchcage.solvers.lbc.LBCResult` (weights at the mesh vertices, iterations,
         residuals, convergence, objective).
     """
-    if cage.device.type == "meta":
-        raise PointsError(
-            "local barycentric coordinates cannot be solved on the meta device (it holds shapes, not values); solve "
-            "on a real device (cpu, cuda) and move the module with .to(device) afterwards"
-        )
-    if cage.is_batched:
-        raise CageError(
-            f"local barycentric coordinates are solved for one cage at a time, got a batch of shape "
-            f"{tuple(cage.batch_shape)}; solve per element (cage[b])"
-        )
-    if isinstance(domain, Domain):
-        dom = domain
-    elif domain is not None:
-        dom = user_domain(cage, domain[0], domain[1])
-    else:
-        dom = mesh_domain(cage, target_cells)
+    dom = domain_for(cage, target_cells, domain, "local barycentric coordinates")
     return solve_lbc(dom, cage.vertices, weighting=weighting, progress=progress, **solver)
 
 

@@ -2,6 +2,7 @@
 
 from .base import CageModule
 from .green import GreenCoordinates
+from .harmonic import HarmonicCoordinates
 from .local_barycentric import LocalBarycentricCoordinates
 from .maximum_entropy import MaximumEntropyCoordinates
 from .mean_value import MeanValueCoordinates
@@ -11,6 +12,7 @@ from .quad_mean_value import QuadMeanValueCoordinates
 __all__ = [
     "CageModule",
     "GreenCoordinates",
+    "HarmonicCoordinates",
     "LocalBarycentricCoordinates",
     "MaximumEntropyCoordinates",
     "MeanValueCoordinates",

@@ -30,7 +30,7 @@ from ..cage import Cage
 from ..errors import CageError
 from ..geometry import inside_cage
 
-__all__ = ["Domain", "mesh_domain", "user_domain"]
+__all__ = ["Domain", "domain_for", "mesh_domain", "user_domain"]
 
 
 @dataclass
@@ -286,6 +286,36 @@ def mesh_domain(cage: Cage, target_cells: int = 4000, *, seed: int = 0) -> Domai
     if target_cells < 1:
         raise ValueError(f"target_cells must be positive, got {target_cells}")
     return _mesh_2d(cage, target_cells) if cage.dim == 2 else _mesh_3d(cage, target_cells, seed)
+
+
+def domain_for(
+    cage: Cage, target_cells: int, domain: tuple[torch.Tensor, torch.Tensor] | Domain | None, what: str
+) -> Domain:
+    """The mesh a volumetric method solves on: ``domain`` as given (a :class:`Domain`, or a user's
+    ``(vertices, cells)``), else :func:`mesh_domain` of the cage. ``what`` names the method in the
+    errors.
+
+    Raises:
+        PointsError: a cage on the meta device.
+        CageError: a batch of cages.
+    """
+    from ..errors import PointsError
+
+    if cage.device.type == "meta":
+        raise PointsError(
+            f"{what} cannot be solved on the meta device (it holds shapes, not values); solve "
+            "on a real device (cpu, cuda) and move the module with .to(device) afterwards"
+        )
+    if cage.is_batched:
+        raise CageError(
+            f"{what} are solved for one cage at a time, got a batch of shape "
+            f"{tuple(cage.batch_shape)}; solve per element (cage[b])"
+        )
+    if isinstance(domain, Domain):
+        return domain
+    if domain is not None:
+        return user_domain(cage, domain[0], domain[1])
+    return mesh_domain(cage, target_cells)
 
 
 def user_domain(cage: Cage, vertices: torch.Tensor, cells: torch.Tensor, tol: float = 1e-9) -> Domain:

@@ -1,0 +1,106 @@
+r"""Harmonic coordinates (Joshi et al. 2007): the public front end.
+
+The cage's interior is meshed (:mod:`torchcage.solvers.domain`), the harmonic extension of the
+cage's basis functions is solved on that mesh (:mod:`torchcage.solvers.harmonic`), and the values
+at the mesh vertices are interpolated linearly at the query points: a dense ``(N, V)`` tensor
+(harmonic coordinates are positive across the whole interior, so nothing is sparse).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import torch
+
+from ..cage import Cage
+from ..solvers.domain import Domain, domain_for
+from ..solvers.harmonic import HarmonicResult, solve_harmonic
+from ._common import as_inputs, check_points
+from .local_barycentric import locate
+
+__all__ = ["harmonic_coordinates", "solve_harmonic_coordinates"]
+
+
+def solve_harmonic_coordinates(
+    cage: Cage,
+    *,
+    target_cells: int = 20000,
+    domain: tuple[torch.Tensor, torch.Tensor] | Domain | None = None,
+    solver: str = "lu",
+    **options: Any,
+) -> HarmonicResult:
+    """Mesh the cage's interior and solve for harmonic coordinates at the mesh vertices.
+
+    Args:
+        cage: a closed 2D polygon or 3D triquad cage (quads get bilinear boundary values).
+        target_cells: about how many triangles / tetrahedra to mesh the interior with.
+        domain: your own mesh instead, ``(vertices (Nv, D), cells (C, D + 1))`` whose boundary
+            vertices lie on the cage (triangle cages and polygons), or a :class:`Domain`.
+        solver: ``"lu"`` (scipy sparse LU, factored once) or ``"cg"`` (torch conjugate gradients).
+        **options: ``tol`` and ``max_iter`` of ``"cg"``.
+
+    Returns:
+        The :class:`~torchcage.solvers.harmonic.HarmonicResult` (weights at the mesh vertices,
+        the solve's residual, the smallest weight).
+    """
+    dom = domain_for(cage, target_cells, domain, "harmonic coordinates")
+    return solve_harmonic(dom, solver, **options)
+
+
+def harmonic_coordinates(
+    points: torch.Tensor,
+    cage: Cage,
+    *,
+    solution: HarmonicResult | None = None,
+    chunk_size: int = 1 << 16,
+    **options: Any,
+) -> torch.Tensor:
+    """Harmonic coordinates of points inside a cage, ``(*, V)``.
+
+    Smooth inside the cage, equal to the cage's basis functions on it (linear on edges and
+    triangles, bilinear on quads, Lagrange at the vertices), partition of unity and linear
+    precision exact (P1 elements reproduce linear functions), nonnegative where the mesh obeys the
+    discrete maximum principle. Computing them means meshing the interior and a sparse solve:
+    pass ``solution=`` (from :func:`solve_harmonic_coordinates`) to reuse one for more points.
+
+    Args:
+        points: ``(*, D)`` points inside the cage (points outside get the coordinates of the
+            nearest point of the meshed interior, with a warning).
+        cage: a closed 2D polygon or 3D triquad cage.
+        solution: a previous solve for the same cage.
+        chunk_size: points per chunk.
+        **options: passed to :func:`solve_harmonic_coordinates` (``target_cells``, ``domain``,
+            ``solver``, ...).
+
+    Returns:
+        ``(*, V)`` coordinates in the points' dtype and device.
+
+    Examples:
+        >>> import torch, torchcage
+        >>> from torchcage import functional as F
+        >>> poly = torchcage.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 1], [1, 1.5], [0, 1]], dtype=torch.float64))
+        >>> x = torch.tensor([[0.5, 0.5], [1.5, 0.7]], dtype=torch.float64)
+        >>> w = F.harmonic_coordinates(x, poly, target_cells=400)
+        >>> torch.allclose(w @ poly.vertices, x), torch.allclose(w.sum(1), torch.ones(2, dtype=torch.float64))
+        (True, True)
+    """
+    points, cage = as_inputs(points, cage)
+    lead = points.shape[:-1]
+    flat = check_points(points, cage)
+    result = solution if solution is not None else solve_harmonic_coordinates(cage, **options)
+    x = flat.detach().to(torch.float64).cpu()
+    V = result.weights.shape[1]
+    out = torch.empty(x.shape[0], V, dtype=torch.float64)
+    outside = 0
+    for s in range(0, x.shape[0], chunk_size):
+        cell, bary, inside = locate(x[s : s + chunk_size], result.domain)
+        outside += int((~inside).sum())
+        out[s : s + chunk_size] = torch.einsum("nk,nkv->nv", bary, result.weights[result.domain.cells[cell]])
+    if outside:
+        warnings.warn(
+            f"{outside} points lie outside the meshed interior of the cage; they got the coordinates of "
+            "the nearest point of the mesh",
+            stacklevel=2,
+        )
+    return out.to(dtype=flat.dtype, device=flat.device).reshape(*lead, V)
