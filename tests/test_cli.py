@@ -85,6 +85,10 @@ def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
     rest, _ = torchcage.load_mesh(tmp_path / "lbc" / "rest_mesh.obj")
     moved, _ = torchcage.load_mesh(tmp_path / "lbc" / "deformed_mesh.obj")
     assert torch.allclose(moved, rest * torch.tensor([1.5, 1.0, 1.0], dtype=rest.dtype), atol=1e-6)  # linear precision
+    for method in ("hc", "mec"):  # (the volumetric and the positive coordinates: the same stretch)
+        assert main([*args, "--out", str(tmp_path / method), "--method", method, "--no-picture"]) == 0
+        moved, _ = torchcage.load_mesh(tmp_path / method / "deformed_mesh.obj")
+        assert torch.allclose(moved, rest * torch.tensor([1.5, 1.0, 1.0], dtype=rest.dtype), atol=1e-6)
     assert main([*args, "--out", str(tmp_path / "up"), "--up", "y", "--azimuth", "60", "--elevation", "10"]) == 0
     assert (tmp_path / "up" / "deformation.png").exists()
     try:

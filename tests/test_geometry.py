@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from reference import distance_to_triangles
 from support import l_shape, triquad
 
 import torchcage as tc
-from torchcage.geometry import distance_to_cage, near_cage
+from torchcage.geometry import distance_to_cage, near_cage, winding_number
 
 D64 = torch.float64
 
@@ -39,3 +40,15 @@ def test_near_cage_agrees_with_the_distances() -> None:
         d = distance_to_cage(x, cage)
         for r in (1e-12, 1e-6, 1e-3, 0.05):
             assert torch.equal(near_cage(x, cage, r), d <= r)
+
+
+def test_native_winding_number_matches_torch() -> None:
+    if not tc._native.available():
+        pytest.skip("no C compiler")
+    for cage in (l_shape(), triquad()):
+        x = _probe(cage)
+        tri = cage.triangulated().triangles if cage.has_quads else cage.triangles
+        a = winding_number(x, cage.vertices, tri, backend="native")
+        b = winding_number(x, cage.vertices, tri, backend="torch")
+        assert torch.allclose(a, b, atol=1e-12, rtol=0)
+        assert bool(((a - 1).abs() < 1e-9).sum() > 0) and bool((a.abs() < 1e-9).sum() > 0)  # inside and outside

@@ -17,11 +17,12 @@ import torch
 
 __all__ = ["main"]
 
-METHODS = ("mvc", "gc", "qmvc", "qgc", "lbc")
+METHODS = ("mvc", "gc", "qmvc", "qgc", "lbc", "hc", "mec")
 METHOD_HELP = (
     "coordinates: mvc (mean value, any closed cage, quads split), gc (Green, quasi-conformal, quads split), "
     "qmvc (quad mean value, quads kept), qgc (quad Green, quads kept), lbc (local barycentric, solved on a mesh "
-    "of the cage interior; slower, with progress); default mvc"
+    "of the cage interior; slower, with progress), hc (harmonic, solved on a mesh of the cage interior), mec "
+    "(maximum entropy: positive, with the mvc or qmvc prior; points must be inside the cage); default mvc"
 )
 METHOD_NAMES = {
     "mvc": "mean value coordinates (mvc)",
@@ -29,6 +30,8 @@ METHOD_NAMES = {
     "qmvc": "quad mean value coordinates (qmvc)",
     "qgc": "quad Green coordinates (qgc)",
     "lbc": "local barycentric coordinates (lbc)",
+    "hc": "harmonic coordinates (hc)",
+    "mec": "maximum entropy coordinates (mec)",
 }
 #: Mesh formats written by ``deform --format`` (OBJ directly, the others through trimesh).
 FORMATS = ("obj", "ply", "glb", "stl", "off")
@@ -68,6 +71,10 @@ def _build_module(method: str, cage, points: torch.Tensor, progress: bool):
         return torchcage.QuadGreenCoordinates(cage, points)
     if method == "lbc":
         return torchcage.LocalBarycentricCoordinates(cage, points, progress=progress)
+    if method == "hc":
+        return torchcage.HarmonicCoordinates(cage, points)
+    if method == "mec":
+        return torchcage.MaximumEntropyCoordinates(cage, points, progress=progress)
     raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 
