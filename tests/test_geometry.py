@@ -48,6 +48,7 @@ def test_native_winding_number_matches_torch() -> None:
     for cage in (l_shape(), triquad()):
         x = _probe(cage)
         tri = cage.triangulated().triangles if cage.has_quads else cage.triangles
+        x = x[distance_to_cage(x, cage) > 1e-12]  # (on a face the solid angle's sign is rounding)
         a = winding_number(x, cage.vertices, tri, backend="native")
         b = winding_number(x, cage.vertices, tri, backend="torch")
         assert torch.allclose(a, b, atol=1e-12, rtol=0)
