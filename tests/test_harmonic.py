@@ -83,6 +83,9 @@ def test_solvers_agree() -> None:
     lu, cg = solve_harmonic(dom, "lu"), solve_harmonic(dom, "cg", tol=1e-13)
     assert float((lu.weights - cg.weights).abs().max()) <= 1e-9
     assert lu.residual <= 1e-12
+    pytest.importorskip("cholespy")
+    ch = solve_harmonic(dom, "cholesky")
+    assert float((lu.weights - ch.weights).abs().max()) <= 1e-12 and ch.residual <= 1e-12
 
 
 def test_convergence_under_refinement() -> None:

@@ -27,7 +27,7 @@ def solve_harmonic_coordinates(
     *,
     target_cells: int = 20000,
     domain: tuple[torch.Tensor, torch.Tensor] | Domain | None = None,
-    solver: str = "lu",
+    solver: str = "auto",
     **options: Any,
 ) -> HarmonicResult:
     """Mesh the cage's interior and solve for harmonic coordinates at the mesh vertices.
@@ -37,7 +37,8 @@ def solve_harmonic_coordinates(
         target_cells: about how many triangles / tetrahedra to mesh the interior with.
         domain: your own mesh instead, ``(vertices (Nv, D), cells (C, D + 1))`` whose boundary
             vertices lie on the cage (triangle cages and polygons), or a :class:`Domain`.
-        solver: ``"lu"`` (scipy sparse LU, factored once) or ``"cg"`` (torch conjugate gradients).
+        solver: ``"auto"`` (cholespy's sparse Cholesky where installed, else scipy's sparse LU),
+            ``"cholesky"``, ``"lu"`` or ``"cg"`` (torch conjugate gradients).
         **options: ``tol`` and ``max_iter`` of ``"cg"``.
 
     Returns:

@@ -15,21 +15,24 @@ interpolated in a cell, to the solver's precision. The weights are nonnegative w
 good enough for the discrete maximum principle (in 2D: no angle sum opposite an edge above pi);
 :class:`HarmonicResult` reports the smallest weight.
 
-**Solver.** ``"lu"``: scipy's sparse LU (SuperLU, COLAMD ordering; ``K_II`` is symmetric positive
-definite, but scipy has no sparse Cholesky, and the factorisation is a small part of the cost
-here: see docs/harmonic.md for the measurements); ``"cg"``: Jacobi-preconditioned conjugate
-gradients in torch on any device, all right-hand sides at once.
+**Solver.** ``K_II`` is symmetric positive definite. ``"cholesky"``: cholespy's sparse Cholesky
+(BSD; CPU and CUDA tensors), the fastest measured (docs/harmonic.md); ``"lu"``: scipy's sparse LU
+(SuperLU, COLAMD ordering; scipy has no sparse Cholesky); ``"cg"``: Jacobi-preconditioned
+conjugate gradients in torch, all right-hand sides at once; ``"auto"``: cholesky where cholespy is
+installed, else lu.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from .domain import Domain
-from .lbc import _single_threaded_blas, gradient_operator
+from .lbc import _single_threaded_blas
 
 __all__ = ["HarmonicResult", "solve_harmonic", "stiffness_matrix"]
 
@@ -44,7 +47,7 @@ class HarmonicResult:
         residual: ``max |K_II W_I + K_IB W_B|`` over the largest entry of ``K``: the solve's accuracy.
         min_weight: the smallest weight (negative where the mesh breaks the maximum principle).
         negative_vertices: mesh vertices with a weight below ``-1e-12``.
-        solver: ``"lu"`` or ``"cg"``.
+        solver: ``"cholesky"``, ``"lu"`` or ``"cg"``.
         seconds: time of the assembly and solve.
     """
 
@@ -57,6 +60,29 @@ class HarmonicResult:
     seconds: float
 
 
+def _cell_gradients(vertices: torch.Tensor, cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The hat functions' gradients on every cell ``(C, D, D + 1)`` and the cell volumes ``(C,)``."""
+    D = cells.shape[1] - 1
+    p = vertices[cells]  # (C, D+1, D)
+    E = p[:, 1:] - p[:, :1]  # (C, D, D) rows: edge vectors
+    inv = torch.linalg.inv(E)  # column k: the gradient of barycentric k + 1
+    grads = torch.cat([-inv.sum(dim=2, keepdim=True), inv], dim=2)
+    return grads, torch.linalg.det(E).abs() / math.factorial(D)
+
+
+def _stiffness_scipy(vertices: torch.Tensor, cells: torch.Tensor):
+    """:func:`stiffness_matrix` as a scipy CSR matrix (duplicates summed)."""
+    from scipy.sparse import coo_matrix
+
+    grads, vol = _cell_gradients(vertices, cells)
+    local = vol[:, None, None] * torch.einsum("cda,cdb->cab", grads, grads)  # (C, k, k)
+    k = cells.shape[1]
+    c = cells.numpy()
+    rows, cols = np.repeat(c, k, axis=1).ravel(), np.tile(c, (1, k)).ravel()
+    n = vertices.shape[0]
+    return coo_matrix((local.numpy().ravel(), (rows, cols)), shape=(n, n)).tocsr()
+
+
 def stiffness_matrix(vertices: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
     """The P1 stiffness matrix ``K (Nv, Nv)`` (sparse COO, float64): ``K_ab = sum over cells of
     vol * grad phi_a . grad phi_b``, the cotangent Laplacian.
@@ -66,19 +92,9 @@ def stiffness_matrix(vertices: torch.Tensor, cells: torch.Tensor) -> torch.Tenso
         >>> stiffness_matrix(v, torch.tensor([[0, 1, 2]])).to_dense().tolist()
         [[1.0, -0.5, -0.5], [-0.5, 0.5, 0.0], [-0.5, 0.0, 0.5]]
     """
-    G, vol = gradient_operator(vertices, cells)  # (D C, Nv), rows component-major
-    D = cells.shape[1] - 1
-    G = G.to_sparse_coo().coalesce()
-    w = vol.repeat(D)[G.indices()[0]]  # each row's cell volume
-    Gw = torch.sparse_coo_tensor(G.indices(), G.values() * w, G.shape, check_invariants=False).coalesce()
-    return (G.t().coalesce() @ Gw).coalesce()
-
-
-def _scipy(K: torch.Tensor):
-    from scipy.sparse import coo_matrix
-
-    i = K.indices().numpy()
-    return coo_matrix((K.values().numpy(), (i[0], i[1])), shape=K.shape).tocsr()
+    K = _stiffness_scipy(vertices.to(torch.float64), cells).tocoo()
+    idx = torch.from_numpy(np.stack([K.row, K.col]).astype(np.int64))
+    return torch.sparse_coo_tensor(idx, torch.from_numpy(K.data), K.shape, check_invariants=False).coalesce()
 
 
 def _cg(A, rhs: torch.Tensor, tol: float, max_iter: int) -> torch.Tensor:
@@ -109,36 +125,67 @@ def _cg(A, rhs: torch.Tensor, tol: float, max_iter: int) -> torch.Tensor:
     return x
 
 
-def solve_harmonic(domain: Domain, solver: str = "lu", *, tol: float = 1e-13, max_iter: int = 20000) -> HarmonicResult:
+def _cholesky(A, rhs: np.ndarray) -> torch.Tensor:
+    from cholespy import CholeskySolverD, MatrixType
+
+    A = A.tocoo()
+    rows, cols = torch.from_numpy(A.row.astype(np.int32)), torch.from_numpy(A.col.astype(np.int32))
+    solver = CholeskySolverD(A.shape[0], rows, cols, torch.from_numpy(A.data), MatrixType.COO)
+    b = torch.from_numpy(np.ascontiguousarray(rhs))
+    x = torch.zeros_like(b)
+    for s in range(0, b.shape[1], 128):  # (cholespy solves at most 128 right-hand sides at once)
+        xs = torch.zeros_like(b[:, s : s + 128]).contiguous()
+        solver.solve(b[:, s : s + 128].contiguous(), xs)
+        x[:, s : s + 128] = xs
+    return x
+
+
+def _has_cholespy() -> bool:
+    try:
+        import cholespy  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def solve_harmonic(
+    domain: Domain, solver: str = "auto", *, tol: float = 1e-13, max_iter: int = 20000
+) -> HarmonicResult:
     """Harmonic coordinates at the vertices of ``domain``.
 
     Args:
         domain: the mesh with its boundary values (:func:`torchcage.solvers.domain.mesh_domain`).
-        solver: ``"lu"`` (scipy sparse LU, factored once) or ``"cg"`` (torch conjugate gradients).
+        solver: ``"auto"``, ``"cholesky"`` (cholespy), ``"lu"`` (scipy sparse LU) or ``"cg"``
+            (torch conjugate gradients); see the module docstring.
         tol: relative residual of ``"cg"``.
         max_iter: iterations of ``"cg"``.
 
     Returns:
         A :class:`HarmonicResult`.
     """
-    if solver not in ("lu", "cg"):
-        raise ValueError(f"solver must be 'lu' or 'cg', got {solver!r}")
+    if solver not in ("auto", "cholesky", "lu", "cg"):
+        raise ValueError(f"solver must be 'auto', 'cholesky', 'lu' or 'cg', got {solver!r}")
+    if solver == "auto":
+        solver = "cholesky" if _has_cholespy() else "lu"
+    elif solver == "cholesky" and not _has_cholespy():
+        raise ImportError("solver='cholesky' needs cholespy: pip install 'torchcage[lbc]' (or pip install cholespy)")
     t0 = time.perf_counter()
     v = domain.vertices.to(torch.float64)
     lo, hi = v.min(0).values, v.max(0).values
     scale = float((hi - lo).norm()) or 1.0
-    K = stiffness_matrix((v - lo) / scale, domain.cells)  # (scaled: the same matrix up to scale^(D-2))
+    Ks = _stiffness_scipy((v - lo) / scale, domain.cells)  # (scaled: the same matrix up to scale^(D-2))
     I, B = domain.interior, domain.boundary
     WB = domain.boundary_values.to(torch.float64)
     Nv, V = v.shape[0], WB.shape[1]
     W = torch.zeros(Nv, V, dtype=torch.float64)
     W[B] = WB
-    Ks = _scipy(K)
     Ii, Bi = I.numpy(), B.numpy()
     KII, KIB = Ks[Ii][:, Ii], Ks[Ii][:, Bi]
     rhs = -(KIB @ WB.numpy())
     if I.numel():
-        if solver == "lu":
+        if solver == "cholesky":
+            WI = _cholesky(KII, rhs)
+        elif solver == "lu":
             from scipy.sparse.linalg import splu
 
             with _single_threaded_blas():
