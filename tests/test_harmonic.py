@@ -123,3 +123,24 @@ def test_firehydrant() -> None:
     _check(res.weights, res.domain.vertices, cage)
     x = _inside(cage, 500)
     _check(F.harmonic_coordinates(x, cage, solution=res), x, cage)
+
+
+def test_gradients_with_respect_to_the_points() -> None:
+    """P1 interpolation: the gradient in a cell is constant, and the gradient of the reproduced
+    point ``w @ V`` is the identity."""
+    cage = l_shape()
+    sol = F.solve_harmonic_coordinates(cage, target_cells=2000)
+    x = _inside(cage, 30).requires_grad_(True)
+    w = F.harmonic_coordinates(x, cage, solution=sol)
+    y = w @ cage.vertices.to(D64)
+    for d in range(3):
+        (g,) = torch.autograd.grad(y[:, d].sum(), x, retain_graph=True)
+        assert torch.allclose(g, torch.eye(3, dtype=D64)[d].expand_as(g), atol=1e-10)
+    (g,) = torch.autograd.grad(w[:, 0].sum(), x)
+    step = 1e-7  # against differences (inside a cell: exact up to rounding, unless a step crosses a face)
+    fd = torch.stack(
+        [(F.harmonic_coordinates(x.detach() + step * e, cage, solution=sol)[:, 0]
+          - F.harmonic_coordinates(x.detach() - step * e, cage, solution=sol)[:, 0]) / (2 * step)
+         for e in torch.eye(3, dtype=D64)], dim=1,
+    )  # fmt: skip
+    assert float(((g - fd).abs().max(dim=1).values < 1e-6).double().mean()) > 0.9

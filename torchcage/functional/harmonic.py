@@ -75,7 +75,8 @@ def harmonic_coordinates(
             ``solver``, ...).
 
     Returns:
-        ``(*, V)`` coordinates in the points' dtype and device.
+        ``(*, V)`` coordinates in the points' dtype and device; differentiable with respect to
+        points that require grad (piecewise linear: constant gradients in each cell).
 
     Examples:
         >>> import torch, torchcage
@@ -92,12 +93,17 @@ def harmonic_coordinates(
     result = solution if solution is not None else solve_harmonic_coordinates(cage, **options)
     x = flat.detach().to(torch.float64).cpu()
     V = result.weights.shape[1]
-    out = torch.empty(x.shape[0], V, dtype=torch.float64)
+    grad = flat.requires_grad and torch.is_grad_enabled()
+    parts = []
     outside = 0
     for s in range(0, x.shape[0], chunk_size):
         cell, bary, inside = locate(x[s : s + chunk_size], result.domain)
         outside += int((~inside).sum())
-        out[s : s + chunk_size] = torch.einsum("nk,nkv->nv", bary, result.weights[result.domain.cells[cell]])
+        corners = result.domain.cells[cell]  # (n, D + 1)
+        if grad:  # the barycentric coordinates again, differentiable (linear in the point in its cell)
+            bary = _differentiable_bary(flat[s : s + chunk_size], result.domain.vertices[corners], bary, inside)
+        parts.append(torch.einsum("nk,nkv->nv", bary, result.weights[corners].to(bary)))
+    out = torch.cat(parts) if parts else torch.zeros(0, V, dtype=torch.float64)
     if outside:
         warnings.warn(
             f"{outside} points lie outside the meshed interior of the cage; they got the coordinates of "
@@ -105,3 +111,14 @@ def harmonic_coordinates(
             stacklevel=2,
         )
     return out.to(dtype=flat.dtype, device=flat.device).reshape(*lead, V)
+
+
+def _differentiable_bary(x: torch.Tensor, p: torch.Tensor, bary: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+    """Barycentric coordinates ``(n, D + 1)`` of points ``x`` ``(n, D)`` (with their graph) in
+    cells with corners ``p`` ``(n, D + 1, D)``; points outside the mesh keep the clamped ``bary``
+    (constant: the value of the nearest mesh point)."""
+    p = p.to(device=x.device, dtype=torch.float64)
+    E = (p[:, 1:] - p[:, :1]).transpose(1, 2)  # (n, D, D)
+    b = torch.linalg.solve(E, (x.to(torch.float64) - p[:, 0])[..., None])[..., 0]
+    full = torch.cat([1 - b.sum(-1, keepdim=True), b], dim=-1)
+    return torch.where(inside.to(x.device)[:, None], full, bary.to(x.device))

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -192,10 +193,12 @@ def solve_harmonic(
                 WI = torch.from_numpy(splu(KII.tocsc(), permc_spec="COLAMD").solve(rhs))
         else:
             A = KII.tocsr()
-            At = torch.sparse_csr_tensor(
-                torch.from_numpy(A.indptr).long(), torch.from_numpy(A.indices).long(), torch.from_numpy(A.data),
-                A.shape, check_invariants=False,
-            )  # fmt: skip
+            with warnings.catch_warnings():  # (torch's "CSR is beta" notice: the product used here works)
+                warnings.simplefilter("ignore", UserWarning)
+                At = torch.sparse_csr_tensor(
+                    torch.from_numpy(A.indptr).long(), torch.from_numpy(A.indices).long(), torch.from_numpy(A.data),
+                    A.shape, check_invariants=False,
+                )  # fmt: skip
             WI = _cg(At, torch.from_numpy(rhs), tol, max_iter)
         W[I] = WI
         res = float(abs(KII @ W[I].numpy() - rhs).max() / max(abs(Ks).max(), 1e-300))
