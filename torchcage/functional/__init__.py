@@ -6,6 +6,7 @@ coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
 
 from .deform import deform
 from .green import green_coordinates
+from .green_derivatives import green_derivatives
 from .harmonic import harmonic_coordinates, solve_harmonic_coordinates
 from .local_barycentric import local_barycentric_coordinates, locality_statistics, solve_local_barycentric
 from .maximum_entropy import maximum_entropy_coordinates
@@ -17,6 +18,7 @@ from .quad_mean_value import quad_mean_value_coordinates
 __all__ = [
     "deform",
     "green_coordinates",
+    "green_derivatives",
     "harmonic_coordinates",
     "local_barycentric_coordinates",
     "locality_statistics",

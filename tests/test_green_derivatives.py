@@ -1,0 +1,98 @@
+"""Gradients of Green coordinates: the closed form against 60-digit central differences of the
+mpmath closed forms, against autograd of the torch kernel, the derivative of linear precision (the
+identity at rest), and the rows differentiated through the kernel (outside, on the cage, thin
+faces, polygons)."""
+
+from __future__ import annotations
+
+import mpmath as mp
+import pytest
+import torch
+from reference import green3d_reference
+from support import data_path, l_shape
+from test_gradient_references import _sample
+
+import torchcage as tc
+from torchcage import functional as F
+from torchcage.functional.green_derivatives import _autograd_rows
+from torchcage.geometry import inside_cage
+from torchcage.testing import sliver_cube
+
+D64 = torch.float64
+
+
+def _cube() -> tc.Cage:
+    return tc.load_cage(tc.data.path("cube.obj")).to(D64).triangulated()
+
+
+@mp.workdps(60)
+def _reference_gradients(x: list[float], cage: tc.Cage) -> torch.Tensor:
+    """``(V + T, 3)``: central differences of every bare coordinate, step 1e-15 of the size."""
+    rows = cage.vertices.tolist()
+    h = mp.mpf(cage.scale) * mp.mpf("1e-15")
+    cols = []
+    for d in range(3):
+        up = [mp.mpf(c) for c in x]
+        dn = list(up)
+        up[d] += h
+        dn[d] -= h
+        pu, su = green3d_reference(up, rows, cage.triangles)
+        pd, sd = green3d_reference(dn, rows, cage.triangles)
+        cols.append([float((a - b) / (2 * h)) for a, b in zip([*pu, *su], [*pd, *sd], strict=True)])
+    return torch.tensor(cols, dtype=D64).T
+
+
+@pytest.mark.parametrize("name", ["cube", "l_shape"])
+def test_closed_form_matches_high_precision_differences(name: str) -> None:
+    cage = _cube() if name == "cube" else l_shape().triangulated()
+    X, _ = _sample(cage, 2, seed=0, far=False)
+    _, _, gphi, gpsi = F.green_derivatives(X, cage, exterior="none")
+    for i in range(X.shape[0]):
+        ref = _reference_gradients(X[i].tolist(), cage)
+        got = torch.cat([gphi[i], gpsi[i]])
+        err = float((got - ref).norm() / ref.norm())
+        assert err <= 1e-9, (i, X[i].tolist(), err)
+
+
+@pytest.mark.parametrize("name", ["l_shape", pytest.param("FireHydrant", marks=pytest.mark.slow)])
+def test_matches_autograd_and_reproduces_the_identity(name: str) -> None:
+    if name == "l_shape":
+        cage = l_shape().triangulated()
+    else:
+        cage = tc.load_cage(data_path("qmvc", "FireHydrant_Cage.obj")).to(D64).triangulated()
+    g = torch.Generator().manual_seed(0)
+    v = cage.vertices
+    lo, hi = v.min(0).values, v.max(0).values
+    x = lo + (hi - lo) * torch.rand(300, 3, generator=g, dtype=D64)
+    x = x[inside_cage(x, cage)][:40]
+    _, _, gphi, gpsi = F.green_derivatives(x, cage)
+    ap, aq = _autograd_rows(x, cage, "extend")
+    assert float((gphi - ap).abs().max()) <= 1e-12 and float((gpsi - aq).abs().max()) <= 1e-12
+    J = torch.einsum("nvi,vj->nji", gphi, v) + torch.einsum("nti,tj->nji", gpsi, cage.triangle_normals())
+    assert float((J - torch.eye(3, dtype=D64)).abs().max()) <= 1e-10
+
+
+def test_rows_the_closed_form_does_not_serve() -> None:
+    """Outside (the extension), on the cage, beside a sliver, and a polygon: autograd of the
+    kernel, finite."""
+    cube = _cube()
+    x = torch.tensor([[0.2, 0.1, 1.5], [0.3, -0.2, 1.0], [0.0, 0.0, 0.0]], dtype=D64)
+    _, _, gphi, gpsi = F.green_derivatives(x, cube)
+    ap, aq = _autograd_rows(x, cube, "extend")
+    assert torch.isfinite(gphi).all() and torch.equal(gphi[:2], ap[:2]) and torch.equal(gpsi[:2], aq[:2])
+    sliver = sliver_cube()
+    y = torch.tensor([[0.2, -0.68, -0.99]], dtype=D64)  # a few hundred widths above the sliver
+    _, _, gp, gs = F.green_derivatives(y, sliver)
+    bp, bs = _autograd_rows(y, sliver, "extend")
+    assert torch.equal(gp, bp) and torch.equal(gs, bs)
+    poly = tc.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 1], [1, 1.5], [0, 1]], dtype=D64))
+    z = torch.tensor([[0.5, 0.5], [1.5, 0.7]], dtype=D64)
+    _, _, gp2, gs2 = F.green_derivatives(z, poly)
+    assert gp2.shape == (2, 5, 2) and gs2.shape == (2, 5, 2) and bool(torch.isfinite(gp2).all())
+    J = torch.einsum("nvi,vj->nji", gp2, poly.vertices) + torch.einsum("nti,tj->nji", gs2, poly.edge_normals())
+    assert float((J - torch.eye(2, dtype=D64)).abs().max()) <= 1e-10
+
+
+def test_order_two_is_not_there_yet() -> None:
+    with pytest.raises(NotImplementedError, match="Hessians"):
+        F.green_derivatives(torch.zeros(1, 3, dtype=D64), _cube(), order=2)
