@@ -149,7 +149,7 @@ def test_gradients_match_high_precision_differences(family: str, name: str) -> N
     _check(family, cage, per=1, seed=0, vertices=("near_edge", "plane", "edge_line") if name == "cube" else ())
 
 
-@pytest.mark.parametrize("wrt", ["points", "vertices"])
+@pytest.mark.parametrize("wrt", [pytest.param("points", marks=pytest.mark.slow), "vertices"])
 def test_gc_gradients_on_a_cage_with_a_sliver(wrt: str) -> None:
     """The sliver cube (a vertex 1e-9 of the size from an edge): the closed forms' face terms, of
     order ``distance / width`` before they cancel, left the derivative with respect to the sliver's
@@ -160,7 +160,7 @@ def test_gc_gradients_on_a_cage_with_a_sliver(wrt: str) -> None:
 
 @pytest.mark.parametrize("backend", ["torch", "native"])
 @pytest.mark.parametrize("apex", [0.0, -0.999])
-@pytest.mark.parametrize("gap", [1e-9, 1e-4])
+@pytest.mark.parametrize("gap", [1e-9, pytest.param(1e-4, marks=pytest.mark.slow)])
 def test_green_coordinates_of_thin_faces_match_the_reference(backend: str, apex: float, gap: float) -> None:
     """Each Green coordinate of the sliver cube (its apex mid-edge or near a corner) against the
     60-digit closed forms: the float64 closed forms left the sliver's corners' coordinates off by

@@ -42,7 +42,7 @@ def _reference_gradients(x: list[float], cage: tc.Cage) -> torch.Tensor:
     return torch.tensor(cols, dtype=D64).T
 
 
-@pytest.mark.parametrize("name", ["cube", "l_shape"])
+@pytest.mark.parametrize("name", ["cube", pytest.param("l_shape", marks=pytest.mark.slow)])
 def test_closed_form_matches_high_precision_differences(name: str) -> None:
     cage = _cube() if name == "cube" else l_shape().triangulated()
     X, _ = _sample(cage, 2, seed=0, far=False)

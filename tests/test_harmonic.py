@@ -117,6 +117,7 @@ def test_module_and_outside_points() -> None:
         F.harmonic_coordinates(torch.tensor([[9.0, 9.0, 9.0]], dtype=D64), cage, solution=m.solution)
 
 
+@pytest.mark.slow
 def test_firehydrant() -> None:
     cage = tc.load_cage(data_path("qmvc", "FireHydrant_Cage.obj")).to(D64)
     res = F.solve_harmonic_coordinates(cage, target_cells=20000)
