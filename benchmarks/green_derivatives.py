@@ -46,7 +46,7 @@ def main() -> None:
     g = torch.Generator().manual_seed(0)
     v = cage.vertices
     lo, hi = v.min(0).values, v.max(0).values
-    x = lo + (hi - lo) * torch.rand(8 * args.points, 3, generator=g, dtype=torch.float64)
+    x = lo + (hi - lo) * torch.rand(20 * args.points, 3, generator=g, dtype=torch.float64)
     x = x[inside_cage(x, cage)][: args.points]
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; {args.model}: {cage.triangles.shape[0]} "
           f"triangles, {x.shape[0]} points inside")  # fmt: skip
