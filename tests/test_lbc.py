@@ -99,6 +99,7 @@ def test_quads_get_bilinear_boundary_values():
         assert torch.allclose(w[:, 0] * w[:, 2], w[:, 1] * w[:, 3], atol=1e-14)
 
 
+@pytest.mark.slow
 def test_objective_matches_a_long_tight_solve():
     cage = load_lbc2d("LBClogo")
     d = mesh_domain(cage, 500)

@@ -90,7 +90,7 @@ def interior_points(cage: torchcage.Cage, n: int, seed: int = 1) -> torch.Tensor
     # the data-set models are the slow tier's (the hand-made cages keep the property fast)
     [
         ("cube", 3),
-        ("l_shape", 2),
+        pytest.param("l_shape", 2, marks=pytest.mark.slow),
         pytest.param("ManHead", 2, marks=pytest.mark.slow),
         pytest.param("FireHydrant", 1, marks=pytest.mark.slow),
     ],
