@@ -256,3 +256,15 @@ def box_points(cage: torchcage.Cage, n: int, spread: float = 1.4, seed: int = 0)
     lo, hi = cage.vertices.min(0).values, cage.vertices.max(0).values
     c, h = (lo + hi) / 2, (hi - lo) / 2 * spread
     return c + (torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1) * h
+
+
+def sample_inside(cage: torchcage.Cage, n: int, seed: int = 0) -> torch.Tensor:
+    """Up to ``n`` float64 points drawn uniformly in the cage's bounding box and kept where they lie
+    inside it (winding number)."""
+    from torchcage.geometry import inside_cage
+
+    g = torch.Generator().manual_seed(seed)
+    v = cage.vertices.to(torch.float64)
+    lo, hi = v.min(0).values, v.max(0).values
+    x = lo + (hi - lo) * torch.rand(6 * n, cage.dim, generator=g, dtype=torch.float64)
+    return x[inside_cage(x, cage)][:n]

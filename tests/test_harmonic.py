@@ -8,11 +8,10 @@ import itertools
 import numpy as np
 import pytest
 import torch
-from support import box_cage, data_path, l_shape, triquad
+from support import box_cage, data_path, l_shape, sample_inside, triquad
 
 import torchcage as tc
 from torchcage import functional as F
-from torchcage.geometry import inside_cage
 from torchcage.solvers.domain import mesh_domain
 from torchcage.solvers.harmonic import solve_harmonic
 
@@ -25,12 +24,7 @@ def _polygon() -> tc.Cage:
     return tc.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 1], [1, 1.5], [0.3, 0.6], [0, 1]], dtype=D64))
 
 
-def _inside(cage: tc.Cage, n: int, seed: int = 0) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    v = cage.vertices.to(D64)
-    lo, hi = v.min(0).values, v.max(0).values
-    x = lo + (hi - lo) * torch.rand(6 * n, cage.dim, generator=g, dtype=D64)
-    return x[inside_cage(x, cage)][:n]
+_inside = sample_inside
 
 
 def _independent_p1(vertices: np.ndarray, cells: np.ndarray, boundary: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from support import bent_box, box_cage, l_shape, notched, triquad
+from support import bent_box, box_cage, l_shape, notched, sample_inside, triquad
 
 import torchcage as tc
 from torchcage import functional as F
@@ -14,12 +14,7 @@ from torchcage.geometry import inside_cage
 D64 = torch.float64
 
 
-def _inside(cage: tc.Cage, n: int, seed: int = 0) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    v = cage.vertices.to(D64)
-    lo, hi = v.min(0).values, v.max(0).values
-    x = lo + (hi - lo) * torch.rand(6 * n, cage.dim, generator=g, dtype=D64)
-    return x[inside_cage(x, cage)][:n]
+_inside = sample_inside
 
 
 def _star() -> tc.Cage:
