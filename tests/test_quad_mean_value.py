@@ -194,6 +194,7 @@ def test_backends_agree():
 
 
 # ----------------------------------------------------------------------------- gradients, API
+@pytest.mark.slow
 def test_gradients_wrt_points_match_finite_differences():
     cage = bent_box()
     x = box_points(cage, 6, spread=0.9).requires_grad_(True)
