@@ -224,7 +224,7 @@ def sweep_values(family: str, cage: torchcage.Cage, name: str, pts: dict, side: 
 def sweep_grads(family: str, cage: torchcage.Cage, name: str, pts: dict, stats: Stats, dtype, k: int) -> None:
     """Gradients of a random linear functional with respect to the points and the rest vertices,
     and of the module's output with respect to the deformed cage (:func:`_deformed_grads`)."""
-    g = torch.Generator().manual_seed(1)
+    g = torch.Generator().manual_seed(1 + SEED)
     for cat, x in pts.items():
         x = x[:k].clone().requires_grad_()
         V = cage.vertices.clone().requires_grad_()
@@ -360,6 +360,8 @@ def cages_for(family: str, data: Path | None) -> dict[str, torchcage.Cage]:
 
 #: Skip the values pass (``--grad-only``: a gradient sweep after a values sweep).
 GRAD_ONLY = False
+#: Seed of the points and of the random functionals (``--seed``).
+SEED = 0
 
 
 def run(families: list[str], data: Path | None, per_category: int, grad_k: int, dtype, seed: int = 0) -> dict:
@@ -431,14 +433,18 @@ def main(argv: list[str] | None = None) -> int:
         "the cheap way to 10^6 gradient queries",
     )
     ap.add_argument("--grad-only", action="store_true", help="skip the values pass (its columns stay empty)")
+    ap.add_argument(
+        "--seed", type=int, default=0, help="seed of the adversarial points (runs with different seeds add up)"
+    )
     args = ap.parse_args(argv)
-    global DEFORMED_CATEGORIES, GRAD_ONLY
+    global DEFORMED_CATEGORIES, GRAD_ONLY, SEED
     GRAD_ONLY = args.grad_only
+    SEED = args.seed
     if args.no_deformed:
         DEFORMED_CATEGORIES = ()
     data = Path(args.data) if Path(args.data).is_dir() else None
     dtype = None if args.dtype == "float64" else torch.float32
-    results = run(args.families.split(","), data, args.per_category, args.grad_per_category, dtype)
+    results = run(args.families.split(","), data, args.per_category, args.grad_per_category, dtype, seed=args.seed)
     print_table(results)
     return 0
 

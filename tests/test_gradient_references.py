@@ -184,13 +184,54 @@ def test_green_coordinates_of_thin_faces_match_the_reference(backend: str, apex:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="open: a sliver face costs MVC's gradients up to 3e-3 (docs/accuracy.md)")
 @pytest.mark.parametrize("wrt", ["points", "vertices"])
 def test_mvc_gradients_on_a_cage_with_a_sliver(wrt: str) -> None:
-    """Mean value coordinates on the sliver cube: the gradient with respect to the points is off by
-    1e-7 relative near a far corner, the derivative with respect to the sliver's own vertices by 3e-3
-    (3e-7 at a width of 1e-7, 2e-11 at 1e-5: as ``eps (length / width)^2``)."""
+    """Mean value coordinates on the sliver cube: the vector form's terms of a face of width ``w``
+    seen from ``D`` are ``D / w`` times its share and cancel; the gradient with respect to the
+    points was off by 2.7e-6 relative (native), the derivative with respect to the sliver's own
+    vertices by 2.9e-3 (as ``eps (length / width)^2``). Thin faces seen from a few widths now take
+    the swept form of ``h int Gamma / r^4`` in every kernel (values, derivatives, and the rest
+    vertices' products, which route such points to autograd of the torch kernel)."""
     _check("mvc", sliver_cube(), per=2, seed=0, vertices=("near_face",) if wrt == "vertices" else ())
+
+
+@pytest.mark.parametrize("backend", ["torch", "native"])
+@pytest.mark.parametrize("apex", [0.0, -0.999])
+def test_mean_value_coordinates_of_thin_faces_match_the_reference(backend: str, apex: float) -> None:
+    """Every mean value coordinate of the sliver cube (width 1e-9) against the 60-digit half-angle
+    form: the native kernel's were off by 3.4e-8 before the swept form (the torch kernel's too,
+    through its derivatives)."""
+    if backend == "native" and not tc._native.available():
+        pytest.skip("no C compiler")
+    base = sliver_cube(1e-9)
+    v = base.vertices.clone()
+    v[8, 0] = apex
+    cage = tc.Cage(v, base.triangles)
+    X, _ = _sample(cage, 3, seed=1, far=False)
+    lam = F.mean_value_coordinates(X, cage, backend=backend)
+    rows = cage.vertices.tolist()
+    for i in range(X.shape[0]):
+        y = [mp.mpf(a) + b for a, b in zip(X[i].tolist(), _NUDGE, strict=True)]
+        ref = torch.tensor([float(t) for t in mvc3d_reference(y, rows, cage.triangles)], dtype=D64)
+        err = (lam[i] - ref).abs().max()
+        assert err < 1e-13, (i, X[i].tolist(), float(err))
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_mean_value_derivatives_torch_path_on_an_edge_line(order: int) -> None:
+    """``mean_value_derivatives(backend="torch")`` (a GPU, no C compiler) at points on the lines of
+    the cube's edges outside them, the diagonals between coplanar faces included: plain autograd of
+    the split form was off by up to 6.9 (gradients) and 144 (Hessians) there; now the mean beside
+    the line, as in the autograd fallbacks. Against the native analytic derivatives."""
+    if not tc._native.available():
+        pytest.skip("no C compiler")
+    cage = _cube()
+    x = torch.tensor([[-2.031840618539382, 1.0, -1.0], [-2.031840618539382, 1.0, 2.031840618539382]], dtype=D64)
+    _, gn, hn = F.mean_value_derivatives(x, cage, order=order, backend="native")
+    _, gt, ht = F.mean_value_derivatives(x, cage, order=order, backend="torch")
+    assert _rel(gt, gn) < 1e-7
+    if order == 2:
+        assert _rel(ht, hn) < 1e-6
 
 
 def test_mvc_rest_cage_gradient_on_an_edge_line() -> None:
@@ -255,3 +296,43 @@ def test_gradients_match_high_precision_differences_sweep(family: str, name: str
     ]()
     for seed in (1, 2, 3):
         _check(family, cage, per=4, seed=seed, vertices=CATEGORIES if name == "cube" else ())
+
+
+def test_segment_moments_of_the_fourth_inverse_power_match_the_closed_forms() -> None:
+    """``int_0^1 sigma^k / r^4`` along segments (the swept form's inner integrals) against the
+    closed forms in 60 digits, over segments near, far, beside and along the point's line: within
+    a few ulps times the conditioning ``max |p| / distance`` (the float distance to the line
+    carries ``eps max |p|``)."""
+    from torchcage.functional._thin_triangle import segment_moments4
+
+    g = torch.Generator().manual_seed(0)
+
+    @mp.workdps(60)
+    def closed(p0, p1):
+        p0, p1 = [mp.mpf(v) for v in p0], [mp.mpf(v) for v in p1]
+        d = [b - a for a, b in zip(p0, p1, strict=True)]
+        L = mp.sqrt(sum(v * v for v in d))
+        ua = sum(a * b for a, b in zip(p0, d, strict=True)) / L
+        ub, c2 = ua + L, sum(v * v for v in p0) - (sum(a * b for a, b in zip(p0, d, strict=True)) / L) ** 2
+        c = mp.sqrt(c2)
+        K0 = lambda u: (mp.atan(u / c) + (u / c) / (1 + (u / c) ** 2)) / (2 * c**3)  # noqa: E731
+        K2 = lambda u: (mp.atan(u / c) - (u / c) / (1 + (u / c) ** 2)) / (2 * c)  # noqa: E731
+        J0, J1, J2 = K0(ub) - K0(ua), (1 / (ua**2 + c2) - 1 / (ub**2 + c2)) / 2, K2(ub) - K2(ua)
+        return [float(v) for v in (J0 / L, (J1 - ua * J0) / L**2, (J2 - 2 * ua * J1 + ua * ua * J0) / L**3)]
+
+    worst = 0.0
+    for _ in range(300):
+        u = torch.rand(4, generator=g, dtype=D64)
+        L, c = 10 ** (5 * u[0] - 3), 10 ** (11 * u[1] - 10)
+        ua = [(3 * u[2] - 2) * L, 10 ** (11 * u[2] - 10), -L - 10 ** (11 * u[2] - 10), 3 * u[2] * c][int(4 * u[3])]
+        e = torch.nn.functional.normalize(torch.randn(3, generator=g, dtype=D64), dim=0)
+        perp = torch.nn.functional.normalize(torch.linalg.cross(e, torch.randn(3, generator=g, dtype=D64)), dim=0)
+        p0 = ua * e + c * perp
+        p1 = p0 + L * e
+        got = segment_moments4(p0[None], p1[None])
+        ref = closed(p0.tolist(), p1.tolist())
+        t = float((-(p0 * (p1 - p0)).sum() / (p1 - p0).square().sum()).clamp(0, 1))
+        cond = max(float(p0.norm()), float(p1.norm())) / float((p0 + t * (p1 - p0)).norm())
+        for k in range(3):
+            worst = max(worst, abs(float(got[k][0]) - float(ref[k])) / abs(float(ref[k])) / cond)
+    assert worst < 5e-14, worst

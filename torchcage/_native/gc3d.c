@@ -21,8 +21,6 @@ __attribute__((simd("notinbranch"))) double atan2(double, double);
 #endif
 
 /* ---- Thin faces (torchcage/functional/_thin_triangle.py, whose docstring derives the form) ---- */
-#define TC_THIN_ASPECT 100.0  /* longest edge over width */
-#define TC_THIN_DISTANCE 9.0  /* widths from the longest edge */
 
 static const double GL8_X[8] = {0.019855071751231912, 0.10166676129318664, 0.23723379504183562, 0.40828267875217505,
                                 0.5917173212478251,   0.7627662049581644,  0.8983332387068135,  0.980144928248768};

@@ -93,6 +93,10 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
     const double *nx = nrm, *ny = nrm + T, *nz = nrm + 2 * T;
     double centre[3];
     const double far2 = tc_far_centre(P, V, 1, V, 3, centre);
+    /* Thin faces (tc_thin_face): their pairs seen from a few widths take the swept form. */
+    long *thin = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1)), nthin = 0;
+    for (long f = 0; f < T; ++f)
+        if (two_area[f] > 0 && longest[f] * longest[f] > TC_THIN_ASPECT * two_area[f]) thin[nthin++] = f;
 #pragma omp parallel num_threads(nthreads)
     {
         /* Per-thread scratch: vertex (4V), edge (8E) and face (4T) arrays. */
@@ -204,6 +208,18 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
                 on[p] = 1;
                 continue;
             }
+            for (long q = 0; q < nthin; ++q) { /* thin faces seen from a few widths: the swept form */
+                long f = thin[q];
+                const int t[3] = {t0[f], t1[f], t2[f]};
+                double a[3][3], wf[3], gf[3][3], Hf[3][6];
+                for (int i = 0; i < 3; ++i) a[i][0] = Ax[t[i]], a[i][1] = Ay[t[i]], a[i][2] = Az[t[i]];
+                if (!tc_thin_face((const double(*)[3])a, two_area[f])) continue;
+                const double nf[3] = {nx[f], ny[f], nz[f]};
+                tc_thin_mvc((const double(*)[3])a, nf, H[f], two_area[f], wf, gf, Hf);
+                W0[f] = wf[0];
+                W1[f] = wf[1];
+                W2[f] = wf[2];
+            }
             /* Gather the face-corner weights (W0, W1, W2 are contiguous) into the vertices. */
             double total = 0.0, abs_sum = 0.0;
             for (long v = 0; v < V; ++v) {
@@ -252,4 +268,5 @@ void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges,
         }
         free(buf);
     }
+    free(thin);
 }

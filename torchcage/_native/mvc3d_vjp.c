@@ -9,7 +9,8 @@
  * Outputs: GX (n, 3) dL/dx (zero rows for points that are not regular), GP (V, 3) dL/dP summed
  * over the regular points, reg (n,) 1 where the point is regular. A point is regular when, for
  * every face, |h| >= near_c * min_i |a_i| (h the distance to the face's plane), min_i |a_i| > tol,
- * the face is not seen below 1/far_always of its longest edge, and the face weights do not cancel
+ * the face is not seen below 1/far_always of its longest edge, no thin face is seen from a few
+ * widths (tc_thin_face: the direct form cancels there), and the face weights do not cancel
  * (sum_T |sum_i w_i| <= cancel_c |W|). The caller treats the other points with the torch kernel.
  */
 #include <math.h>
@@ -25,6 +26,7 @@ void tc_mvc3d_vjp(const double *P, long V, const int *tri, long T, const double 
                   double tol, double near_c, double cancel_c, double far_always, int nthreads, double *GX,
                   double *GP, unsigned char *reg) {
     double *two_area = (double *)malloc(sizeof(double) * 2 * (size_t)T), *longest = two_area + T;
+    int any_thin = 0;
     for (long f = 0; f < T; ++f) {
         const double *p0 = P + 3 * tri[3 * f], *p1 = P + 3 * tri[3 * f + 1], *p2 = P + 3 * tri[3 * f + 2];
         double e1[3], e2[3], e3[3], c[3];
@@ -33,6 +35,7 @@ void tc_mvc3d_vjp(const double *P, long V, const int *tri, long T, const double 
         two_area[f] = sqrt(dot3(c, c));
         double l = fmax(fmax(dot3(e1, e1), dot3(e2, e2)), dot3(e3, e3));
         longest[f] = sqrt(l);
+        any_thin |= two_area[f] > 0 && l > TC_THIN_ASPECT * two_area[f];
     }
     memset(GP, 0, sizeof(double) * 3 * (size_t)V);
 #pragma omp parallel num_threads(nthreads)
@@ -69,7 +72,9 @@ void tc_mvc3d_vjp(const double *P, long V, const int *tri, long T, const double 
                 }
                 double det = dot3(a, N);
                 s[S_DET] = det;
-                if (!(fabs(det) >= near_c * rmin * two_area[f] && rmin > tol && longest[f] * far_always >= rmin)) {
+                if (!(fabs(det) >= near_c * rmin * two_area[f] && rmin > tol && longest[f] * far_always >= rmin) ||
+                    (any_thin && longest[f] * longest[f] > TC_THIN_ASPECT * two_area[f] &&
+                     tc_thin_face((const double(*)[3])a, two_area[f]))) {
                     ok = 0;
                     break;
                 }

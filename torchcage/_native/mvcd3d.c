@@ -25,6 +25,11 @@
  *    -int_0^1 y^2 / ((1 + U y^2)(1 + u y^2)) dy), smooth through the edge's support line.
  * 3. far field (longest edge <= far_c min |a_i|): w_i^T = int_T phi_i h / |p - x|^4 dA by a
  *    collapsed Gauss rule, differentiated under the integral.
+ * 4. thin faces seen from a few widths (tc_thin_face): the same integral swept as in
+ *    functional/_thin_triangle.py (Gauss across the width; along each segment 16-point rules on
+ *    panels graded towards the point, none longer than its distance), differentiated under the
+ *    integral. The other forms' terms there are length / width times the face's share and cancel
+ *    (a sliver of width 1e-9 left the gradients off by 3e-6 relative).
  * Points on a face (within tol) have no derivatives: they are flagged in `on`.
  *
  * Near a face (foot point inside it, small h) that face's weights carry the singular part
@@ -251,31 +256,133 @@ static inline void acc_add(double *ac, jet a) {
     for (int k = 0; k < 6; k++) ac[4 + k] += a.h[k];
 }
 
+/* f = h / |d|^4 (d = p - x, h = n.(p_0 - x)) with its gradient and Hessian in x: f[0], f[1..3], f[4..9]. */
+static inline void far_integrand(const double *d, const double *n, double h, double *f) {
+    double r2 = dot3(d, d), i2 = 1.0 / r2, i4 = i2 * i2, i6 = i4 * i2, i8 = i4 * i4;
+    f[0] = h * i4;
+    for (int c = 0; c < 3; c++) f[1 + c] = -n[c] * i4 + 4.0 * h * d[c] * i6;
+    for (int k = 0; k < 6; k++) {
+        int c = JI[k], e = JJ[k];
+        f[4 + k] = -4.0 * (n[c] * d[e] + d[c] * n[e]) * i6 - 4.0 * h * (c == e) * i6 + 24.0 * h * d[c] * d[e] * i8;
+    }
+}
+
+static inline void acc_out(double acc[3][10], double *w, double g[3][3], double H[3][6]) {
+    for (int i = 0; i < 3; i++) {
+        w[i] = acc[i][0];
+        for (int c = 0; c < 3; c++) g[i][c] = acc[i][1 + c];
+        for (int k = 0; k < 6; k++) H[i][k] = acc[i][4 + k];
+    }
+}
+
 /* Far field: collapsed Gauss rule of h int_T phi_i / |p - x|^4 dA, differentiated under the sign. */
 static void face_far(const double *x, const double *n, double h, const double *nodes, const double *coef, int Q,
                      double *w, double g[3][3], double H[3][6]) {
     double acc[3][10];
     memset(acc, 0, sizeof(acc));
     for (int q = 0; q < Q; q++) {
-        double d[3] = {nodes[3 * q] - x[0], nodes[3 * q + 1] - x[1], nodes[3 * q + 2] - x[2]};
-        double r2 = dot3(d, d), i2 = 1.0 / r2, i4 = i2 * i2, i6 = i4 * i2, i8 = i4 * i4;
-        double f[10];
-        f[0] = h * i4;
-        for (int c = 0; c < 3; c++) f[1 + c] = -n[c] * i4 + 4.0 * h * d[c] * i6;
-        for (int k = 0; k < 6; k++) {
-            int c = JI[k], e = JJ[k];
-            f[4 + k] = -4.0 * (n[c] * d[e] + d[c] * n[e]) * i6 - 4.0 * h * (c == e) * i6 + 24.0 * h * d[c] * d[e] * i8;
-        }
+        double d[3] = {nodes[3 * q] - x[0], nodes[3 * q + 1] - x[1], nodes[3 * q + 2] - x[2]}, f[10];
+        far_integrand(d, n, h, f);
         for (int i = 0; i < 3; i++) {
             double cq = coef[3 * q + i];
             for (int k = 0; k < 10; k++) acc[i][k] += cq * f[k];
         }
     }
-    for (int i = 0; i < 3; i++) {
-        w[i] = acc[i][0];
-        for (int c = 0; c < 3; c++) g[i][c] = acc[i][1 + c];
-        for (int k = 0; k < 6; k++) H[i][k] = acc[i][4 + k];
+    acc_out(acc, w, g, H);
+}
+
+#define THIN_GRADED 64 /* at most this many panels on either side of the foot */
+
+static const double THIN_GL16_X[16] = {0.005299532504175031, 0.0277124884633837, 0.06718439880608412, 0.1222977958224985, 0.19106187779867811, 0.2709916111713863, 0.35919822461037054, 0.4524937450811813, 0.5475062549188188, 0.6408017753896295, 0.7290083888286136, 0.8089381222013219, 0.8777022041775016, 0.9328156011939159, 0.9722875115366163, 0.994700467495825};
+static const double THIN_GL16_W[16] = {0.013576229705877088, 0.031126761969323728, 0.0475792558412463, 0.062314485627767036, 0.07479799440828835, 0.08457825969750132, 0.09130170752246182, 0.09472530522753432, 0.09472530522753432, 0.09130170752246182, 0.08457825969750132, 0.07479799440828835, 0.062314485627767036, 0.0475792558412463, 0.031126761969323728, 0.013576229705877088};
+
+static const double THIN_GL8_X[8] = {0.019855071751231912, 0.10166676129318664, 0.23723379504183562,
+                                     0.40828267875217505,  0.5917173212478251,  0.7627662049581644,
+                                     0.8983332387068135,   0.980144928248768};
+static const double THIN_GL8_W[8] = {0.05061426814518814, 0.11119051722668717, 0.15685332293894366,
+                                     0.18134189168918097, 0.1813418916891811,  0.15685332293894366,
+                                     0.11119051722668717, 0.05061426814518822};
+
+/* Breakpoints bp (returns their count) of [0, 1] graded towards sf: panels of length rho 2^k at
+ * rho 2^k from sf (rho: the distance to the point over the segment's length), each no longer than
+ * its distance to the point. */
+static int graded_breaks(double sf, double rho, double *bp) {
+    int n = 0, nl = 0, nr = 0;
+    double left[THIN_GRADED], right[THIN_GRADED];
+    bp[n++] = 0.0;
+    if (rho < 1.0) {
+        for (double s = rho; sf - s > 0 && nl < THIN_GRADED; s *= 2) left[nl++] = sf - s;
+        for (double s = rho; sf + s < 1 && nr < THIN_GRADED; s *= 2) right[nr++] = sf + s;
+        for (int k = nl - 1; k >= 0; --k) bp[n++] = left[k];
+        if (sf > 0 && sf < 1) bp[n++] = sf;
+        for (int k = 0; k < nr; ++k) bp[n++] = right[k];
     }
+    bp[n++] = 1.0;
+    return n;
+}
+
+/* One segment q0 -> q1 (relative to the point) of the swept form: acc[i] += sum over nodes of
+ * (j0 + s j1) (b0_i + s b1_i) f(q(s)) ds, f as far_integrand. */
+static void thin_segment(const double *q0, const double *q1, const double *n, double h, double j0, double j1,
+                         const double *b0, const double *b1, double acc[3][10]) {
+    double D[3] = {q1[0] - q0[0], q1[1] - q0[1], q1[2] - q0[2]}, L2 = dot3(D, D);
+    double sf = L2 > 0 ? -dot3(q0, D) / L2 : 0.0;
+    sf = sf < 0 ? 0.0 : (sf > 1 ? 1.0 : sf);
+    double qf[3] = {q0[0] + sf * D[0], q0[1] + sf * D[1], q0[2] + sf * D[2]};
+    double rho = L2 > 0 ? sqrt(dot3(qf, qf) / L2) : 1.0, bp[2 * THIN_GRADED + 3];
+    int nb = graded_breaks(sf, rho, bp);
+    for (int k = 0; k + 1 < nb; k++) {
+        double s0 = bp[k], ds = bp[k + 1] - bp[k];
+        for (int q = 0; q < 16; q++) {
+            double s = s0 + ds * THIN_GL16_X[q], wq = ds * THIN_GL16_W[q] * (j0 + s * j1), d[3], f[10];
+            for (int c = 0; c < 3; c++) d[c] = q0[c] + s * D[c];
+            far_integrand(d, n, h, f);
+            for (int i = 0; i < 3; i++) {
+                double c = wq * (b0[i] + s * b1[i]);
+                for (int m = 0; m < 10; m++) acc[i][m] += c * f[m];
+            }
+        }
+    }
+}
+
+/* Thin face seen from a few widths: h int_T phi_i / |p - x|^4 dA swept by the polylines
+ * A -> C_tau -> B (AB the longest edge, C_tau = F + tau (C - F), F the apex's foot on AB; area
+ * element 2A lam s and 2A (1 - lam) (1 - s)), differentiated under the sign. a: corners minus the
+ * point, n the unit normal, h = n.a_0; w, g, H in corner order (mvc3d.c takes w alone). */
+void tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],
+                 double H[3][6]) {
+    double L2 = -1.0, acc[3][10];
+    int lo = 0;
+    for (int i = 0; i < 3; ++i) {
+        double E[3] = {a[(i + 2) % 3][0] - a[(i + 1) % 3][0], a[(i + 2) % 3][1] - a[(i + 1) % 3][1],
+                       a[(i + 2) % 3][2] - a[(i + 1) % 3][2]};
+        double l2 = dot3(E, E);
+        if (l2 > L2) L2 = l2, lo = i;
+    }
+    const int ord[3] = {(lo + 1) % 3, (lo + 2) % 3, lo}; /* A, B, C */
+    const double *aA = a[ord[0]], *aB = a[ord[1]], *aC = a[ord[2]];
+    double AB[3] = {aB[0] - aA[0], aB[1] - aA[1], aB[2] - aA[2]};
+    double CA[3] = {aC[0] - aA[0], aC[1] - aA[1], aC[2] - aA[2]};
+    double lam = L2 > 0 ? dot3(CA, AB) / L2 : 0.0;
+    lam = lam < 0 ? 0.0 : (lam > 1 ? 1.0 : lam);
+    double aF[3] = {aA[0] + lam * AB[0], aA[1] + lam * AB[1], aA[2] + lam * AB[2]};
+    double sacc[3][10]; /* in A, B, C order */
+    memset(sacc, 0, sizeof(sacc));
+    const double bA[3] = {1.0, 0.0, 0.0}, bB[3] = {0.0, 1.0, 0.0};
+    for (int m = 0; m < 8; ++m) {
+        double tau = THIN_GL8_X[m], wt = THIN_GL8_W[m], part[3][10];
+        double aCt[3] = {aF[0] + tau * (aC[0] - aF[0]), aF[1] + tau * (aC[1] - aF[1]), aF[2] + tau * (aC[2] - aF[2])};
+        double bC[3] = {(1 - tau) * (1 - lam), (1 - tau) * lam, tau}, b1[3], b2[3];
+        for (int i = 0; i < 3; i++) b1[i] = bC[i] - bA[i], b2[i] = bB[i] - bC[i];
+        memset(part, 0, sizeof(part));
+        thin_segment(aA, aCt, n, h, 0.0, two_area * lam, bA, b1, part);
+        thin_segment(aCt, aB, n, h, two_area * (1 - lam), -two_area * (1 - lam), bC, b2, part);
+        for (int i = 0; i < 3; i++)
+            for (int k = 0; k < 10; k++) sacc[i][k] += wt * part[i][k];
+    }
+    for (int i = 0; i < 3; i++)
+        for (int k = 0; k < 10; k++) acc[ord[i]][k] = sacc[i][k];
+    acc_out(acc, w, g, H);
 }
 
 /* The jet of vertex v's accumulated weight (acc holds value, gradient and Hessian: 10 per vertex). */
@@ -308,6 +415,8 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                int order, int nthreads, double *L, double *G, double *H, unsigned char *on) {
     double centre[3];
     const double far2 = tc_far_centre(P, V, 3, 1, 3, centre);
+    unsigned char *thin = (unsigned char *)malloc((size_t)(T > 0 ? T : 1));
+    for (long t = 0; t < T; t++) thin[t] = two_area[t] > 0 && longest[t] * longest[t] > TC_THIN_ASPECT * two_area[t];
 #pragma omp parallel num_threads(nthreads)
     {
         double *acc = (double *)malloc(sizeof(double) * 10 * V);
@@ -342,7 +451,9 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 }
                 const double *nt = nrm + 3 * t;
                 double h = dot3(nt, a[0]);
-                if (longest[t] <= far_c * minR) {
+                if (thin[t] && fabs(h) > tol && tc_thin_face((const double(*)[3])a, two_area[t])) {
+                    tc_thin_mvc((const double(*)[3])a, nt, h, two_area[t], w, g, Hh);
+                } else if (longest[t] <= far_c * minR) {
                     face_far(x, nt, h, far_nodes + 3 * Q * t, far_coef + 3 * Q * t, (int)Q, w, g, Hh);
                 } else if (fabs(h) < near_c * minR) {
                     jet sg[3], hj;
@@ -486,4 +597,5 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
         free(ephi);
         free(stamp);
     }
+    free(thin);
 }

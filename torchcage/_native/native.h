@@ -104,7 +104,15 @@ typedef struct {
     long *thin; /* the faces tc_thin_face flags, nthin of them (tc_gc_prepare) */
     long nthin;
 } gc_tables;
+/* Thin faces (torchcage/functional/_thin_triangle.py): THIN_ASPECT times longer than wide, seen from
+ * THIN_DISTANCE widths or more from their longest edge, take the swept forms. */
+#define TC_THIN_ASPECT 100.0
+#define TC_THIN_DISTANCE 9.0
 int tc_thin_face(const double a[3][3], double two_area);
+/* Mean value weights (w) of a thin face with their gradients (g) and Hessians (H, upper triangle) in
+ * the point, by the swept form (mvcd3d.c). */
+void tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],
+                 double H[3][6]);
 int tc_thin_green(const double a[3][3], double h, double two_area, double *phi, double *psi, double *omega);
 void tc_gc_prepare(gc_tables *g);
 void tc_gc_free(gc_tables *g);

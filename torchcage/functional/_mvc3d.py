@@ -58,6 +58,7 @@ from ._common import (
     safe_sqrt,
     triangle_geometry,
 )
+from ._thin_triangle import THIN_ASPECT, thin_pairs, thin_triangle_mvc
 
 #: Point–face pairs with ``|h| < SPLIT_FORM_RATIO * min_i |p_i - x|`` use the stable form.
 SPLIT_FORM_RATIO = 0.01
@@ -91,6 +92,7 @@ class TriangleCageData:
     longest: torch.Tensor  # (T, 1)   longest edge
     far_nodes: torch.Tensor  # (T, Q, 3) far-field quadrature nodes
     far_coef: torch.Tensor  # (T, Q, 3) their weights times the corners' hat functions (area included)
+    thin: torch.Tensor  # (k,) the faces THIN_ASPECT times longer than wide (module _thin_triangle)
 
 
 def triangle_cage_data(cage: Cage, dtype: torch.dtype) -> TriangleCageData:
@@ -123,6 +125,7 @@ def triangle_data(v: torch.Tensor, tri: torch.Tensor, tol: float) -> TriangleCag
         longest=edges.norm(dim=-1).max(dim=1).values[:, None],
         far_nodes=far_nodes,
         far_coef=far_coef,
+        thin=torch.nonzero((edges.square().sum(-1).amax(-1) > THIN_ASPECT * two_area) & (two_area > 0)).flatten(),
     )
 
 
@@ -366,7 +369,33 @@ def face_weights(
         wf = _far_field_weights(x.index_select(0, col), q["h"].reshape(-1).index_select(0, idx), face, data)
         for i in range(3):
             w[i] = w[i].reshape(-1).index_put((idx,), wf[:, i]).reshape(T, n)
-    return w, q
+    return _thin_face_weights(x, data, w, q, singular), q
+
+
+def _thin_face_weights(
+    x: torch.Tensor, data: TriangleCageData, w: list[torch.Tensor], q: dict, singular: list[torch.Tensor] | None
+) -> list[torch.Tensor]:
+    """``w`` with the pairs of thin faces seen from a few widths (:func:`._thin_triangle.thin_pairs`)
+    replaced by the swept form of ``h int Gamma_i / r^4`` (:func:`._thin_triangle.thin_triangle_mvc`):
+    the vector form's terms there are ``length / width`` times the face's share and cancel, and its
+    derivatives with respect to the corners lost ``eps (length / width)^2``."""
+    if data.thin.numel() == 0:
+        return w
+    T, n = data.tri.shape[0], x.shape[0]
+    p = data.vertices.T[data.tri[data.thin]]  # (k, 3, 3)
+    a = p[:, None] - x[None, :, None, :]  # (k, n, 3, 3)
+    sel = thin_pairs(a, data.two_area[data.thin].expand(-1, n))
+    if not bool(sel.any()):
+        return w
+    kf, col = torch.nonzero(sel, as_tuple=True)
+    face = data.thin[kf]
+    idx = face * n + col
+    wt = thin_triangle_mvc(a[kf, col], q["h"][face, col], data.two_area[face, 0])
+    for i in range(3):
+        w[i] = w[i].reshape(-1).index_put((idx,), wt[:, i]).reshape(T, n)
+        if singular is not None:
+            singular[i] = singular[i].reshape(-1).index_put((idx,), torch.zeros_like(wt[:, i])).reshape(T, n)
+    return w
 
 
 def _divide_h_out(w: list[torch.Tensor], sing: list[torch.Tensor], h: torch.Tensor) -> list[torch.Tensor]:

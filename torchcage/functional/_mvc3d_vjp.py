@@ -30,8 +30,9 @@ adjoints run backwards through the lines above:
 against autograd of the torch kernel and with ``gradcheck``.
 
 The direct form is accurate where the point is away from every face's support plane (its error is
-``eps * r / |h|``), where the face weights do not cancel (inside the cage and near it) and where no
-face is seen very small; a point is *regular* when all of that holds for every face. The caller
+``eps * r / |h|``), where the face weights do not cancel (inside the cage and near it), where no
+face is seen very small and no thin face from a few widths (``_thin_triangle``); a point is
+*regular* when all of that holds for every face. The caller
 handles the other points (near a support plane, on the cage, far outside) with the torch kernel.
 """
 
@@ -40,6 +41,7 @@ from __future__ import annotations
 import torch
 
 from ._mvc3d import CANCELLATION_RATIO, FAR_ALWAYS_RATIO, SPLIT_FORM_RATIO, _cross, _dot
+from ._thin_triangle import THIN_ASPECT, thin_pairs
 
 __all__ = ["direct_vjp"]
 
@@ -105,6 +107,10 @@ def direct_vjp(
     rmin = torch.minimum(torch.minimum(R[0], R[1]), R[2])
     # regular pairs: away from the support plane (|h| >= SPLIT_FORM_RATIO rmin, h = det / 2A) and the corners
     ok = (det.abs() >= SPLIT_FORM_RATIO * rmin * two_area) & (rmin > tol) & (longest * FAR_ALWAYS_RATIO >= rmin)
+    thin = torch.nonzero((longest[:, 0] ** 2 > THIN_ASPECT * two_area[:, 0]) & (two_area[:, 0] > 0)).flatten()
+    if thin.numel():  # thin faces seen from a few widths: the direct form cancels (module _thin_triangle)
+        at = p[thin][:, None] - x[None, :, None, :]  # (k, n, 3, 3)
+        ok = ok.index_put((thin,), ok[thin] & ~thin_pairs(at, two_area[thin].expand(-1, n)))
     safe_det = torch.where(ok, det, 1.0)
     mt = tuple(m)
     w = [torch.where(ok, _dot(N[i], mt) / safe_det, 0.0) for i in range(3)]

@@ -137,16 +137,17 @@ def thin_pairs(a: torch.Tensor, two_area: torch.Tensor) -> torch.Tensor:
     return thin & (dist2 * L2 >= (THIN_DISTANCE * two_area) ** 2) & (two_area > 0)
 
 
-def thin_triangle_integrals(
-    a: torch.Tensor, h: torch.Tensor, two_area: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Green integrals of triangles by the swept form: ``a`` ``(k, 3, 3)`` corners minus the point,
-    ``h`` ``(k,)`` the signed distance to the plane (positive on the inner side), ``two_area``
-    ``(k,)``. The point must lie off the triangle (the pairs of :func:`thin_pairs`).
+def _sweep(a: torch.Tensor, two_area: torch.Tensor, moments) -> tuple[torch.Tensor, list[tuple]]:
+    """The swept form's pieces for ``k`` pairs: ``a`` ``(k, 3, 3)`` corners minus the point,
+    ``two_area`` ``(k,)``, ``moments(p0, p1)`` a segment-moment function (``(..., 3)`` endpoints in,
+    a tuple of ``(...)`` moments out, the first three ``int sigma^j f(r) dsigma``, ``j = 0, 1, 2``).
 
     Returns:
-        ``(phi_face (k, 3), psi (k,), omega (k,))`` as :func:`._green3d.triangle_integrals`:
-        ``int Gamma_i h / r^3 / 4 pi``, ``int 1 / r / 4 pi`` and ``int h / r^3``.
+        ``(order, terms)``: ``order`` ``(k, 3)`` the corners ``A, B, C`` (``AB`` the longest edge),
+        and per segment ``(moments, g0, g1, jc0, jc1)``: the moments ``(k, m)`` at the ``m`` Gauss
+        nodes across, the hats ``g0 + sigma g1`` ``(k, m, 3)`` (order ``A, B, C``) and the area
+        element ``jc0 + sigma jc1`` ``(k, 1)``; the integral of ``Gamma f(r)`` over the face is
+        ``sum_segments sum_m wt_m (jc0 M0 g0 + jc0 M1 g1 + jc1 M1 g0 + jc1 M2 g1)`` (:func:`_hat`).
     """
     E = a.roll(-2, dims=-2) - a.roll(-1, dims=-2)
     ell2 = E.square().sum(-1)
@@ -159,10 +160,10 @@ def thin_triangle_integrals(
     lam = ((aC - aA) * AB).sum(-1) / torch.where(L2 > 0, L2, 1.0)
     lam = lam.clamp(0.0, 1.0)  # the apex's foot F = A + lam (B - A)
     aF = aA + lam[:, None] * AB
-    tau, wt = _nodes(_ACROSS, a)
+    tau, _ = _nodes(_ACROSS, a)
     aCt = aF[:, None] + tau[None, :, None] * (aC - aF)[:, None]  # (k, m, 3)
-    m1 = segment_moments(aA[:, None].expand_as(aCt), aCt)  # A -> C_tau
-    m2 = segment_moments(aCt, aB[:, None].expand_as(aCt))  # C_tau -> B
+    m1 = moments(aA[:, None].expand_as(aCt), aCt)  # A -> C_tau
+    m2 = moments(aCt, aB[:, None].expand_as(aCt))  # C_tau -> B
     one = torch.ones_like(tau)
     zero = torch.zeros_like(tau)
     # barycentric coordinates (A, B, C) of C_tau: ((1 - tau)(1 - lam), (1 - tau) lam, tau)
@@ -176,17 +177,152 @@ def thin_triangle_integrals(
     # segment 2: hats bCt + sigma (bB - bCt), area element 2A (1 - lam) (1 - sigma)
     j1 = (two_area * lam)[:, None]
     j2 = (two_area * (1 - lam))[:, None]
-    terms = []
-    for (M0, M1, M2, N0, N1), g0, g1, jc0, jc1 in (
-        (m1, bA, bCt - bA, torch.zeros_like(j1), j1),
-        (m2, bCt, bB - bCt, j2, -j2),
-    ):
+    return order, [(m1, bA, bCt - bA, torch.zeros_like(j1), j1), (m2, bCt, bB - bCt, j2, -j2)]
+
+
+def _hat(terms: list[tuple], wt: torch.Tensor) -> torch.Tensor:
+    """``(k, 3)`` the integrals of the hats times ``f(r)`` (order ``A, B, C``) from :func:`_sweep`'s
+    terms and the weights ``wt`` ``(m,)`` of the rule across."""
+    total = 0.0
+    for (M0, M1, M2, *_), g0, g1, jc0, jc1 in terms:
         hat = (jc0 * M0)[..., None] * g0 + (jc0 * M1)[..., None] * g1 + (jc1 * M1)[..., None] * g0
-        hat = hat + (jc1 * M2)[..., None] * g1
-        terms.append((hat, jc0 * M0 + jc1 * M1, jc0 * N0 + jc1 * N1))
-    hat = ((terms[0][0] + terms[1][0]) * wt[:, None]).sum(1)  # (k, 3) int Gamma / r^3, order A, B, C
-    inv3 = ((terms[0][1] + terms[1][1]) * wt).sum(1)
-    inv1 = ((terms[0][2] + terms[1][2]) * wt).sum(1)
+        total = total + hat + (jc1 * M2)[..., None] * g1
+    return (total * wt[:, None]).sum(1)
+
+
+def thin_triangle_integrals(
+    a: torch.Tensor, h: torch.Tensor, two_area: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Green integrals of triangles by the swept form: ``a`` ``(k, 3, 3)`` corners minus the point,
+    ``h`` ``(k,)`` the signed distance to the plane (positive on the inner side), ``two_area``
+    ``(k,)``. The point must lie off the triangle (the pairs of :func:`thin_pairs`).
+
+    Returns:
+        ``(phi_face (k, 3), psi (k,), omega (k,))`` as :func:`._green3d.triangle_integrals`:
+        ``int Gamma_i h / r^3 / 4 pi``, ``int 1 / r / 4 pi`` and ``int h / r^3``.
+    """
+    order, terms = _sweep(a, two_area, segment_moments)
+    _, wt = _nodes(_ACROSS, a)
+    hat = _hat(terms, wt)  # (k, 3) int Gamma / r^3, order A, B, C
+    inv3 = sum(((jc0 * M0 + jc1 * M1) * wt).sum(1) for (M0, M1, *_), _g0, _g1, jc0, jc1 in terms)
+    inv1 = sum(((jc0 * m[3] + jc1 * m[4]) * wt).sum(1) for m, _g0, _g1, jc0, jc1 in terms)
     phi_abc = h[:, None] * hat / (4 * math.pi)
     phi_face = torch.zeros_like(phi_abc).scatter(-1, order, phi_abc)
     return phi_face, inv1 / (4 * math.pi), h * inv3
+
+
+# ------------------------------------------------------------------ mean value weights: 1 / r^4
+_ALONG4 = 16  # Gauss nodes along a short segment for 1 / r^4 (error ~ 4.2^-32 times a few)
+_SERIES = 11  # terms of the series of (psi - sin psi) / psi^3 (psi <= pi / 2: below 1e-18)
+
+
+def _tail_ratio(y: torch.Tensor) -> torch.Tensor:
+    """``(atan y - y / (1 + y^2)) / y^3`` for ``0 <= y <= 1`` (``2/3`` at 0), without cancellation:
+    with ``psi = 2 atan y`` the numerator is ``(psi - sin psi) / 2``, summed as its series."""
+    pos = y > 0
+    ys = torch.where(pos, y, 1.0)
+    ratio = torch.where(pos, torch.atan(ys) / ys, 1.0)  # psi / (2 y)
+    psi2 = (2 * torch.atan(y)) ** 2
+    coef = [(-1) ** k / math.factorial(2 * k + 3) for k in range(_SERIES)]
+    series = torch.full_like(y, coef[-1])
+    for c in reversed(coef[:-1]):
+        series = series * psi2 + c
+    return 4 * ratio**3 * series  # (psi / y)^3 / 2 * series
+
+
+def _g(z: torch.Tensor) -> torch.Tensor:
+    """``atan z - z / (1 + z^2)`` for ``z >= 0`` (``phi - sin phi cos phi``, ``phi = atan z``)."""
+    small = z <= 1
+    zs = torch.where(small, z, 1.0)
+    zl = torch.where(small, 1.0, z)
+    return torch.where(small, zs**3 * _tail_ratio(zs), torch.atan(zl) - zl / (1 + zl * zl))
+
+
+def segment_moments4(p0: torch.Tensor, p1: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(P0, P1, P2)`` ``(...)``: ``P_k = int_0^1 sigma^k / r^4 dsigma`` along the segment
+    ``p0 + sigma (p1 - p0)`` (endpoints ``(..., 3)`` relative to the point, which must lie off the
+    segment).
+
+    In the variable ``u`` along the line from the point's foot (``c`` the distance to the line,
+    ``R^2 = u^2 + c^2``): ``int du / R^4`` and ``int u^2 du / R^4`` from the foot (``K``) or to
+    infinity (``T``, for the part of the line beyond ``c`` on one side), each in a form free of
+    cancellation (:func:`_g`, :func:`_tail_ratio`); segments shorter than their distance take a
+    16-point Gauss rule.
+
+    Examples:
+        >>> p0, p1 = torch.tensor([[1.0, -1, 0]]).double(), torch.tensor([[1.0, 1, 0]]).double()
+        >>> p = segment_moments4(p0, p1)[0]  # (1 / 2) int_-1^1 du / (1 + u^2)^2 = (1 / 2 + pi / 4) / 2
+        >>> abs(float(p) - (0.5 + math.pi / 4) / 2) < 1e-15
+        True
+    """
+    d = p1 - p0
+    ell = safe_norm(d)
+    ok = ell > 0
+    L = torch.where(ok, ell, 1.0)
+    e = d / L[..., None]
+    ua, ub = (p0 * e).sum(-1), (p1 * e).sum(-1)
+    Ra2, Rb2 = p0.square().sum(-1), p1.square().sum(-1)
+    near = torch.where((Ra2 <= Rb2)[..., None], p0, p1)
+    c = safe_norm(torch.linalg.cross(near, e, dim=-1))
+    t = (-(p0 * d).sum(-1) / (L * L)).clamp(0.0, 1.0)
+    dist = safe_norm(p0 + t[..., None] * d)
+    cs = torch.where(c > 0, c, 1.0)
+    # the same side of the foot: mirror to 0 <= lo < hi
+    neg = ub <= 0
+    lo = torch.where(neg, -ub, ua).clamp_min(0.0)
+    hi = torch.where(neg, -ua, ub)
+    same = (ua >= 0) | neg
+
+    # K0(u) = int_0^u dt / R^4 = (atan z + z / (1 + z^2)) / (2 c^3), K2(u) = int_0^u t^2 / R^4 = g(z) / (2 c)
+    def K0(u):
+        z = u / cs
+        return (torch.atan(z) + z / (1 + z * z)) / (2 * cs**3)
+
+    def K2(u):
+        return _g((u / cs).clamp_min(0.0)) / (2 * cs)
+
+    # T0(u) = int_u^inf dt / R^4 = tail(c / u) / (2 u^3),
+    # T2(u) = int_u^inf t^2 / R^4 = (atan y / y + 1 / (1 + y^2)) / (2 u), y = c / u
+    far_side = same & (lo >= c) & (lo > 0)
+    los = torch.where(far_side, lo, 1.0)
+    his = torch.where(far_side, hi, 2.0)
+
+    def T0(u):
+        return _tail_ratio(torch.where(far_side, c / u, 0.0)) / (2 * u**3)
+
+    def T2(u):
+        y = torch.where(far_side, c / u, 0.0)
+        yp = torch.where(y > 0, y, 1.0)
+        return (torch.where(y > 0, torch.atan(yp) / yp, 1.0) + 1 / (1 + y * y)) / (2 * u)
+
+    J0 = torch.where(
+        far_side,
+        T0(los) - T0(his),
+        torch.where(same, K0(hi) - K0(lo), K0(ub) + K0(-ua)),
+    )
+    J2 = torch.where(
+        far_side,
+        T2(los) - T2(his),
+        torch.where(same, K2(hi) - K2(lo), K2(ub) + K2(-ua)),
+    )
+    RR = torch.where((Ra2 > 0) & (Rb2 > 0), Ra2 * Rb2, 1.0)
+    J1 = ell * (ua + ub) / (2 * RR)  # int u du / R^4 = (1 / Ra^2 - 1 / Rb^2) / 2
+    closed = (J0 / L, (J1 - ua * J0) / L**2, (J2 - 2 * ua * J1 + ua * ua * J0) / L**3)
+    # Gauss rule
+    s, w = _nodes(_ALONG4, p0)
+    r2 = (p0[..., None, :] + s[:, None] * d[..., None, :]).square().sum(-1)  # (..., q)
+    inv4 = w / torch.where(r2 > 0, r2, 1.0) ** 2
+    gauss = (inv4.sum(-1), (inv4 * s).sum(-1), (inv4 * s * s).sum(-1))
+    short = ell < dist
+    return tuple(torch.where(short, g, cl) for g, cl in zip(gauss, closed, strict=True))
+
+
+def thin_triangle_mvc(a: torch.Tensor, h: torch.Tensor, two_area: torch.Tensor) -> torch.Tensor:
+    """Mean value weights ``w_i = h int_T Gamma_i / r^4 dA`` of triangles by the swept form
+    (``a`` ``(k, 3, 3)`` corners minus the point, ``h`` ``(k,)`` the signed distance to the plane,
+    positive on the inner side, ``two_area`` ``(k,)``; the point off the triangle, as in
+    :func:`thin_pairs`). Returns ``(k, 3)``, corners in ``a``'s order."""
+    order, terms = _sweep(a, two_area, segment_moments4)
+    _, wt = _nodes(_ACROSS, a)
+    w_abc = h[:, None] * _hat(terms, wt)
+    return torch.zeros_like(w_abc).scatter(-1, order, w_abc)
