@@ -221,33 +221,41 @@ def sweep_values(family: str, cage: torchcage.Cage, name: str, pts: dict, side: 
             stats.worst("pu", float(pu.max()), f"{name}/{cat}")
 
 
+#: Points per backward pass of the gradient sweep (the autograd graphs of the quad families hold
+#: about 1 MB per point: 10^4 points at once ran out of memory).
+GRAD_CHUNK = 1024
+
+
 def sweep_grads(family: str, cage: torchcage.Cage, name: str, pts: dict, stats: Stats, dtype, k: int) -> None:
     """Gradients of a random linear functional with respect to the points and the rest vertices,
-    and of the module's output with respect to the deformed cage (:func:`_deformed_grads`)."""
+    chunk by chunk, and of the module's output with respect to the deformed cage
+    (:func:`_deformed_grads`)."""
     g = torch.Generator().manual_seed(1 + SEED)
-    for cat, x in pts.items():
-        x = x[:k].clone().requires_grad_()
-        V = cage.vertices.clone().requires_grad_()
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                if family == "image":
-                    continue
-                c = torchcage.Cage(V, cage.faces)
-                w, extra = _coordinates(family if family != "mvc_derivatives" else "mvc3d", x, c, dtype)
-                loss = (w * torch.randn(w.shape, generator=g, dtype=w.dtype)).sum()
-                if extra is not None:
-                    loss = loss + (extra * torch.randn(extra.shape, generator=g, dtype=extra.dtype)).sum()
-                gx, gV = torch.autograd.grad(loss, (x, V), allow_unused=True)
-        except Exception as err:
-            stats.errors.append(f"grad {name}/{cat}: {type(err).__name__}: {str(err)[:120]}")
-            continue
-        stats.grad_queries += x.shape[0]
-        stats.bad_grads += int(_nonfinite(gx if gx is not None else torch.zeros_like(x)).sum())
-        if gV is not None and not bool(torch.isfinite(gV).all()):
-            stats.bad_grads += 1
-            stats.errors.append(f"grad {name}/{cat}: non-finite gradient w.r.t. the rest vertices")
-        _deformed_grads(family, cage, name, cat, x.detach(), stats, g)
+    if family == "image":
+        return
+    for cat, xs in pts.items():
+        xs = xs[:k]
+        for s in range(0, xs.shape[0], GRAD_CHUNK):
+            x = xs[s : s + GRAD_CHUNK].clone().requires_grad_()
+            V = cage.vertices.clone().requires_grad_()
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    c = torchcage.Cage(V, cage.faces)
+                    w, extra = _coordinates(family if family != "mvc_derivatives" else "mvc3d", x, c, dtype)
+                    loss = (w * torch.randn(w.shape, generator=g, dtype=w.dtype)).sum()
+                    if extra is not None:
+                        loss = loss + (extra * torch.randn(extra.shape, generator=g, dtype=extra.dtype)).sum()
+                    gx, gV = torch.autograd.grad(loss, (x, V), allow_unused=True)
+            except Exception as err:
+                stats.errors.append(f"grad {name}/{cat}: {type(err).__name__}: {str(err)[:120]}")
+                continue
+            stats.grad_queries += x.shape[0]
+            stats.bad_grads += int(_nonfinite(gx if gx is not None else torch.zeros_like(x)).sum())
+            if gV is not None and not bool(torch.isfinite(gV).all()):
+                stats.bad_grads += 1
+                stats.errors.append(f"grad {name}/{cat}: non-finite gradient w.r.t. the rest vertices")
+        _deformed_grads(family, cage, name, cat, xs.detach(), stats, g)
 
 
 MODULES = {

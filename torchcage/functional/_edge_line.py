@@ -27,7 +27,8 @@ def edge_line_offsets(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor
     kernel gave the edge's vertices a derivative off by a factor 7 there, and nearby it loses
     ``eps / distance``. The coordinates are smooth there, so the symmetric mean of the
     derivatives at ``x +- e`` (``e`` perpendicular to the edge, ``EDGE_LINE_STEP`` of the distance
-    to the nearest vertex) is their derivative to ``(EDGE_LINE_STEP)^2``."""
+    to the nearest vertex or to the cage, whichever is smaller) is their derivative to
+    ``(EDGE_LINE_STEP)^2``."""
     x, P = points.detach(), vertices.detach()
     e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(dim=1).values.unique(dim=0)
     a, b = P[e[:, 0]], P[e[:, 1]]  # (E, 3)
@@ -35,6 +36,7 @@ def edge_line_offsets(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor
     ell2 = (u * u).sum(-1)
     L = torch.cdist(x, P).min(dim=1).values  # distance to the nearest vertex
     k = torch.full((x.shape[0],), -1, dtype=torch.long, device=x.device)  # the nearest such line
+    rk = torch.full((x.shape[0],), torch.inf, dtype=x.dtype, device=x.device)  # its distance
     step = max(1, (1 << 20) // max(1, e.shape[0]))  # (rows per chunk: memory bounded by 2^20 pairs)
     for s in range(0, x.shape[0], step):
         rel = x[s : s + step, None, :] - a[None]  # (rows, E, 3)
@@ -42,8 +44,23 @@ def edge_line_offsets(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor
         r = (rel - t[..., None] * u).norm(dim=-1)  # distance to the edge's line
         Ls = L[s : s + step, None]
         near = (r < EDGE_LINE_BAND * Ls) & ((t < 0) | (t > 1)) & (Ls > 0)
-        k[s : s + step] = torch.where(near.any(dim=1), torch.where(near, r, torch.inf).argmin(dim=1), -1)
+        rn, kn = torch.where(near, r, torch.inf).min(dim=1)
+        k[s : s + step] = torch.where(near.any(dim=1), kn, -1)
+        rk[s : s + step] = rn
     on_line = k >= 0
+    if not bool(on_line.any()):
+        return None
+    # The reach is also bounded by the distance to the cage: a point near an edge's line can be
+    # nearer another face, where the derivatives vary on the scale of that distance (a step of 1e-4
+    # of the vertex distance, across a face 1e-6 away, left the point's gradient off by 1e-8). Such
+    # points keep the plain derivatives unless they are within the band of that smaller reach.
+    from ..cage import Cage
+    from ..geometry import distance_to_cage
+
+    rows = torch.nonzero(on_line).flatten()
+    reach = L.clone()
+    reach[rows] = torch.minimum(L[rows], distance_to_cage(x[rows], Cage._from_faces(P, faces)))
+    on_line = on_line & (rk < EDGE_LINE_BAND * reach)
     if not bool(on_line.any()):
         return None
     k = k.clamp_min(0)
@@ -56,4 +73,4 @@ def edge_line_offsets(points: Tensor, vertices: Tensor, faces: Tensor) -> Tensor
         torch.linalg.cross(dirn, x.new_tensor([1.0, 0.0, 0.0]).expand_as(dirn), dim=-1),
     )
     side = torch.nn.functional.normalize(side, dim=-1)
-    return torch.where(on_line[:, None], EDGE_LINE_STEP * L[:, None] * side, 0.0)
+    return torch.where(on_line[:, None], EDGE_LINE_STEP * reach[:, None] * side, 0.0)
