@@ -348,8 +348,8 @@ static void thin_segment(const double *q0, const double *q1, const double *n, do
 /* Thin face seen from a few widths: h int_T phi_i / |p - x|^4 dA swept by the polylines
  * A -> C_tau -> B (AB the longest edge, C_tau = F + tau (C - F), F the apex's foot on AB; area
  * element 2A lam s and 2A (1 - lam) (1 - s)), differentiated under the sign. a: corners minus the
- * point, n the unit normal, h = n.a_0; w, g, H in corner order (mvc3d.c takes w alone). */
-void tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],
+ * point, n the unit normal, h = n.a_0; w, g, H in corner order (mvc3d.c takes w alone). Returns 1. */
+int tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],
                  double H[3][6]) {
     double L2 = -1.0, acc[3][10];
     int lo = 0;
@@ -383,6 +383,7 @@ void tc_thin_mvc(const double a[3][3], const double *n, double h, double two_are
     for (int i = 0; i < 3; i++)
         for (int k = 0; k < 10; k++) acc[ord[i]][k] = sacc[i][k];
     acc_out(acc, w, g, H);
+    return 1;
 }
 
 /* The jet of vertex v's accumulated weight (acc holds value, gradient and Hessian: 10 per vertex). */

@@ -110,8 +110,8 @@ typedef struct {
 #define TC_THIN_DISTANCE 9.0
 int tc_thin_face(const double a[3][3], double two_area);
 /* Mean value weights (w) of a thin face with their gradients (g) and Hessians (H, upper triangle) in
- * the point, by the swept form (mvcd3d.c). */
-void tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],
+ * the point, by the swept form (mvcd3d.c). Returns 1. */
+int tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],
                  double H[3][6]);
 int tc_thin_green(const double a[3][3], double h, double two_area, double *phi, double *psi, double *omega);
 void tc_gc_prepare(gc_tables *g);

@@ -303,9 +303,12 @@ def check_finite(flat: torch.Tensor) -> None:
             raise PointsError(f"points contain NaN or inf (flattened indices {idx}); remove or fix them")
 
 
-def result_dtype(points: torch.Tensor, cage: Cage, dtype: torch.dtype | None) -> tuple[torch.dtype, torch.dtype]:
+def result_dtype(
+    points: torch.Tensor, cage: Cage, dtype: torch.dtype | None, backend: str = "auto"
+) -> tuple[torch.dtype, torch.dtype]:
     """(compute dtype, output dtype): compute in float64; return in the promoted dtype of the inputs
-    unless ``dtype`` is given explicitly.
+    unless ``dtype`` is given explicitly. ``backend="triton"`` with ``dtype=torch.float32`` computes
+    in float32 (the Triton kernel keeps its stable forms in float32: docs/gpu.md).
 
     A lower ``dtype`` (float32, float16, bfloat16) is the output dtype: the kernels still compute
     in float64 (an automatic promotion, documented in docs/accuracy.md). Evaluated in float32, these
@@ -317,6 +320,8 @@ def result_dtype(points: torch.Tensor, cage: Cage, dtype: torch.dtype | None) ->
         raise TypeError(f"dtype must be a floating-point dtype, got {dtype}")
     compute = torch.float64
     if dtype is not None and (dtype.itemsize > 8 or points.device.type == "mps"):
+        compute = dtype
+    if backend == "triton" and dtype == torch.float32:
         compute = dtype
     out = torch.promote_types(points.dtype, cage.dtype) if dtype is None else dtype
     return compute, out

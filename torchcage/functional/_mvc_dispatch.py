@@ -1,5 +1,5 @@
 """Mean value coordinates of checked points without an autograd graph: the one place that picks a
-kernel (native C or torch) and runs it over chunks of points. Both the public function
+kernel (native C, Triton or torch) and runs it over chunks of points. Both the public function
 (:mod:`.mean_value`) and the autograd Functions (:mod:`torchcage.autograd.mean_value`) import it;
 it imports neither."""
 
@@ -33,13 +33,18 @@ def coordinates_flat(
     Raises:
         PointsError: points where the coordinates are undefined (the total weight vanishes).
     """
-    lib = _native.select(backend, x, cage.vertices, dims=(2, 3))
-    verts = cage.vertices.to(x.dtype)
     graph = records_graph(x, cage.vertices)
+    use_triton = _triton_serves(backend, x, cage, graph)
+    lib = None if use_triton or backend == "triton" else _native.select(backend, x, cage.vertices, dims=(2, 3))
+    verts = cage.vertices.to(x.dtype)
     if cage.dim == 3:
         data = triangle_cage_data(cage, x.dtype)
         nf, glue, torch_chunk = data.tri.shape[0], _mvc3d_native, mvc3d_chunk
         tables = glue.native_tables(data) if lib is not None else {}
+        if use_triton:
+            from .._triton.mvc3d import triton_tables
+
+            tables = triton_tables(data)
     else:
         data = polygon_data(cage, x.dtype)
         nf, glue, torch_chunk = data.edges.shape[0], _mvc2d_native, mvc2d_chunk
@@ -49,6 +54,17 @@ def coordinates_flat(
         if lib is not None:
             glue.native_chunk(c, tables, lib, out)
             return
+        if use_triton:
+            from .._triton.mvc3d import mvc3d_triton
+
+            W, flags = mvc3d_triton(c, tables)
+            redo = torch.nonzero(flags == 2).flatten()
+            if redo.numel():  # thin faces seen from a few widths: the torch kernel's swept form
+                cr = c.index_select(0, redo)
+                Wr, onr = torch_chunk(cr, data)
+                W = W.index_copy(0, redo, normalise_weights(Wr.T, onr, verts, cr))
+            out.copy_(W)
+            return
         # With a graph, the weights' 1/h next to a face (an edge in 2D) is divided out before
         # autograd sees it (see mvc3d_chunk); the values are the same once normalised.
         Wc, onc = torch_chunk(c, data, scaled=graph)
@@ -57,7 +73,7 @@ def coordinates_flat(
     # The native kernel needs no temporaries beyond its output: chunks only pace the progress bar.
     # Pairs per chunk, measured on 2 cores: ~130k (3D torch) and ~250k (2D) amortise the per-op
     # overhead while the temporaries stay in cache.
-    target = 1 << 23 if lib is not None else (1 << 17 if cage.dim == 3 else 1 << 18)
+    target = 1 << 23 if lib is not None or use_triton else (1 << 17 if cage.dim == 3 else 1 << 18)
     size = chunk_size if chunk_size is not None else default_chunk(nf, target)
     out = torch.empty((x.shape[0], cage.num_vertices), dtype=x.dtype, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="mean value coordinates"):
@@ -70,3 +86,24 @@ def coordinates_flat(
                 "which happens only outside the cage); move these points"
             )
     return out
+
+
+def _triton_serves(backend: str, x: torch.Tensor, cage: Cage, graph: bool) -> bool:
+    """Whether the Triton kernel computes these coordinates: ``"triton"`` insists (and raises where
+    it cannot serve), ``"auto"`` takes it for CUDA tensors of a 3D cage when triton is installed and
+    no autograd graph is needed."""
+    from .. import _triton
+
+    if backend == "triton":
+        if cage.dim != 3:
+            raise ValueError("the Triton backend covers 3D mean value coordinates so far; use backend='auto' in 2D")
+        if graph:
+            raise RuntimeError(
+                "the Triton kernel records no autograd graph; use backend='auto' to differentiate (values then come "
+                "from the Triton kernel inside the autograd Function, derivatives from autograd of the torch kernel)"
+            )
+        why = _triton.reason(x)
+        if why is not None:
+            raise RuntimeError(f"backend='triton' cannot serve: {why}")
+        return True
+    return backend == "auto" and x.device.type == "cuda" and cage.dim == 3 and not graph and _triton.available(x)

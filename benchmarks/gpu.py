@@ -1,0 +1,124 @@
+"""GPU benchmark: 3D mean value coordinates by the Triton kernel, the eager torch kernel and
+``torch.compile`` of the torch kernel, float32 and float64, on FireHydrant (39,028 mesh vertices)
+and Beast (28,388) and on 10^7 points in FireHydrant's cage; prints a table (median of repeats,
+first-call latency, peak GPU memory) and the Triton kernel's largest difference from the eager
+torch kernel (float64) in the same run.
+
+Run it on a machine with a CUDA GPU and triton::
+
+    python benchmarks/gpu.py --data ../shared/data
+
+``--interpret`` runs a tiny smoke version on the CPU through Triton's interpreter (no timing
+meaning; it checks that the script runs). The derivatives (gradients, Hessians) still come from
+autograd of the torch kernel on a GPU; their Triton kernels are the issue's next step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import torch
+from harness import add_data_argument, load_model
+
+import torchcage
+from torchcage import functional as F
+from torchcage.functional._mvc_dispatch import coordinates_flat
+
+
+def _sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def _time(fn, device: str, repeats: int) -> tuple[float, float, float]:
+    """(first call s, median s of ``repeats`` more, peak memory MB of one call)."""
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    _sync(device)
+    t0 = time.perf_counter()
+    fn()
+    _sync(device)
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    times.sort()
+    peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else float("nan")
+    return first, times[len(times) // 2], peak
+
+
+def _torch_kernel(x: torch.Tensor, cage: torchcage.Cage) -> torch.Tensor:
+    """The eager torch kernel computing in the points' dtype (the public function would promote
+    float32 to float64)."""
+    return coordinates_flat(x, cage, backend="torch")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_data_argument(ap)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--big", type=int, default=10**7, help="points of the large case")
+    ap.add_argument("--interpret", action="store_true", help="a tiny smoke run on the CPU (TRITON_INTERPRET=1)")
+    ap.add_argument("--no-compile", action="store_true", help="skip torch.compile")
+    args = ap.parse_args(argv)
+    if args.interpret:
+        os.environ["TRITON_INTERPRET"] = "1"
+        device, args.big, args.repeats = "cpu", 512, 1
+    elif torch.cuda.is_available():
+        device = "cuda"
+    else:
+        raise SystemExit("no CUDA device: run this on a GPU machine (or --interpret for a smoke run on the CPU)")
+    cases = []
+    for model in ("FireHydrant", "Beast"):
+        loaded = load_model(args.data, model)
+        if loaded is None:
+            print(f"{model}: not in the data folder, skipped", file=sys.stderr)
+            continue
+        mesh, cage = loaded
+        cage = cage.triangulated()
+        if args.interpret:
+            mesh = mesh[:256]
+        cases.append((f"{model} ({mesh.shape[0]:,} pts, {cage.triangles.shape[0]} tri)", mesh, cage))
+    if cases:
+        _, mesh, cage = cases[0]
+        lo, hi = mesh.min(dim=0).values, mesh.max(dim=0).values
+        g = torch.Generator().manual_seed(0)
+        big = lo + (hi - lo) * torch.rand(args.big, 3, generator=g, dtype=torch.float64)
+        cases.append((f"{cases[0][0].split(' ')[0]} box ({args.big:,} pts)", big, cage))
+    compiled = None if args.no_compile or args.interpret else torch.compile(_torch_kernel, dynamic=True)
+    print(f"{'case':42s} {'dtype':8s} {'method':14s} {'first s':>9s} {'median s':>9s} {'peak MB':>9s}")
+    for name, pts, cage in cases:
+        for dtype in (torch.float32, torch.float64):
+            x = pts.to(device, dtype)
+            c = cage.to(device).to(dtype)
+            runs = {"triton": lambda x=x, c=c, dt=dtype: F.mean_value_coordinates(x, c, backend="triton", dtype=dt)}
+            if pts.shape[0] <= 10**6 or args.interpret:  # (the eager kernel on 10^7 points: minutes)
+                runs["torch eager"] = lambda x=x, c=c: _torch_kernel(x, c)
+                if compiled is not None:
+                    runs["torch.compile"] = lambda x=x, c=c: compiled(x, c)
+            base, tri = None, None
+            for method, fn in runs.items():
+                try:
+                    first, med, peak = _time(fn, device, args.repeats)
+                except Exception as err:  # (a compile failure is a result too)
+                    print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} failed: {type(err).__name__}: {err}")
+                    continue
+                base = med if method == "torch eager" else base
+                tri = med if method == "triton" else tri
+                print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} {first:9.4f} {med:9.4f} {peak:9.1f}")
+            if base is not None and tri is not None:
+                t = F.mean_value_coordinates(x, c, backend="triton", dtype=dtype)
+                e = _torch_kernel(x, c)
+                err = float(((t.double() - e.double()).abs() / e.double().abs().clamp_min(1)).max())
+                print(f"{'':51s} triton: {base / tri:.1f}x the eager kernel's speed, largest difference {err:.1e}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

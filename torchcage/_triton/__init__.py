@@ -1,0 +1,45 @@
+"""Triton kernels (optional: ``pip install torchcage[triton]``): the closed-form coordinates on GPUs,
+and on CPU tensors through Triton's interpreter (``TRITON_INTERPRET=1``), which is how the test
+suite checks them against the native kernels.
+
+Nothing here imports triton at import time: :func:`available` says whether a kernel can run on a
+tensor, :func:`reason` why not. The kernels follow the formulas of the native kernels, point by
+point (``torchcage/_native/*.c``, whose docstrings derive them); the rare cases those handle with
+long special forms (thin faces seen from a few widths) are flagged by the kernels and redone by the
+torch kernel, so every value comes from one formulation.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+
+import torch
+
+__all__ = ["available", "interpreted", "reason"]
+
+
+def interpreted() -> bool:
+    """Whether Triton runs its interpreter (``TRITON_INTERPRET=1``: kernels on CPU tensors)."""
+    return os.environ.get("TRITON_INTERPRET", "0") not in ("", "0")
+
+
+def reason(t: torch.Tensor | None = None) -> str | None:
+    """Why the Triton kernels cannot serve tensor ``t`` (any tensor when ``None``), or ``None``."""
+    if importlib.util.find_spec("triton") is None:
+        return "triton is not installed (pip install torchcage[triton]; CUDA builds of torch ship it)"
+    if t is None:
+        return None
+    if t.device.type == "cuda":
+        return None
+    if t.device.type == "cpu" and interpreted():
+        return None
+    return (
+        f"Triton kernels run on CUDA tensors (or on CPU tensors with TRITON_INTERPRET=1), got a tensor on "
+        f"{t.device.type}"
+    )
+
+
+def available(t: torch.Tensor | None = None) -> bool:
+    """Whether the Triton kernels can serve tensor ``t``."""
+    return reason(t) is None
