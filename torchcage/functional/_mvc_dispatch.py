@@ -49,10 +49,19 @@ def coordinates_flat(
         data = polygon_data(cage, x.dtype)
         nf, glue, torch_chunk = data.edges.shape[0], _mvc2d_native, mvc2d_chunk
         tables = glue.native_tables(cage) if lib is not None else {}
+        if use_triton:
+            from .._triton.mvc2d import triton_tables
+
+            tables = triton_tables(cage, x.dtype)
 
     def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
         if lib is not None:
             glue.native_chunk(c, tables, lib, out)
+            return
+        if use_triton and cage.dim == 2:
+            from .._triton.mvc2d import mvc2d_triton
+
+            out.copy_(mvc2d_triton(c, tables)[0])
             return
         if use_triton:
             from .._triton.mvc3d import mvc3d_triton
@@ -90,13 +99,11 @@ def coordinates_flat(
 
 def _triton_serves(backend: str, x: torch.Tensor, cage: Cage, graph: bool) -> bool:
     """Whether the Triton kernel computes these coordinates: ``"triton"`` insists (and raises where
-    it cannot serve), ``"auto"`` takes it for CUDA tensors of a 3D cage when triton is installed and
-    no autograd graph is needed."""
+    it cannot serve), ``"auto"`` takes it for CUDA tensors when triton is installed and no autograd
+    graph is needed."""
     from .. import _triton
 
     if backend == "triton":
-        if cage.dim != 3:
-            raise ValueError("the Triton backend covers 3D mean value coordinates so far; use backend='auto' in 2D")
         if graph:
             raise RuntimeError(
                 "the Triton kernel records no autograd graph; use backend='auto' to differentiate (values then come "
@@ -106,4 +113,4 @@ def _triton_serves(backend: str, x: torch.Tensor, cage: Cage, graph: bool) -> bo
         if why is not None:
             raise RuntimeError(f"backend='triton' cannot serve: {why}")
         return True
-    return backend == "auto" and x.device.type == "cuda" and cage.dim == 3 and not graph and _triton.available(x)
+    return backend == "auto" and x.device.type == "cuda" and not graph and _triton.available(x)

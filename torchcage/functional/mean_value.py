@@ -51,11 +51,11 @@ def mean_value_coordinates(
         backend: ``"auto"`` (default): for float64 on the CPU, torchcage's native C kernel
             (built at install time; see the guide) when it loads and no autograd graph is needed
             (with one, values still come from it and derivatives from the autograd Functions),
-            else the torch kernel; on CUDA tensors of a 3D cage, the Triton kernel when triton is
-            installed (values; derivatives through the autograd Function); ``"torch"`` forces the
-            torch kernel (any device and dtype); ``"native"`` requires the native one; ``"triton"``
-            the Triton one (3D; CUDA tensors, or CPU tensors with ``TRITON_INTERPRET=1``), which
-            with ``dtype=torch.float32`` computes in float32 (docs/gpu.md).
+            else the torch kernel; on CUDA tensors, the Triton kernel when triton is installed
+            (values; derivatives through the autograd Function); ``"torch"`` forces the torch
+            kernel (any device and dtype); ``"native"`` requires the native one; ``"triton"`` the
+            Triton one (CUDA tensors, or CPU tensors with ``TRITON_INTERPRET=1``), which with
+            ``dtype=torch.float32`` computes in float32 (docs/gpu.md).
 
     Gradients: when the points or ``cage.vertices`` require grad (or under ``torch.func``
     transforms), and the native kernel serves (CPU points, a native build), the call goes through
