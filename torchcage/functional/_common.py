@@ -185,6 +185,12 @@ def safe_sqrt(x: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(torch.where(pos, x, 1.0)) * pos
 
 
+def log_ratio(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
+    """``log(num / den)`` where both are positive, 0 elsewhere; finite derivatives everywhere."""
+    ok = (num > 0) & (den > 0)
+    return torch.log(torch.where(ok, num, 1.0) / torch.where(ok, den, 1.0))
+
+
 def safe_norm(x: torch.Tensor, dim: int = -1, keepdim: bool = False) -> torch.Tensor:
     """Euclidean norm over ``dim`` whose derivative at the zero vector is 0 (not NaN)."""
     return safe_sqrt((x * x).sum(dim=dim, keepdim=keepdim))

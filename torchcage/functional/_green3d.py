@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cage import Cage
-from ._common import on_cage_tolerance, records_graph, safe_atan2, safe_norm, triangle_geometry
+from ._common import log_ratio, on_cage_tolerance, records_graph, safe_atan2, safe_norm, triangle_geometry
 from ._thin_triangle import THIN_ASPECT, thin_pairs, thin_triangle_integrals
 
 #: Pairs with ``|h| < PERPENDICULAR_PLANE_RATIO * min R`` or ``min R < PERPENDICULAR_VERTEX_RATIO *
@@ -108,9 +108,9 @@ def _edge_integrals(a_j: torch.Tensor, a_k: torch.Tensor, u: torch.Tensor) -> to
     # Each form is evaluated where its arguments are positive and is 0 elsewhere (a point on the
     # edge, where I is infinite and its callers multiply it by 0), so every branch has finite
     # derivatives.
-    ahead = _log_ratio(R_k + l_k, R_j + l_j)
-    behind = _log_ratio(R_j - l_j, R_k - l_k)
-    straddle = _log_ratio((R_k + l_k) * (R_j - l_j), R0sq)
+    ahead = log_ratio(R_k + l_k, R_j + l_j)
+    behind = log_ratio(R_j - l_j, R_k - l_k)
+    straddle = log_ratio((R_k + l_k) * (R_j - l_j), R0sq)
     return torch.where(l_j >= 0, ahead, torch.where(l_k <= 0, behind, straddle))
 
 
@@ -152,12 +152,6 @@ def _vos_solid_angle(a: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     R0, R1, R2 = R[..., 0], R[..., 1], R[..., 2]
     den = R0 * R1 * R2 + (a0 * a1).sum(-1) * R2 + (a0 * a2).sum(-1) * R1 + (a1 * a2).sum(-1) * R0
     return 2.0 * safe_atan2(det, den)
-
-
-def _log_ratio(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
-    """``log(num / den)`` where both are positive, 0 elsewhere; finite derivatives everywhere."""
-    ok = (num > 0) & (den > 0)
-    return torch.log(torch.where(ok, num, 1.0) / torch.where(ok, den, 1.0))
 
 
 def green3d_chunk(x: torch.Tensor, data: TriangleGreenData) -> tuple[torch.Tensor, ...]:

@@ -25,7 +25,7 @@ from functools import cache
 
 import torch
 
-from ._common import safe_norm
+from ._common import log_ratio, safe_norm
 
 #: Faces whose longest edge is this many times their width take the swept form for the points
 #: ``THIN_DISTANCE`` widths or more from their longest edge.
@@ -49,11 +49,6 @@ def _gauss(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
 def _nodes(n: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     x, w = _gauss(n)
     return like.new_tensor(x), like.new_tensor(w)
-
-
-def _log_ratio(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
-    ok = (num > 0) & (den > 0)
-    return torch.log(torch.where(ok, num, 1.0) / torch.where(ok, den, 1.0))
 
 
 def segment_moments(p0: torch.Tensor, p1: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -96,8 +91,8 @@ def segment_moments(p0: torch.Tensor, p1: torch.Tensor) -> tuple[torch.Tensor, .
     F1 = ell * (ub + ua) / RaRb  # int u du / R^3 = 1 / Ra - 1 / Rb
     A0 = torch.where(
         ua >= 0,
-        _log_ratio(ub + Rb, ua + Ra),
-        torch.where(ub <= 0, _log_ratio(Ra - ua, Rb - ub), _log_ratio((ub + Rb) * (Ra - ua), c2)),
+        log_ratio(ub + Rb, ua + Ra),
+        torch.where(ub <= 0, log_ratio(Ra - ua, Rb - ub), log_ratio((ub + Rb) * (Ra - ua), c2)),
     )  # int du / R
     F2 = A0 - c2 * F0  # int u^2 du / R^3 = asinh(u / c) - u / R
     G1 = ell * (ub + ua) / torch.where(Ra + Rb > 0, Ra + Rb, 1.0)  # int u du / R = Rb - Ra

@@ -116,14 +116,14 @@ def _newton_step(log_m, d, mu, F, w, g) -> tuple[torch.Tensor, ...]:
     slope = (g * step).sum(-1)  # < 0: a descent direction
     gnorm = g.norm(dim=1)
 
-    def accept(Ft, wt, gt, alpha, Fa, slope_, gn):
+    def accept(Ft, gt, alpha, Fa, slope_, gn):
         # Armijo's decrease, or (near the solution, where the decrease is below the rounding of F)
         # the gradient halved
         return (Ft <= Fa + _ARMIJO * alpha * slope_) | (gt.norm(dim=1) <= 0.5 * gn)
 
     Ft, wt = _dual(log_m, d, mu + step)
     gt = torch.bmm(wt[:, None, :], d)[:, 0]
-    ok = accept(Ft, wt, gt, 1.0, F, slope, gnorm)
+    ok = accept(Ft, gt, 1.0, F, slope, gnorm)
     mu_n, F_n, w_n, g_n = mu + step, Ft, wt, gt
     todo = torch.nonzero(~ok).flatten()
     alpha = torch.full((todo.numel(),), 0.5, dtype=d.dtype, device=d.device)
@@ -133,7 +133,7 @@ def _newton_step(log_m, d, mu, F, w, g) -> tuple[torch.Tensor, ...]:
         lm, dd, m0, st = log_m[todo], d[todo], mu[todo], step[todo]
         Fs, ws = _dual(lm, dd, m0 + alpha[:, None] * st)
         gs = torch.bmm(ws[:, None, :], dd)[:, 0]
-        good = accept(Fs, ws, gs, alpha, F[todo], slope[todo], gnorm[todo])
+        good = accept(Fs, gs, alpha, F[todo], slope[todo], gnorm[todo])
         hit = todo[good]
         mu_n[hit], F_n[hit], w_n[hit], g_n[hit] = (m0 + alpha[:, None] * st)[good], Fs[good], ws[good], gs[good]
         ok[hit] = True
