@@ -10,7 +10,8 @@ Run it on a machine with a CUDA GPU and triton::
 
 ``--interpret`` runs a tiny smoke version on the CPU through Triton's interpreter (no timing
 meaning; it checks that the script runs). The derivatives (gradients, Hessians) still come from
-autograd of the torch kernel on a GPU; their Triton kernels are the issue's next step.
+autograd of the torch kernel on a GPU (rows ``grad (autograd)`` and ``grad+Hess 4096``, timed as
+they run today); their Triton kernels are the issue's next step.
 """
 
 from __future__ import annotations
@@ -57,6 +58,24 @@ def _torch_kernel(x: torch.Tensor, cage: torchcage.Cage) -> torch.Tensor:
     """The eager torch kernel computing in the points' dtype (the public function would promote
     float32 to float64)."""
     return coordinates_flat(x, cage, backend="torch")
+
+
+def _derivative_runs(x: torch.Tensor, cage: torchcage.Cage) -> dict:
+    """Derivatives as they run on a GPU today: the gradient of a loss through the autograd Function
+    (values from the Triton kernel, backward by autograd of the torch kernel), and gradients with
+    Hessians from ``mean_value_derivatives`` (autograd of the torch kernel); no Triton kernels of
+    the derivatives yet."""
+    g = torch.randn(cage.num_vertices, dtype=x.dtype, device=x.device)
+
+    def grad() -> torch.Tensor:
+        xr = x.detach().requires_grad_()
+        (gx,) = torch.autograd.grad((F.mean_value_coordinates(xr, cage, dtype=x.dtype) @ g).sum(), xr)
+        return gx
+
+    def hess() -> torch.Tensor:
+        return F.mean_value_derivatives(x[:4096], cage, order=2)[2]
+
+    return {"grad (autograd)": grad, "grad+Hess 4096": hess}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -117,6 +136,14 @@ def main(argv: list[str] | None = None) -> int:
                 e = _torch_kernel(x, c)
                 err = float(((t.double() - e.double()).abs() / e.double().abs().clamp_min(1)).max())
                 print(f"{'':51s} triton: {base / tri:.1f}x the eager kernel's speed, largest difference {err:.1e}")
+            if pts.shape[0] <= 10**6 or args.interpret:
+                for method, fn in _derivative_runs(x, c).items():
+                    try:
+                        first, med, peak = _time(fn, device, args.repeats)
+                    except Exception as err:
+                        print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} failed: {type(err).__name__}: {err}")
+                        continue
+                    print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} {first:9.4f} {med:9.4f} {peak:9.1f}")
     return 0
 
 
