@@ -12,6 +12,7 @@ Examples:
 
 from . import data, distributed, functional, variational
 from .cage import Cage
+from .cagegen import make_cage
 from .errors import (
     CageError,
     CageOrientationError,
@@ -56,6 +57,7 @@ __all__ = [
     "functional",
     "load_cage",
     "load_mesh",
+    "make_cage",
     "save_cage",
     "save_mesh",
     "variational",

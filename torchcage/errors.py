@@ -8,9 +8,11 @@ from __future__ import annotations
 
 __all__ = [
     "CageError",
+    "CageMakerError",
     "CageOrientationError",
     "CageTopologyError",
     "DegenerateFaceError",
+    "MeshError",
     "OutsideCageWarning",
     "PointsError",
 ]
@@ -30,6 +32,16 @@ class CageOrientationError(CageError):
 
 class DegenerateFaceError(CageError):
     """A cage face has (numerically) zero area or length; the message names the faces."""
+
+
+class MeshError(ValueError):
+    """An input mesh or point set is unusable: empty, non-finite, without extent, or with faces
+    that index no vertex; the message names the problem."""
+
+
+class CageMakerError(ValueError):
+    """The cage maker could not meet its guarantees (enclosure, no self-intersection) for the
+    given settings; the message names the setting to change."""
 
 
 class PointsError(ValueError):

@@ -6,7 +6,15 @@ import math
 
 import torch
 
-__all__ = ["distance_to_cage", "inside_cage", "inside_polygon", "near_cage", "winding_number"]
+__all__ = [
+    "distance_to_cage",
+    "inside_cage",
+    "inside_polygon",
+    "near_cage",
+    "nearest_triangle",
+    "triangle_distances",
+    "winding_number",
+]
 
 
 def inside_polygon(points: torch.Tensor, vertices: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
@@ -122,22 +130,47 @@ def distance_to_cage(points: torch.Tensor, cage, chunk: int = 1 << 20) -> torch.
              for s in range(0, points.shape[0], rows)]
         ) if points.shape[0] else points.new_zeros(0)  # fmt: skip
     tri = cage.triangulated().triangles if cage.has_quads else cage.triangles
-    p = v[tri]  # (T, 3, 3)
+    return nearest_triangle(points, v, tri, chunk)[0]
+
+
+def triangle_distances(x: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """Distances ``(n, T)`` from points ``(n, 3)`` to every triangle ``(T, 3, 3)``."""
+    p = corners
     n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
-    n = n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny)
-    rows = max(1, chunk // max(1, tri.shape[0]))
-    out = []
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
+    best = torch.stack([_segment_distance(x, p[:, i], p[:, (i + 1) % 3]) for i in range(3)]).amin(dim=0)
+    h = ((x[:, None, :] - p[None, :, 0]) * n[None]).sum(-1)  # (n, T)
+    foot = x[:, None, :] - h[..., None] * n[None]
+    inside = torch.ones_like(h, dtype=torch.bool)
+    for i in range(3):
+        a, b = p[None, :, i], p[None, :, (i + 1) % 3]
+        inside &= (torch.linalg.cross(b - a, foot - a, dim=-1) * n[None]).sum(-1) >= 0
+    return torch.minimum(best, torch.where(inside, h.abs(), torch.inf))
+
+
+def nearest_triangle(
+    points: torch.Tensor, vertices: torch.Tensor, triangles: torch.Tensor, chunk: int = 1 << 20
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distance ``(N,)`` from points ``(N, 3)`` to a triangle soup ``vertices (V, 3)``,
+    ``triangles (T, 3)``, and the index ``(N,)`` of the nearest triangle. Brute force in chunks of
+    about ``chunk`` point-triangle pairs.
+
+    Examples:
+        >>> v = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 5], [6, 5, 5], [5, 6, 5]])
+        >>> d, t = nearest_triangle(torch.tensor([[0.2, 0.2, 1.0]]), v, torch.tensor([[0, 1, 2], [3, 4, 5]]))
+        >>> d.tolist(), t.tolist()
+        ([1.0], [0])
+    """
+    p = vertices.to(points.dtype)[triangles]  # (T, 3, 3)
+    rows = max(1, chunk // max(1, triangles.shape[0]))
+    dist, index = [], []
     for s in range(0, points.shape[0], rows):
-        x = points[s : s + rows]
-        best = torch.stack([_segment_distance(x, p[:, i], p[:, (i + 1) % 3]) for i in range(3)]).amin(dim=0)
-        h = ((x[:, None, :] - p[None, :, 0]) * n[None]).sum(-1)  # (n, T)
-        foot = x[:, None, :] - h[..., None] * n[None]
-        inside = torch.ones_like(h, dtype=torch.bool)
-        for i in range(3):
-            a, b = p[None, :, i], p[None, :, (i + 1) % 3]
-            inside &= (torch.linalg.cross(b - a, foot - a, dim=-1) * n[None]).sum(-1) >= 0
-        out.append(torch.minimum(best, torch.where(inside, h.abs(), torch.inf)).amin(dim=1))
-    return torch.cat(out) if out else points.new_zeros(0)
+        d, i = triangle_distances(points[s : s + rows], p).min(dim=1)
+        dist.append(d)
+        index.append(i)
+    if not dist:
+        return points.new_zeros(0), torch.zeros(0, dtype=torch.long, device=points.device)
+    return torch.cat(dist), torch.cat(index)
 
 
 def near_cage(points: torch.Tensor, cage, radius: float, chunk: int = 1 << 22) -> torch.Tensor:
