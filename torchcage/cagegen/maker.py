@@ -54,9 +54,16 @@ def _quadify(
         bad = corner_cosines(v[quads]) <= 0.2 * MIN_COSINE
         if not bad.any():
             return v, left, quads
-        left = torch.cat([left, quads[bad][:, [0, 1, 2]], quads[bad][:, [0, 2, 3]]])
-        quads = quads[~bad]
-    return push_outward(v, left, quads, points, margin), left, quads
+        left, quads = _split_back(left, quads, bad)
+    v = push_outward(v, left, quads, points, margin)
+    # quads still not valid are split along q0-q2, a triangulation the clearance was measured on
+    left, quads = _split_back(left, quads, corner_cosines(v[quads]) <= 0)
+    return v, left, quads
+
+
+def _split_back(left: torch.Tensor, quads: torch.Tensor, bad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Triangles ``left`` plus the ``bad`` quads' halves along ``q0-q2``, and the other quads."""
+    return torch.cat([left, quads[bad][:, [0, 1, 2]], quads[bad][:, [0, 2, 3]]]), quads[~bad]
 
 
 def make_cage(
@@ -147,8 +154,8 @@ def _attempt(
     """One envelope (offset ``2^(attempt + 1) margin``, seal ``2^attempt seal``), decimated, pushed
     out, checked."""
     grow = 2.0**attempt
-    env = envelope(mesh, offset=2.0 * margin * grow, seal=seal * grow, resolution=resolution)
-    v_np, f_np = decimate(env.vertices, env.faces, target_vertices)
+    fine_v, fine_f = envelope(mesh, offset=2.0 * margin * grow, seal=seal * grow, resolution=resolution)
+    v_np, f_np = decimate(fine_v, fine_f, target_vertices)
     v = torch.from_numpy(v_np)
     tri = torch.from_numpy(f_np)
     try:

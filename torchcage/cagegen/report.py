@@ -55,6 +55,9 @@ def measure_cage(cage: Cage, vertices: Any, faces: Any = None) -> CageReport:
     Returns:
         a :class:`CageReport`.
 
+    Raises:
+        ValueError: a 2D or batched cage; MeshError: unusable shape (see :func:`make_cage`).
+
     Examples:
         >>> import torch, torchcage
         >>> from torchcage.cagegen import measure_cage
@@ -63,6 +66,10 @@ def measure_cage(cage: Cage, vertices: Any, faces: Any = None) -> CageReport:
         >>> r.outside, r.quads, r.self_intersections
         (1, 6, 0)
     """
+    if cage.dim != 3 or cage.is_batched:
+        raise ValueError(
+            f"measure_cage measures one 3D cage, got dim={cage.dim}, batch shape {tuple(cage.batch_shape)}"
+        )
     mesh = check_input(vertices, faces)
     points = torch.from_numpy(mesh.vertices)
     v = cage.vertices.detach().to(torch.float64).cpu()
