@@ -32,6 +32,7 @@ from .nn import (
     QuadGreenCoordinates,
     QuadMeanValueCoordinates,
 )
+from .viewer import view
 
 __version__ = "0.1.0"
 
@@ -61,4 +62,5 @@ __all__ = [
     "save_cage",
     "save_mesh",
     "variational",
+    "view",
 ]

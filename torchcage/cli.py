@@ -15,24 +15,10 @@ from pathlib import Path
 
 import torch
 
+from .methods import METHOD_HELP, METHOD_NAMES, METHODS, build_module
+
 __all__ = ["main"]
 
-METHODS = ("mvc", "gc", "qmvc", "qgc", "lbc", "hc", "mec")
-METHOD_HELP = (
-    "coordinates: mvc (mean value, any closed cage, quads split), gc (Green, quasi-conformal, quads split), "
-    "qmvc (quad mean value, quads kept), qgc (quad Green, quads kept), lbc (local barycentric, solved on a mesh "
-    "of the cage interior; slower, with progress), hc (harmonic, solved on a mesh of the cage interior), mec "
-    "(maximum entropy: positive, with the mvc or qmvc prior; points must be inside the cage); default mvc"
-)
-METHOD_NAMES = {
-    "mvc": "mean value coordinates (mvc)",
-    "gc": "Green coordinates (gc)",
-    "qmvc": "quad mean value coordinates (qmvc)",
-    "qgc": "quad Green coordinates (qgc)",
-    "lbc": "local barycentric coordinates (lbc)",
-    "hc": "harmonic coordinates (hc)",
-    "mec": "maximum entropy coordinates (mec)",
-}
 #: Mesh formats written by ``deform --format`` (OBJ directly, the others through trimesh).
 FORMATS = ("obj", "ply", "glb", "stl", "off")
 
@@ -56,26 +42,6 @@ class _Timer:
     def report(self) -> str:
         width = max(len(k) for k, _ in self.rows)
         return "\n".join(f"  {k:<{width}}  {t * 1000:9.1f} ms" for k, t in self.rows)
-
-
-def _build_module(method: str, cage, points: torch.Tensor, progress: bool):
-    import torchcage
-
-    if method == "mvc":
-        return torchcage.MeanValueCoordinates(cage.triangulated(), points, progress=progress)
-    if method == "gc":
-        return torchcage.GreenCoordinates(cage.triangulated(), points)
-    if method == "qmvc":
-        return torchcage.QuadMeanValueCoordinates(cage, points, progress=progress)
-    if method == "qgc":
-        return torchcage.QuadGreenCoordinates(cage, points)
-    if method == "lbc":
-        return torchcage.LocalBarycentricCoordinates(cage, points, progress=progress)
-    if method == "hc":
-        return torchcage.HarmonicCoordinates(cage, points)
-    if method == "mec":
-        return torchcage.MaximumEntropyCoordinates(cage, points, progress=progress)
-    raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
 
 
 def deform_files(
@@ -137,7 +103,7 @@ def deform_files(
     with timer(f"coordinates ({method}, {v.shape[0]} points, {cage.num_vertices} cage vertices)"):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            module = _build_module(
+            module = build_module(
                 method, cage, v, progress=not quiet and (method == "lbc" or v.shape[0] * cage.num_vertices > 5e6)
             )
     for w in caught:

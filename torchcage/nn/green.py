@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 
 import torch
 
@@ -83,6 +84,8 @@ class GreenCoordinates(CageModule):
             points to nearly the origin; they then warn with their count).
         exterior_band: the distance outside the cage, relative to its size (bounding-box
             diagonal), beyond which extended points warn.
+        progress: ``True`` for a progress bar while computing the coordinates, or a callable
+            ``progress(done, total)`` (points done so far).
 
     Shape:
         - Input: ``(*, V, D)`` deformed cage vertices.
@@ -113,10 +116,13 @@ class GreenCoordinates(CageModule):
         dtype: torch.dtype = torch.float64,
         exterior: str = "extend",
         exterior_band: float = EXTERIOR_BAND,
+        progress: bool | Callable[[int, int], None] = False,
     ) -> None:
         points = module_points(points, cage)
         cage = detached(cage)
-        phi, psi = green_coordinates(points, cage, chunk_size=chunk_size, dtype=dtype, exterior="none")
+        phi, psi = green_coordinates(
+            points, cage, chunk_size=chunk_size, dtype=dtype, exterior="none", progress=progress
+        )
         super().__init__(cage, points)
         if exterior == "none":
             warn_outside(phi.sum(dim=-1).reshape(-1), "Green coordinates")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from ..cage import Cage
@@ -30,7 +32,8 @@ class MaximumEntropyCoordinates(DenseWeightsModule):
         max_iter: most Newton steps per point.
         chunk_size: points per chunk while computing the weights.
         dtype: dtype of the stored weights (float64 by default).
-        progress: show a progress bar while computing the weights.
+        progress: show a progress bar while computing the weights, or a callable
+            ``progress(done, total)`` (points done so far).
 
     Shape:
         - Input: ``(*, V, D)`` deformed cage vertices, any leading batch shape.
@@ -56,7 +59,7 @@ class MaximumEntropyCoordinates(DenseWeightsModule):
         max_iter: int = 50,
         chunk_size: int | None = None,
         dtype: torch.dtype = torch.float64,
-        progress: bool = False,
+        progress: bool | Callable[[int, int], None] = False,
     ) -> None:
         pts = module_points(points, cage)
         cage = detached(cage)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from ..cage import Cage
@@ -27,7 +29,8 @@ class MeanValueCoordinates(DenseWeightsModule):
         chunk_size: points per chunk while computing the weights.
         dtype: dtype of the stored weights (float64 by default); they are cast to the vertices'
             dtype on use.
-        progress: show a progress bar while computing the weights.
+        progress: show a progress bar while computing the weights, or a callable
+            ``progress(done, total)`` (points done so far).
         store_derivatives: 0 (default), 1 or 2: also store the coordinates' analytic gradients
             (buffer ``gradients`` ``(N, V, D)``) and, for 2, Hessians (``hessians``
             ``(N, V, D, D)``), so that :meth:`jacobian` / :meth:`hessian` of every pose cost one
@@ -60,7 +63,7 @@ class MeanValueCoordinates(DenseWeightsModule):
         *,
         chunk_size: int | None = None,
         dtype: torch.dtype = torch.float64,
-        progress: bool = False,
+        progress: bool | Callable[[int, int], None] = False,
         store_derivatives: int = 0,
     ) -> None:
         if store_derivatives not in (0, 1, 2):

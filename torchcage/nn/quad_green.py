@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from ..cage import Cage
@@ -36,6 +38,8 @@ class QuadGreenCoordinates(CageModule):
         chunk_size: points per chunk while computing the coordinates.
         dtype: dtype of the stored coordinates (float64 by default).
         allow_invalid: compute even if some quads fail the validity predicate (with a warning).
+        progress: ``True`` for a progress bar while computing the coordinates, or a callable
+            ``progress(done, total)`` (points done so far).
 
     Shape:
         - Input: ``(*, V, 3)`` deformed cage vertices.
@@ -67,12 +71,15 @@ class QuadGreenCoordinates(CageModule):
         chunk_size: int | None = None,
         dtype: torch.dtype = torch.float64,
         allow_invalid: bool = False,
+        progress: bool | Callable[[int, int], None] = False,
     ) -> None:
         if correction not in ("conformal", "area"):
             raise ValueError(f"correction must be 'conformal' or 'area', got {correction!r}")
         pts = module_points(points, cage)
         cage = detached(cage)
-        phi, psi = quad_green_coordinates(pts, cage, n, chunk_size=chunk_size, dtype=dtype, allow_invalid=allow_invalid)
+        phi, psi = quad_green_coordinates(
+            pts, cage, n, chunk_size=chunk_size, dtype=dtype, allow_invalid=allow_invalid, progress=progress
+        )
         super().__init__(cage, pts)
         self.correction = correction
         warn_outside(phi.sum(dim=-1).reshape(-1), "quad Green coordinates")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from ..cage import Cage
@@ -27,7 +29,8 @@ class QuadMeanValueCoordinates(DenseWeightsModule):
         n: grid parameter of the quad integrals (``(2n+1)^2`` samples per quad; 4 by default).
         chunk_size: points per chunk while computing the weights.
         dtype: dtype of the stored weights (float64 by default).
-        progress: show a progress bar while computing the weights.
+        progress: show a progress bar while computing the weights, or a callable
+            ``progress(done, total)`` (points done so far).
         allow_invalid: compute even if some quads fail the validity predicate (with a warning).
 
     Shape:
@@ -53,7 +56,7 @@ class QuadMeanValueCoordinates(DenseWeightsModule):
         *,
         chunk_size: int | None = None,
         dtype: torch.dtype = torch.float64,
-        progress: bool = False,
+        progress: bool | Callable[[int, int], None] = False,
         allow_invalid: bool = False,
     ) -> None:
         pts = module_points(points, cage)
