@@ -1,8 +1,9 @@
-"""Command line: ``torchcage demo``, ``torchcage deform``, ``torchcage bench``.
+"""Command line: ``torchcage demo``, ``torchcage deform``, ``torchcage view``, ``torchcage bench``.
 
 ``torchcage demo`` runs the main job on data bundled with the package: it embeds a mesh in its
 cage, deforms it with a bent and twisted pose of the cage, and writes the meshes, the cages and a
-picture. ``torchcage deform`` does the same for your files.
+picture. ``torchcage deform`` does the same for your files. ``torchcage view`` serves the cage editor
+in the browser (:mod:`torchcage.viewer`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from .methods import METHOD_HELP, METHOD_NAMES, METHODS, build_module
 
 __all__ = ["main"]
 
+#: The editor's default port (``torchcage view``); a free one is taken when it is busy.
+DEFAULT_PORT = 8765
 #: Mesh formats written by ``deform --format`` (OBJ directly, the others through trimesh).
 FORMATS = ("obj", "ply", "glb", "stl", "off")
 
@@ -186,6 +189,44 @@ def _deform(args: argparse.Namespace) -> int:
     return 0
 
 
+def _view(args: argparse.Namespace) -> int:
+    """Serve the cage editor until Ctrl+C (the bundled bar when no files are given)."""
+    import warnings
+
+    import torchcage
+    from torchcage.viewer import view
+
+    if (args.mesh is None) != (args.cage is None):
+        raise ValueError("give both --mesh and --cage, or neither for the bundled bar")
+    mesh = args.mesh or torchcage.data.path("bar.obj")
+    cage = args.cage or torchcage.data.path("bar_cage.obj")
+    for path in (mesh, cage, args.deformed):
+        if path is not None and not Path(path).exists():
+            raise FileNotFoundError(f"no such file: {path}")
+    options = dict(method=args.method, pose=args.deformed, host=args.host, out=args.out, up=args.up)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            viewer = view(mesh, cage, port=args.port, verbose=args.verbose, **options)
+        except OSError as err:
+            if args.port != DEFAULT_PORT:
+                raise ValueError(str(err)) from None
+            viewer = view(mesh, cage, port=0, verbose=args.verbose, **options)  # the default port is taken
+    for w in caught:
+        print(f"torchcage: warning: {w.message}", file=sys.stderr)
+    print(f"torchcage view: {viewer.url}  ({METHOD_NAMES[args.method]}; Ctrl+C to stop)", flush=True)
+    if not args.no_browser:
+        viewer.open()
+    try:
+        while True:
+            time.sleep(3600)  # the server answers in its own thread
+    except KeyboardInterrupt:
+        print("torchcage view: stopped", file=sys.stderr)
+    finally:
+        viewer.close()
+    return 0
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -240,6 +281,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--strict", action="store_true", help="fail (exit 2) when points lie outside the cage (Green methods)"
     )
     dfm.set_defaults(func=_deform)
+    vw = sub.add_parser("view", help="the cage editor in the browser: pose a cage, see the mesh deform, save OBJ")
+    vw.add_argument("--mesh", help="mesh to deform (.obj, or any format trimesh reads); default: the bundled bar")
+    vw.add_argument("--cage", help="rest cage (.obj, triangles and quads); default: the bundled bar's cage")
+    vw.add_argument("--deformed", help="a deformed cage to start from (.obj, the rest cage's faces)")
+    vw.add_argument("--method", default="mvc", choices=METHODS, help=METHOD_HELP)
+    vw.add_argument("--out", default=".", help="folder that Save writes into (default: the current folder)")
+    vw.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback; others warn)")
+    vw.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT}; 0: any free port)")
+    vw.add_argument("--up", default="z", choices=("x", "y", "z"), help="the mesh's up axis (default z)")
+    vw.add_argument("--no-browser", action="store_true", help="print the address without opening a browser")
+    vw.add_argument("--verbose", action="store_true", help="log each request")
+    vw.set_defaults(func=_view)
     bench = sub.add_parser("bench", help="time mean value coordinates on this machine (bundled cage)")
     bench.add_argument("--points", type=_positive_int, default=100_000)
     bench.add_argument("--repeat", type=_positive_int, default=3)

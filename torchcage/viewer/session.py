@@ -21,7 +21,6 @@ import re
 import tempfile
 import threading
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -150,6 +149,7 @@ class EditorSession:
         self._module: torch.nn.Module | None = None
         self._status = Status(method=method, state="computing")
         self._token = 0
+        self._outside: int | None = None
         self._started = time.perf_counter()
         if pose is not None:
             self._pose = self._check_pose(pose)
@@ -196,9 +196,10 @@ class EditorSession:
                 self._status.done, self._status.total, self._status.message = done, total, message
 
         try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                module = build_module(method, self.cage, self.mesh_vertices, progress=progress)
+            # (no warnings.catch_warnings here: it swaps process-wide state under other threads' feet;
+            # the modules' own warnings reach stderr, and the outside count below reaches the page)
+            module = build_module(method, self.cage, self.mesh_vertices, progress=progress)
+            notes = self._outside_note()
         except _SupersededError:
             return
         except Exception as err:  # reported to the page and the scripts, never raised in the thread
@@ -218,9 +219,23 @@ class EditorSession:
             self._status.done, self._status.total = n, n
             self._status.seconds = time.perf_counter() - self._started
             self._status.message = f"{METHOD_NAMES[method]} of {n:,} points in {self._status.seconds:.1f} s"
-            self._status.warnings = sorted({str(w.message) for w in caught})
+            self._status.warnings = notes
             self._status.coordinates += 1
             self._lock.notify_all()
+
+    def _outside_note(self) -> list[str]:
+        """A line for the page when mesh vertices lie outside the rest cage (winding numbers)."""
+        from ..geometry import inside_cage
+
+        with self._lock:
+            if self._outside is None:
+                self._outside = int((~inside_cage(self.mesh_vertices, self.cage)).sum())
+        if not self._outside:
+            return []
+        return [
+            f"{self._outside:,} of {self.mesh_vertices.shape[0]:,} mesh vertices lie outside the cage: Green "
+            "coordinates extrapolate them, MEC refuses them; enlarge the cage (torchcage.make_cage) to enclose them"
+        ]
 
     def status(self) -> Status:
         """A snapshot of the computation's state and the pose version."""
