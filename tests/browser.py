@@ -79,6 +79,7 @@ class Browser:
         self.console: list[str] = []
         self.send("Runtime.enable")
         self.send("Page.enable")
+        self.send("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
 
     def send(self, method: str, **params: Any) -> dict[str, Any]:
         """Call a DevTools method and return its result (events meanwhile: console lines kept)."""

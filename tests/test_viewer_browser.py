@@ -1,0 +1,149 @@
+"""The cage editor in a real browser: headless Chromium loads the page, renders the mesh, and a
+drag through the page's own pointer handling changes the pose that the server reports.
+
+Skips, with the reason, where no Chromium can be had (``apt-get install chromium``; CI installs
+it). ``TORCHCAGE_EDITOR_SCREENSHOT=path.png`` keeps the screenshot (the docs' picture).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+import torch
+from browser import Browser, BrowserError, find_chromium
+from PIL import Image
+
+import torchcage
+
+pytest.importorskip("websocket", reason="websocket-client is needed to drive the browser (pip install -e '.[test]')")
+CHROMIUM = find_chromium()
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium on PATH (apt-get install chromium)")
+D = torchcage.data
+READY = "window.torchcage && window.torchcage.ready"
+
+
+@pytest.fixture(scope="module")
+def bar():
+    return torchcage.load_cage(D.path("bar_cage.obj")), torchcage.load_mesh(D.path("bar.obj"))
+
+
+@pytest.fixture(scope="module")
+def browser():
+    try:
+        b = Browser(CHROMIUM)
+    except BrowserError as err:  # pragma: no cover - a broken install
+        pytest.skip(f"chromium does not start here: {err}")
+    with b:
+        yield b
+
+
+@pytest.fixture
+def editor(bar, browser, tmp_path):
+    cage, mesh = bar
+    with torchcage.view(mesh, cage, out=tmp_path) as viewer:
+        viewer.wait(60)
+        browser.open(viewer.url, READY)
+        browser.evaluate("window.torchcage.idle()")
+        yield viewer
+
+
+def scene(viewer) -> dict:
+    with urllib.request.urlopen(viewer.url + "api/scene", timeout=30) as r:
+        return json.load(r)
+
+
+def wait_for(predicate, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_the_page_renders_the_mesh_and_the_cage(editor, browser):
+    # the bundled bent pose, set by a script, with the top four vertices selected (the docs' picture)
+    pose = torchcage.load_cage(D.path("bar_cage_deformed.obj"), check_intersections=False).vertices
+    editor.set_pose(pose)
+    assert wait_for(lambda: browser.evaluate("window.torchcage.version") == editor.session.version)
+    top = torch.topk(pose[:, 2], 4).indices.tolist()
+    browser.evaluate(f"window.torchcage.select({top})")
+    time.sleep(0.5)  # let the frames land
+    png = browser.screenshot()
+    if os.environ.get("TORCHCAGE_EDITOR_SCREENSHOT"):
+        with open(os.environ["TORCHCAGE_EDITOR_SCREENSHOT"], "wb") as f:
+            f.write(png)
+    image = torch.from_numpy(np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64)).reshape(-1, 3)
+    r, g, b = image.unbind(-1)
+    mesh_blue = (b > r + 25) & (b > 90) & (b < 245)  # the shaded mesh: blue-grey, lit and in shadow
+    cage_orange = (r > 150) & (r > b + 80) & (g > 60)  # cage edges and vertices
+    assert mesh_blue.double().mean() > 0.02, "no mesh on the canvas"
+    assert cage_orange.sum() > 200, "no cage on the canvas"
+    assert len({tuple(p) for p in image[mesh_blue].round().tolist()}) > 20, "the mesh is flat, not shaded"
+
+
+def test_a_drag_through_the_page_moves_the_vertex_and_the_mesh(editor, browser, bar):
+    cage, (v, _) = bar
+    i = 12
+    pose = torch.tensor(browser.evaluate(f"window.torchcage.dragVertex({i}, 70, -50)"), dtype=torch.float64).view(-1, 3)
+    assert browser.evaluate("window.torchcage.selection()") == [i]
+    moved = (pose - cage.vertices).norm(dim=1)
+    assert moved[i] > 0.05 * cage.scale and moved[torch.arange(16) != i].max() == 0
+    reported = scene(editor)
+    assert torch.allclose(torch.tensor(reported["cage"]["vertices"], dtype=torch.float64), pose, atol=1e-12)
+    assert torch.allclose(editor.pose, pose, atol=1e-12)
+    expected = torchcage.MeanValueCoordinates(cage.triangulated(), v)(pose)
+    assert torch.allclose(torch.tensor(reported["mesh"]["vertices"], dtype=torch.float64), expected, atol=1e-12)
+    shown = torch.tensor(browser.evaluate("window.torchcage.meshPositions()"), dtype=torch.float64).view(-1, 3)
+    assert (shown - expected).abs().max() < 1e-5 * cage.scale  # the page shows that mesh (float32)
+
+
+def test_gizmo_transform_of_a_selection_then_undo_redo_reset(editor, browser, bar):
+    cage, (v, _) = bar
+    browser.evaluate("window.torchcage.select([...Array(16).keys()])")
+    angle = 0.4
+    c, s = torch.cos(torch.tensor(angle)).item(), torch.sin(torch.tensor(angle)).item()
+    # rotation about z and scaling by 1.5 about the selection's centre, as the gizmo's pivot applies it
+    centre = cage.vertices.mean(dim=0)
+    R = 1.5 * torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    M = torch.eye(4, dtype=torch.float64)
+    M[:3, :3], M[:3, 3] = R, centre - R @ centre
+    pose = browser.evaluate(f"window.torchcage.transformSelection({M.T.reshape(-1).tolist()})")
+    expected_pose = (cage.vertices - centre) @ R.T + centre
+    assert torch.allclose(torch.tensor(pose, dtype=torch.float64).view(-1, 3), expected_pose, atol=1e-9)
+    reported = scene(editor)
+    mesh = torch.tensor(reported["mesh"]["vertices"], dtype=torch.float64)
+    assert (mesh - ((v - centre) @ R.T + centre)).abs().max() < 1e-9  # MVC reproduces the similarity
+    browser.evaluate("window.torchcage.undo()")
+    assert torch.allclose(editor.pose, cage.vertices, atol=1e-12)
+    browser.evaluate("window.torchcage.redo()")
+    assert torch.allclose(editor.pose, expected_pose, atol=1e-9)
+    browser.evaluate("window.torchcage.reset()")
+    assert torch.allclose(editor.pose, cage.vertices, atol=1e-12)
+
+
+def test_the_page_follows_a_pose_set_by_a_script(editor, browser, bar):
+    cage, _ = bar
+    pose = cage.vertices + torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64)
+    editor.set_pose(pose)
+
+    def shown() -> bool:
+        return torch.allclose(torch.tensor(browser.evaluate("window.torchcage.pose()")).view(-1, 3).double(), pose)
+
+    assert wait_for(shown), "the page did not pick up the script's pose"
+
+
+def test_switching_the_method_on_the_page(editor, browser):
+    browser.evaluate(
+        "(() => { const s = document.getElementById('method'); s.value = 'qmvc';"
+        " s.dispatchEvent(new Event('change')); })()"
+    )
+    assert wait_for(lambda: editor.session.status().method == "qmvc")
+    assert editor.wait(60).state == "ready"
+    assert wait_for(lambda: "quad mean value" in browser.evaluate("document.getElementById('status').textContent"))
