@@ -9,7 +9,8 @@ about 10^5 vertices), with mean value coordinates:
   JSON answer (what scripts get) and with the raw float32 answer (what the page asks for), and the
   size of each answer; ``GET /api/scene`` (the page's first load);
 - with ``--browser`` (headless Chromium): the page's own round trip for a drag (request, answer,
-  new normals), the time from a drag's first event to the updated mesh;
+  new mesh), the part of it spent taking the new mesh (copy, vertex normals), and the time from a
+  drag's first event to the updated mesh;
 - the start of ``torchcage view`` on the bundled data to a served page, cold and warm.
 
 Usage: ``python benchmarks/viewer.py [--data ../shared/data] [--browser] [--repeat 5]``
@@ -113,13 +114,15 @@ def measure(name, cage, v, f, repeat: int, browser) -> dict[str, str]:
     if browser is not None:
         browser.open(viewer.url, "window.torchcage && window.torchcage.ready", timeout=300)
         browser.evaluate("window.torchcage.idle()")
-        trips, drags = [], []
+        trips, drags, updates = [], [], []
         for k in range(repeat):
             t = time.perf_counter()
             browser.evaluate(f"window.torchcage.dragVertex({k % cage.num_vertices}, 12, -8, 1)")
             drags.append(time.perf_counter() - t)
             trips.append(browser.evaluate("window.torchcage.roundTrip"))
+            updates.append(browser.evaluate("window.torchcage.meshUpdate"))
         row["page round trip ms"] = f"{min(trips):.0f}"
+        row["of which mesh update ms"] = f"{min(updates):.0f}"
         row["drag to mesh ms"] = f"{1e3 * min(drags):.0f}"
     viewer.close()
     return row

@@ -27,6 +27,7 @@ const state = {
   inflight: false,
   pending: false,
   roundTrip: null,
+  meshUpdate: null,
   idleWaiters: [],
 };
 
@@ -207,12 +208,14 @@ function updateCage() {
 }
 
 function setMesh(positions) {
+  const t0 = performance.now();
   const attribute = mesh.geometry.attributes.position;
   if (positions.length !== attribute.array.length) return note('the server sent a mesh of another size', true);
   attribute.array.set(positions);
   attribute.needsUpdate = true;
   if (mesh.isMesh) mesh.geometry.computeVertexNormals();
   mesh.geometry.computeBoundingSphere();
+  state.meshUpdate = performance.now() - t0;
   render();
 }
 
@@ -536,6 +539,7 @@ window.torchcage = {
   get ready() { return state.ready; },
   get version() { return state.version; },
   get roundTrip() { return state.roundTrip; },
+  get meshUpdate() { return state.meshUpdate; }, // ms to take a new mesh (copy, normals)
   pose: () => Array.from(state.pose),
   selection: () => [...state.selection].sort((a, b) => a - b),
   meshPositions: () => Array.from(mesh.geometry.attributes.position.array),
