@@ -187,6 +187,8 @@ def test_a_failed_method_answers_409_with_the_cause(bar, tmp_path):
         assert status.state == "failed" and "maximum entropy" in status.message
         code, _, answer = call(v.url + "api/pose", {"vertices": cage.vertices.tolist()})
         assert code == 409 and "choose another method" in answer["error"]
+        code, _, scene = call(v.url + "api/scene")  # the page still loads, with the rest mesh and the cause
+        assert code == 200 and scene["status"]["state"] == "failed" and not scene["mesh"]["deformed"]
         code, _, _ = call(v.url + "api/method", {"method": "mvc"})  # and it recovers
         assert code == 202 and v.wait(60).state == "ready"
         assert call(v.url + "api/pose", {"vertices": cage.vertices.tolist()})[0] == 200

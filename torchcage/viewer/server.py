@@ -170,9 +170,7 @@ class _Handler(BaseHTTPRequestHandler):
         self._send(HTTPStatus.OK, _static(name), _STATIC[name])
 
     def _get_pose(self, query: dict[str, str]) -> None:
-        session = self.server.session
-        with session._lock:  # the pose and its version together
-            pose, version = session.pose, session.version
+        pose, version = self.server.session.snapshot()
         self._json({"vertices": pose.tolist(), "version": version})
 
     def _answer_mesh(self, deformed: Any, version: int, query: dict[str, str]) -> None:
@@ -187,20 +185,15 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _get_deformed(self, query: dict[str, str]) -> None:
         session = self.server.session
-        with session._lock:
-            pose, version = session.pose, session.version
+        pose, version = session.snapshot()
         self._answer_mesh(session.deform(pose, wait=query.get("wait") != "0"), version, query)
 
     def _post_pose(self, query: dict[str, str]) -> None:
         data = self._json_body()
         if "vertices" not in data:
             raise _RequestError(HTTPStatus.BAD_REQUEST, 'the body must be {"vertices": [[x, y, z], ...]}')
-        session = self.server.session
-        with session._lock:  # this pose's version, even when another request follows at once
-            pose = session._check_pose(data["vertices"])
-            session._pose, session._version = pose, session._version + 1
-            version = session._version
-        self._answer_mesh(session.deform(pose, wait=query.get("wait") != "0"), version, query)
+        version, deformed = self.server.session.post_pose(data["vertices"], wait=query.get("wait") != "0")
+        self._answer_mesh(deformed, version, query)
 
     def _post_method(self, query: dict[str, str]) -> None:
         method = self._json_body().get("method")
@@ -225,8 +218,7 @@ class _Handler(BaseHTTPRequestHandler):
                 raise _RequestError(HTTPStatus.BAD_REQUEST, 'a JSON body must be {"obj": "<OBJ text>"}') from None
         session = self.server.session
         deformed = session.load_pose_obj(text, wait=query.get("wait") != "0")
-        with session._lock:
-            pose, version = session.pose, session.version
+        pose, version = session.snapshot()
         mesh = None if deformed is None else deformed.tolist()
         self._json({"cage": pose.tolist(), "vertices": mesh, "version": version})
 

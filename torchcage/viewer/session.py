@@ -283,6 +283,11 @@ class EditorSession:
             raise PoseError(f"the pose has NaN or inf coordinates at vertices {bad}; send finite numbers")
         return pose
 
+    def snapshot(self) -> tuple[torch.Tensor, int]:
+        """The current pose ``(V, 3)`` (a copy) and its version, read together."""
+        with self._lock:
+            return self._pose.clone(), self._version
+
     def set_pose(self, vertices: Any, *, wait: bool | float = True) -> torch.Tensor | None:
         """Make ``vertices`` ``(V, 3)`` the current pose; return the deformed mesh ``(N, 3)``.
 
@@ -295,11 +300,17 @@ class EditorSession:
             PoseError: a pose of the wrong shape, or with NaN or inf.
             EditorError: the coordinates failed (choose another method).
         """
+        return self.post_pose(vertices, wait=wait)[1]
+
+    def post_pose(self, vertices: Any, *, wait: bool | float = True) -> tuple[int, torch.Tensor | None]:
+        """:meth:`set_pose`, also returning the version this pose got (for the page, which must
+        tell its own poses from a script's)."""
         pose = self._check_pose(vertices)
         with self._lock:
             self._pose = pose
             self._version += 1
-        return self.deform(pose, wait=wait)
+            version = self._version
+        return version, self.deform(pose, wait=wait)
 
     def deform(self, pose: torch.Tensor | None = None, *, wait: bool | float = True) -> torch.Tensor | None:
         """The mesh deformed by ``pose`` (default: the current pose), ``(N, 3)`` float64; ``None``
@@ -377,7 +388,10 @@ class EditorSession:
         """The scene as JSON-ready lists: the current pose and its deformed mesh (the rest mesh
         while the coordinates compute), faces, edges, the rest cage, method and status."""
         pose = self.pose
-        deformed = self.deform(pose, wait=False)
+        try:
+            deformed = self.deform(pose, wait=False)
+        except EditorError:  # the coordinates failed: the page shows the rest mesh and the message
+            deformed = None
         status = self.status()
         mesh = self.mesh_vertices if deformed is None else deformed
         faces = self.cage.faces
