@@ -13,6 +13,7 @@ import torchcage
 from torchcage import functional as F
 from torchcage.cagegen import measure_cage, self_intersections, signed_clearance
 from torchcage.errors import MeshError
+from torchcage.geometry import inside_cage
 
 pytest.importorskip("skimage")
 pytest.importorskip("fast_simplification")
@@ -95,3 +96,48 @@ def test_self_intersection_check_finds_two_interpenetrating_tetrahedra():
 def test_make_cage_refuses_bad_input(vertices, faces, match):
     with pytest.raises(MeshError, match=match):
         torchcage.make_cage(vertices, faces)
+
+
+def test_cli_make_cage_writes_an_enclosing_quad_cage_and_a_picture(tmp_path, capsys):
+    from torchcage.cli import main
+
+    v, f = _two_parts()
+    mesh = tmp_path / "parts.obj"
+    torchcage.save_mesh(mesh, v, f)
+    out = tmp_path / "made" / "cage.obj"
+    assert main(["make-cage", "--mesh", str(mesh), "--out", str(out), "--vertices", "60", "--kind", "quad"]) == 0
+    printed = capsys.readouterr()
+    assert "made a quad cage" in printed.out and "outside: 0" in printed.out
+    assert "make_cage [" in printed.err and "envelope" in printed.err  # the steps, with their times
+    cage = torchcage.load_cage(out)  # validated again on reading: closed, outward, no self-intersection
+    r = measure_cage(cage, v, f)
+    assert r.quads > 0 and r.quad_fraction >= 0.8 and r.invalid_quads == 0  # quads kept in the file
+    assert r.outside == 0 and r.self_intersections == 0 and abs(cage.num_vertices - 60) <= 15
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert main(["make-cage", "--mesh", str(mesh), "--out", str(tmp_path / "cage.ply")]) == 2
+    assert "--out must name an .obj" in capsys.readouterr().err
+
+
+def test_cli_deform_with_an_automatic_cage_then_a_pose_of_it(tmp_path, capsys):
+    from torchcage.cli import main
+
+    d = torchcage.data
+    out = tmp_path / "auto"
+    args = ["deform", "--cage", "auto", "--mesh", str(d.path("bar.obj")), "--cage-vertices", "30", "--no-picture"]
+    assert main([*args, "--out", str(out)]) == 0
+    rest, _ = torchcage.load_mesh(d.path("bar.obj"))
+    same, _ = torchcage.load_mesh(out / "deformed_mesh.obj")
+    assert torch.allclose(same, rest, atol=1e-9)  # no pose: the identity
+    made = torchcage.load_cage(out / "rest_cage.obj")
+    assert abs(made.num_vertices - 30) <= 8 and bool(inside_cage(rest, made).all())
+    # pose the made cage by an affine map: mean value coordinates carry the mesh along exactly
+    A = torch.tensor([[1.1, 0.2, 0.0], [0.0, 0.9, 0.1], [0.05, 0.0, 1.2]], dtype=torch.float64)
+    torchcage.save_cage(tmp_path / "pose.obj", made, made.vertices @ A.T + 1.0)
+    posed = ["deform", "--cage", str(out / "rest_cage.obj"), "--deformed", str(tmp_path / "pose.obj")]
+    assert main([*posed, "--mesh", str(d.path("bar.obj")), "--out", str(tmp_path / "p"), "--no-picture"]) == 0
+    moved, _ = torchcage.load_mesh(tmp_path / "p" / "deformed_mesh.obj")
+    assert torch.allclose(moved, rest @ A.T + 1.0, atol=1e-8)
+    # a pose of another cage with --cage auto: the error says how to pose the made cage
+    wrong = [*args, "--out", str(tmp_path / "w"), "--deformed", str(d.path("bar_cage_deformed.obj"))]
+    assert main(wrong) == 2
+    assert "pose the made cage" in capsys.readouterr().err

@@ -1,9 +1,11 @@
-"""Command line: ``torchcage demo``, ``torchcage deform``, ``torchcage view``, ``torchcage bench``.
+"""Command line: ``torchcage demo``, ``torchcage deform``, ``torchcage view``, ``torchcage make-cage``,
+``torchcage bench``.
 
 ``torchcage demo`` runs the main job on data bundled with the package: it embeds a mesh in its
 cage, deforms it with a bent and twisted pose of the cage, and writes the meshes, the cages and a
 picture. ``torchcage deform`` does the same for your files. ``torchcage view`` serves the cage editor
-in the browser (:mod:`torchcage.viewer`).
+in the browser (:mod:`torchcage.viewer`). ``torchcage make-cage`` makes an enclosing cage for a mesh
+(:func:`torchcage.make_cage`); ``deform`` and ``view`` take ``--cage auto`` for the same.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ class _Timer:
 
 def deform_files(
     cage_path: str | Path,
-    deformed_path: str | Path,
+    deformed_path: str | Path | None,
     mesh_path: str | Path,
     out_dir: str | Path,
     *,
@@ -61,8 +63,15 @@ def deform_files(
     azimuth: float = 35.0,
     elevation: float = 20.0,
     strict: bool = False,
+    cage_vertices: int = 200,
+    cage_kind: str | None = None,
 ) -> dict[str, Path]:
     """Deform a mesh with a cage and its deformed pose; write the results into ``out_dir``.
+
+    ``cage_path="auto"`` makes the cage from the mesh (:func:`torchcage.make_cage` with
+    ``cage_vertices`` and ``cage_kind``: by default quads for ``qmvc`` and ``qgc``, triangles
+    otherwise); ``deformed_path=None`` deforms with the rest cage itself (the identity: a start for
+    posing ``rest_cage.obj``, e.g. in ``torchcage view``).
 
     Writes ``rest_mesh.<fmt>``, ``deformed_mesh.<fmt>`` (``mesh_format``: obj, ply, glb, stl, off;
     all but OBJ through trimesh), ``rest_cage.obj``, ``deformed_cage.obj`` (quads kept) and, with
@@ -93,15 +102,27 @@ def deform_files(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     timer = _Timer()
+    auto = str(cage_path) == "auto"
     with timer("load"):
-        cage = torchcage.load_cage(cage_path)
-        pose = torchcage.load_cage(deformed_path, check_intersections=False)  # a pose may fold through itself
         v, f = torchcage.load_mesh(mesh_path)
+        cage = None if auto else torchcage.load_cage(cage_path)
+        # a pose may fold through itself
+        pose = None if deformed_path is None else torchcage.load_cage(deformed_path, check_intersections=False)
+    if auto:
+        with timer(f"make cage ({cage_vertices} vertices)"):
+            cage = auto_cage(v, f, cage_vertices, cage_kind or _default_kind(method), quiet)
+    pose = cage if pose is None else pose
     if pose.num_vertices != cage.num_vertices or not (
         torch.equal(pose.triangles, cage.triangles) and torch.equal(pose.quads, cage.quads)
     ):
+        hint = (
+            f"; with --cage auto, pose the made cage {Path(out_dir) / 'rest_cage.obj'} (written by a run without "
+            "--deformed, e.g. in torchcage view) and pass that file as --cage"
+            if auto
+            else ""
+        )
         raise torchcage.CageError(
-            f"the deformed cage {deformed_path} must have the rest cage's faces and {cage.num_vertices} vertices"
+            f"the deformed cage {deformed_path} must have the rest cage's faces and {cage.num_vertices} vertices{hint}"
         )
     with timer(f"coordinates ({method}, {v.shape[0]} points, {cage.num_vertices} cage vertices)"):
         with warnings.catch_warnings(record=True) as caught:
@@ -162,6 +183,69 @@ def deform_files(
     return paths
 
 
+def _default_kind(method: str) -> str:
+    return "quad" if method in ("qmvc", "qgc") else "triangle"
+
+
+def auto_cage(vertices: torch.Tensor, faces: torch.Tensor, target: int, kind: str, quiet: bool = False):
+    """A cage made from a mesh for ``--cage auto`` (:func:`torchcage.make_cage`, progress on stderr)."""
+    import torchcage
+
+    return torchcage.make_cage(vertices, faces, target_vertices=target, kind=kind, progress=not quiet)
+
+
+def _make_cage(args: argparse.Namespace) -> int:
+    """Make a cage for a mesh; write it (quads kept), a picture, and its measures."""
+    import torchcage
+    from torchcage.cagegen import measure_cage
+    from torchcage.viz import CAGE_EDGE_COLOR, MESH_COLOR, Panel, render_panels
+
+    if not Path(args.mesh).exists():
+        raise FileNotFoundError(f"no such file: {args.mesh}")
+    out = Path(args.out)
+    if out.suffix.lower() != ".obj":
+        raise ValueError(f"--out must name an .obj file (the cage), got {args.out}")
+    v, f = torchcage.load_mesh(args.mesh)
+    start = time.perf_counter()
+    margin = None if args.margin is None else args.margin * float((v.amax(0) - v.amin(0)).norm())
+    cage = torchcage.make_cage(
+        v, f, target_vertices=args.vertices, kind=args.kind, margin=margin, resolution=args.resolution,
+        progress=not args.quiet,
+    )  # fmt: skip
+    seconds = time.perf_counter() - start
+    out.parent.mkdir(parents=True, exist_ok=True)
+    torchcage.save_cage(out, cage)
+    written = [out]
+    if not args.no_picture:
+        turn = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}[args.up]
+        faces_desc = f"{cage.triangles.shape[0]} triangles, {cage.quads.shape[0]} quads"
+        image = render_panels(
+            [
+                Panel(
+                    v[:, turn], f, cage.vertices[:, turn], cage.unique_edges(),
+                    title=f"{Path(args.mesh).name}: {v.shape[0]:,} vertices; made cage: {cage.num_vertices}",
+                )
+            ],
+            size=800, azimuth=args.azimuth, elevation=args.elevation,
+            legend=[("mesh", MESH_COLOR), (f"cage ({cage.num_vertices} vertices, {faces_desc})", CAGE_EDGE_COLOR)],
+        )  # fmt: skip
+        picture = out.with_suffix(".png")
+        image.save(picture)
+        written.append(picture)
+    if not args.quiet:
+        r = measure_cage(cage, v, f)
+        print(f"made a {args.kind} cage in {seconds:.1f} s: {r.vertices} vertices, {r.triangles} triangles, "
+              f"{r.quads} quads ({100 * r.quad_fraction:.0f}%), {r.invalid_quads} invalid quads, "
+              f"{r.self_intersections} self-intersections")  # fmt: skip
+        print(f"  mesh vertices outside: {r.outside}; least clearance {r.min_clearance:.4f} of the diagonal")
+        print(f"  distance from the cage to the mesh (fraction of the diagonal): mean {r.mean_distance:.4f}, "
+              f"max {r.max_distance:.4f}")  # fmt: skip
+        print("wrote:")
+        for p in written:
+            print(f"  {p}")
+    return 0
+
+
 def _demo(args: argparse.Namespace) -> int:
     import torchcage
 
@@ -185,6 +269,8 @@ def _deform(args: argparse.Namespace) -> int:
         azimuth=args.azimuth,
         elevation=args.elevation,
         strict=args.strict,
+        cage_vertices=args.cage_vertices,
+        cage_kind=args.cage_kind,
     )
     return 0
 
@@ -200,9 +286,17 @@ def _view(args: argparse.Namespace) -> int:
         raise ValueError("give both --mesh and --cage, or neither for the bundled bar")
     mesh = args.mesh or torchcage.data.path("bar.obj")
     cage = args.cage or torchcage.data.path("bar_cage.obj")
-    for path in (mesh, cage, args.deformed):
+    for path in (mesh, None if cage == "auto" else cage, args.deformed):
         if path is not None and not Path(path).exists():
             raise FileNotFoundError(f"no such file: {path}")
+    if cage == "auto":
+        v, f = torchcage.load_mesh(mesh)
+        cage = auto_cage(v, f, args.cage_vertices, args.cage_kind or _default_kind(args.method))
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        made = Path(args.out) / "made_cage.obj"
+        torchcage.save_cage(made, cage)
+        print(f"torchcage view: made a cage of {cage.num_vertices} vertices, written to {made}", flush=True)
+        mesh = (v, f)
     options = dict(method=args.method, pose=args.deformed, host=args.host, out=args.out, up=args.up)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -225,6 +319,15 @@ def _view(args: argparse.Namespace) -> int:
     finally:
         viewer.close()
     return 0
+
+
+def _cage_maker_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--cage-vertices", type=_positive_int, default=200, help="with --cage auto: the cage's vertex count"
+    )
+    parser.add_argument(
+        "--cage-kind", choices=("triangle", "quad"), help="with --cage auto: default quad for qmvc/qgc, else triangle"
+    )
 
 
 def _positive_int(text: str) -> int:
@@ -267,8 +370,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     demo.add_argument("--method", default="mvc", choices=METHODS, help=METHOD_HELP)
     demo.set_defaults(func=_demo)
     dfm = sub.add_parser("deform", help="deform a mesh with a rest cage and a deformed cage")
-    dfm.add_argument("--cage", required=True, help="rest cage (.obj, triangles and quads)")
-    dfm.add_argument("--deformed", required=True, help="deformed cage (.obj, same faces)")
+    dfm.add_argument(
+        "--cage", required=True, help="rest cage (.obj, triangles and quads), or 'auto' to make one from the mesh"
+    )
+    dfm.add_argument("--deformed", help="deformed cage (.obj, same faces); default: the rest cage (no deformation)")
+    _cage_maker_arguments(dfm)
     dfm.add_argument("--mesh", required=True, help="mesh to deform (.obj, or any format trimesh reads)")
     dfm.add_argument("--out", required=True, help="output folder")
     dfm.add_argument("--method", default="mvc", choices=METHODS, help=METHOD_HELP)
@@ -283,7 +389,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     dfm.set_defaults(func=_deform)
     vw = sub.add_parser("view", help="the cage editor in the browser: pose a cage, see the mesh deform, save OBJ")
     vw.add_argument("--mesh", help="mesh to deform (.obj, or any format trimesh reads); default: the bundled bar")
-    vw.add_argument("--cage", help="rest cage (.obj, triangles and quads); default: the bundled bar's cage")
+    vw.add_argument(
+        "--cage", help="rest cage (.obj, triangles and quads), or 'auto' to make one; default: the bundled bar's cage"
+    )
     vw.add_argument("--deformed", help="a deformed cage to start from (.obj, the rest cage's faces)")
     vw.add_argument("--method", default="mvc", choices=METHODS, help=METHOD_HELP)
     vw.add_argument("--out", default=".", help="folder that Save writes into (default: the current folder)")
@@ -292,7 +400,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     vw.add_argument("--up", default="z", choices=("x", "y", "z"), help="the mesh's up axis (default z)")
     vw.add_argument("--no-browser", action="store_true", help="print the address without opening a browser")
     vw.add_argument("--verbose", action="store_true", help="log each request")
+    _cage_maker_arguments(vw)
     vw.set_defaults(func=_view)
+    mk = sub.add_parser("make-cage", help="make an enclosing cage for a mesh (torchcage[cage]); write it and a picture")
+    mk.add_argument("--mesh", required=True, help="the mesh (.obj, or any format trimesh reads); open meshes are fine")
+    mk.add_argument("--out", required=True, help="the cage file to write (.obj, quads kept); the picture goes beside")
+    mk.add_argument("--vertices", type=_positive_int, default=200, help="the cage's vertex count (default 200)")
+    mk.add_argument("--kind", default="triangle", choices=("triangle", "quad"), help="triangles, or quad-dominant")
+    mk.add_argument("--margin", type=float, help="least clearance, fraction of the diagonal (default 0.005)")
+    mk.add_argument("--resolution", type=_positive_int, default=128, help="envelope voxels along the longest side")
+    mk.add_argument("--up", default="z", choices=("x", "y", "z"), help="the mesh's up axis, for the picture")
+    mk.add_argument("--azimuth", type=float, default=35.0, help="picture camera azimuth, degrees")
+    mk.add_argument("--elevation", type=float, default=20.0, help="picture camera elevation, degrees")
+    mk.add_argument("--no-picture", action="store_true", help="skip the PNG picture")
+    mk.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    mk.set_defaults(func=_make_cage)
     bench = sub.add_parser("bench", help="time mean value coordinates on this machine (bundled cage)")
     bench.add_argument("--points", type=_positive_int, default=100_000)
     bench.add_argument("--repeat", type=_positive_int, default=3)
@@ -300,7 +422,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, TypeError, FileNotFoundError) as err:
+    except (ValueError, TypeError, FileNotFoundError, ImportError) as err:
         print(f"torchcage: error: {err}", file=sys.stderr)
         return 2
 

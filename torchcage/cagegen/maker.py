@@ -18,6 +18,9 @@ The pipeline (each step its own module):
 
 from __future__ import annotations
 
+import sys
+import time
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -76,6 +79,7 @@ def make_cage(
     seal: float | None = None,
     resolution: int = 128,
     dtype: torch.dtype = torch.float64,
+    progress: bool | Callable[[str], None] = False,
 ) -> Cage:
     """Make a closed, coarse cage that encloses a mesh or a point cloud.
 
@@ -93,6 +97,8 @@ def make_cage(
             bridged; wider openings are followed into.
         resolution: voxels along the longest side of the envelope's grid (detail of the envelope).
         dtype: dtype of the cage's vertices.
+        progress: ``True`` to print each step with its time on stderr, or a callable
+            ``progress(step)`` that receives a line per step (envelope, decimation, push, quads, checks).
 
     Returns:
         a validated :class:`~torchcage.Cage` (closed, manifold, outward, free of
@@ -131,13 +137,27 @@ def make_cage(
         raise ValueError(f"seal must be zero or positive, got {seal!r}")
 
     points = torch.from_numpy(mesh.vertices)
+    report = _reporter(progress)
     failure: CageMakerError | None = None
     for attempt in range(INFLATIONS + 1):
         try:
-            return _attempt(mesh, points, int(target_vertices), kind, margin, seal, int(resolution), attempt, dtype)
+            return _attempt(
+                mesh, points, int(target_vertices), kind, margin, seal, int(resolution), attempt, dtype, report
+            )
         except CageMakerError as err:
             failure = err
+            report(f"attempt {attempt + 1} failed ({err}); rebuilding the envelope twice as far out")
     raise CageMakerError(f"{failure} (after {INFLATIONS + 1} envelopes, each twice as far out)") from failure
+
+
+def _reporter(progress: bool | Callable[[str], None]) -> Callable[[str], None]:
+    """``progress`` as a callable of one line (``True``: stderr, with the time since the start)."""
+    if callable(progress):
+        return progress
+    if not progress:
+        return lambda line: None
+    start = time.perf_counter()
+    return lambda line: print(f"make_cage [{time.perf_counter() - start:5.1f} s] {line}", file=sys.stderr)
 
 
 def _attempt(
@@ -150,11 +170,14 @@ def _attempt(
     resolution: int,
     attempt: int,
     dtype: torch.dtype,
+    report: Callable[[str], None],
 ) -> Cage:
     """One envelope (offset ``2^(attempt + 1) margin``, seal ``2^attempt seal``), decimated, pushed
     out, checked."""
     grow = 2.0**attempt
+    report(f"envelope: closing and offset on a {resolution}-voxel grid")
     fine_v, fine_f = envelope(mesh, offset=2.0 * margin * grow, seal=seal * grow, resolution=resolution)
+    report(f"decimation: {fine_v.shape[0]:,} envelope vertices to about {target_vertices}")
     v_np, f_np = decimate(fine_v, fine_f, target_vertices)
     v = torch.from_numpy(v_np)
     tri = torch.from_numpy(f_np)
@@ -168,10 +191,13 @@ def _attempt(
         raise CageMakerError(
             "the simplified envelope intersects itself; try a higher target_vertices or a larger margin"
         )
+    report(f"enclosure: pushing faces out until all {points.shape[0]:,} input vertices are inside")
     v = push_outward(v, tri, torch.zeros((0, 4), dtype=torch.long), points, margin)
     quads = torch.zeros((0, 4), dtype=torch.long)
     if kind == "quad":
+        report("quads: pairing triangles into quads valid for QMVC, pushing the patches out")
         v, tri, quads = _quadify(v, tri, points, margin)
+    report("checks: self-intersections and validation")
     if self_intersections(v, tri, quads):
         raise CageMakerError(
             "the made cage intersects itself; try a higher target_vertices, a larger seal or a larger margin"
