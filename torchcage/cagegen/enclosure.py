@@ -92,8 +92,18 @@ def push_outward(
     members = torch.cat([triangles.flatten(), quads.flatten()])  # (3 T + 4 Q,) a face's vertices ...
     rows = torch.cat([torch.arange(T).repeat_interleave(3), T + torch.arange(Q).repeat_interleave(4)])  # ... its row
     crossings = self_intersections(v, triangles, quads)
+    # Only points that may have come closer than the clearance are measured again: a point's signed
+    # distance changes by at most the surface's motion, and no surface point moves farther than the
+    # farthest vertex (faces interpolate their vertices). So ``known - (drift - drift_then)`` is a
+    # lower bound of each point's clearance now, and points whose bound is above it are skipped.
+    N = points.shape[0]
+    known = torch.full((N,), -torch.inf, dtype=v.dtype)  # clearance when last measured
+    drift_then = torch.zeros(N, dtype=v.dtype)  # total drift then
+    drift = 0.0  # total of each round's largest vertex move
     for _ in range(rounds):
-        s, face = signed_clearance(points, v, triangles, quads)
+        check = torch.nonzero(known - (drift - drift_then) < clearance).flatten()
+        s, face = signed_clearance(points[check], v, triangles, quads)
+        known[check], drift_then[check] = s, drift
         bad = s < clearance
         if not bad.any():
             return v
@@ -119,6 +129,7 @@ def push_outward(
                 "pushing the cage out around the shape would make it intersect itself; make the cage with more "
                 "vertices (target_vertices), a larger margin, or a larger seal"
             )
+        drift += float((moved - v).norm(dim=1).max())
         v = moved
     s, _ = signed_clearance(points, v, triangles, quads)
     raise CageMakerError(
