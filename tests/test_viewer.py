@@ -288,3 +288,31 @@ def test_cli_view_errors(tmp_path, capsys):
     assert "missing.obj" in capsys.readouterr().err
     assert main(["view", "--mesh", str(D.path("bar.obj")), "--no-browser"]) == 2
     assert "both --mesh and --cage" in capsys.readouterr().err
+
+
+def test_cli_view_with_an_automatic_cage(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("skimage")
+    pytest.importorskip("fast_simplification")
+    import torchcage.cli as cli
+    import torchcage.viewer as viewer_module
+
+    seen = {}
+    real_view = viewer_module.view
+
+    def spy(*args, **kwargs):
+        seen["viewer"] = real_view(*args, **kwargs)
+        return seen["viewer"]
+
+    def serve_once(seconds):  # instead of serving until Ctrl+C: look at the page's scene, then stop
+        seen["scene"] = call(seen["viewer"].url + "api/scene")[2]
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(viewer_module, "view", spy)
+    monkeypatch.setattr(cli.time, "sleep", serve_once)
+    mesh = str(D.path("bar.obj"))
+    args = ["view", "--mesh", mesh, "--cage", "auto", "--cage-vertices", "20", "--no-browser", "--port", "0"]
+    assert cli.main([*args, "--out", str(tmp_path)]) == 0
+    made = torchcage.load_cage(tmp_path / "made_cage.obj")
+    assert abs(made.num_vertices - 20) <= 5
+    assert torch.allclose(torch.tensor(seen["scene"]["cage"]["vertices"], dtype=torch.float64), made.vertices)
+    assert "made a cage of" in capsys.readouterr().out
