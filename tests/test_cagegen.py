@@ -141,3 +141,37 @@ def test_cli_deform_with_an_automatic_cage_then_a_pose_of_it(tmp_path, capsys):
     wrong = [*args, "--out", str(tmp_path / "w"), "--deformed", str(d.path("bar_cage_deformed.obj"))]
     assert main(wrong) == 2
     assert "pose the made cage" in capsys.readouterr().err
+
+
+#: The issue's vertex targets on the QMVC data set's meshes.
+DATA_TARGETS = {"FireHydrant": 60, "Ogre": 150, "Beast": 200, "ManHead": 40}
+#: Known shortfalls of the quad kind against the tightness targets (docs/cagegen.md): FireHydrant's
+#: push-out of bent quads self-intersects and the envelope is rebuilt farther out (mean distance
+#: 0.091 against 1.5 x 0.055); Ogre's largest distance is 0.215 (target 0.2).
+QUAD_SHORTFALLS = {"FireHydrant", "Ogre"}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["triangle", "quad"])
+@pytest.mark.parametrize("model", list(DATA_TARGETS))
+def test_made_cages_on_the_data_set(model, kind, request):
+    from support import data_path
+
+    v, f = torchcage.load_mesh(data_path("qmvc", f"{model}.obj"))
+    handmade = torchcage.load_cage(data_path("qmvc", f"{model}_Cage.obj"))
+    target = DATA_TARGETS[model]
+    cage = torchcage.make_cage(v, f, target_vertices=target, kind=kind)
+    r = measure_cage(cage, v, f)
+    assert abs(r.vertices - target) <= 0.25 * target
+    assert r.outside == 0 and r.self_intersections == 0 and r.invalid_quads == 0
+    assert r.min_clearance >= 0.005 * (1 - 1e-9)
+    if kind == "quad":
+        assert r.quad_fraction >= 0.8
+    diag = float((v.amax(0) - v.amin(0)).norm())
+    lam = F.mean_value_coordinates(v, cage.triangulated())
+    assert torch.isfinite(lam).all()
+    assert (lam @ cage.vertices - v).abs().max() <= 1e-10 * diag
+    reference = measure_cage(handmade, v, f)
+    if kind == "quad" and model in QUAD_SHORTFALLS:
+        request.applymarker(pytest.mark.xfail(strict=True, reason="known quad-kind shortfall (docs/cagegen.md)"))
+    assert r.mean_distance <= 1.5 * reference.mean_distance and r.max_distance <= 0.2

@@ -222,7 +222,7 @@ function setMesh(positions) {
 function showInfo() {
   const rt = state.roundTrip === null ? '' : ` · pose round trip ${state.roundTrip.toFixed(0)} ms`;
   const n = mesh.geometry.attributes.position.count;
-  $('info').textContent = `${state.V} cage vertices, ${n.toLocaleString()} mesh vertices · `
+  $('info').textContent = `${state.V} cage vertices, ${n.toLocaleString()} ${mesh.isMesh ? 'mesh vertices' : 'points'} · `
     + `${state.selection.size} selected${rt}`;
   $('undo').disabled = state.hindex <= 0;
   $('redo').disabled = state.hindex >= state.history.length - 1;
