@@ -190,7 +190,9 @@ def test_a_failed_method_answers_409_with_the_cause(bar, tmp_path):
         code, _, scene = call(v.url + "api/scene")  # the page still loads, with the rest mesh and the cause
         assert code == 200 and scene["status"]["state"] == "failed" and not scene["mesh"]["deformed"]
         code, _, _ = call(v.url + "api/method", {"method": "mvc"})  # and it recovers
-        assert code == 202 and v.wait(60).state == "ready"
+        status = v.wait(60)
+        assert code == 202 and status.state == "ready"
+        assert any("1 of 2 mesh vertices lie outside" in w for w in status.warnings)  # shown on the page
         assert call(v.url + "api/pose", {"vertices": cage.vertices.tolist()})[0] == 200
 
 

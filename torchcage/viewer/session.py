@@ -227,9 +227,8 @@ class EditorSession:
         """A line for the page when mesh vertices lie outside the rest cage (winding numbers)."""
         from ..geometry import inside_cage
 
-        with self._lock:
-            if self._outside is None:
-                self._outside = int((~inside_cage(self.mesh_vertices, self.cage)).sum())
+        if self._outside is None:  # (once; outside the lock: requests go on meanwhile)
+            self._outside = int((~inside_cage(self.mesh_vertices, self.cage)).sum())
         if not self._outside:
             return []
         return [
