@@ -11,7 +11,8 @@ The pipeline (each step its own module):
    never letting the surface pass through itself;
 5. :mod:`.quads` (``kind="quad"``): triangle pairs merged into quads valid for QMVC (a maximum
    weight matching), then step 4 again for the bilinear patches (quads that lose validity are
-   split back);
+   split back), and :mod:`.tighten` pulls the vertices that the bent patches carried far out back
+   towards the shape;
 6. the result is validated as a :class:`~torchcage.Cage` (closed, manifold, outward, no
    self-intersection) before it is returned.
 """
@@ -34,6 +35,7 @@ from .envelope import envelope, point_spacing
 from .inputs import MeshInput, check_input
 from .quads import MIN_COSINE, corner_cosines, pair_triangles
 from .simplify import decimate
+from .tighten import tighten
 
 __all__ = ["DEFAULT_MARGIN", "DEFAULT_SEAL", "make_cage"]
 
@@ -197,6 +199,8 @@ def _attempt(
     if kind == "quad":
         report("quads: pairing triangles into quads valid for QMVC, pushing the patches out")
         v, tri, quads = _quadify(v, tri, points, margin)
+        report("tightening: pulling the farthest vertices back towards the shape")
+        v = tighten(v, tri, quads, points, None if mesh.faces is None else torch.from_numpy(mesh.faces), margin)
     report("checks: self-intersections and validation")
     if self_intersections(v, tri, quads):
         raise CageMakerError(
