@@ -93,19 +93,9 @@ def tighten(
         (True, True)
     """
     v = vertices.detach().to(torch.float64).clone()
-    V = v.shape[0]
     split02, split13 = both_triangulations(triangles, quads)
     both = torch.cat([split02, split13[triangles.shape[0] :]])  # every triangle of either triangulation
     crossings = self_intersections(v, triangles, quads)
-    faces_of: list[list[int]] = [[] for _ in range(V)]  # the quads at each vertex (their validity is checked)
-    ring: list[set[int]] = [{i} for i in range(V)]  # each vertex and its neighbours on its faces
-    for q, corners in enumerate(quads.tolist()):
-        for c in corners:
-            faces_of[c].append(q)
-            ring[c].update(corners)
-    for corners in triangles.tolist():
-        for c in corners:
-            ring[c].update(corners)
     diagonal = float((points.amax(0) - points.amin(0)).norm())
     d = _vertex_distances(v, points, mesh_faces)
     for _ in range(rounds):
@@ -122,12 +112,12 @@ def tighten(
             for fraction in FRACTIONS:
                 trial = v.clone()
                 trial[i] = v[i] - fraction * slack * normal[i]
-                own = faces_of[i]
-                if own and bool((corner_cosines(trial[quads[own]]) <= 0.2 * MIN_COSINE).any()):
+                own = quads[(quads == i).any(dim=1)]  # the quads at i: still valid for QMVC?
+                if own.numel() and bool((corner_cosines(trial[own]) <= 0.2 * MIN_COSINE).any()):
                     continue
                 # only the faces at vertex i move, within the box of their old and new corners: points
                 # farther than the margin from that box keep their distance and side
-                corners = torch.cat([v[sorted(ring[i])], trial[i : i + 1]])
+                corners = torch.cat([v[both[(both == i).any(dim=1)].flatten()], trial[i : i + 1]])
                 lo, hi = corners.amin(0) - margin, corners.amax(0) + margin
                 near = ((points >= lo) & (points <= hi)).all(dim=1)
                 if near.any() and not _still_clear(points[near], v, trial, i, split02, both, margin):

@@ -28,9 +28,9 @@ import torch
 
 from ..cage import Cage
 from .server import EditorServer
-from .session import EditorError, EditorSession, PoseError, Status
+from .session import CoordinatesError, EditorError, EditorSession, PoseError, Status
 
-__all__ = ["EditorError", "EditorServer", "EditorSession", "PoseError", "Status", "Viewer", "view"]
+__all__ = ["CoordinatesError", "EditorError", "EditorServer", "EditorSession", "PoseError", "Status", "Viewer", "view"]
 
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
 

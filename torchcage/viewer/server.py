@@ -1,8 +1,8 @@
 """The editor's HTTP server: the page, its static files and the scripting API, on the standard
 library's threading HTTP server (one thread per request, no dependency).
 
-Routes (JSON unless said otherwise; errors answer ``{"error": message}`` with 400, 404, 409 or
-413, and the server keeps serving):
+Routes (JSON unless said otherwise; errors answer ``{"error": message}`` with 400, 404, 409 (the
+coordinates failed or are still computing) or 413, and the server keeps serving):
 
 - ``GET /``: the editor page; ``GET /static/<file>``: its script and the vendored three.js.
 - ``GET /api/scene``: ``{"cage": {"vertices", "faces", "edges", "rest"}, "mesh": {"vertices",
@@ -43,7 +43,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
-from .session import EditorError, EditorSession
+from .session import CoordinatesError, EditorError, EditorSession
 
 __all__ = ["MAX_BODY", "EditorServer"]
 
@@ -130,9 +130,10 @@ class _Handler(BaseHTTPRequestHandler):
             route(query)
         except _RequestError as err:
             self._error(err.status, str(err))
+        except CoordinatesError as err:  # the request was fine; the coordinates cannot serve it
+            self._error(HTTPStatus.CONFLICT, str(err))
         except (EditorError, ValueError, TypeError) as err:
-            conflict = isinstance(err, EditorError) and "failed" in str(err)
-            self._error(HTTPStatus.CONFLICT if conflict else HTTPStatus.BAD_REQUEST, str(err))
+            self._error(HTTPStatus.BAD_REQUEST, str(err))
         except (BrokenPipeError, ConnectionResetError):  # the client went away
             self.close_connection = True
         except Exception as err:  # never let one request take the server down

@@ -31,7 +31,7 @@ from ..cage import Cage
 from ..errors import CageError
 from ..methods import METHOD_NAMES, METHODS, build_module
 
-__all__ = ["EditorError", "EditorSession", "PoseError", "Status"]
+__all__ = ["CoordinatesError", "EditorError", "EditorSession", "PoseError", "Status"]
 
 _PREFIX = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")
 
@@ -39,6 +39,11 @@ _PREFIX = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")
 class EditorError(ValueError):
     """The editor cannot do what was asked: the coordinates failed or are not ready, or a file
     cannot be written; the message names the cause and the fix."""
+
+
+class CoordinatesError(EditorError):
+    """The coordinates cannot serve a pose: their computation failed (choose another method) or
+    has not finished in time (retry)."""
 
 
 class PoseError(EditorError):
@@ -163,7 +168,7 @@ class EditorSession:
 
         Raises:
             ValueError: an unknown method.
-            EditorError: with ``wait``, the computation failed.
+            CoordinatesError: with ``wait``, the computation failed.
         """
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
@@ -183,7 +188,7 @@ class EditorSession:
             self._compute(method, token)
             status = self.status()
             if status.state == "failed":
-                raise EditorError(status.message)
+                raise CoordinatesError(status.message)
             return status
         threading.Thread(target=self._compute, args=(method, token), name=f"torchcage-{method}", daemon=True).start()
         return self.status()
@@ -297,7 +302,7 @@ class EditorSession:
 
         Raises:
             PoseError: a pose of the wrong shape, or with NaN or inf.
-            EditorError: the coordinates failed (choose another method).
+            CoordinatesError: the coordinates failed (choose another method).
         """
         return self.post_pose(vertices, wait=wait)[1]
 
@@ -316,16 +321,16 @@ class EditorSession:
         when the coordinates are not ready and ``wait`` is ``False``.
 
         Raises:
-            EditorError: the coordinates failed, or did not finish within ``wait`` seconds.
+            CoordinatesError: the coordinates failed, or did not finish within ``wait`` seconds.
         """
         pose = self.pose if pose is None else self._check_pose(pose)
         with self._lock:
             if wait is not False and self._status.state == "computing":
                 timeout = None if wait is True else float(wait)
                 if not self._lock.wait_for(lambda: self._status.state != "computing", timeout):
-                    raise EditorError(f"the coordinates are still computing ({self._status.message}); retry later")
+                    raise CoordinatesError(f"the coordinates are still computing ({self._status.message}); retry later")
             if self._status.state == "failed":
-                raise EditorError(f"{self._status.message}; choose another method")
+                raise CoordinatesError(f"{self._status.message}; choose another method")
             module = self._module
         if module is None:
             return None
@@ -372,7 +377,7 @@ class EditorSession:
         pose = self.pose
         deformed = self.deform(pose, wait=60.0)
         if deformed is None:  # pragma: no cover - deform waits or raises
-            raise EditorError("the coordinates are not ready; retry when they are")
+            raise CoordinatesError("the coordinates are not ready; retry when they are")
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             paths = {"cage": self.out_dir / f"{prefix}_cage.obj", "mesh": self.out_dir / f"{prefix}_mesh.obj"}
@@ -389,7 +394,7 @@ class EditorSession:
         pose = self.pose
         try:
             deformed = self.deform(pose, wait=False)
-        except EditorError:  # the coordinates failed: the page shows the rest mesh and the message
+        except CoordinatesError:  # the coordinates failed: the page shows the rest mesh and the message
             deformed = None
         status = self.status()
         mesh = self.mesh_vertices if deformed is None else deformed
