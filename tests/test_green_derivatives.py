@@ -8,7 +8,7 @@ from __future__ import annotations
 import mpmath as mp
 import pytest
 import torch
-from reference import green3d_reference
+from reference import green3d_reference, mvc_derivatives_reference
 from support import data_path, l_shape
 from test_gradient_references import _sample
 
@@ -66,7 +66,7 @@ def test_matches_autograd_and_reproduces_the_identity(name: str) -> None:
     x = lo + (hi - lo) * torch.rand(300, 3, generator=g, dtype=D64)
     x = x[inside_cage(x, cage)][:40]
     _, _, gphi, gpsi = F.green_derivatives(x, cage)
-    ap, aq = _autograd_rows(x, cage, "extend")
+    ap, aq, _, _ = _autograd_rows(x, cage, "extend")
     assert float((gphi - ap).abs().max()) <= 1e-12 and float((gpsi - aq).abs().max()) <= 1e-12
     J = torch.einsum("nvi,vj->nji", gphi, v) + torch.einsum("nti,tj->nji", gpsi, cage.triangle_normals())
     assert float((J - torch.eye(3, dtype=D64)).abs().max()) <= 1e-10
@@ -78,12 +78,12 @@ def test_rows_the_closed_form_does_not_serve() -> None:
     cube = _cube()
     x = torch.tensor([[0.2, 0.1, 1.5], [0.3, -0.2, 1.0], [0.0, 0.0, 0.0]], dtype=D64)
     _, _, gphi, gpsi = F.green_derivatives(x, cube)
-    ap, aq = _autograd_rows(x, cube, "extend")
+    ap, aq, _, _ = _autograd_rows(x, cube, "extend")
     assert torch.isfinite(gphi).all() and torch.equal(gphi[:2], ap[:2]) and torch.equal(gpsi[:2], aq[:2])
     sliver = sliver_cube()
     y = torch.tensor([[0.2, -0.68, -0.99]], dtype=D64)  # a few hundred widths above the sliver
     _, _, gp, gs = F.green_derivatives(y, sliver)
-    bp, bs = _autograd_rows(y, sliver, "extend")
+    bp, bs, _, _ = _autograd_rows(y, sliver, "extend")
     assert torch.equal(gp, bp) and torch.equal(gs, bs)
     poly = tc.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 1], [1, 1.5], [0, 1]], dtype=D64))
     z = torch.tensor([[0.5, 0.5], [1.5, 0.7]], dtype=D64)
@@ -93,6 +93,58 @@ def test_rows_the_closed_form_does_not_serve() -> None:
     assert float((J - torch.eye(2, dtype=D64)).abs().max()) <= 1e-10
 
 
-def test_order_two_is_not_there_yet() -> None:
-    with pytest.raises(NotImplementedError, match="Hessians"):
-        F.green_derivatives(torch.zeros(1, 3, dtype=D64), _cube(), order=2)
+def _bare(y: list, cage: tc.Cage) -> list:
+    """``phi`` then ``psi`` of one point, 60 digits."""
+    phi, psi = green3d_reference(y, cage.vertices, cage.triangles)
+    return [*phi, *psi]
+
+
+@pytest.mark.parametrize("name", ["cube", pytest.param("l_shape", marks=pytest.mark.slow)])
+def test_hessians_match_high_precision_differences(name: str) -> None:
+    """Both kernels' Hessians against 60-digit second differences of the mpmath closed forms, at
+    points near faces, support planes, edge lines and corners."""
+    cage = _cube() if name == "cube" else l_shape().triangulated()
+    X, cats = _sample(cage, 2, seed=1, far=False)
+    nat = F.green_derivatives(X, cage, order=2, exterior="none", backend="native")
+    tor = F.green_derivatives(X, cage, order=2, exterior="none", backend="torch")
+    for a, b in zip(nat[2:], tor[2:], strict=True):
+        assert float((a - b).abs().max() / b.abs().max()) <= 1e-11
+    for i in range(X.shape[0]):
+        grad, hess = mvc_derivatives_reference(X[i].tolist(), lambda y: _bare(y, cage), cage.scale)
+        ref_g, ref_h = torch.tensor(grad, dtype=D64), torch.tensor(hess, dtype=D64)
+        got_h = torch.cat([nat[4][i], nat[5][i]])
+        got_g = torch.cat([nat[2][i], nat[3][i]])
+        assert float((got_h - ref_h).norm() / ref_h.norm()) <= 1e-9, (cats[i], X[i].tolist())
+        assert float((got_g - ref_g).norm() / ref_g.norm()) <= 1e-9, (cats[i], X[i].tolist())
+
+
+def test_hessians_reproduce_the_identity_and_match_autograd() -> None:
+    """The second derivatives of ``sum phi_i v_i + sum psi_t n_t = x`` vanish, and the closed
+    form agrees with double autograd of the torch kernel; outside points and polygons take the
+    autograd rows (finite, symmetric, identity kept)."""
+    cage = l_shape().triangulated()
+    g = torch.Generator().manual_seed(3)
+    v = cage.vertices
+    lo, hi = v.min(0).values, v.max(0).values
+    x = lo + (hi - lo) * torch.rand(200, 3, generator=g, dtype=D64)
+    x = x[inside_cage(x, cage)][:12]
+    x = torch.cat([x, torch.tensor([[0.3, 0.2, 2.5]], dtype=D64)])  # and one outside
+    _, _, gphi, gpsi, hphi, hpsi = F.green_derivatives(x, cage, order=2)
+    _, _, hp, hs = _autograd_rows(x, cage, "extend", order=2)
+    assert float((hphi - hp).abs().max()) <= 1e-9 * float(hp.abs().max())
+    assert float((hpsi - hs).abs().max()) <= 1e-9 * float(hs.abs().max())
+    H = torch.einsum("nvab,vj->njab", hphi, v) + torch.einsum("ntab,tj->njab", hpsi, cage.triangle_normals())
+    assert float(H[:-1].abs().max()) <= 1e-10 * cage.scale
+    assert torch.equal(hphi, hphi.transpose(-1, -2))
+    poly = tc.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 1], [1, 1.5], [0, 1]], dtype=D64))
+    z = torch.tensor([[0.5, 0.5], [1.5, 0.7]], dtype=D64)
+    _, _, _, _, hp2, hs2 = F.green_derivatives(z, poly, order=2)
+    H2 = torch.einsum("nvab,vj->njab", hp2, poly.vertices) + torch.einsum("ntab,tj->njab", hs2, poly.edge_normals())
+    assert hp2.shape == (2, 5, 2, 2) and float(H2.abs().max()) <= 1e-10
+
+
+def test_bad_order_and_backend() -> None:
+    with pytest.raises(ValueError, match="order"):
+        F.green_derivatives(torch.zeros(1, 3, dtype=D64), _cube(), order=3)
+    with pytest.raises(ValueError, match="backend"):
+        F.green_derivatives(torch.zeros(1, 3, dtype=D64), _cube(), backend="cuda")

@@ -383,3 +383,13 @@ def unique_face_edges(tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, to
     uniq, inv = torch.unique(torch.stack([lo, hi], dim=-1).reshape(-1, 2), dim=0, return_inverse=True)
     sign = torch.where(opp[..., 0] == lo, 1.0, -1.0).to(torch.float64)
     return uniq, inv.reshape(-1, 3), sign
+
+
+def jacobian_rows(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> list[torch.Tensor]:
+    """``[d y / d x[:, c]`` ``(n, V)`` for each ``c]`` of a row-wise map ``y (n, V) = f(x (n, D))``
+    (row ``p`` of ``y`` depends on row ``p`` of ``x`` only), by differentiating the vector-Jacobian
+    product ``r(Z) = J^T Z`` (linear in ``Z``) with respect to ``Z``: ``D + 1`` backward passes."""
+    Z = torch.zeros_like(y, requires_grad=True)
+    (r,) = torch.autograd.grad(y, x, Z, create_graph=True)
+    D = x.shape[1]
+    return [torch.autograd.grad(r[:, c].sum(), Z, retain_graph=True, create_graph=create_graph)[0] for c in range(D)]

@@ -181,7 +181,8 @@ def triangle_integrals(
     :func:`._thin_triangle.thin_triangle_integrals` (off for the quad Riemann sums' cells, whose
     estimate only needs the closed forms' solid angles, as the native kernel's). ``extras``: a dict
     that receives ``"K"`` (``(..., 3)``, ``int (rho - rho_0) / r^3`` over the face) and ``"thin"``
-    (the pairs that took the swept form, or None), for :func:`green3d_gradients`."""
+    (the pairs that took the swept form, or None), for
+    :func:`._green3d_derivatives.green3d_derivatives`."""
     normal, two_area, edge_dir, edge_out, grad_bary = geometry
     R = safe_norm(a)  # (..., 3)
     aj, ak = a[..., [1, 2, 0], :], a[..., [2, 0, 1], :]  # edge e runs from corner e + 1 to e + 2
@@ -254,50 +255,6 @@ def _put_thin(a, h, two_area, thin, phi_face, psi, omega) -> tuple[torch.Tensor,
     psi = psi.reshape(-1).index_put((idx,), ps).reshape(shape)
     omega = omega.reshape(-1).index_put((idx,), om).reshape(shape)
     return phi_face, psi, omega
-
-
-def green3d_gradients(x: torch.Tensor, data: TriangleGreenData, num_vertices: int) -> tuple[torch.Tensor, ...]:
-    r"""Gradients of the bare Green integrals with respect to the points, in closed form.
-
-    Differentiating the double layer of a face's hat function and integrating by parts on the face
-    (the vector potential of a flat panel: :math:`(n \cdot \nabla)\nabla G = -\nabla \times (n \times
-    \nabla G)` for harmonic ``G``, then Stokes' theorem) gives an edge integral plus the face terms
-
-    .. math::
-        \nabla \int_t \Gamma_i \frac{h}{r^3} = \oint_{\partial t} \Gamma_i \frac{(\rho - x) \times d\rho}{r^3}
-            + \Omega_t\, g_i - n_t\, (g_i \cdot K_t),\qquad
-        \nabla \int_t \frac{1}{r} = K_t + \Omega_t\, n_t .
-
-    The hat functions are continuous across the cage's edges, which the two faces of an edge run in
-    opposite directions: summed over a closed cage the edge integrals cancel, and
-    :math:`\nabla\phi_i = \frac{1}{4\pi}\sum_{t \ni i} (\Omega_t g_i - n_t\, g_i \cdot K_t)`,
-    :math:`\nabla\psi_t = \frac{1}{4\pi}(K_t + \Omega_t n_t)`, from quantities the values already
-    need.
-
-    Args:
-        x: ``(n, 3)`` points.
-        data: the cage constants.
-        num_vertices: ``V``.
-
-    Returns:
-        ``(grad_phi (n, V, 3), grad_psi (n, T, 3), exact (n,))``: ``exact`` is False for rows the
-        closed form does not serve (a point on the cage, or a thin face seen from a few widths,
-        where ``K`` cancels: callers differentiate the kernel there).
-    """
-    extras: dict = {}
-    a = data.p[None] - x[:, None, None, :]
-    geometry = (data.normal[None], data.two_area[None], data.edge_dir[None], data.edge_out[None], data.grad_bary[None])
-    _, _, omega, on_face, _ = triangle_integrals(a, geometry, data.tol, extras=extras)
-    K, n, g = extras["K"], data.normal[None], data.grad_bary[None]  # (n, T, 3), (1, T, 3), (1, T, 3, 3)
-    face = (omega[..., None, None] * g - n[..., None, :] * (g * K[..., None, :]).sum(-1)[..., None]) / (4 * math.pi)
-    grad_phi = torch.zeros(x.shape[0], num_vertices, 3, dtype=x.dtype, device=x.device)
-    for i in range(3):
-        grad_phi.index_add_(1, data.tri[:, i], face[:, :, i])
-    grad_psi = (K + omega[..., None] * n) / (4 * math.pi)
-    exact = ~on_face.any(dim=1)
-    if extras["thin"] is not None:
-        exact &= ~extras["thin"].any(dim=1)
-    return grad_phi, grad_psi, exact
 
 
 def green3d_coordinates(

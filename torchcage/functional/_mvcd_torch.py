@@ -15,23 +15,13 @@ from collections.abc import Callable
 import torch
 
 from ..cage import Cage
-from ._common import chunks
+from ._common import chunks, jacobian_rows
 from ._edge_line import edge_line_offsets
 from ._mvc2d import mvc2d_chunk, polygon_data
 from ._mvc3d import mvc3d_chunk, triangle_cage_data
 from ._mvc_dispatch import coordinates_flat
 
 __all__ = ["torch_derivatives"]
-
-
-def _jacobian_rows(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> list[torch.Tensor]:
-    """``[d y / d x[:, c]`` ``(n, V)`` for each ``c]`` of a row-wise map ``y (n, V) = f(x (n, D))``
-    (row ``p`` of ``y`` depends on row ``p`` of ``x`` only), by differentiating the vector-Jacobian
-    product ``r(Z) = J^T Z`` (linear in ``Z``) with respect to ``Z``: ``D + 1`` backward passes."""
-    Z = torch.zeros_like(y, requires_grad=True)
-    (r,) = torch.autograd.grad(y, x, Z, create_graph=True)
-    D = x.shape[1]
-    return [torch.autograd.grad(r[:, c].sum(), Z, retain_graph=True, create_graph=create_graph)[0] for c in range(D)]
 
 
 def torch_derivatives(
@@ -83,9 +73,9 @@ def _plain(
         xc = x[sl].clone().requires_grad_()
         with torch.enable_grad():
             lc = coordinates_flat(xc, rest, backend="torch")
-            gc = _jacobian_rows(lc, xc, create_graph=order == 2)
+            gc = jacobian_rows(lc, xc, create_graph=order == 2)
             if order == 2:
-                hess[sl] = torch.stack([torch.stack(_jacobian_rows(g, xc, False), dim=-1) for g in gc], dim=2)
+                hess[sl] = torch.stack([torch.stack(jacobian_rows(g, xc, False), dim=-1) for g in gc], dim=2)
         lam[sl], grad[sl] = lc.detach(), torch.stack(gc, dim=-1).detach()
         with torch.no_grad():
             on[sl] = flags(x[sl], data)[1]
