@@ -14,11 +14,19 @@ from test_gradient_references import _sample
 
 import torchcage as tc
 from torchcage import functional as F
+from torchcage.functional._green_derivatives_flat import autograd_rows
+from torchcage.functional._green_dispatch import green_flat
 from torchcage.functional.green_derivatives import _autograd_rows
 from torchcage.geometry import inside_cage
 from torchcage.testing import sliver_cube
 
 D64 = torch.float64
+
+
+def _kernel_rows(x: torch.Tensor, cage: tc.Cage, order: int = 1) -> tuple[torch.Tensor, ...]:
+    """Plain autograd of the torch kernel of the bare integrals (no custom Function): the
+    independent reference for points inside."""
+    return autograd_rows(x, order, lambda y: green_flat(y, cage, backend="torch"))
 
 
 def _cube() -> tc.Cage:
@@ -66,7 +74,7 @@ def test_matches_autograd_and_reproduces_the_identity(name: str) -> None:
     x = lo + (hi - lo) * torch.rand(300, 3, generator=g, dtype=D64)
     x = x[inside_cage(x, cage)][:40]
     _, _, gphi, gpsi = F.green_derivatives(x, cage)
-    ap, aq, _, _ = _autograd_rows(x, cage, "extend")
+    ap, aq, _, _ = _kernel_rows(x, cage)
     assert float((gphi - ap).abs().max()) <= 1e-12 and float((gpsi - aq).abs().max()) <= 1e-12
     J = torch.einsum("nvi,vj->nji", gphi, v) + torch.einsum("nti,tj->nji", gpsi, cage.triangle_normals())
     assert float((J - torch.eye(3, dtype=D64)).abs().max()) <= 1e-10
@@ -129,8 +137,10 @@ def test_hessians_reproduce_the_identity_and_match_autograd() -> None:
     x = lo + (hi - lo) * torch.rand(200, 3, generator=g, dtype=D64)
     x = x[inside_cage(x, cage)][:12]
     x = torch.cat([x, torch.tensor([[0.3, 0.2, 2.5]], dtype=D64)])  # and one outside
-    _, _, gphi, gpsi, hphi, hpsi = F.green_derivatives(x, cage, order=2)
-    _, _, hp, hs = _autograd_rows(x, cage, "extend", order=2)
+    *_, hphi, hpsi = F.green_derivatives(x, cage, order=2)
+    _, _, hp, hs = _kernel_rows(x[:-1], cage, order=2)
+    hp = torch.cat([hp, _autograd_rows(x[-1:], cage, "extend", order=2)[2]])
+    hs = torch.cat([hs, _autograd_rows(x[-1:], cage, "extend", order=2)[3]])
     assert float((hphi - hp).abs().max()) <= 1e-9 * float(hp.abs().max())
     assert float((hpsi - hs).abs().max()) <= 1e-9 * float(hs.abs().max())
     H = torch.einsum("nvab,vj->njab", hphi, v) + torch.einsum("ntab,tj->njab", hpsi, cage.triangle_normals())
@@ -148,3 +158,80 @@ def test_bad_order_and_backend() -> None:
         F.green_derivatives(torch.zeros(1, 3, dtype=D64), _cube(), order=3)
     with pytest.raises(ValueError, match="backend"):
         F.green_derivatives(torch.zeros(1, 3, dtype=D64), _cube(), backend="cuda")
+
+
+@pytest.mark.parametrize("store", [0, 2])
+def test_module_jacobian_and_hessian_match_autograd_of_the_deformation(store: int) -> None:
+    """``GreenCoordinates.jacobian`` / ``.hessian`` against autograd of the functional deformation
+    (stretch factors included) at points inside and one outside; a similarity's Jacobian is its
+    scaled rotation and its Hessian vanishes."""
+    from torch.autograd.functional import hessian, jacobian
+
+    from torchcage.functional.deform import green_deformation
+
+    cage = _cube()
+    g = torch.Generator().manual_seed(5)
+    pts = torch.rand(6, 3, generator=g, dtype=D64) * 1.8 - 0.9
+    pts[0] = torch.tensor([0.3, 0.2, 1.3], dtype=D64)  # outside: the extension's derivatives
+    gc = tc.GreenCoordinates(cage, pts, store_derivatives=store)
+    Q = cage.vertices + 0.2 * torch.randn(cage.vertices.shape, generator=g, dtype=D64)
+    J, H = gc.jacobian(Q), gc.hessian(Q)
+
+    def deform(x: torch.Tensor) -> torch.Tensor:
+        phi, psi = F.green_coordinates(x[None], cage)
+        return green_deformation(phi, psi, cage.vertices, Q, cage.triangles)[0]
+
+    for i in range(pts.shape[0]):
+        assert float((jacobian(deform, pts[i]) - J[i]).abs().max()) <= 1e-12
+        for a in range(3):
+            Ha = hessian(lambda x, a=a: deform(x)[a], pts[i])
+            assert float((Ha - H[i, a]).abs().max()) <= 1e-10 * (1 + float(Ha.abs().max()))
+    R = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=D64))[0]
+    S = 2 * cage.vertices @ R.T + 1
+    assert float((gc.jacobian(S) - 2 * R).abs().max()) <= 1e-12
+    assert float(gc.hessian(S).abs().max()) <= 1e-10
+
+
+def test_module_derivatives_of_batched_cages() -> None:
+    cube = _cube()
+    batch = tc.Cage(torch.stack([cube.vertices, 2 * cube.vertices]), cube.triangles)
+    pts = torch.tensor([[0.1, 0.2, 0.3], [-0.5, 0.4, 0.0]], dtype=D64)
+    gc = tc.GreenCoordinates(batch, pts)
+    J = gc.jacobian(batch.vertices)
+    assert J.shape == (2, 2, 3, 3) and float((J - torch.eye(3, dtype=D64)).abs().max()) <= 1e-12
+    with pytest.raises(ValueError, match="store_derivatives"):
+        tc.GreenCoordinates(cube, pts, store_derivatives=3)
+
+
+def test_autograd_through_the_closed_form() -> None:
+    """``green_coordinates`` differentiated with respect to the points runs the closed-form
+    gradients (double backward: the Hessians): gradcheck and gradgradcheck inside and outside (the
+    extension), the same gradient as the torch kernel's autograd, and the cage's vertices still
+    differentiable alongside."""
+    from torchcage.autograd.green import GreenGradFunction
+
+    cage = _cube()
+    g = torch.Generator().manual_seed(7)
+    x = torch.rand(4, 3, generator=g, dtype=D64) * 1.8 - 0.9
+    x = torch.cat([x, torch.tensor([[0.3, 0.2, 1.3]], dtype=D64)]).requires_grad_()
+    f = lambda y: F.green_coordinates(y, cage)  # noqa: E731
+    assert torch.autograd.gradcheck(f, (x,))
+    assert torch.autograd.gradgradcheck(f, (x,))
+    phi, psi = f(x)
+    seen = []
+    original = GreenGradFunction.forward
+
+    def spy(*args):
+        seen.append(1)
+        return original(*args)
+
+    GreenGradFunction.forward = staticmethod(spy)
+    try:
+        (gx,) = torch.autograd.grad((phi[:, 2] + psi[:, 5]).sum(), x)
+    finally:
+        GreenGradFunction.forward = staticmethod(original)
+    assert seen
+    ap, aq, _, _ = _kernel_rows(x[:-1].detach(), cage)
+    assert float((gx[:-1] - ap[:, 2] - aq[:, 5]).abs().max()) <= 1e-12
+    P = cage.vertices.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda y, Q: F.green_coordinates(y, tc.Cage(Q, cage.triangles)), (x, P))

@@ -1,5 +1,6 @@
-"""The autograd Function of Green coordinates: values by the fastest kernel, derivatives with
-respect to the points and the rest cage's vertices by recomputing chunk by chunk.
+"""The autograd Functions of Green coordinates: values by the fastest kernel; derivatives with
+respect to the points by the closed-form gradients (3D; Hessians on double backward), and with
+respect to the rest cage's vertices (and in 2D) by recomputing chunk by chunk.
 
 ``GreenFunction`` computes ``(phi, psi)`` without a graph (the native kernel where it serves) and,
 in ``backward``, runs the torch kernel again over chunks of points under autograd, one chunk at a
@@ -7,6 +8,11 @@ time: the derivatives are exact (autograd of the same closed forms) and the memo
 pass is that of one chunk's intermediates, not of every point's (plain autograd of the forward
 kept them all: 1.8 GB for the FireHydrant model). Double backward works: with ``create_graph``
 the chunks' graphs are kept.
+
+For 3D points alone (the rest cage constant), ``backward`` contracts the closed-form gradients
+(:func:`torchcage.functional.green_derivatives`, native where it loads) with the incoming
+cotangents instead: ``GreenGradFunction`` computes them, and its own derivative with respect to the
+points is the closed-form Hessian (``GreenHessFunction``), so double backward is analytic too.
 """
 
 from __future__ import annotations
@@ -16,9 +22,10 @@ from torch import Tensor
 
 from ..cage import Cage
 from ..functional._common import result_dtype
+from ..functional._green_derivatives_flat import bare_derivatives
 from ..functional._green_dispatch import green_flat
 
-__all__ = ["GreenFunction", "green_function"]
+__all__ = ["GreenFunction", "GreenGradFunction", "GreenHessFunction", "green_function"]
 
 #: Point-face pairs per chunk of the backward pass (about 1 KB of autograd state each).
 _PAIRS = 1 << 17
@@ -26,6 +33,56 @@ _PAIRS = 1 << 17
 
 def _cage(vertices: Tensor, faces: Tensor) -> Cage:
     return Cage._from_faces(vertices, faces)
+
+
+def _derivatives(points: Tensor, vertices: Tensor, faces: Tensor, order: int) -> tuple[Tensor, Tensor]:
+    """Closed-form gradients (order 1) or Hessians (order 2) of the bare Green integrals at the
+    points, in the points' dtype: ``(d phi (N, V, 3...), d psi (N, T, 3...))``."""
+    cage = _cage(vertices.detach(), faces)
+    compute, _ = result_dtype(points, cage, None)
+    out = bare_derivatives(points.detach().to(compute), cage.to(compute), order)
+    d_phi, d_psi = (out[0], out[1]) if order == 1 else (out[2], out[3])
+    return d_phi.to(points.dtype), d_psi.to(points.dtype)
+
+
+class GreenHessFunction(torch.autograd.Function):
+    """``(points (N, 3), vertices (V, 3), faces) -> (H phi (N, V, 3, 3), H psi (N, T, 3, 3))``."""
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+        return _derivatives(points, vertices, faces, 2)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        pass
+
+    @staticmethod
+    def backward(ctx, gh_phi: Tensor, gh_psi: Tensor):
+        raise RuntimeError("third derivatives of Green coordinates are not implemented (gradients and Hessians are)")
+
+
+class GreenGradFunction(torch.autograd.Function):
+    """``(points (N, 3), vertices (V, 3), faces) -> (grad phi (N, V, 3), grad psi (N, T, 3))``,
+    closed form; its derivative with respect to the points is the closed-form Hessian (the rest
+    cage is a constant here: :class:`GreenFunction` takes this path only then)."""
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+        return _derivatives(points, vertices, faces, 1)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(inputs[0], inputs[1])
+        ctx.faces = inputs[2]
+
+    @staticmethod
+    def backward(ctx, g_phi: Tensor, g_psi: Tensor):
+        x, P = ctx.saved_tensors
+        if ctx.needs_input_grad[1]:
+            raise RuntimeError("GreenGradFunction differentiates with respect to the points only")
+        h_phi, h_psi = GreenHessFunction.apply(x, P, ctx.faces)
+        gx = torch.einsum("nvc,nvcd->nd", g_phi, h_phi) + torch.einsum("ntc,ntcd->nd", g_psi, h_psi)
+        return gx, None, None
 
 
 class GreenFunction(torch.autograd.Function):
@@ -47,6 +104,15 @@ class GreenFunction(torch.autograd.Function):
     def backward(ctx, gphi: Tensor, gpsi: Tensor):
         x, P = ctx.saved_tensors
         need_x, need_P = ctx.needs_input_grad[:2]
+        if need_x and not need_P and not P.requires_grad and x.shape[-1] == 3:
+            # the points alone: the closed-form gradients (Hessians on double backward)
+            d_phi, d_psi = GreenGradFunction.apply(x, P, ctx.faces)
+            gx = 0
+            if gphi is not None:
+                gx = gx + torch.einsum("nv,nvc->nc", gphi.to(d_phi.dtype), d_phi)
+            if gpsi is not None:
+                gx = gx + torch.einsum("nt,ntc->nc", gpsi.to(d_psi.dtype), d_psi)
+            return (gx if torch.is_tensor(gx) else torch.zeros_like(x)), None, None, None, None
         create = torch.is_grad_enabled()
         size = max(64, _PAIRS // max(1, ctx.faces.shape[0]))
         gx_parts, gP = [], torch.zeros_like(P) if need_P else None

@@ -91,7 +91,7 @@ def green3d_derivatives(
         closed form does not serve (a point on the cage, or a thin face seen from a few widths,
         where ``K`` cancels: callers differentiate the kernel there).
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage.functional._green3d import triangle_green_data
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).to(torch.float64).triangulated()

@@ -12,14 +12,11 @@ from __future__ import annotations
 
 import torch
 
-from .. import _native
 from ..cage import Cage
 from ..errors import CageError
 from ..geometry import inside_cage
-from . import _green3d_derivatives_native
-from ._common import as_inputs, check_points, chunks, default_chunk, jacobian_rows, result_dtype
-from ._green3d import triangle_green_data
-from ._green3d_derivatives import green3d_derivatives
+from ._common import as_inputs, check_points, result_dtype
+from ._green_derivatives_flat import autograd_rows, closed_form, library
 from .green import green_coordinates
 
 __all__ = ["green_derivatives"]
@@ -28,24 +25,9 @@ __all__ = ["green_derivatives"]
 def _autograd_rows(
     x: torch.Tensor, cage: Cage, exterior: str, order: int = 1
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(grad_phi (m, V, D), grad_psi (m, T, D), hess_phi (m, V, D, D), hess_psi (m, T, D, D))``
-    (Hessians empty for ``order=1``) by autograd of the torch kernel. Each coordinate of a row
-    depends on that row's point only, so ``D + 1`` backward passes give every gradient
-    (:func:`._common.jacobian_rows`), and ``D + 1`` more per gradient column the Hessians."""
-    xr = x.detach().clone().requires_grad_(True)
-    V = cage.num_vertices
-    with torch.enable_grad():
-        phi, psi = green_coordinates(xr, cage, backend="torch", exterior=exterior)
-        y = torch.cat([phi, psi], dim=1)
-        cols = jacobian_rows(y, xr, create_graph=order == 2)
-        hess = x.new_empty((0,))
-        if order == 2:
-            hess = torch.stack([torch.stack(jacobian_rows(c, xr, False), dim=-1) for c in cols], dim=2).detach()
-            hess = 0.5 * (hess + hess.transpose(-1, -2))
-    G = torch.stack(cols, dim=-1).detach()
-    if order == 1:
-        return G[:, :V], G[:, V:], hess, hess
-    return G[:, :V], G[:, V:], hess[:, :V], hess[:, V:]
+    """The derivatives of :func:`green_coordinates` (with ``exterior``) at ``x`` by autograd of
+    the torch kernel (:func:`._green_derivatives_flat.autograd_rows`)."""
+    return autograd_rows(x, order, lambda y: green_coordinates(y, cage, backend="torch", exterior=exterior))
 
 
 def green_derivatives(
@@ -97,8 +79,7 @@ def green_derivatives(
     """
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order!r}")
-    if backend not in ("auto", "native", "torch"):
-        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
+    library(backend, torch.empty(0))  # (checks the name)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         raise CageError("green_derivatives takes one cage; call it per element (cage[b])")
@@ -115,17 +96,8 @@ def green_derivatives(
     hpsi = torch.zeros(hshape[0], T, D, D, dtype=compute, device=x.device) if hshape else x.new_empty((0,))
     exact = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
     if D == 3 and x.shape[0]:
-        data = triangle_green_data(cage, compute)
         inside = inside_cage(x, cage.to(compute)) if exterior == "extend" else torch.ones_like(exact)
-        lib = _library(backend, x) if compute == torch.float64 else None
-        if lib is not None:
-            exact = _green3d_derivatives_native.derivatives(x, data, cage.vertices.to(compute), lib, order, gphi, gpsi, hphi, hpsi)
-        else:
-            for sl in chunks(x.shape[0], chunk_size or default_chunk(T, (1 << 16) if order == 1 else (1 << 14))):
-                gp, gs, hp, hs, ok = green3d_derivatives(x[sl], data, V, order)
-                gphi[sl], gpsi[sl], exact[sl] = gp, gs, ok
-                if order == 2:
-                    hphi[sl], hpsi[sl] = hp, hs
+        gphi, gpsi, hphi, hpsi, exact = closed_form(x, cage.to(compute), order, chunk_size, backend)
         exact &= inside
         # (inside, the coordinates are divided by their sum, 1 to rounding, whose derivatives are 0)
         s = phi.sum(dim=1)
@@ -148,16 +120,3 @@ def green_derivatives(
     if order == 1:
         return result
     return (*result, hphi.to(out).reshape(*lead, V, D, D), hpsi.to(out).reshape(*lead, T, D, D))
-
-
-def _library(backend: str, x: torch.Tensor) -> object | None:
-    """The native library when it serves this call (CPU points, float64, a loadable library)."""
-    if backend == "torch" or (backend == "auto" and x.device.type != "cpu"):
-        return None
-    lib = _native.library()
-    if lib is None and backend == "native":
-        raise RuntimeError(
-            "the native kernel of Green derivatives is unavailable "
-            f"({_native.failure_reason()}); use backend='torch' (or 'auto', which falls back to it)"
-        )
-    return lib

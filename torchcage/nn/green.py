@@ -13,6 +13,7 @@ from ..functional._exterior import extend_outside
 from ..functional._stretch import conformal_stretch, stretched_normals, stretched_triangle_normals, triangle_frames
 from ..functional.deform import green_deformation
 from ..functional.green import green_coordinates
+from ..functional.green_derivatives import green_derivatives
 from .base import CageModule, detached, module_points
 
 #: Default distance outside the cage (relative to its size) beyond which extended points warn.
@@ -86,6 +87,11 @@ class GreenCoordinates(CageModule):
             diagonal), beyond which extended points warn.
         progress: ``True`` for a progress bar while computing the coordinates, or a callable
             ``progress(done, total)`` (points done so far).
+        store_derivatives: 0 (default), 1 or 2: also store the coordinates' gradients with respect
+            to the points (buffers ``phi_gradients`` ``(N, V, D)``, ``psi_gradients`` ``(N, T, D)``)
+            and, for 2, their Hessians (``phi_hessians``, ``psi_hessians``), so that
+            :meth:`jacobian` / :meth:`hessian` of every pose cost a matrix product. Otherwise they
+            are computed (:func:`torchcage.functional.green_derivatives`) on each call.
 
     Shape:
         - Input: ``(*, V, D)`` deformed cage vertices.
@@ -99,6 +105,9 @@ class GreenCoordinates(CageModule):
         >>> torch.allclose(gc(cage.vertices), pts)
         True
         >>> torch.allclose(gc(3 * cage.vertices + 1), 3 * pts + 1)
+        True
+        >>> J = gc.jacobian(3 * cage.vertices + 1)  # deformation gradient at every point
+        >>> torch.allclose(J, 3 * torch.eye(3, dtype=torch.float64).expand(50, 3, 3))
         True
     """
 
@@ -117,7 +126,10 @@ class GreenCoordinates(CageModule):
         exterior: str = "extend",
         exterior_band: float = EXTERIOR_BAND,
         progress: bool | Callable[[int, int], None] = False,
+        store_derivatives: int = 0,
     ) -> None:
+        if store_derivatives not in (0, 1, 2):
+            raise ValueError(f"store_derivatives must be 0, 1 or 2, got {store_derivatives}")
         points = module_points(points, cage)
         cage = detached(cage)
         phi, psi = green_coordinates(
@@ -134,6 +146,61 @@ class GreenCoordinates(CageModule):
         self.register_buffer("psi", psi)
         self.register_buffer("triangles", cage.triangles.clone())
         self.register_buffer("edges", cage.edges.clone())
+        self.exterior = exterior
+        stored = self._compute_derivatives(store_derivatives, dtype) if store_derivatives else (None,) * 4
+        for name, t in zip(("phi_gradients", "psi_gradients", "phi_hessians", "psi_hessians"), stored, strict=True):
+            self.register_buffer(name, t)
+
+    def _compute_derivatives(self, order: int, dtype: torch.dtype) -> tuple[torch.Tensor | None, ...]:
+        """``(grad_phi (*B, N, V, D), grad_psi (*B, N, T, D), hess_phi, hess_psi)`` at the points
+        (Hessians None for ``order=1``), from the rest cage, one batch element at a time."""
+        faces = self.edges if self.dim == 2 else self.triangles
+        rest = Cage._from_faces(self.rest_vertices.to(torch.float64), faces)
+        cages = rest.unbind() if rest.is_batched else [rest]
+        pts = self.points.expand(*self.batch_shape, *self.points.shape[-2:]).reshape(len(cages), self.num_points, -1)
+        parts = [green_derivatives(pts[b], c, order, exterior=self.exterior)[2:] for b, c in enumerate(cages)]
+        out = [
+            torch.stack(list(col)).reshape(*self.batch_shape, *col[0].shape).to(dtype)
+            for col in zip(*parts, strict=True)
+        ]
+        return (*out, None, None) if order == 1 else tuple(out)
+
+    def _derivatives(self, order: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """The stored gradients (order 1) or Hessians (order 2) of ``phi`` and ``psi``, else computed."""
+        stored = (self.phi_gradients, self.psi_gradients) if order == 1 else (self.phi_hessians, self.psi_hessians)
+        if stored[0] is None:
+            stored = self._compute_derivatives(order, torch.float64)[2 * (order - 1) : 2 * order]
+        return stored[0].to(dtype), stored[1].to(dtype)
+
+    def _stretched_normals(self, vertices: torch.Tensor) -> torch.Tensor:
+        """``s_t n'_t`` ``(*, T, D)``: the deformed faces' normals scaled by their stretch factors."""
+        if self.dim == 2:
+            return stretched_normals(self.rest_vertices, vertices, self.edges)
+        return stretched_triangle_normals(self.rest_vertices, vertices, self.triangles)
+
+    def jacobian(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Jacobian of the deformation at the embedded points, ``J[..., n, a, c] = d y_a / d x_c``:
+        ``(*, N, D, D)`` for deformed vertices ``(*, V, D)``; differentiable with respect to them.
+
+        The deformation is ``y = sum_i phi_i(x) v'_i + sum_t psi_t(x) s_t n'_t`` with the stretch
+        factors and normals functions of the cage alone, so ``J = sum_i v'_i grad phi_i^T + sum_t
+        s_t n'_t grad psi_t^T`` is exact (the closed-form gradients inside the cage; outside, the
+        derivative of the exterior extension). The identity at rest; a similarity's rotation times
+        its scale.
+        """
+        self._check_vertices(vertices, self.phi)
+        gp, gs = self._derivatives(1, vertices.dtype)
+        sn = self._stretched_normals(vertices)
+        return torch.einsum("...nvc,...va->...nac", gp, vertices) + torch.einsum("...ntc,...ta->...nac", gs, sn)
+
+    def hessian(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Hessian of the deformation at the embedded points, ``H[..., n, a, c, d] =
+        d^2 y_a / d x_c d x_d``: ``(*, N, D, D, D)`` for deformed vertices ``(*, V, D)``;
+        differentiable with respect to them. Zero (to rounding) for similarities of the cage."""
+        self._check_vertices(vertices, self.phi)
+        hp, hs = self._derivatives(2, vertices.dtype)
+        sn = self._stretched_normals(vertices)
+        return torch.einsum("...nvcd,...va->...nacd", hp, vertices) + torch.einsum("...ntcd,...ta->...nacd", hs, sn)
 
     def forward(self, vertices: torch.Tensor) -> torch.Tensor:
         """Deformed points ``(*, N, D)`` for deformed cage vertices ``(*, V, D)``."""
