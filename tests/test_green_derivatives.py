@@ -235,3 +235,17 @@ def test_autograd_through_the_closed_form() -> None:
     assert float((gx[:-1] - ap[:, 2] - aq[:, 5]).abs().max()) <= 1e-12
     P = cage.vertices.clone().requires_grad_()
     assert torch.autograd.gradcheck(lambda y, Q: F.green_coordinates(y, tc.Cage(Q, cage.triangles)), (x, P))
+
+
+@pytest.mark.parametrize("name", ["cube", "sliver"])
+def test_second_derivatives_are_finite_everywhere(name: str) -> None:
+    """Every adversarial category (on the cage, 1e-15 from it, support planes, edge lines, far up to
+    1e9 sizes): finite gradients and Hessians, with the extension and without."""
+    from torchcage.testing import adversarial_points
+
+    cage = _cube() if name == "cube" else sliver_cube()
+    pts = adversarial_points(cage, 12, seed=2)
+    x = torch.cat(list(pts.values()))
+    for exterior in ("extend", "none"):
+        out = F.green_derivatives(x, cage, order=2, exterior=exterior)
+        assert all(bool(torch.isfinite(t).all()) for t in out), exterior
