@@ -81,8 +81,8 @@ def test_matches_autograd_and_reproduces_the_identity(name: str) -> None:
 
 
 def test_rows_the_closed_form_does_not_serve() -> None:
-    """Outside (the extension), on the cage, beside a sliver, and a polygon: autograd of the
-    kernel, finite."""
+    """Outside (the extension), on the cage and beside a sliver: autograd of the kernel, finite;
+    a polygon's gradients reproduce the identity's."""
     cube = _cube()
     x = torch.tensor([[0.2, 0.1, 1.5], [0.3, -0.2, 1.0], [0.0, 0.0, 0.0]], dtype=D64)
     _, _, gphi, gpsi = F.green_derivatives(x, cube)
@@ -249,3 +249,53 @@ def test_second_derivatives_are_finite_everywhere(name: str) -> None:
     for exterior in ("extend", "none"):
         out = F.green_derivatives(x, cage, order=2, exterior=exterior)
         assert all(bool(torch.isfinite(t).all()) for t in out), exterior
+
+
+@mp.workdps(40)
+def _green2d_reference(y: list, vertices: list) -> list:
+    """2D Green coordinates ``phi`` then ``psi`` of one point by tanh-sinh quadrature of their
+    defining integrals (the double and single layers on each edge, split at the point's foot on
+    the edge, where a near point makes the integrands peak), 40 digits."""
+    E = len(vertices)
+    phi, psi = [mp.mpf(0)] * E, []
+    for j in range(E):
+        a0, a1 = vertices[j], vertices[(j + 1) % E]
+        ax, ay = mp.mpf(a1[0]) - a0[0], mp.mpf(a1[1]) - a0[1]
+        length = mp.sqrt(ax * ax + ay * ay)
+        nx, ny = ay / length, -ax / length
+
+        def r2(t, a0=a0, ax=ax, ay=ay, nx=nx, ny=ny):
+            dx, dy = a0[0] + t * ax - y[0], a0[1] + t * ay - y[1]
+            return dx * dx + dy * dy, dx * nx + dy * ny
+
+        foot = ((y[0] - a0[0]) * ax + (y[1] - a0[1]) * ay) / (length * length)
+        span = [0, foot, 1] if 0 < foot < 1 else [0, 1]
+        psi.append(-length * mp.quad(lambda t, r2=r2: mp.log(r2(t)[0]) / 2, span) / (2 * mp.pi))
+        dn = lambda t, r2=r2: r2(t)[1] / r2(t)[0] / (2 * mp.pi)  # noqa: E731
+        phi[j] += length * mp.quad(lambda t, dn=dn: (1 - t) * dn(t), span)
+        phi[(j + 1) % E] += length * mp.quad(lambda t, dn=dn: t * dn(t), span)
+    return [*phi, *psi]
+
+
+def test_polygon_closed_form_matches_quadrature_differences_and_autograd() -> None:
+    """2D: gradients and Hessians against central differences of a 40-digit quadrature of the
+    defining integrals (step 1e-12), against double autograd of the torch kernel, and the identity's
+    derivatives; ``green_coordinates`` on a polygon differentiates through them (gradgradcheck)."""
+    poly = tc.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 1], [1, 1.5], [0, 1]], dtype=D64))
+    x = torch.tensor([[0.5, 0.5], [1.999, 0.7], [1.0, 1.4999], [0.3, 1e-7]], dtype=D64)
+    _, _, gp, gs, hp, hs = F.green_derivatives(x, poly, order=2)
+    ref = _kernel_rows(x, poly, order=2)
+    for got, want in zip((gp, gs, hp, hs), ref, strict=True):
+        assert float((got - want).abs().max()) <= 1e-9 * float(want.abs().max())
+    rows = poly.vertices.tolist()
+    for i in range(2):
+        grad, hess = mvc_derivatives_reference(x[i].tolist(), lambda y: _green2d_reference(y, rows), 1.0)
+        got_g, got_h = torch.cat([gp[i], gs[i]]), torch.cat([hp[i], hs[i]])
+        assert float((got_g - torch.tensor(grad, dtype=D64)).norm() / got_g.norm()) <= 1e-9
+        assert float((got_h - torch.tensor(hess, dtype=D64)).norm() / got_h.norm()) <= 1e-9
+    n = poly.edge_normals()
+    J = torch.einsum("nvi,vj->nji", gp, poly.vertices) + torch.einsum("nei,ej->nji", gs, n)
+    H = torch.einsum("nvab,vj->njab", hp, poly.vertices) + torch.einsum("neab,ej->njab", hs, n)
+    assert float((J - torch.eye(2, dtype=D64)).abs().max()) <= 1e-10 and float(H.abs().max()) <= 1e-8
+    xg = x[:2].clone().requires_grad_()
+    assert torch.autograd.gradgradcheck(lambda y: F.green_coordinates(y, poly), (xg,))

@@ -1,6 +1,6 @@
 """The autograd Functions of Green coordinates: values by the fastest kernel; derivatives with
-respect to the points by the closed-form gradients (3D; Hessians on double backward), and with
-respect to the rest cage's vertices (and in 2D) by recomputing chunk by chunk.
+respect to the points by the closed-form gradients (Hessians on double backward), and with
+respect to the rest cage's vertices by recomputing chunk by chunk.
 
 ``GreenFunction`` computes ``(phi, psi)`` without a graph (the native kernel where it serves) and,
 in ``backward``, runs the torch kernel again over chunks of points under autograd, one chunk at a
@@ -9,7 +9,7 @@ pass is that of one chunk's intermediates, not of every point's (plain autograd 
 kept them all: 1.8 GB for the FireHydrant model). Double backward works: with ``create_graph``
 the chunks' graphs are kept.
 
-For 3D points alone (the rest cage constant), ``backward`` contracts the closed-form gradients
+For the points alone (the rest cage constant), ``backward`` contracts the closed-form gradients
 (:func:`torchcage.functional.green_derivatives`, native where it loads) with the incoming
 cotangents instead: ``GreenGradFunction`` computes them, and its own derivative with respect to the
 points is the closed-form Hessian (``GreenHessFunction``), so double backward is analytic too.
@@ -37,7 +37,7 @@ def _cage(vertices: Tensor, faces: Tensor) -> Cage:
 
 def _derivatives(points: Tensor, vertices: Tensor, faces: Tensor, order: int) -> tuple[Tensor, Tensor]:
     """Closed-form gradients (order 1) or Hessians (order 2) of the bare Green integrals at the
-    points, in the points' dtype: ``(d phi (N, V, 3...), d psi (N, T, 3...))``."""
+    points, in the points' dtype: ``(d phi (N, V, D...), d psi (N, T, D...))``."""
     cage = _cage(vertices.detach(), faces)
     compute, _ = result_dtype(points, cage, None)
     out = bare_derivatives(points.detach().to(compute), cage.to(compute), order)
@@ -46,7 +46,7 @@ def _derivatives(points: Tensor, vertices: Tensor, faces: Tensor, order: int) ->
 
 
 class GreenHessFunction(torch.autograd.Function):
-    """``(points (N, 3), vertices (V, 3), faces) -> (H phi (N, V, 3, 3), H psi (N, T, 3, 3))``."""
+    """``(points (N, D), vertices (V, D), faces) -> (H phi (N, V, D, D), H psi (N, T, D, D))``."""
 
     @staticmethod
     def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
@@ -62,7 +62,7 @@ class GreenHessFunction(torch.autograd.Function):
 
 
 class GreenGradFunction(torch.autograd.Function):
-    """``(points (N, 3), vertices (V, 3), faces) -> (grad phi (N, V, 3), grad psi (N, T, 3))``,
+    """``(points (N, D), vertices (V, D), faces) -> (grad phi (N, V, D), grad psi (N, T, D))``,
     closed form; its derivative with respect to the points is the closed-form Hessian (the rest
     cage is a constant here: :class:`GreenFunction` takes this path only then)."""
 
@@ -104,7 +104,7 @@ class GreenFunction(torch.autograd.Function):
     def backward(ctx, gphi: Tensor, gpsi: Tensor):
         x, P = ctx.saved_tensors
         need_x, need_P = ctx.needs_input_grad[:2]
-        if need_x and not need_P and not P.requires_grad and x.shape[-1] == 3:
+        if need_x and not need_P and not P.requires_grad:
             # the points alone: the closed-form gradients (Hessians on double backward)
             d_phi, d_psi = GreenGradFunction.apply(x, P, ctx.faces)
             gx = 0

@@ -103,3 +103,88 @@ def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor,
         hat.scatter_add_(1, torch.stack([j[e], k[e]], dim=1), torch.stack([1 - tt, tt], dim=1))
         phi[rows] = phi[rows] + (1 - omega / (2 * math.pi)) * hat
     return phi, psi
+
+
+def green2d_derivatives(points: torch.Tensor, cage: Cage, order: int = 1) -> tuple[torch.Tensor, ...]:
+    r"""Gradients (and Hessians) of 2D Green coordinates with respect to the points, closed form.
+
+    The 2D counterparts of the 3D formulas (:mod:`._green3d_derivatives`): per edge ``e`` from
+    ``v_j`` to ``v_k`` (unit direction ``u``, outward normal ``n``, length ``l``), with
+    ``a = v_j - x``, ``b = v_k - x``, the signed angle ``omega`` the edge subtends (positive on the
+    inner side), the in-line moment ``K = u log(|b| / |a|)`` and the hat functions' gradients
+    ``g_j = -u / l``, ``g_k = u / l``:
+
+    .. math::
+        \nabla\phi_i = \frac{1}{2\pi}\sum_{e \ni i} (\omega_e g_i - n_e\, g_i \cdot K_e),\qquad
+        \nabla\psi_e = \frac{1}{2\pi}(K_e + \omega_e n_e),
+
+    (the end-point terms of the integration by parts cancel around the closed polygon), and with
+    :math:`\nabla\omega = a^\perp / |a|^2 - b^\perp / |b|^2` (:math:`v^\perp = (-v_y, v_x)`, times
+    the orientation's sign) and :math:`\nabla K = u\, (a / |a|^2 - b / |b|^2)^T`, the Hessians
+    :math:`H\phi_i = \frac{1}{2\pi}\sum_e (g_i \nabla\omega_e^T - n_e\, g_i^T \nabla K_e)`,
+    :math:`H\psi_e = \frac{1}{2\pi}(\nabla K_e + n_e \nabla\omega_e^T)`.
+
+    Args:
+        points: ``(n, 2)`` points off the polygon.
+        cage: a 2D cage.
+        order: 1 or 2.
+
+    Returns:
+        ``(grad_phi (n, V, 2), grad_psi (n, E, 2), hess_phi (n, V, 2, 2), hess_psi (n, E, 2, 2),
+        exact (n,))``, Hessians empty for ``order=1``; ``exact`` is False on the polygon (rows left
+        zero for the caller).
+
+    Examples:
+        >>> import torch, torchcage
+        >>> from torchcage.functional._green2d import green2d_derivatives
+        >>> cage = torchcage.Cage([[0.0, 0], [2, 0], [2, 1], [0, 1]]).to(torch.float64)
+        >>> x = torch.tensor([[0.5, 0.25]], dtype=torch.float64)
+        >>> gp, gs, hp, hs, ok = green2d_derivatives(x, cage, order=2)
+        >>> J = torch.einsum("nvi,vj->nji", gp, cage.vertices) + torch.einsum("nei,ej->nji", gs, cage.edge_normals())
+        >>> torch.allclose(J[0], torch.eye(2, dtype=torch.float64))
+        True
+    """
+    v = cage.vertices.to(points.dtype)
+    j, k = cage.edges[:, 0], cage.edges[:, 1]
+    E = v[k] - v[j]
+    ell = E.norm(dim=-1)
+    u = E / ell[:, None]  # (E, 2)
+    n = torch.stack([u[:, 1], -u[:, 0]], dim=-1)  # outward for a counter-clockwise polygon
+    a = v[j][None] - points[:, None]  # (n, E, 2)
+    b = v[k][None] - points[:, None]
+    Ra2, Rb2 = (a * a).sum(-1), (b * b).sum(-1)
+    cross = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    omega = torch.atan2(cross, (a * b).sum(-1))  # signed: positive with the polygon on the left
+    # on the polygon: a row for the caller (the derivatives there are those of the interpolant)
+    tol = on_cage_tolerance(cage)
+    t = -(a * u).sum(-1) / ell
+    on_line = (a[..., 0] * u[..., 1] - a[..., 1] * u[..., 0]).abs() <= tol
+    exact = ~(on_line & (t >= -tol / ell) & (t <= 1 + tol / ell)).any(dim=1)
+    safe = lambda r2: torch.where(r2 > 0, r2, 1.0)  # noqa: E731
+    K = u * (0.5 * (torch.log(safe(Rb2)) - torch.log(safe(Ra2))))[..., None]  # (n, E, 2)
+    g = torch.stack([-u / ell[:, None], u / ell[:, None]], dim=1)  # (E, 2 ends, 2)
+    inv2pi = 1.0 / (2 * math.pi)
+    face = (omega[..., None, None] * g - n[:, None, :] * (g * K[..., None, :]).sum(-1)[..., None]) * inv2pi
+    grad_phi = points.new_zeros(points.shape[0], cage.num_vertices, 2)
+    grad_phi.index_add_(1, j, face[:, :, 0])
+    grad_phi.index_add_(1, k, face[:, :, 1])
+    grad_psi = (K + omega[..., None] * n) * inv2pi
+    empty = points.new_empty((0,))
+    if order == 1:
+        return grad_phi, grad_psi, empty, empty, exact
+
+    def perp(q: torch.Tensor) -> torch.Tensor:
+        return torch.stack([-q[..., 1], q[..., 0]], dim=-1)
+
+    grad_omega = perp(a) / safe(Ra2)[..., None] - perp(b) / safe(Rb2)[..., None]  # (n, E, 2)
+    grad_K = u[None, :, :, None] * (a / safe(Ra2)[..., None] - b / safe(Rb2)[..., None])[..., None, :]
+    hess_psi = (grad_K + n[None, :, :, None] * grad_omega[..., None, :]) * inv2pi
+    hess_psi = 0.5 * (hess_psi + hess_psi.transpose(-1, -2))
+    gK = torch.einsum("ezc,necb->nezb", g, grad_K)  # (n, E, 2 ends, 2)
+    face2 = g[None, :, :, :, None] * grad_omega[:, :, None, None, :] - n[None, :, None, :, None] * gK[..., None, :]
+    face2 = face2 * inv2pi  # (n, E, 2 ends, a, b)
+    hess_phi = points.new_zeros(points.shape[0], cage.num_vertices, 2, 2)
+    hess_phi.index_add_(1, j, face2[:, :, 0])
+    hess_phi.index_add_(1, k, face2[:, :, 1])
+    hess_phi = 0.5 * (hess_phi + hess_phi.transpose(-1, -2))
+    return grad_phi, grad_psi, hess_phi, hess_psi, exact

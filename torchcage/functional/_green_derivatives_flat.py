@@ -13,6 +13,7 @@ from .. import _native
 from ..cage import Cage
 from . import _green3d_derivatives_native
 from ._common import chunks, default_chunk, jacobian_rows
+from ._green2d import green2d_derivatives
 from ._green3d import triangle_green_data
 from ._green3d_derivatives import green3d_derivatives
 from ._green_dispatch import green_flat
@@ -38,10 +39,14 @@ def library(backend: str, x: torch.Tensor) -> ctypes.CDLL | None:
 def closed_form(
     x: torch.Tensor, cage: Cage, order: int, chunk_size: int | None = None, backend: str = "auto"
 ) -> tuple[torch.Tensor, ...]:
-    """``(grad_phi (n, V, 3), grad_psi (n, T, 3), hess_phi (n, V, 3, 3), hess_psi (n, T, 3, 3),
-    exact (n,))`` of a 3D triangle cage at points ``x`` in the compute dtype (Hessians empty
-    ``(0,)`` for ``order=1``); rows where ``exact`` is False are zero (see
-    :func:`._green3d_derivatives.green3d_derivatives`)."""
+    """``(grad_phi (n, V, D), grad_psi (n, T, D), hess_phi (n, V, D, D), hess_psi (n, T, D, D),
+    exact (n,))`` of a triangle cage or a polygon at points ``x`` in the compute dtype (Hessians
+    empty ``(0,)`` for ``order=1``); rows where ``exact`` is False are zero (see
+    :func:`._green3d_derivatives.green3d_derivatives`, :func:`._green2d.green2d_derivatives`)."""
+    if cage.dim == 2:  # (torch only: polygons have few edges)
+        library(backend, x)
+        parts = [green2d_derivatives(x[sl], cage, order) for sl in chunks(x.shape[0], chunk_size or 4096)]
+        return tuple(torch.cat(col) for col in zip(*parts, strict=True))
     n, V = x.shape[0], cage.num_vertices
     data = triangle_green_data(cage, x.dtype)
     T = data.tri.shape[0]
@@ -90,16 +95,10 @@ def autograd_rows(
 
 def bare_derivatives(x: torch.Tensor, cage: Cage, order: int) -> tuple[torch.Tensor, ...]:
     """``(grad_phi, grad_psi, hess_phi, hess_psi)`` of the bare integrals at checked points ``x``
-    (compute dtype; Hessians empty for ``order=1``): the closed form (3D), autograd of the torch
-    kernel for the rows it does not serve and for polygons."""
-    if cage.dim == 3:
-        gphi, gpsi, hphi, hpsi, exact = closed_form(x, cage, order)
-    else:
-        exact = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
-        gphi = gpsi = hphi = hpsi = None
+    (compute dtype; Hessians empty for ``order=1``): the closed form, autograd of the torch
+    kernel for the rows it does not serve (points on the cage, thin faces seen from a few widths)."""
+    gphi, gpsi, hphi, hpsi, exact = closed_form(x, cage, order)
     rest = torch.nonzero(~exact).flatten()
-    if cage.dim != 3:
-        return autograd_rows(x, order, lambda y: green_flat(y, cage, backend="torch"))
     if rest.numel():
         parts = autograd_rows(x.index_select(0, rest), order, lambda y: green_flat(y, cage, backend="torch"))
         for full, part in zip((gphi, gpsi, hphi, hpsi)[: 2 * order], parts, strict=False):

@@ -2,9 +2,10 @@ r"""Derivatives of Green coordinates with respect to the points: gradients and H
 
 For points inside a triangle cage they come in closed form from per-face edge sums
 (:mod:`._green3d_derivatives`, whose docstring derives them; the native kernel ``gcd3d.c`` for
-float64 CPU points). Rows the closed form does not serve (points outside the cage, whose
-coordinates are continued by the exterior extension; points on the cage; thin faces seen from a
-few widths; 2D polygons) are differentiated through the torch kernel instead, over those rows
+float64 CPU points), inside a polygon from per-edge end-point terms
+(:func:`._green2d.green2d_derivatives`). Rows the closed form does not serve (points outside the
+cage, whose coordinates are continued by the exterior extension; points on the cage; thin faces
+seen from a few widths) are differentiated through the torch kernel instead, over those rows
 only (``D + 1`` backward passes for the gradients, ``(D + 1)^2`` with the Hessians).
 """
 
@@ -95,7 +96,7 @@ def green_derivatives(
     hphi = torch.zeros(hshape[0], V, D, D, dtype=compute, device=x.device) if hshape else x.new_empty((0,))
     hpsi = torch.zeros(hshape[0], T, D, D, dtype=compute, device=x.device) if hshape else x.new_empty((0,))
     exact = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
-    if D == 3 and x.shape[0]:
+    if x.shape[0]:
         inside = inside_cage(x, cage.to(compute)) if exterior == "extend" else torch.ones_like(exact)
         gphi, gpsi, hphi, hpsi, exact = closed_form(x, cage.to(compute), order, chunk_size, backend)
         exact &= inside
