@@ -9,9 +9,11 @@ Run it on a machine with a CUDA GPU and triton::
     python benchmarks/gpu.py --data ../shared/data
 
 ``--interpret`` runs a tiny smoke version on the CPU through Triton's interpreter (no timing
-meaning; it checks that the script runs). The derivatives (gradients, Hessians) still come from
-autograd of the torch kernel on a GPU (rows ``grad (autograd)`` and ``grad+Hess 4096``, timed as
-they run today); their Triton kernels are the issue's next step.
+meaning; it checks that the script runs). Green coordinates (rows ``gc triton``, ``gc torch
+eager``: the bare integrals) on the same points, with the speed-up. The MVC derivatives
+(gradients, Hessians) still come from autograd of the torch kernel on a GPU (rows ``grad
+(autograd)`` and ``grad+Hess 4096``, timed as they run today); their Triton kernels are the issue's
+next step.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from harness import add_data_argument, load_model
 
 import torchcage
 from torchcage import functional as F
+from torchcage.functional._green_dispatch import green_flat
 from torchcage.functional._mvc_dispatch import coordinates_flat
 
 
@@ -76,6 +79,28 @@ def _derivative_runs(x: torch.Tensor, cage: torchcage.Cage) -> dict:
         return F.mean_value_derivatives(x[:4096], cage, order=2)[2]
 
     return {"grad (autograd)": grad, "grad+Hess 4096": hess}
+
+
+def _green_rows(name: str, x: torch.Tensor, c: torchcage.Cage, dtype: torch.dtype, device: str, repeats: int) -> None:
+    """Green coordinates (the bare integrals): the Triton kernel against the eager torch kernel,
+    with the speed-up and the largest difference."""
+    runs = {
+        "gc triton": lambda: green_flat(x, c, backend="triton"),
+        "gc torch eager": lambda: green_flat(x, c, backend="torch"),
+    }
+    med = {}
+    for method, fn in runs.items():
+        try:
+            first, med[method], peak = _time(fn, device, repeats)
+        except Exception as err:
+            print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} failed: {type(err).__name__}: {err}")
+            continue
+        print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} {first:9.4f} {med[method]:9.4f} {peak:9.1f}")
+    if len(med) == 2:
+        t, e = (torch.cat(fn(), dim=1).double() for fn in runs.values())
+        err = float(((t - e).abs() / e.abs().clamp_min(1)).max())
+        speed = med["gc torch eager"] / med["gc triton"]
+        print(f"{'':51s} gc triton: {speed:.1f}x the eager kernel's speed, largest difference {err:.1e}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -137,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
                 err = float(((t.double() - e.double()).abs() / e.double().abs().clamp_min(1)).max())
                 print(f"{'':51s} triton: {base / tri:.1f}x the eager kernel's speed, largest difference {err:.1e}")
             if pts.shape[0] <= 10**6 or args.interpret:
+                _green_rows(name, x, c, dtype, device, args.repeats)
                 for method, fn in _derivative_runs(x, c).items():
                     try:
                         first, med, peak = _time(fn, device, args.repeats)

@@ -1,5 +1,5 @@
 """Green coordinates of checked points without an autograd Function: the one place that picks a
-kernel (native C or torch) and runs it over chunks of points. Both the public function
+kernel (native C, Triton or torch) and runs it over chunks of points. Both the public function
 (:mod:`.green`) and the autograd Function (:mod:`torchcage.autograd.green`) import it."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ from collections.abc import Callable
 
 import torch
 
-from .. import _native
+from .. import _native, _triton
 from ..cage import Cage
-from ._common import chunks, default_chunk
+from ._common import chunks, default_chunk, records_graph
 from ._green2d import green2d_coordinates
-from ._green3d import green3d_coordinates, triangle_green_data
+from ._green3d import TriangleGreenData, green3d_coordinates, triangle_green_data
 from ._green3d_native import native_chunk, native_tables
 
 __all__ = ["green_flat"]
@@ -28,13 +28,23 @@ def green_flat(
     """``(phi (N, V), psi (N, T))`` of checked points ``x`` ``(N, D)`` in their dtype, chunk by chunk
     (the torch kernel records autograd when its inputs require grad; the native one never does)."""
     compute = x.dtype
-    lib = _native.select(backend, x, cage.vertices)
+    graph = records_graph(x, cage.vertices)
+    if backend == "triton" and cage.dim != 3:
+        raise ValueError("backend='triton' serves 3D Green coordinates (triangle cages); use 'auto' for polygons")
+    use_triton = cage.dim == 3 and _triton.serves(backend, x, graph)
+    lib = None if use_triton else _native.select(backend, x, cage.vertices)
     if cage.dim == 3:
         data = triangle_green_data(cage, compute)
         T = data.tri.shape[0]
         tables = native_tables(data, cage.vertices.to(compute)) if lib is not None else {}
+        if use_triton:
+            from .._triton.gc3d import triton_tables
+
+            tables = triton_tables(data, cage.vertices.to(compute))
 
         def kernel(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            if use_triton:
+                return _triton_chunk(c, tables, data, cage.num_vertices)
             return green3d_coordinates(c, data, cage.num_vertices)
     else:
         T = cage.edges.shape[0]
@@ -44,7 +54,8 @@ def green_flat(
             return green2d_coordinates(c, poly)
 
     # The native kernel needs no temporaries beyond its outputs: chunks only pace the progress bar.
-    size = chunk_size if chunk_size is not None else default_chunk(T, 1 << 23 if lib is not None else 1 << 17)
+    target = 1 << 23 if lib is not None or use_triton else 1 << 17
+    size = chunk_size if chunk_size is not None else default_chunk(T, target)
     phi = torch.empty(x.shape[0], cage.num_vertices, dtype=compute, device=x.device)
     psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
@@ -52,4 +63,19 @@ def green_flat(
             native_chunk(x[sl], tables, lib, phi[sl], psi[sl])
         else:
             phi[sl], psi[sl] = kernel(x[sl])
+    return phi, psi
+
+
+def _triton_chunk(
+    c: torch.Tensor, tables: dict[str, object], data: TriangleGreenData, num_vertices: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Triton kernel on a chunk, the points it flags (thin faces seen from a few widths) redone
+    by the torch kernel's swept form."""
+    from .._triton.gc3d import gc3d_triton
+
+    phi, psi, flags = gc3d_triton(c, tables)
+    redo = torch.nonzero(flags == 2).flatten()
+    if redo.numel():
+        pr, sr = green3d_coordinates(c.index_select(0, redo), data, num_vertices)
+        phi, psi = phi.index_copy(0, redo, pr), psi.index_copy(0, redo, sr)
     return phi, psi

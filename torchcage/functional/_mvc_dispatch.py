@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import torch
 
-from .. import _native
+from .. import _native, _triton
 from ..cage import Cage
 from ..errors import PointsError
 from . import _mvc2d_native, _mvc3d_native
@@ -34,7 +34,7 @@ def coordinates_flat(
         PointsError: points where the coordinates are undefined (the total weight vanishes).
     """
     graph = records_graph(x, cage.vertices)
-    use_triton = _triton_serves(backend, x, cage, graph)
+    use_triton = _triton.serves(backend, x, graph)
     lib = None if use_triton or backend == "triton" else _native.select(backend, x, cage.vertices, dims=(2, 3))
     verts = cage.vertices.to(x.dtype)
     if cage.dim == 3:
@@ -95,22 +95,3 @@ def coordinates_flat(
                 "which happens only outside the cage); move these points"
             )
     return out
-
-
-def _triton_serves(backend: str, x: torch.Tensor, cage: Cage, graph: bool) -> bool:
-    """Whether the Triton kernel computes these coordinates: ``"triton"`` insists (and raises where
-    it cannot serve), ``"auto"`` takes it for CUDA tensors when triton is installed and no autograd
-    graph is needed."""
-    from .. import _triton
-
-    if backend == "triton":
-        if graph:
-            raise RuntimeError(
-                "the Triton kernel records no autograd graph; use backend='auto' to differentiate (values then come "
-                "from the Triton kernel inside the autograd Function, derivatives from autograd of the torch kernel)"
-            )
-        why = _triton.reason(x)
-        if why is not None:
-            raise RuntimeError(f"backend='triton' cannot serve: {why}")
-        return True
-    return backend == "auto" and x.device.type == "cuda" and not graph and _triton.available(x)

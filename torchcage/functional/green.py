@@ -63,7 +63,8 @@ def green_coordinates(
             whatever it is (float32 would lose accuracy near the cage: see docs/accuracy.md).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (the native CPU kernel for 3D float64 on the CPU when it can be built
-            and no autograd graph is needed, else torch), ``"native"`` or ``"torch"``.
+            and no autograd graph is needed, the Triton kernel for 3D CUDA tensors when triton is
+            installed, else torch), ``"native"``, ``"triton"`` (3D; docs/gpu.md) or ``"torch"``.
         exterior: ``"extend"`` (default) continues the coordinates outside the cage; ``"none"``
             gives the bare Green integrals there (which map outside points to the origin).
 
