@@ -239,7 +239,7 @@ def test_autograd_through_the_closed_form() -> None:
     assert torch.autograd.gradcheck(lambda y, Q: F.green_coordinates(y, tc.Cage(Q, cage.triangles)), (x, P))
 
 
-@pytest.mark.parametrize("name", ["cube", "sliver"])
+@pytest.mark.parametrize("name", ["cube", pytest.param("sliver", marks=pytest.mark.slow)])
 def test_second_derivatives_are_finite_everywhere(name: str) -> None:
     """Every adversarial category (on the cage, 1e-15 from it, support planes, edge lines, far up to
     1e9 sizes): finite gradients and Hessians, with the extension and without."""
@@ -279,6 +279,7 @@ def _green2d_reference(y: list, vertices: list) -> list:
     return [*phi, *psi]
 
 
+@pytest.mark.slow
 def test_polygon_closed_form_matches_quadrature_differences_and_autograd() -> None:
     """2D: gradients and Hessians against central differences of a 40-digit quadrature of the
     defining integrals (step 1e-12), against double autograd of the torch kernel, and the identity's
