@@ -18,14 +18,30 @@ from ._green3d import triangle_green_data
 from ._green3d_derivatives import green3d_derivatives
 from ._green_dispatch import green_flat
 
-__all__ = ["autograd_rows", "bare_derivatives", "closed_form", "library"]
+__all__ = ["autograd_rows", "bare_derivatives", "check_backend", "closed_form", "library"]
+
+
+def check_backend(backend: str) -> None:
+    """Raise ``ValueError`` for a backend name the derivatives do not know."""
+    if backend not in ("auto", "native", "torch"):
+        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
 
 
 def library(backend: str, x: torch.Tensor) -> ctypes.CDLL | None:
-    """The native library when it serves this call (float64 CPU points, a loadable library)."""
-    if backend not in ("auto", "native", "torch"):
-        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
-    if backend == "torch" or (backend == "auto" and x.device.type != "cpu") or x.dtype != torch.float64:
+    """The native library when it serves this call (float64 CPU points, a loadable library).
+
+    Raises:
+        ValueError: an unknown backend.
+        RuntimeError: ``"native"`` for points it cannot take (not float64 on the CPU) or without a
+            loadable library.
+    """
+    check_backend(backend)
+    if backend == "native" and (x.device.type != "cpu" or x.dtype != torch.float64):
+        raise RuntimeError(
+            f"the native kernel of Green derivatives takes float64 CPU points, got {x.dtype} on {x.device.type}; "
+            "use backend='auto' (the torch kernel on other devices)"
+        )
+    if backend == "torch" or x.device.type != "cpu" or x.dtype != torch.float64:
         return None
     lib = _native.library()
     if lib is None and backend == "native":

@@ -17,7 +17,7 @@ from ..cage import Cage
 from ..errors import CageError
 from ..geometry import inside_cage
 from ._common import as_inputs, check_points, result_dtype
-from ._green_derivatives_flat import autograd_rows, closed_form, library
+from ._green_derivatives_flat import autograd_rows, check_backend, closed_form
 from .green import green_coordinates
 
 __all__ = ["green_derivatives"]
@@ -80,7 +80,7 @@ def green_derivatives(
     """
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order!r}")
-    library(backend, torch.empty(0))  # (checks the name)
+    check_backend(backend)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         raise CageError("green_derivatives takes one cage; call it per element (cage[b])")
