@@ -10,7 +10,7 @@ from support import HANDMADE, QMVC_MODELS, data_path
 
 import torchcage
 from torchcage import functional as F
-from torchcage.functional._mvc3d import _collapsed_gauss
+from torchcage.functional._common import collapsed_gauss
 
 
 def winding_number(x: torch.Tensor, cage: torchcage.Cage) -> torch.Tensor:
@@ -39,7 +39,7 @@ def inside_points(cage: torchcage.Cage, n: int, seed: int = 0) -> torch.Tensor:
 def quadrature(x: torch.Tensor, cage: torchcage.Cage, levels: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
     """The defining integrals by brute force: each triangle split into 4**levels pieces, a 10x10
     collapsed Gauss rule on each; phi_i = int Gamma_i h / (4 pi r^3), psi_t = int 1 / (4 pi r)."""
-    bary, w = _collapsed_gauss(10, torch.float64, x.device)
+    bary, w = collapsed_gauss(10, torch.float64, x.device)
     sub = torch.tensor([[[1.0, 0, 0], [0, 1, 0], [0, 0, 1]]], dtype=torch.float64)
     for _ in range(levels):  # midpoint subdivision in barycentric space
         a, b, c = sub[:, 0], sub[:, 1], sub[:, 2]

@@ -75,12 +75,14 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
     ),
     "tc_gc3d": _parse(
         "Pv:f64*[3,V] V:i64 tri:i32*[3,T] T:i64 edges:i32*[2,E] E:i64 eu:f64*[3,E] fe:i32*[3,T] nrm:f64*[T,3] "
-        "two_area:f64*[T] ell:f64*[T,3] edir:f64*[T,3,3] eout:f64*[T,3,3] gbary:f64*[T,3,3] X:f64*[n,3] n:i64 "
+        "two_area:f64*[T] ell:f64*[T,3] edir:f64*[T,3,3] eout:f64*[T,3,3] gbary:f64*[T,3,3] longest:f64*[T] "
+        "far_nodes:f64*[T,Q,3] far_w:f64*[T,Q] far_bary:f64*[Q,3] Q:i64 far_c:f64 X:f64*[n,3] n:i64 "
         "tol:f64 nthreads:i32 PHI:f64*![n,V] PSI:f64*![n,T] ONF:i32*!?[n] AL:f64*!?[n,3]"
     ),
     "tc_gcd3d": _parse(
         "Pv:f64*[3,V] V:i64 tri:i32*[3,T] T:i64 edges:i32*[2,E] E:i64 eu:f64*[3,E] fe:i32*[3,T] nrm:f64*[T,3] "
-        "two_area:f64*[T] ell:f64*[T,3] edir:f64*[T,3,3] eout:f64*[T,3,3] gbary:f64*[T,3,3] X:f64*[n,3] n:i64 "
+        "two_area:f64*[T] ell:f64*[T,3] edir:f64*[T,3,3] eout:f64*[T,3,3] gbary:f64*[T,3,3] longest:f64*[T] "
+        "far_nodes:f64*[T,Q,3] far_w:f64*[T,Q] far_bary:f64*[Q,3] Q:i64 far_c:f64 X:f64*[n,3] n:i64 "
         "tol:f64 order:i32 nthreads:i32 GPHI:f64*![n,V,3] GPSI:f64*![n,T,3] HPHI:f64*!?[n,V,3,3] "
         "HPSI:f64*!?[n,T,3,3] OK:i32*![n]"
     ),

@@ -283,7 +283,7 @@ double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir,
  */
 
 /* Per-face constants, structure of arrays (index [k * T + f]). */
-enum { FC_N = 0, FC_O = 3, FC_C = 12, FC_M = 15, FC_S = 24, FC_THR = 25, FC_K = 26 };
+enum { FC_N = 0, FC_O = 3, FC_C = 12, FC_M = 15, FC_S = 24, FC_THR = 25, FC_FAR = 26, FC_K = 27 };
 
 /* Fold the per-face constants into g->fc (allocated here; tc_gc_free releases it). */
 void tc_gc_prepare(gc_tables *g) {
@@ -302,6 +302,9 @@ void tc_gc_prepare(gc_tables *g) {
         }
         fc[FC_S * T + f] = live ? inv4pi : 0.0;         /* psi's scale: degenerate faces integrate to nothing */
         fc[FC_THR * T + f] = live ? GC_PERPENDICULAR_PLANE_RATIO : -1.0; /* ... and always go to the fix-up */
+        /* the far-field rule from this squared distance of the nearest corner (never without a rule) */
+        double L = g->Q > 0 ? g->longest[f] : 0.0;
+        fc[FC_FAR * T + f] = live && L > 0 ? (g->far_c * L) * (g->far_c * L) : INFINITY;
     }
     g->fc = fc;
     /* Faces THIN_ASPECT times longer than wide: their pairs may take the swept form. */
@@ -321,8 +324,54 @@ void tc_gc_free(gc_tables *g) {
     g->thin = NULL;
 }
 
+/* ---- Faces seen from far: a Gauss rule (torchcage/functional/_far_triangle.py derives it) ---- */
+
+int tc_far_pair(const gc_tables *g, long f, const double *R) {
+    double rmin = R[0] < R[1] ? R[0] : R[1]; /* (as tc_gc_point's face pass decides) */
+    rmin = rmin < R[2] ? rmin : R[2];
+    return rmin * rmin >= g->fc[FC_FAR * g->T + f];
+}
+
+void tc_far_face(const gc_tables *g, long f, const double *x, double h, double *phi, double *psi, double *omega,
+                 double *K, double *gom, double *gK) {
+    const long Q = g->Q;
+    const double *nodes = g->far_nodes + 3 * Q * f, *w = g->far_w + Q * f, *n = g->nrm + 3 * f;
+    double s1 = 0.0, s3 = 0.0, a3[3] = {0.0, 0.0, 0.0}, b3[3] = {0.0, 0.0, 0.0};
+    double s5 = 0.0, a5[3] = {0.0, 0.0, 0.0}, aa5[9] = {0.0};
+    for (long q = 0; q < Q; ++q) {
+        double a[3] = {nodes[3 * q] - x[0], nodes[3 * q + 1] - x[1], nodes[3 * q + 2] - x[2]};
+        double r2 = dot3(a, a), ir = 1.0 / sqrt(r2), w1 = w[q] * ir, w3 = w1 * ir * ir;
+        const double *bq = g->far_bary + 3 * q;
+        s1 += w1;
+        s3 += w3;
+        for (int c = 0; c < 3; ++c) a3[c] += w3 * a[c], b3[c] += w3 * bq[c];
+        if (gom) {
+            double w5 = w3 * ir * ir;
+            s5 += w5;
+            for (int c = 0; c < 3; ++c) {
+                a5[c] += w5 * a[c];
+                for (int d = 0; d < 3; ++d) aa5[3 * c + d] += w5 * a[c] * a[d];
+            }
+        }
+    }
+    (void)s5;
+    double om = h * s3;
+    *omega = om;
+    *psi = s1 / FOUR_PI;
+    if (phi)
+        for (int i = 0; i < 3; ++i) phi[i] = h * b3[i] / FOUR_PI;
+    if (K)
+        for (int c = 0; c < 3; ++c) K[c] = a3[c] - om * n[c];
+    if (gom) {
+        for (int c = 0; c < 3; ++c) gom[c] = 3.0 * h * a5[c] - s3 * n[c];
+        for (int c = 0; c < 3; ++c)
+            for (int d = 0; d < 3; ++d)
+                gK[3 * c + d] = (n[c] * n[d] - (c == d ? 1.0 : 0.0)) * s3 + 3.0 * (aa5[3 * c + d] - n[c] * h * a5[d]);
+    }
+}
+
 /* Doubles of workspace tc_gc_point needs. */
-size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g->E + 5 * (size_t)g->T; }
+size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g->E + 6 * (size_t)g->T; }
 
 /*
  * The Green integrals of all faces seen from the point x: psi (T,) and each face's corner terms
@@ -337,10 +386,10 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
     const int *t0 = g->tri, *t1 = t0 + T, *t2 = t1 + T, *e0 = g->edges, *e1 = e0 + E;
     const int *f0 = g->fe, *f1 = f0 + T, *f2 = f1 + T;
     const double *Nx = fc + FC_N * T, *Ny = Nx + T, *Nz = Ny + T, *O = fc + FC_O * T, *Cc = fc + FC_C * T;
-    const double *M = fc + FC_M * T, *S = fc + FC_S * T, *THR = fc + FC_THR * T;
+    const double *M = fc + FC_M * T, *S = fc + FC_S * T, *THR = fc + FC_THR * T, *FAR2 = fc + FC_FAR * T;
     const double inv4pi = 1.0 / FOUR_PI;
     double *Ax = ws, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V, *IE = RA + V;
-    double *H = IE + E, *D0 = H + T, *D1 = D0 + T, *D2 = D1 + T, *FL = D2 + T;
+    double *H = IE + E, *D0 = H + T, *D1 = D0 + T, *D2 = D1 + T, *FL = D2 + T, *FA = FL + T;
     double *P0 = P, *P1 = P + T, *P2 = P + 2 * T;
 #pragma omp simd
     for (long v = 0; v < V; ++v) {
@@ -384,6 +433,7 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         /* Near its plane, or much nearer one corner than the others (the one-atan2 form loses
          * digits there too: 5e-9 of partition of unity at 3e-14 from a sliver's apex): edge sum. */
         FL[f] = (ha < THR[f] * rmin || ha <= tol || THR[f] < 0 || rmin < GC_PERPENDICULAR_VERTEX_RATIO * rmax) ? 1.0 : 0.0;
+        FA[f] = rmin * rmin >= FAR2[f] ? 1.0 : 0.0; /* seen from far: the Gauss rule below */
     }
     long on_face = -1;
     on_alpha[0] = on_alpha[1] = on_alpha[2] = 0.0;
@@ -472,14 +522,23 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
         tc_thin_green(a, H[f], two_area[f], ph, psi + f, OM + f);
         P0[f] = ph[0], P1[f] = ph[1], P2[f] = ph[2];
     }
+    if (g->Q > 0) /* faces seen from far: the Gauss rule (the closed forms lose eps (r / edge)^2) */
+        for (long f = 0; f < T; ++f) {
+            if (FA[f] == 0.0) continue;
+            double ph[3], h = Ax[t0[f]] * Nx[f] + Ay[t0[f]] * Ny[f] + Az[t0[f]] * Nz[f];
+            tc_far_face(g, f, x, h, ph, psi + f, OM + f, NULL, NULL, NULL);
+            P0[f] = ph[0], P1[f] = ph[1], P2[f] = ph[2];
+        }
     return on_face;
 }
 
 void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges, long E, const double *eu,
              const int *fe, const double *nrm, const double *two_area, const double *ell, const double *edir,
-             const double *eout, const double *gbary, const double *X, long n, double tol, int nthreads, double *PHI,
-             double *PSI, int *ONF, double *AL) {
-    gc_tables g = {Pv, V, tri, T, edges, E, eu, fe, nrm, two_area, ell, edir, eout, gbary, NULL};
+             const double *eout, const double *gbary, const double *longest, const double *far_nodes,
+             const double *far_w, const double *far_bary, long Q, double far_c, const double *X, long n, double tol,
+             int nthreads, double *PHI, double *PSI, int *ONF, double *AL) {
+    gc_tables g = {Pv,   V,    tri,  T,       edges,     E,    eu,       fe, nrm, two_area, ell, edir, eout,
+                   gbary, NULL, NULL, 0,       longest,   far_nodes, far_w, far_bary, Q, far_c};
     tc_gc_prepare(&g);
 #pragma omp parallel num_threads(nthreads)
     {

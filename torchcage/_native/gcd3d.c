@@ -48,9 +48,11 @@ static inline void edge_terms(const double *aj, const double *ak, double Rj, dou
  */
 void tc_gcd3d(const double *Pv, long V, const int *tri, long T, const int *edges, long E, const double *eu,
               const int *fe, const double *nrm, const double *two_area, const double *ell, const double *edir,
-              const double *eout, const double *gbary, const double *X, long n, double tol, int order, int nthreads,
-              double *GPHI, double *GPSI, double *HPHI, double *HPSI, int *OK) {
-    gc_tables g = {Pv, V, tri, T, edges, E, eu, fe, nrm, two_area, ell, edir, eout, gbary, NULL, NULL, 0};
+              const double *eout, const double *gbary, const double *longest, const double *far_nodes,
+              const double *far_w, const double *far_bary, long Q, double far_c, const double *X, long n, double tol,
+              int order, int nthreads, double *GPHI, double *GPSI, double *HPHI, double *HPSI, int *OK) {
+    gc_tables g = {Pv,   V,    tri,  T,       edges,     E,    eu,       fe, nrm, two_area, ell, edir, eout,
+                   gbary, NULL, NULL, 0,       longest,   far_nodes, far_w, far_bary, Q, far_c};
     tc_gc_prepare(&g);
     const double inv4pi = 1.0 / FOUR_PI;
 #pragma omp parallel num_threads(nthreads)
@@ -79,17 +81,26 @@ void tc_gcd3d(const double *Pv, long V, const int *tri, long T, const int *edges
                     int v = tri[i * T + f];
                     a[i][0] = Ax[v], a[i][1] = Ay[v], a[i][2] = Az[v];
                 }
-                if (tc_thin_face(a, two_area[f])) ok = 0;
+                double R[3] = {RA[tri[f]], RA[tri[T + f]], RA[tri[2 * T + f]]};
+                if (tc_thin_face(a, two_area[f]) && !tc_far_pair(&g, f, R)) ok = 0; /* (far: the Gauss rule) */
             }
             OK[p] = ok;
             if (!ok) continue;
             for (long f = 0; f < T; ++f) {
                 if (!(two_area[f] > 0)) continue; /* a degenerate face integrates to nothing */
                 const double *nf = nrm + 3 * f, *mo = eout + 9 * f, *gb = gbary + 9 * f, *ed = edir + 9 * f;
-                double om = OM[f], K[3] = {0.0, 0.0, 0.0};
-                for (int e = 0; e < 3; ++e) {
-                    double I = IE[fe[e * T + f]];
-                    for (int c = 0; c < 3; ++c) K[c] -= mo[3 * e + c] * I;
+                double om = OM[f], K[3] = {0.0, 0.0, 0.0}, fgom[3], fgK[9];
+                const double Rf[3] = {RA[tri[f]], RA[tri[T + f]], RA[tri[2 * T + f]]};
+                int far = tc_far_pair(&g, f, Rf);
+                if (far) { /* seen from far: Omega, K and their gradients by the Gauss rule */
+                    int v0 = tri[f];
+                    double h = Ax[v0] * nf[0] + Ay[v0] * nf[1] + Az[v0] * nf[2], ps;
+                    tc_far_face(&g, f, X + 3 * p, h, NULL, &ps, &om, K, hphi ? fgom : NULL, fgK);
+                } else {
+                    for (int e = 0; e < 3; ++e) {
+                        double I = IE[fe[e * T + f]];
+                        for (int c = 0; c < 3; ++c) K[c] -= mo[3 * e + c] * I;
+                    }
                 }
                 for (int c = 0; c < 3; ++c) gpsi[3 * f + c] = (K[c] + om * nf[c]) * inv4pi;
                 for (int i = 0; i < 3; ++i) {
@@ -97,21 +108,28 @@ void tc_gcd3d(const double *Pv, long V, const int *tri, long T, const int *edges
                     for (int c = 0; c < 3; ++c) gv[c] += (om * gb[3 * i + c] - nf[c] * gK) * inv4pi;
                 }
                 if (!hphi) continue;
-                /* Hessians: the gradients of the edge integrals and of the solid angle */
-                double a[3][3], R[3], gI[3][3], B[3], Bsum[3] = {0.0, 0.0, 0.0};
-                for (int i = 0; i < 3; ++i) {
-                    int v = tri[i * T + f];
-                    a[i][0] = Ax[v], a[i][1] = Ay[v], a[i][2] = Az[v], R[i] = RA[v];
+                /* Hessians: the gradients of the edge integrals and of the solid angle (far: the rule's) */
+                double Bsum[3] = {0.0, 0.0, 0.0}, gK[3][3]; /* gK[a][b] = d K_a / d x_b */
+                if (far) {
+                    for (int c = 0; c < 3; ++c) {
+                        Bsum[c] = fgom[c];
+                        for (int d = 0; d < 3; ++d) gK[c][d] = fgK[3 * c + d];
+                    }
+                } else {
+                    double a[3][3], R[3], gI[3][3], B[3];
+                    for (int i = 0; i < 3; ++i) {
+                        int v = tri[i * T + f];
+                        a[i][0] = Ax[v], a[i][1] = Ay[v], a[i][2] = Az[v], R[i] = RA[v];
+                    }
+                    for (int e = 0; e < 3; ++e) {
+                        int j = (e + 1) % 3, k = (e + 2) % 3;
+                        edge_terms(a[j], a[k], R[j], R[k], ed + 3 * e, gI[e], B);
+                        for (int c = 0; c < 3; ++c) Bsum[c] += B[c];
+                    }
+                    for (int ia = 0; ia < 3; ++ia)
+                        for (int ib = 0; ib < 3; ++ib)
+                            gK[ia][ib] = -(mo[ia] * gI[0][ib] + mo[3 + ia] * gI[1][ib] + mo[6 + ia] * gI[2][ib]);
                 }
-                for (int e = 0; e < 3; ++e) {
-                    int j = (e + 1) % 3, k = (e + 2) % 3;
-                    edge_terms(a[j], a[k], R[j], R[k], ed + 3 * e, gI[e], B);
-                    for (int c = 0; c < 3; ++c) Bsum[c] += B[c];
-                }
-                double gK[3][3]; /* d K_a / d x_b */
-                for (int ia = 0; ia < 3; ++ia)
-                    for (int ib = 0; ib < 3; ++ib)
-                        gK[ia][ib] = -(mo[ia] * gI[0][ib] + mo[3 + ia] * gI[1][ib] + mo[6 + ia] * gI[2][ib]);
                 double *hs = hpsi + 9 * f;
                 for (int ia = 0; ia < 3; ++ia)
                     for (int ib = 0; ib < 3; ++ib) hs[3 * ia + ib] = (gK[ia][ib] + nf[ia] * Bsum[ib]) * inv4pi;

@@ -103,7 +103,21 @@ typedef struct {
     double *fc;
     long *thin; /* the faces tc_thin_face flags, nthin of them (tc_gc_prepare) */
     long nthin;
+    /* The far-field rule (torchcage/functional/_far_triangle.py; Q = 0: none): the faces' longest
+     * edges (T,), the Q nodes of each face (T, Q, 3), their weights with the area (T, Q) and
+     * barycentric coordinates (Q, 3); a pair takes it when its nearest corner is far_c longest
+     * edges away or more. */
+    const double *longest, *far_nodes, *far_w, *far_bary;
+    long Q;
+    double far_c;
 } gc_tables;
+/* Whether face f of g is seen from far by a point whose distances to the face's corners are R (3,). */
+int tc_far_pair(const gc_tables *g, long f, const double *R);
+/* Face f's integrals by the far-field rule, seen from x with signed distance h: phi (3,) (with
+ * 1 / 4 pi, may be NULL), psi, omega, K (3,) (may be NULL) and, when gom is not NULL, the gradients
+ * gom (3,) of omega and gK (3, 3) of K (gK[3 a + b] = d K_a / d x_b). */
+void tc_far_face(const gc_tables *g, long f, const double *x, double h, double *phi, double *psi, double *omega,
+                 double *K, double *gom, double *gK);
 /* Thin faces (torchcage/functional/_thin_triangle.py): THIN_ASPECT times longer than wide, seen from
  * THIN_DISTANCE widths or more from their longest edge, take the swept forms. */
 #define TC_THIN_ASPECT 100.0

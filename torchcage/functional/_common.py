@@ -393,3 +393,28 @@ def jacobian_rows(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> list[
     (r,) = torch.autograd.grad(y, x, Z, create_graph=True)
     D = x.shape[1]
     return [torch.autograd.grad(r[:, c].sum(), Z, retain_graph=True, create_graph=create_graph)[0] for c in range(D)]
+
+
+def collapsed_gauss(order: int, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gauss–Legendre rule on the unit triangle by the collapsed square ``s = u, t = v (1 - u)``.
+
+    Returns:
+        ``(bary (Q, 3), weights (Q,))``: barycentric coordinates of the ``Q = order^2`` nodes and
+        weights summing to 1/2 (the reference triangle's area).
+
+    Examples:
+        >>> import torch
+        >>> bary, w = collapsed_gauss(3, torch.float64, torch.device("cpu"))
+        >>> bary.shape, round(float(w.sum()), 12)
+        (torch.Size([9, 3]), 0.5)
+    """
+    import numpy as np
+
+    g, w = np.polynomial.legendre.leggauss(order)
+    g, w = (g + 1) / 2, w / 2
+    u, v = np.meshgrid(g, g, indexing="ij")
+    wu, wv = np.meshgrid(w, w, indexing="ij")
+    s, t = u.ravel(), (v * (1 - u)).ravel()
+    weight = (wu * wv * (1 - u)).ravel()
+    bary = np.stack([1 - s - t, s, t], axis=1)
+    return torch.as_tensor(bary, dtype=dtype, device=device), torch.as_tensor(weight, dtype=dtype, device=device)

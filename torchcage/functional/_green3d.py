@@ -42,6 +42,7 @@ import torch
 
 from ..cage import Cage
 from ._common import log_ratio, on_cage_tolerance, records_graph, safe_atan2, safe_norm, triangle_geometry
+from ._far_triangle import far_nodes, far_pairs, far_triangle_integrals
 from ._thin_triangle import THIN_ASPECT, thin_pairs, thin_triangle_integrals
 
 #: Pairs with ``|h| < PERPENDICULAR_PLANE_RATIO * min R`` or ``min R < PERPENDICULAR_VERTEX_RATIO *
@@ -63,6 +64,11 @@ class TriangleGreenData:
     grad_bary: torch.Tensor  # (T, 3, 3) in-plane gradient of each corner's hat function
     tri: torch.Tensor  # (T, 3) corners
     tol: float
+    # The far-field rule (module _far_triangle); None: closed forms only (a caller's subset of faces)
+    longest: torch.Tensor | None = None  # (T,) longest edges
+    far_nodes: torch.Tensor | None = None  # (T, Q, 3)
+    far_weights: torch.Tensor | None = None  # (T, Q), area included
+    far_bary: torch.Tensor | None = None  # (Q, 3)
 
 
 def triangle_green_data(cage: Cage, dtype: torch.dtype) -> TriangleGreenData:
@@ -70,7 +76,12 @@ def triangle_green_data(cage: Cage, dtype: torch.dtype) -> TriangleGreenData:
         cage, dtype, "triangulate it with cage.triangulated() (quad Green coordinates are a separate system)"
     )
     _, _, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
-    return TriangleGreenData(p, n, two_area, edge_dir, edge_out, grad_bary, cage.triangles, on_cage_tolerance(cage))
+    longest = (p.roll(-1, dims=1) - p).norm(dim=-1).amax(dim=1)
+    nodes, weights, bary = far_nodes(p, two_area)
+    tol = on_cage_tolerance(cage)
+    return TriangleGreenData(
+        p, n, two_area, edge_dir, edge_out, grad_bary, cage.triangles, tol, longest, nodes, weights, bary
+    )
 
 
 def triangle_green_geometry(p: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -164,11 +175,43 @@ def green3d_chunk(x: torch.Tensor, data: TriangleGreenData) -> tuple[torch.Tenso
     Returns:
         ``(phi_face (n, T, 3), psi (n, T), omega (n, T), on_face (n, T), alpha (n, T, 3))``: each
         face's contribution to its corners' ``phi``, ``psi``, the solid angles, whether the point
-        lies on the face, and the barycentric coordinates of its foot point.
+        lies on the face, and the barycentric coordinates of its foot point. Faces seen from far
+        (:mod:`._far_triangle`) take the quadrature rule.
     """
     a = data.p[None] - x[:, None, None, :]  # (n, T, 3 corners, 3)
     geometry = (data.normal[None], data.two_area[None], data.edge_dir[None], data.edge_out[None], data.grad_bary[None])
-    return triangle_integrals(a, geometry, data.tol)
+    extras: dict = {}
+    phi_face, psi, omega, on_face, alpha = triangle_integrals(a, geometry, data.tol, extras=extras)
+    phi_face, psi, omega, _ = put_far(x, a, data, phi_face, psi, omega, extras)
+    return phi_face, psi, omega, on_face, alpha
+
+
+def put_far(
+    x: torch.Tensor, a: torch.Tensor, data: TriangleGreenData, phi_face, psi, omega, extras: dict
+) -> tuple[torch.Tensor, ...]:
+    """The closed forms' ``phi_face (n, T, 3)``, ``psi``, ``omega`` ``(n, T)`` and ``extras["K"]``
+    ``(n, T, 3)`` with the pairs seen from far replaced by :func:`._far_triangle.far_triangle_integrals`
+    (differentiable); ``x`` ``(n, 3)``, ``a`` ``(n, T, 3, 3)`` the corners minus the points.
+    ``extras`` is updated in place (``"K"``, and ``"far"``: the far pairs ``(n, T)``, or None).
+    Returns ``(phi_face, psi, omega, far)``."""
+    extras["far"] = None
+    if data.far_nodes is None or data.longest is None:
+        return phi_face, psi, omega, None
+    far = far_pairs(extras["R"], data.longest)
+    if not bool(far.any()):
+        return phi_face, psi, omega, None
+    pt, ft = torch.nonzero(far, as_tuple=True)
+    h = (a[pt, ft, 0] * data.normal[ft]).sum(-1)
+    pf, ps, om, K = far_triangle_integrals(
+        x[pt], data.far_nodes[ft], data.far_weights[ft], data.far_bary, data.normal[ft], h
+    )
+    extras["far"] = far
+    if records_graph(a, phi_face, psi, omega, extras["K"], pf):
+        extras["K"] = extras["K"].index_put((pt, ft), K)
+        return phi_face.index_put((pt, ft), pf), psi.index_put((pt, ft), ps), omega.index_put((pt, ft), om), far
+    for t, v in ((phi_face, pf), (psi, ps), (omega, om), (extras["K"], K)):  # (no graph: in place)
+        t[pt, ft] = v
+    return phi_face, psi, omega, far
 
 
 def triangle_integrals(
@@ -180,8 +223,8 @@ def triangle_integrals(
     alpha (..., 3))`` as :func:`green3d_chunk`. ``thin``: thin faces seen from a few widths take
     :func:`._thin_triangle.thin_triangle_integrals` (off for the quad Riemann sums' cells, whose
     estimate only needs the closed forms' solid angles, as the native kernel's). ``extras``: a dict
-    that receives ``"K"`` (``(..., 3)``, ``int (rho - rho_0) / r^3`` over the face) and ``"thin"``
-    (the pairs that took the swept form, or None), for
+    that receives ``"K"`` (``(..., 3)``, ``int (rho - rho_0) / r^3`` over the face), ``"thin"``
+    (the pairs that took the swept form, or None) and ``"R"`` (``(..., 3)``, the corners' distances), for
     :func:`._green3d_derivatives.green3d_derivatives`."""
     normal, two_area, edge_dir, edge_out, grad_bary = geometry
     R = safe_norm(a)  # (..., 3)
@@ -238,7 +281,7 @@ def triangle_integrals(
     if thin_mask is not None and bool(thin_mask.any()):
         phi_face, psi, omega = _put_thin(a, h, two_area, thin_mask, phi_face, psi, omega)
     if extras is not None:
-        extras["K"], extras["thin"] = K, thin_mask
+        extras["K"], extras["thin"], extras["R"] = K, thin_mask, R
     return phi_face, psi, omega, on_face, alpha
 
 

@@ -40,6 +40,10 @@ Where the ends lie on one side of the foot (``l_j l_k > 0``), ``c_e`` is evaluat
 ``(l_k^2 - l_j^2) / ((l_k R_j + l_j R_k) R_j R_k)``, which does not cancel (and stays finite) as the
 point nears the edge's line; there ``w_e`` vanishes with its term. ``w_e`` is taken from the edge's
 nearer end, as the values' kernel does (:func:`._green3d._edge_perpendicular`).
+
+Faces seen from far (the nearest corner ``FAR_RATIO`` longest edges away) take ``Omega_t``, ``K_t``
+and their gradients from the quadrature rule of :mod:`._far_triangle`: the edge sums lose
+``eps rho^2`` there.
 """
 
 from __future__ import annotations
@@ -48,7 +52,8 @@ import math
 
 import torch
 
-from ._green3d import TriangleGreenData, _edge_perpendicular, triangle_integrals
+from ._far_triangle import far_triangle_gradients
+from ._green3d import TriangleGreenData, _edge_perpendicular, put_far, triangle_integrals
 
 __all__ = ["green3d_derivatives"]
 
@@ -103,14 +108,15 @@ def green3d_derivatives(
     extras: dict = {}
     a = data.p[None] - x[:, None, None, :]  # (n, T, 3 corners, 3)
     geometry = (data.normal[None], data.two_area[None], data.edge_dir[None], data.edge_out[None], data.grad_bary[None])
-    _, _, omega, on_face, _ = triangle_integrals(a, geometry, data.tol, extras=extras)
+    phi_face, psi, omega, on_face, _ = triangle_integrals(a, geometry, data.tol, extras=extras)
+    _, _, omega, far = put_far(x, a, data, phi_face, psi, omega, extras)
     K, n, g = extras["K"], data.normal[None], data.grad_bary[None]  # (n, T, 3), (1, T, 3), (1, T, 3, 3)
     face = (omega[..., None, None] * g - n[..., None, :] * (g * K[..., None, :]).sum(-1)[..., None]) / (4 * math.pi)
     grad_phi = _scatter_corners(face, data.tri, num_vertices)
     grad_psi = (K + omega[..., None] * n) / (4 * math.pi)
     exact = ~on_face.any(dim=1)
-    if extras["thin"] is not None:
-        exact &= ~extras["thin"].any(dim=1)
+    if extras["thin"] is not None:  # (a thin face seen from far takes the far-field rule: exact)
+        exact &= ~(extras["thin"] & ~far if far is not None else extras["thin"]).any(dim=1)
     if order == 1:
         empty = x.new_empty((0,))
         return grad_phi, grad_psi, empty, empty, exact
@@ -118,6 +124,11 @@ def green3d_derivatives(
     grad_I, biot = _edge_terms(a, data.edge_dir[None])
     grad_omega = biot.sum(-2) * live  # (n, T, 3)
     grad_K = -(data.edge_out[None, :, :, :, None] * grad_I[..., :, None, :]).sum(-3) * live[..., None]  # (n, T, a, b)
+    if far is not None:  # faces seen from far: the quadrature rule (module _far_triangle)
+        pt, ft = torch.nonzero(far, as_tuple=True)
+        h = (a[pt, ft, 0] * data.normal[ft]).sum(-1)
+        go, gk = far_triangle_gradients(x[pt], data.far_nodes[ft], data.far_weights[ft], data.normal[ft], h)
+        grad_omega[pt, ft], grad_K[pt, ft] = go, gk
     hess_psi = (grad_K + n[..., :, None] * grad_omega[..., None, :]) / (4 * math.pi)
     hess_psi = 0.5 * (hess_psi + hess_psi.transpose(-1, -2))  # (a face's potential is smooth off the face)
     gK = torch.einsum("tic,ntcb->ntib", data.grad_bary, grad_K)  # g_i^T grad K: (n, T, 3 corners, 3)

@@ -10,15 +10,22 @@ import torch
 
 from .. import _native
 from ._common import unique_face_edges
+from ._far_triangle import FAR_RATIO
 from ._green3d import TriangleGreenData, triangle_green_geometry
 
 __all__ = ["native_chunk", "native_subset_tables", "native_tables"]
 
 
 def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, object]:
-    """``tc_gc3d``'s per-cage arguments: among them the unique edges with their unit directions
-    and, for each face, the edge opposite each corner."""
+    """``tc_gc3d``'s per-cage arguments: among them the unique edges with their unit directions,
+    for each face the edge opposite each corner, and the far-field rule (none, ``Q = 0``, where
+    ``data`` has none)."""
     edges, face_edge, _ = unique_face_edges(data.tri)
+    T = data.tri.shape[0]
+    if data.far_nodes is not None and data.longest is not None:
+        far = (data.longest, data.far_nodes, data.far_weights, data.far_bary)
+    else:
+        far = (data.two_area, data.p.new_zeros(T, 0, 3), data.p.new_zeros(T, 0), data.p.new_zeros(0, 3))
     edges = edges.T  # (2, E)
     direction = vertices[edges[1]] - vertices[edges[0]]
     return {
@@ -36,6 +43,12 @@ def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, 
         "edir": data.edge_dir.contiguous(),
         "eout": data.edge_out.contiguous(),
         "gbary": data.grad_bary.contiguous(),
+        "longest": far[0].contiguous(),
+        "far_nodes": far[1].contiguous(),
+        "far_w": far[2].contiguous(),
+        "far_bary": far[3].contiguous(),
+        "Q": far[3].shape[0],
+        "far_c": FAR_RATIO,
         "tol": data.tol,
     }
 

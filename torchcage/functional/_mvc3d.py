@@ -49,6 +49,7 @@ import torch
 
 from ..cage import Cage
 from ._common import (
+    collapsed_gauss,
     nearest_where,
     on_cage_tolerance,
     outside_point,
@@ -111,7 +112,7 @@ def triangle_data(v: torch.Tensor, tri: torch.Tensor, tol: float) -> TriangleCag
     two_area = cross.norm(dim=-1)
     normal = cross / two_area[:, None]
     edges = p.roll(-1, dims=1) - p.roll(-2, dims=1)  # E_e = p_{e+1} - p_{e+2}, (T, 3, 3)
-    bary, qw = _collapsed_gauss(FAR_FIELD_ORDER, v.dtype, v.device)
+    bary, qw = collapsed_gauss(FAR_FIELD_ORDER, v.dtype, v.device)
     far_nodes = torch.einsum("qi,tic->tqc", bary, p)
     far_coef = (two_area[:, None, None] * qw[None, :, None]) * bary[None]
     return TriangleCageData(
@@ -127,25 +128,6 @@ def triangle_data(v: torch.Tensor, tri: torch.Tensor, tol: float) -> TriangleCag
         far_coef=far_coef,
         thin=torch.nonzero((edges.square().sum(-1).amax(-1) > THIN_ASPECT * two_area) & (two_area > 0)).flatten(),
     )
-
-
-def _collapsed_gauss(order: int, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """Gauss–Legendre rule on the unit triangle by the collapsed square ``s = u, t = v (1 - u)``.
-
-    Returns:
-        ``(bary (Q, 3), weights (Q,))``: barycentric coordinates of the ``Q = order^2`` nodes and
-        weights summing to 1/2 (the reference triangle's area).
-    """
-    import numpy as np
-
-    g, w = np.polynomial.legendre.leggauss(order)
-    g, w = (g + 1) / 2, w / 2
-    u, v = np.meshgrid(g, g, indexing="ij")
-    wu, wv = np.meshgrid(w, w, indexing="ij")
-    s, t = u.ravel(), (v * (1 - u)).ravel()
-    weight = (wu * wv * (1 - u)).ravel()
-    bary = np.stack([1 - s - t, s, t], axis=1)
-    return torch.as_tensor(bary, dtype=dtype, device=device), torch.as_tensor(weight, dtype=dtype, device=device)
 
 
 def _cross(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:

@@ -11,8 +11,7 @@ import torch
 
 from .. import _native
 from ..cage import Cage
-from ._common import on_cage_tolerance, triangle_geometry, unique_face_edges
-from ._mvc3d import _collapsed_gauss
+from ._common import collapsed_gauss, on_cage_tolerance, triangle_geometry, unique_face_edges
 
 __all__ = ["DERIVATIVE_FAR_FIELD_ORDER", "DERIVATIVE_FAR_FIELD_RATIO", "DERIVATIVE_SPLIT_FORM_RATIO", "G_ORDER",
            "native_chunk", "native_tables"]  # fmt: skip
@@ -48,7 +47,7 @@ def native_tables(cage: Cage) -> dict[str, object]:
     p, normal, two_area = p.cpu(), normal.cpu(), two_area.cpu()
     E = p.roll(-1, dims=1) - p.roll(-2, dims=1)  # (T, 3, 3): E_e = p_{e+1} - p_{e+2}
     ell = E.norm(dim=-1)
-    bary, qw = _collapsed_gauss(DERIVATIVE_FAR_FIELD_ORDER, torch.float64, torch.device("cpu"))
+    bary, qw = collapsed_gauss(DERIVATIVE_FAR_FIELD_ORDER, torch.float64, torch.device("cpu"))
     gy, gw = _gauss01(G_ORDER)
     tri = cage.triangles.cpu()
     edges, face_edge, _ = unique_face_edges(tri)
