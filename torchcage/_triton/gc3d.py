@@ -8,7 +8,8 @@ them (with ``h`` and the foot's distances to the edge lines from the edges' perp
 from their nearer ends: the same bits for both faces of an edge), then ``psi`` and the corner terms
 of ``phi``. Points on a face get the principal values plus the hat values of the largest face
 holding them with the jump weight ``1 - omega / 4 pi``. Pairs of a thin face seen from a few widths
-are flagged: the caller redoes those points with the torch kernel's swept form.
+are flagged: the caller redoes those points with the torch kernel's swept form. Faces seen from far
+(:mod:`torchcage.functional._far_triangle`) take its Gauss rule, in the blocks where a point needs it.
 
 Shapes: ``P (V, 3)``, ``tri (T, 3)`` int32, per-face tables ``(T, ...)``, ``X (n, 3)`` ->
 ``PHI (n, V)``, ``PSI (n, T)`` (the bare integrals, as :func:`._green_dispatch.green_flat`) and
@@ -21,6 +22,7 @@ import torch
 import triton
 import triton.language as tl
 
+from ..functional._far_triangle import FAR_RATIO
 from ..functional._green3d import PERPENDICULAR_PLANE_RATIO, PERPENDICULAR_VERTEX_RATIO, TriangleGreenData
 from ..functional._thin_triangle import THIN_ASPECT, THIN_DISTANCE
 from . import interpreted
@@ -71,9 +73,39 @@ def _edge_angle(d, lj, lk, Rj, Rk, h):
 
 
 @triton.jit
+def _far_face(x0, x1, x2, far, f, h, far_nodes, far_w, far_bary, Q, psi, om, p0, p1, p2):
+    """Face ``f``'s ``psi``, solid angle and corner terms by the far-field rule (module
+    ``functional/_far_triangle``) in the lanes ``far``, the closed forms' values elsewhere."""
+    s1 = tl.zeros_like(x0)
+    s3 = tl.zeros_like(x0)
+    b0 = tl.zeros_like(x0)
+    b1 = tl.zeros_like(x0)
+    b2 = tl.zeros_like(x0)
+    for q in range(Q):
+        node = far_nodes + 3 * (Q * f + q)
+        ax = tl.load(node) - x0
+        ay = tl.load(node + 1) - x1
+        az = tl.load(node + 2) - x2
+        ir = 1.0 / tl.sqrt(ax * ax + ay * ay + az * az)
+        w1 = tl.load(far_w + Q * f + q) * ir
+        w3 = w1 * ir * ir
+        s1 += w1
+        s3 += w3
+        b0 += w3 * tl.load(far_bary + 3 * q)
+        b1 += w3 * tl.load(far_bary + 3 * q + 1)
+        b2 += w3 * tl.load(far_bary + 3 * q + 2)
+    psi = tl.where(far, s1 * INV_4PI, psi)
+    om = tl.where(far, h * s3, om)
+    p0 = tl.where(far, h * b0 * INV_4PI, p0)
+    p1 = tl.where(far, h * b1 * INV_4PI, p1)
+    p2 = tl.where(far, h * b2 * INV_4PI, p2)
+    return psi, om, p0, p1, p2
+
+
+@triton.jit
 def _gc3d_kernel(
-    X, n, P, V, tri, T, nrm, two_area, ell, edir, eout, gbary, thin, tol, plane_c, vertex_c, thin_distance,
-    tiny, huge, PHI, PSI, flags, BLOCK: tl.constexpr,
+    X, n, P, V, tri, T, nrm, two_area, ell, edir, eout, gbary, thin, far2, far_nodes, far_w, far_bary, Q, tol,
+    plane_c, vertex_c, thin_distance, tiny, huge, PHI, PSI, flags, BLOCK: tl.constexpr,
 ):  # fmt: skip
     offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = offs < n
@@ -189,7 +221,6 @@ def _gc3d_kernel(
         # psi and the corner terms (h K dropped on the plane; an edge through the point drops its I)
         dI = tl.where(d0 != 0, d0 * I0, 0.0) + tl.where(d1 != 0, d1 * I1, 0.0) + tl.where(d2 != 0, d2 * I2, 0.0)
         psi = tl.where(dead, 0.0, (dI - h * om) * INV_4PI)
-        tl.store(prow + f, psi, mask=live)
         Kx = -(m0x * I0 + m1x * I1 + m2x * I2)
         Ky = -(m0y * I0 + m1y * I1 + m2y * I2)
         Kz = -(m0z * I0 + m1z * I1 + m2z * I2)
@@ -208,6 +239,13 @@ def _gc3d_kernel(
         p0 = tl.where(dead, 0.0, p0)
         p1 = tl.where(dead, 0.0, p1)
         p2 = tl.where(dead, 0.0, p2)
+        # seen from far (the nearest corner far_c longest edges away): the Gauss rule, where a lane needs it
+        far = (rmin * rmin >= tl.load(far2 + f)) & live
+        if tl.max(far.to(tl.int32), axis=0) > 0:
+            psi, om, p0, p1, p2 = _far_face(
+                x0, x1, x2, far, f, h, far_nodes, far_w, far_bary, Q, psi, om, p0, p1, p2
+            )  # fmt: skip
+        tl.store(prow + f, psi, mask=live)
         tl.store(row + i0, tl.load(row + i0, mask=live, other=0.0) + p0, mask=live)
         tl.store(row + i1, tl.load(row + i1, mask=live, other=0.0) + p1, mask=live)
         tl.store(row + i2, tl.load(row + i2, mask=live, other=0.0) + p2, mask=live)
@@ -240,6 +278,9 @@ def triton_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, 
     live = data.two_area > 0
     L2 = (data.grad_bary.norm(dim=-1) * data.two_area[:, None]).square().amax(dim=1)
     thin = (live & (L2 > THIN_ASPECT * data.two_area)).to(torch.int32)  # (_thin_triangle's thin faces)
+    if data.far_nodes is None or data.longest is None:
+        raise ValueError("the Triton Green kernel needs the far-field rule's tables (triangle_green_data)")
+    far2 = torch.where(live & (data.longest > 0), (FAR_RATIO * data.longest) ** 2, torch.inf)
     return {
         "P": vertices.contiguous(),
         "V": vertices.shape[0],
@@ -252,6 +293,11 @@ def triton_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, 
         "eout": data.edge_out.contiguous(),
         "gbary": data.grad_bary.contiguous(),
         "thin": thin.contiguous(),
+        "far2": far2.contiguous(),
+        "far_nodes": data.far_nodes.contiguous(),
+        "far_w": data.far_weights.contiguous(),
+        "far_bary": data.far_bary.contiguous(),
+        "Q": data.far_bary.shape[0],
         "tol": data.tol,
         "plane_c": PERPENDICULAR_PLANE_RATIO,
         "vertex_c": PERPENDICULAR_VERTEX_RATIO,
