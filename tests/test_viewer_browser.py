@@ -120,12 +120,13 @@ def test_gizmo_transform_of_a_selection_then_undo_redo_reset(editor, browser, ba
     reported = scene(editor)
     mesh = torch.tensor(reported["mesh"]["vertices"], dtype=torch.float64)
     assert (mesh - ((v - centre) @ R.T + centre)).abs().max() < 1e-9  # MVC reproduces the similarity
+    # (the page sends each pose to the server asynchronously: wait for it, as a loaded machine may lag)
     browser.evaluate("window.torchcage.undo()")
-    assert torch.allclose(editor.pose, cage.vertices, atol=1e-12)
+    assert wait_for(lambda: torch.allclose(editor.pose, cage.vertices, atol=1e-12)), "undo did not reach the server"
     browser.evaluate("window.torchcage.redo()")
-    assert torch.allclose(editor.pose, expected_pose, atol=1e-9)
+    assert wait_for(lambda: torch.allclose(editor.pose, expected_pose, atol=1e-9)), "redo did not reach the server"
     browser.evaluate("window.torchcage.reset()")
-    assert torch.allclose(editor.pose, cage.vertices, atol=1e-12)
+    assert wait_for(lambda: torch.allclose(editor.pose, cage.vertices, atol=1e-12)), "reset did not reach the server"
 
 
 def test_the_page_follows_a_pose_set_by_a_script(editor, browser, bar):
