@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
+
+# Under pytest-xdist (pyproject's -n auto) the workers share the cores: each takes its share of
+# threads, so that torch's and the native kernels' thread pools do not oversubscribe them.
+if os.environ.get("PYTEST_XDIST_WORKER_COUNT"):
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
 
 #: Kernels of the functions that have a native CPU kernel beside the torch one.
 BACKENDS = ["native", "torch"]
