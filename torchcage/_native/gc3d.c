@@ -337,7 +337,7 @@ void tc_far_face(const gc_tables *g, long f, const double *x, double h, double *
     const long Q = g->Q;
     const double *nodes = g->far_nodes + 3 * Q * f, *w = g->far_w + Q * f, *n = g->nrm + 3 * f;
     double s1 = 0.0, s3 = 0.0, a3[3] = {0.0, 0.0, 0.0}, b3[3] = {0.0, 0.0, 0.0};
-    double s5 = 0.0, a5[3] = {0.0, 0.0, 0.0}, aa5[9] = {0.0};
+    double a5[3] = {0.0, 0.0, 0.0}, aa5[9] = {0.0};
     for (long q = 0; q < Q; ++q) {
         double a[3] = {nodes[3 * q] - x[0], nodes[3 * q + 1] - x[1], nodes[3 * q + 2] - x[2]};
         double r2 = dot3(a, a), ir = 1.0 / sqrt(r2), w1 = w[q] * ir, w3 = w1 * ir * ir;
@@ -347,14 +347,12 @@ void tc_far_face(const gc_tables *g, long f, const double *x, double h, double *
         for (int c = 0; c < 3; ++c) a3[c] += w3 * a[c], b3[c] += w3 * bq[c];
         if (gom) {
             double w5 = w3 * ir * ir;
-            s5 += w5;
             for (int c = 0; c < 3; ++c) {
                 a5[c] += w5 * a[c];
                 for (int d = 0; d < 3; ++d) aa5[3 * c + d] += w5 * a[c] * a[d];
             }
         }
     }
-    (void)s5;
     double om = h * s3;
     *omega = om;
     *psi = s1 / FOUR_PI;
