@@ -112,6 +112,7 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "far_always:f64 nthreads:i32 GX:f64*![n,3] GP:f64*![V,3] reg:u8*![n]"
     ),
     "tc_winding3d": _parse("P:f64*[T,3,3] T:i64 X:f64*[n,3] n:i64 nthreads:i32 W:f64*![n]"),
+    "tc_nearest3d": _parse("P:f64*[T,3,3] T:i64 S:f64*?[T] X:f64*[n,3] n:i64 nthreads:i32 D:f64*![n] I:i32*![n]"),
     "tc_raster2d": _parse(
         "P:f64*[B,Nv,2] B:i64 Nv:i64 tri:i32*[T,3] T:i64 H:i64 W:i64 S:f64*[Nv,C] C:i64 nthreads:i32 "
         "out:i32*![B,H,W] val:f64*![B,H,W,C]"

@@ -2,10 +2,17 @@
 enclosure (signed clearance of the shape's points) and tightness (distance from the cage to the
 shape).
 
-Quads are checked through both of their triangulations (along ``q0-q2`` and ``q1-q3``): the
-bilinear patch of a quad lies in the tetrahedron of its corners, between the two, so a point that
-clears both clears the patch up to the quad's bend, and a surface whose both triangulations are
-free of crossings has no crossing far from the bends.
+Crossings of quads are checked through both of their triangulations (along ``q0-q2`` and
+``q1-q3``): the bilinear patch of a quad lies in the tetrahedron of its corners, whose four faces
+are those two triangulations' triangles, so a surface whose both triangulations are free of
+crossings has no face entering a patch's tetrahedron.
+
+Enclosure of quads is measured on two closed surfaces, and a point must be inside both: the split
+along ``q0-q2`` (what :meth:`torchcage.Cage.triangulated` and MVC see) and the bilinear patches
+themselves (what QMVC and QGC see), on an ``n x n`` grid per quad (:func:`patch_grid`) whose
+distance to the patch is bounded and subtracted. (Demanding clearance from the ``q1-q3`` split
+instead of the patch, as an earlier version did, pushed bent quads' corners out by their whole
+bend.)
 """
 
 from __future__ import annotations
@@ -15,7 +22,19 @@ import torch
 from .._intersections import edge_triangle_crossings
 from ..geometry import nearest_triangle, winding_number
 
-__all__ = ["both_triangulations", "folded_edges", "self_intersections", "signed_clearance", "tightness"]
+__all__ = [
+    "both_triangulations",
+    "crossing_quads",
+    "folded_edges",
+    "measured_surfaces",
+    "patch_grid",
+    "self_intersections",
+    "signed_clearance",
+    "tightness",
+]
+
+#: Cells per side of the grid on which a quad's bilinear patch is measured.
+PATCH_GRID = 5
 
 
 def both_triangulations(triangles: torch.Tensor, quads: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -86,12 +105,111 @@ def self_intersections(vertices: torch.Tensor, triangles: torch.Tensor, quads: t
     return count
 
 
+def patch_grid(
+    vertices: torch.Tensor, quads: torch.Tensor, n: int = PATCH_GRID
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bilinear patches of quads on an ``n x n`` grid of their parameter square, two triangles a cell.
+
+    On a cell of side ``h`` the patch ``x(u, v)`` differs from the two triangles by the twist term
+    ``(q0 - q1 + q2 - q3) du dv`` with ``du dv <= h^2 / 4``: every point of the patch is within
+    ``|q0 - q1 + q2 - q3| / (4 n^2)`` of the grid and back.
+
+    Args:
+        vertices: ``(V, 3)``.
+        quads: ``(Q, 4)``.
+        n: cells per side.
+
+    Returns:
+        the grid's points ``(Q (n + 1)^2, 3)``, triangles ``(2 Q n^2, 3)`` (indices into those points,
+        oriented like the quads) and each triangle's distance bound to the patch ``(2 Q n^2,)``.
+
+    Examples:
+        >>> q = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 1], [0, 1, 0]])  # a bent quad
+        >>> p, t, slack = patch_grid(q, torch.tensor([[0, 1, 2, 3]]), n=2)
+        >>> p.shape, t.shape, round(float(slack[0]), 4)  # |twist| = 1: slack 1 / 16
+        (torch.Size([9, 3]), torch.Size([8, 3]), 0.0625)
+    """
+    s = torch.linspace(0.0, 1.0, n + 1, dtype=vertices.dtype, device=vertices.device)
+    u, w = (g.flatten() for g in torch.meshgrid(s, s, indexing="ij"))  # u along q0 -> q1, w along q0 -> q3
+    basis = torch.stack([(1 - u) * (1 - w), u * (1 - w), u * w, (1 - u) * w], dim=1)  # ((n+1)^2, 4)
+    q = vertices[quads]  # (Q, 4, 3)
+    points = torch.einsum("gk,qkd->qgd", basis, q).reshape(-1, 3)
+    at = torch.arange((n + 1) ** 2, device=quads.device).reshape(n + 1, n + 1)
+    a, b, c, d = at[:-1, :-1].flatten(), at[1:, :-1].flatten(), at[1:, 1:].flatten(), at[:-1, 1:].flatten()
+    cell = torch.cat([torch.stack([a, b, c], dim=1), torch.stack([a, c, d], dim=1)])  # (2 n^2, 3)
+    offset = (torch.arange(quads.shape[0], device=quads.device) * (n + 1) ** 2)[:, None, None]
+    triangles = (cell[None] + offset).reshape(-1, 3)
+    twist = (q[:, 0] - q[:, 1] + q[:, 2] - q[:, 3]).norm(dim=-1)
+    return points, triangles, (twist / (4 * n * n)).repeat_interleave(2 * n * n)
+
+
+def measured_surfaces(
+    vertices: torch.Tensor, triangles: torch.Tensor, quads: torch.Tensor
+) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """The closed surfaces a point must be inside of to be inside the cage: the ``q0-q2`` split, and
+    (with quads) the triangles plus the quads' patch grids (:func:`patch_grid`).
+
+    Each is ``(points (P, 3), triangles (F, 3), slack (F,))``, where ``slack`` bounds how far a
+    triangle is from the surface it stands for (0 for flat faces). The layout depends only on the
+    faces, so the surfaces of two poses of one cage correspond face by face.
+
+    Examples:
+        >>> import torchcage
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+        >>> [t.shape[0] for _, t, _ in measured_surfaces(cube.vertices, cube.triangles, cube.quads)]
+        [12, 300]
+    """
+    split02, _ = both_triangulations(triangles, quads)
+    flat = vertices.new_zeros(split02.shape[0])
+    surfaces = [(vertices, split02, flat)]
+    if quads.shape[0]:
+        p, t, slack = patch_grid(vertices, quads)
+        surfaces.append(
+            (
+                torch.cat([vertices, p]),
+                torch.cat([triangles, t + vertices.shape[0]]),
+                torch.cat([vertices.new_zeros(triangles.shape[0]), slack]),
+            )
+        )
+    return surfaces
+
+
+def crossing_quads(vertices: torch.Tensor, triangles: torch.Tensor, quads: torch.Tensor) -> torch.Tensor:
+    """Which quads ``(Q,)`` bool take part in a self-intersection (:func:`self_intersections`) of
+    either triangulation: one of their triangles is crossed, or an edge with both ends on the
+    quad crosses or folds.
+
+    Examples:
+        >>> import torchcage
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+        >>> crossing_quads(cube.vertices, cube.triangles, cube.quads).any().item()
+        False
+    """
+    v = vertices.detach().to(torch.float64)
+    T, Q = triangles.shape[0], quads.shape[0]
+    hit = torch.zeros(Q, dtype=torch.bool)
+    for tri in both_triangulations(triangles, quads):
+        edges = _edges(tri)
+        pairs = edge_triangle_crossings(v, edges, tri)
+        t = pairs[:, 1][pairs[:, 1] >= T]
+        hit[(t - T) % max(Q, 1)] = True
+        for e in (edges[pairs[:, 0]], folded_edges(v, tri)):
+            hit |= (
+                (quads[:, :, None] == e[None, None, :, 0])
+                .any(1)
+                .logical_and((quads[:, :, None] == e[None, None, :, 1]).any(1))
+                .any(-1)
+            )
+    return hit
+
+
 def signed_clearance(
     points: torch.Tensor, vertices: torch.Tensor, triangles: torch.Tensor, quads: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Signed distance ``(N,)`` of points to a closed surface, positive inside (by winding number),
     and the nearest face ``(N,)`` (an index into ``triangles``, then ``T + q`` for quad ``q``).
-    With quads, the distance is the smaller of the two triangulations'.
+    With quads, a point is inside if it is inside both of :func:`measured_surfaces` (the ``q0-q2``
+    split and the bilinear patches), and its distance is a lower bound of the nearer one's.
 
     Examples:
         >>> import torchcage
@@ -104,15 +222,17 @@ def signed_clearance(
     v = vertices.detach().to(torch.float64)
     quads = torch.zeros((0, 4), dtype=torch.long) if quads is None else quads
     T, Q = triangles.shape[0], quads.shape[0]
-    split02, split13 = both_triangulations(triangles, quads)
-    d, i = nearest_triangle(x, v, split02)
-    if Q:
-        d13, i13 = nearest_triangle(x, v, split13)
-        closer = d13 < d
-        d, i = torch.where(closer, d13, d), torch.where(closer, i13, i)
-    face = torch.where(i < T, i, T + (i - T) % max(Q, 1))
-    inside = winding_number(x, v, split02) > 0.5
-    return torch.where(inside, d, -d), face
+    d = torch.full((x.shape[0],), torch.inf, dtype=torch.float64)
+    face = torch.zeros(x.shape[0], dtype=torch.long)
+    inside = torch.ones(x.shape[0], dtype=torch.bool)
+    for k, (p, t, slack) in enumerate(measured_surfaces(v, triangles, quads)):
+        dk, i = nearest_triangle(x, p, t)
+        dk = dk - slack[i]
+        quad_of = (i - T) % max(Q, 1) if k == 0 else (i - T) // (2 * PATCH_GRID**2)
+        closer = dk < d
+        d, face = torch.where(closer, dk, d), torch.where(closer, torch.where(i < T, i, T + quad_of), face)
+        inside &= winding_number(x, p, t) > 0.5
+    return torch.where(inside, d, -d.abs().clamp_min(torch.finfo(d.dtype).tiny)), face
 
 
 def tightness(

@@ -46,6 +46,13 @@ DEFAULT_SEAL = 0.03
 #: Where a cage cannot be made without self-intersections (thin features that decimation folds
 #: onto each other), the envelope is rebuilt twice as far out (and sealed twice as wide), this often.
 INFLATIONS = 4
+#: Before that, decimation targets within this fraction of ``target_vertices`` are tried, at most
+#: ``TARGETS`` of them (decimations of one envelope to nearby sizes differ in where they fold and
+#: in how many triangles pair into valid quads).
+TARGET_SPREAD = 0.1
+TARGETS = 7
+#: The quad kind's least fraction of quads among the faces; below it, the next target is tried.
+QUAD_FRACTION = 0.8
 
 
 def _quadify(
@@ -175,12 +182,75 @@ def _attempt(
     report: Callable[[str], None],
 ) -> Cage:
     """One envelope (offset ``2^(attempt + 1) margin``, seal ``2^attempt seal``), decimated, pushed
-    out, checked."""
+    out, checked: decimation targets near ``target_vertices`` are tried in turn (:func:`_targets`)
+    until one gives a cage (and, for quads, at least ``QUAD_FRACTION`` quads)."""
     grow = 2.0**attempt
     report(f"envelope: closing and offset on a {resolution}-voxel grid")
     fine_v, fine_f = envelope(mesh, offset=2.0 * margin * grow, seal=seal * grow, resolution=resolution)
-    report(f"decimation: {fine_v.shape[0]:,} envelope vertices to about {target_vertices}")
-    v_np, f_np = decimate(fine_v, fine_f, target_vertices)
+    best: tuple[float, torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    failure: CageMakerError | None = None
+    for target in _targets(target_vertices):
+        report(f"decimation: {fine_v.shape[0]:,} envelope vertices to about {target}")
+        try:
+            v, tri = _coarse(fine_v, fine_f, target, points, margin, report)
+        except CageMakerError as err:
+            failure = err
+            report(f"decimation to {target} failed ({err})")
+            continue
+        quads = torch.zeros((0, 4), dtype=torch.long)
+        if kind == "quad":
+            report("quads: pairing triangles into quads valid for QMVC, pushing the patches out")
+            try:
+                v, tri, quads = _quadify(v, tri, points, margin)
+            except CageMakerError as err:
+                failure = err
+                report(f"quads on the cage of {v.shape[0]} vertices failed ({err})")
+                continue
+        fraction = quads.shape[0] / (quads.shape[0] + tri.shape[0])
+        if best is None or fraction > best[0]:
+            best = (fraction, v, tri, quads)
+        if kind == "triangle" or fraction >= QUAD_FRACTION:
+            break
+        report(f"{fraction:.0%} quads on the cage of {v.shape[0]} vertices; trying another decimation")
+    if best is None:
+        assert failure is not None
+        raise failure
+    _, v, tri, quads = best
+    if kind == "quad":
+        report("tightening: pulling the farthest vertices back towards the shape")
+        v = tighten(v, tri, quads, points, None if mesh.faces is None else torch.from_numpy(mesh.faces), margin)
+    report("checks: self-intersections and validation")
+    if self_intersections(v, tri, quads):
+        raise CageMakerError(
+            "the made cage intersects itself; try a higher target_vertices, a larger seal or a larger margin"
+        )
+    faces_out = tri.tolist() + quads.tolist()
+    return Cage(v.to(dtype), faces_out, check_intersections=True)
+
+
+def _targets(target_vertices: int) -> list[int]:
+    """Decimation targets to try, nearest first: ``target_vertices``, then steps of about 3% of it
+    up and down, within ``TARGET_SPREAD`` of it, at most ``TARGETS``."""
+    step = max(1, round(0.03 * target_vertices))
+    out = [target_vertices]
+    k = 1
+    while len(out) < TARGETS and k * step <= TARGET_SPREAD * target_vertices:
+        out += [target_vertices + k * step, target_vertices - k * step]
+        k += 1
+    return [t for t in out[:TARGETS] if t >= 8]
+
+
+def _coarse(
+    fine_v: torch.Tensor,
+    fine_f: torch.Tensor,
+    target: int,
+    points: torch.Tensor,
+    margin: float,
+    report: Callable[[str], None],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The envelope decimated to about ``target`` vertices, checked, and pushed out until every
+    point is ``margin`` inside; ``CageMakerError`` where that cannot be done."""
+    v_np, f_np = decimate(fine_v, fine_f, target)
     v = torch.from_numpy(v_np)
     tri = torch.from_numpy(f_np)
     try:
@@ -194,17 +264,4 @@ def _attempt(
             "the simplified envelope intersects itself; try a higher target_vertices or a larger margin"
         )
     report(f"enclosure: pushing faces out until all {points.shape[0]:,} input vertices are inside")
-    v = push_outward(v, tri, torch.zeros((0, 4), dtype=torch.long), points, margin)
-    quads = torch.zeros((0, 4), dtype=torch.long)
-    if kind == "quad":
-        report("quads: pairing triangles into quads valid for QMVC, pushing the patches out")
-        v, tri, quads = _quadify(v, tri, points, margin)
-        report("tightening: pulling the farthest vertices back towards the shape")
-        v = tighten(v, tri, quads, points, None if mesh.faces is None else torch.from_numpy(mesh.faces), margin)
-    report("checks: self-intersections and validation")
-    if self_intersections(v, tri, quads):
-        raise CageMakerError(
-            "the made cage intersects itself; try a higher target_vertices, a larger seal or a larger margin"
-        )
-    faces_out = tri.tolist() + quads.tolist()
-    return Cage(v.to(dtype), faces_out, check_intersections=True)
+    return push_outward(v, tri, torch.zeros((0, 4), dtype=torch.long), points, margin), tri

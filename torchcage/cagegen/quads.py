@@ -1,7 +1,8 @@
 """Quad-dominant cages from triangle cages: adjacent triangles paired into quads by a maximum
 weight matching of the dual graph (networkx, blossom algorithm).
 
-Every pair of triangles across an edge is a candidate quad; it is kept when the quad is valid for
+Every pair of triangles across an edge is a candidate quad; it is kept when its other split
+(along ``q1-q3``) crosses no face of the triangle surface, and the quad is valid for
 quad mean value coordinates with a margin (all pairwise cosines of its four corner normals at
 least ``min_cosine``, see :meth:`torchcage.Cage.invalid_quads`), and weighted by that smallest
 cosine, so that the matching pairs as many triangles as it can (``maxcardinality``) and among
@@ -14,13 +15,17 @@ triangulation that :meth:`torchcage.Cage.triangulated` uses is then the triangle
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
+from .._intersections import edge_triangle_crossings
 from ._deps import require
+from .checks import crossing_quads
 
 #: Candidate quads need all pairwise corner-normal cosines at least this (strictly valid, not bent).
 MIN_COSINE = 0.1
+#: Where chosen quads' other splits cross each other, those pairs are banned and the matching
+#: redone, at most this often.
+REMATCHES = 3
 
 
 def corner_cosines(quads: torch.Tensor) -> torch.Tensor:
@@ -35,6 +40,20 @@ def corner_cosines(quads: torch.Tensor) -> torch.Tensor:
     e = quads.roll(-1, dims=-2) - quads
     c = torch.nn.functional.normalize(torch.linalg.cross(e.roll(1, dims=-2), e, dim=-1), dim=-1)
     return (c @ c.transpose(-1, -2)).flatten(-2).amin(-1)
+
+
+def _other_split_crosses(vertices: torch.Tensor, triangles: torch.Tensor, quads: torch.Tensor) -> torch.Tensor:
+    """Which candidate quads ``(C,)`` bool (``q0-q2`` an edge of ``triangles``) would cross the
+    triangle surface through their other split: its diagonal ``q1-q3`` through a triangle, or an
+    edge of the surface through one of the split's two triangles."""
+    other = torch.cat([quads[:, [0, 1, 3]], quads[:, [1, 2, 3]]])  # (2 C, 3)
+    edges = torch.cat([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    edges = torch.unique(edges.sort(dim=1).values, dim=0)
+    C = quads.shape[0]
+    hit = torch.zeros(C, dtype=torch.bool)
+    hit[edge_triangle_crossings(vertices, quads[:, [1, 3]], triangles)[:, 0]] = True
+    hit[edge_triangle_crossings(vertices, edges, other)[:, 1] % max(C, 1)] = True
+    return hit
 
 
 def pair_triangles(
@@ -73,17 +92,28 @@ def pair_triangles(
     a = tri[t1, (k1 + 2) % 3]
     d = tri[t2, (k2 + 2) % 3]
     quads = torch.stack([b, d, c, a], dim=1)  # q0-q2 = b-c: the shared edge
-    score = corner_cosines(vertices.detach().to(torch.float64)[quads])
-    ok = score >= min_cosine
+    v = vertices.detach().to(torch.float64)
+    score = corner_cosines(v[quads])
+    ok = (score >= min_cosine) & ~_other_split_crosses(v, tri, quads)
     graph = nx.Graph()
     graph.add_nodes_from(range(T))
     for i, j, w, r in zip(t1[ok].tolist(), t2[ok].tolist(), score[ok].tolist(), rows[ok].tolist(), strict=True):
         graph.add_edge(i, j, weight=1.0 + w, row=r)
-    matching = nx.max_weight_matching(graph, maxcardinality=True)
-    chosen = [graph.edges[i, j]["row"] for i, j in matching]
-    used = np.zeros(T, dtype=bool)
-    for i, j in matching:
-        used[i] = used[j] = True
-    left = tri[torch.from_numpy(~used)]
-    quads = quads[torch.tensor(chosen, dtype=torch.long)] if chosen else torch.zeros((0, 4), dtype=torch.long)
+    best: tuple[torch.Tensor, torch.Tensor] | None = None
+    for _ in range(REMATCHES + 1):
+        matching = nx.max_weight_matching(graph, maxcardinality=True)
+        chosen = torch.tensor([graph.edges[i, j]["row"] for i, j in matching], dtype=torch.long)
+        used = torch.zeros(T, dtype=torch.bool)
+        used[t1[chosen]] = used[t2[chosen]] = True
+        left, made = tri[~used], quads[chosen]
+        # two chosen quads' other splits may cross each other: those stay two triangles (the
+        # triangle surface is free of crossings), and the pairs are banned from the next matching
+        crossing = crossing_quads(v, left, made)
+        left = torch.cat([left, made[crossing][:, [0, 1, 2]], made[crossing][:, [0, 2, 3]]])
+        if best is None or int((~crossing).sum()) > best[1].shape[0]:
+            best = (left, made[~crossing])
+        if not crossing.any():
+            break
+        graph.remove_edges_from((int(t1[r]), int(t2[r])) for r in chosen[crossing].tolist())
+    left, quads = best
     return left.to(triangles.device), quads.to(triangles.device)

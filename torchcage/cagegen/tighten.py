@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 
 from ..geometry import triangle_distances, winding_number
-from .checks import both_triangulations, self_intersections, tightness
+from .checks import both_triangulations, measured_surfaces, self_intersections, tightness
 from .enclosure import vertex_normals
 from .quads import MIN_COSINE, corner_cosines
 
@@ -23,24 +23,26 @@ def _still_clear(
     x: torch.Tensor,
     old: torch.Tensor,
     new: torch.Tensor,
-    i: int,
-    split02: torch.Tensor,
-    both: torch.Tensor,
+    triangles: torch.Tensor,
+    quads: torch.Tensor,
     margin: float,
 ) -> bool:
     """Whether points ``x`` that were at least ``margin`` inside the cage ``old`` still are in ``new``,
-    where only vertex ``i`` moved. Only its faces changed: a point's distance to the others is as
-    before, so it suffices that the moved faces (either triangulation of a quad) keep ``margin`` from
-    every point, and that no point changed sides, i.e. that the winding number of the closed
-    surface made of the old faces at ``i`` (reversed) and the new ones is zero at every point.
+    where only the faces ``triangles (T, 3)`` and ``quads (Q, 4)`` (those at the moved vertex)
+    changed. A point's distance to the other faces is as before, so it suffices that, on each of
+    :func:`.checks.measured_surfaces`, the moved faces keep ``margin`` from every point and no
+    point changed sides: the winding number of the surface made of the old faces (reversed) and
+    the new ones, which share their boundary, is zero at every point.
     """
-    at = both[(both == i).any(dim=1)]
-    if float(triangle_distances(x, new[at]).min()) < margin:
-        return False
-    ring = split02[(split02 == i).any(dim=1)]
-    moved = torch.cat([old, new])
-    swept = torch.cat([ring.flip(1), ring + old.shape[0]])  # old faces reversed, new faces
-    return bool((winding_number(x, moved, swept).abs() < 0.5).all())
+    for (p_old, t, _), (p_new, _, slack) in zip(
+        measured_surfaces(old, triangles, quads), measured_surfaces(new, triangles, quads), strict=True
+    ):
+        if float((triangle_distances(x, p_new[t]) - slack).min()) < margin:
+            return False
+        swept = torch.cat([t.flip(1), t + p_old.shape[0]])
+        if not bool((winding_number(x, torch.cat([p_old, p_new]), swept).abs() < 0.5).all()):
+            return False
+    return True
 
 
 def _vertex_distances(v: torch.Tensor, points: torch.Tensor, mesh_faces: torch.Tensor | None) -> torch.Tensor:
@@ -120,7 +122,8 @@ def tighten(
                 corners = torch.cat([v[both[(both == i).any(dim=1)].flatten()], trial[i : i + 1]])
                 lo, hi = corners.amin(0) - margin, corners.amax(0) + margin
                 near = ((points >= lo) & (points <= hi)).all(dim=1)
-                if near.any() and not _still_clear(points[near], v, trial, i, split02, both, margin):
+                at_i = (triangles == i).any(dim=1)
+                if near.any() and not _still_clear(points[near], v, trial, triangles[at_i], own, margin):
                     continue
                 if self_intersections(trial, triangles, quads) > crossings:
                     continue
