@@ -175,3 +175,57 @@ def test_made_cages_on_the_data_set(model, kind, request):
     if kind == "quad" and model in QUAD_SHORTFALLS:
         request.applymarker(pytest.mark.xfail(strict=True, reason="known quad-kind shortfall (docs/cagegen.md)"))
     assert r.mean_distance <= 1.5 * reference.mean_distance and r.max_distance <= 0.2
+
+
+def test_patch_grid_stays_within_its_slack_of_the_bilinear_patch():
+    """Every point of a bent quad's bilinear patch (a dense sample) lies within the grid's stated
+    slack of the grid's triangles, so distances to the grid less the slack bound distances to the patch."""
+    from torchcage.cagegen.checks import patch_grid
+    from torchcage.geometry import nearest_triangle
+
+    g = torch.Generator().manual_seed(3)
+    for _ in range(5):
+        q = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
+        q = q + 0.6 * torch.rand(4, 3, dtype=torch.float64, generator=g)
+        p, t, slack = patch_grid(q, torch.tensor([[0, 1, 2, 3]]))
+        s = torch.linspace(0, 1, 61, dtype=torch.float64)
+        u, w = (a.flatten()[:, None] for a in torch.meshgrid(s, s, indexing="ij"))
+        x = (1 - u) * (1 - w) * q[0] + u * (1 - w) * q[1] + u * w * q[2] + (1 - u) * w * q[3]
+        d, i = nearest_triangle(x, p, t)
+        assert float((d - slack[i]).max()) <= 1e-15
+        assert float(slack.max()) > 0  # bent: the bound is not vacuous
+
+
+def test_clearance_of_a_bent_quad_is_measured_on_its_patch():
+    """A cube with one top corner raised: its top quad bends, with the ``q0-q2`` split above the
+    bilinear patch. A point between the two is outside the patch (what QMVC and QGC see), so its
+    clearance is negative, and a point just under the patch has a small positive clearance."""
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj"))  # top quad [4, 5, 6, 7], q0-q2 = 4-6
+    v = cube.vertices.clone()
+    v[4, 2] = 1.5
+
+    def patch_height(x, y):  # u along 4 -> 5 (x), w along 4 -> 7 (y)
+        return 1 + 0.5 * (1 - (x + 1) / 2) * (1 - (y + 1) / 2)
+
+    xy = torch.tensor([[-0.5, -0.5], [-0.3, -0.6], [0.2, -0.4]], dtype=torch.float64)
+    h = patch_height(xy[:, 0], xy[:, 1])
+    ridge = torch.tensor([[-0.5, -0.5, 1.375]], dtype=torch.float64)  # on the 4-6 diagonal
+    above = torch.cat([xy, (h + 0.02)[:, None]], dim=1)
+    below = torch.cat([xy, (h - 0.02)[:, None]], dim=1)
+    s_above, _ = signed_clearance(above, v, cube.triangles, cube.quads)
+    s_below, _ = signed_clearance(below, v, cube.triangles, cube.quads)
+    assert bool((s_above < 0).all()), s_above  # under the q0-q2 split, yet outside the patch
+    assert bool((s_below > 0).all() & (s_below <= 0.02 + 1e-12).all()), s_below
+    assert float(signed_clearance(ridge - torch.tensor([0, 0, 0.05]), v, cube.triangles, cube.quads)[0]) < 0
+    # measuring only the points that may be nearer than ``below`` on the patches: the same sides,
+    # the same values inside below it, lower bounds at least ``below`` above it (of the distance,
+    # which is at most ``full`` plus the grid's slack, |twist| / (4 n^2) = 0.5 / 100)
+    x = torch.rand(4000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5)) * 3.2 - 1.6
+    full, _ = signed_clearance(x, v, cube.triangles, cube.quads)
+    part, _ = signed_clearance(x, v, cube.triangles, cube.quads, below=0.1)
+    assert torch.equal(part > 0, full > 0) and torch.equal(part < 0.1, full < 0.1)
+    near, far = (full >= 0) & (full < 0.1), full >= 0.1
+    assert torch.equal(part[near], full[near]) and bool(
+        (part[far] >= 0.1).all() & (part[far] <= full[far] + 0.005 + 1e-12).all()
+    )
+    assert int(near.sum()) > 100 and int(far.sum()) > 100 and int((full < 0).sum()) > 100

@@ -53,3 +53,30 @@ def test_native_winding_number_matches_torch() -> None:
         b = winding_number(x, cage.vertices, tri, backend="torch")
         assert torch.allclose(a, b, atol=1e-12, rtol=0)
         assert bool(((a - 1).abs() < 1e-9).sum() > 0) and bool((a.abs() < 1e-9).sum() > 0)  # inside and outside
+
+
+def test_nearest_triangle_native_torch_and_reference_agree() -> None:
+    """Both backends against the tests' reference, with a per-triangle slack and degenerate
+    triangles (a segment and a point: their distance is to their edges, never to a 'plane')."""
+    from torchcage.geometry import nearest_triangle
+
+    cage = l_shape()
+    x = _probe(cage)
+    v = torch.cat([cage.vertices.to(D64), torch.tensor([[0.3, 0.3, 3.0], [0.3, 0.3, 3.0]], dtype=D64)])
+    n = cage.num_vertices
+    tri = torch.cat([cage.triangles, torch.tensor([[n, n + 1, 0], [n, n, n]])])
+    slack = torch.rand(tri.shape[0], dtype=D64, generator=torch.Generator().manual_seed(1)) * 0.05
+    per_face = torch.stack([distance_to_triangles(x, v, tri[k : k + 1]) for k in range(tri.shape[0] - 2)], dim=1)
+    ab = v[0] - v[n]  # the segment v[n] -> v[0], and the point v[n]
+    t = ((x - v[n]) @ ab / (ab @ ab)).clamp(0, 1)
+    segment = (x - v[n] - t[:, None] * ab).norm(dim=1)
+    per_face = torch.cat([per_face, segment[:, None], (x - v[n]).norm(dim=1)[:, None]], dim=1)
+    ref = (per_face - slack).min(dim=1)
+    backends = ("torch", "native") if tc._native.available() else ("torch",)
+    for backend in backends:
+        d, i = nearest_triangle(x, v, tri, slack=slack, backend=backend)
+        assert torch.allclose(d, ref.values, atol=1e-14, rtol=0)
+        picked = per_face.gather(1, i[:, None])[:, 0] - slack[i]
+        assert torch.allclose(picked, ref.values, atol=1e-14, rtol=0)
+    d0, _ = nearest_triangle(x, v, tri)
+    assert torch.allclose(d0, per_face.min(dim=1).values, atol=1e-14, rtol=0)

@@ -249,8 +249,8 @@ def _pair_distance(x: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
     h = ((x - p0) * n).sum(-1)
     foot = x - h[:, None] * n
-    inside = (n != 0).any(dim=-1)[None].expand_as(h)  # a degenerate triangle: its edges only
+    inside = (n != 0).any(dim=-1)  # a degenerate triangle: its edges only
     for i in range(3):
         a, b = corners[:, i], corners[:, (i + 1) % 3]
-        inside &= (torch.linalg.cross(b - a, foot - a, dim=-1) * n).sum(-1) >= 0
+        inside = inside & ((torch.linalg.cross(b - a, foot - a, dim=-1) * n).sum(-1) >= 0)
     return torch.minimum(best, torch.where(inside, h.abs(), torch.inf))

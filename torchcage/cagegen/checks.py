@@ -17,6 +17,8 @@ bend.)
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .._intersections import edge_triangle_crossings
@@ -204,12 +206,22 @@ def crossing_quads(vertices: torch.Tensor, triangles: torch.Tensor, quads: torch
 
 
 def signed_clearance(
-    points: torch.Tensor, vertices: torch.Tensor, triangles: torch.Tensor, quads: torch.Tensor | None = None
+    points: torch.Tensor,
+    vertices: torch.Tensor,
+    triangles: torch.Tensor,
+    quads: torch.Tensor | None = None,
+    *,
+    below: float = math.inf,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Signed distance ``(N,)`` of points to a closed surface, positive inside (by winding number),
     and the nearest face ``(N,)`` (an index into ``triangles``, then ``T + q`` for quad ``q``).
     With quads, a point is inside if it is inside both of :func:`measured_surfaces` (the ``q0-q2``
     split and the bilinear patches), and its distance is a lower bound of the nearer one's.
+
+    A patch is within ``|q0 - q1 + q2 - q3| / 4`` of its quad's ``q0-q2`` split, so that split less
+    this slack bounds every point's distance from below first; only points whose bound is under
+    ``below`` are measured on the patch grids (the others keep the bound, which is then at least
+    ``below``, and their side, which the patch cannot change that far from the split).
 
     Examples:
         >>> import torchcage
@@ -222,16 +234,23 @@ def signed_clearance(
     v = vertices.detach().to(torch.float64)
     quads = torch.zeros((0, 4), dtype=torch.long) if quads is None else quads
     T, Q = triangles.shape[0], quads.shape[0]
-    d = torch.full((x.shape[0],), torch.inf, dtype=torch.float64)
-    face = torch.zeros(x.shape[0], dtype=torch.long)
-    inside = torch.ones(x.shape[0], dtype=torch.bool)
-    for k, (p, t, slack) in enumerate(measured_surfaces(v, triangles, quads)):
-        dk, i = nearest_triangle(x, p, t)
-        dk = dk - slack[i]
-        quad_of = (i - T) % max(Q, 1) if k == 0 else (i - T) // (2 * PATCH_GRID**2)
-        closer = dk < d
-        d, face = torch.where(closer, dk, d), torch.where(closer, torch.where(i < T, i, T + quad_of), face)
-        inside &= winding_number(x, p, t) > 0.5
+    (p, split02, _), *patches = measured_surfaces(v, triangles, quads)
+    d, i = nearest_triangle(x, p, split02)
+    face = torch.where(i < T, i, T + (i - T) % max(Q, 1))
+    inside = winding_number(x, p, split02) > 0.5
+    if patches:
+        q = v[quads]
+        sag = (q[:, 0] - q[:, 1] + q[:, 2] - q[:, 3]).norm(dim=-1) / 4
+        bound, _ = nearest_triangle(x, p, split02, slack=torch.cat([sag.new_zeros(T), sag, sag]))
+        coarse = bound >= max(below, 0.0)
+        fine = torch.nonzero(~coarse).flatten()
+        d = torch.where(coarse, torch.minimum(d, bound), d)
+        (pp, tp, slack), x_fine = patches[0], x[fine]
+        dp, ip = nearest_triangle(x_fine, pp, tp, slack=slack)
+        closer = dp < d[fine]
+        d[fine] = torch.where(closer, dp, d[fine])
+        face[fine] = torch.where(closer, torch.where(ip < T, ip, T + (ip - T) // (2 * PATCH_GRID**2)), face[fine])
+        inside[fine] &= winding_number(x_fine, pp, tp) > 0.5
     return torch.where(inside, d, -d.abs().clamp_min(torch.finfo(d.dtype).tiny)), face
 
 

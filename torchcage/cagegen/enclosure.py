@@ -102,7 +102,7 @@ def push_outward(
     drift = 0.0  # total of each round's largest vertex move
     for _ in range(rounds):
         check = torch.nonzero(known - (drift - drift_then) < clearance).flatten()
-        s, face = signed_clearance(points[check], v, triangles, quads)
+        s, face = signed_clearance(points[check], v, triangles, quads, below=clearance)
         known[check], drift_then[check] = s, drift
         bad = s < clearance
         if not bad.any():

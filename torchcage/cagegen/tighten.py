@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from ..geometry import triangle_distances, winding_number
+from ..geometry import nearest_triangle, winding_number
 from .checks import both_triangulations, measured_surfaces, self_intersections, tightness
 from .enclosure import vertex_normals
 from .quads import MIN_COSINE, corner_cosines
@@ -37,7 +37,7 @@ def _still_clear(
     for (p_old, t, _), (p_new, _, slack) in zip(
         measured_surfaces(old, triangles, quads), measured_surfaces(new, triangles, quads), strict=True
     ):
-        if float((triangle_distances(x, p_new[t]) - slack).min()) < margin:
+        if float(nearest_triangle(x, p_new, t, slack=slack)[0].min()) < margin:
             return False
         swept = torch.cat([t.flip(1), t + p_old.shape[0]])
         if not bool((winding_number(x, torch.cat([p_old, p_new]), swept).abs() < 0.5).all()):
