@@ -51,6 +51,8 @@ INFLATIONS = 4
 #: in how many triangles pair into valid quads).
 TARGET_SPREAD = 0.1
 TARGETS = 7
+#: An envelope on which this many targets fail before any succeeds is inflated.
+FAILED_TARGETS = 2
 #: The quad kind's least fraction of quads among the faces; below it, the next target is tried.
 QUAD_FRACTION = 0.8
 
@@ -189,12 +191,15 @@ def _attempt(
     fine_v, fine_f = envelope(mesh, offset=2.0 * margin * grow, seal=seal * grow, resolution=resolution)
     best: tuple[float, torch.Tensor, torch.Tensor, torch.Tensor] | None = None
     failure: CageMakerError | None = None
+    failures = 0
     for target in _targets(target_vertices):
+        if best is None and failures >= FAILED_TARGETS:
+            break  # this envelope folds at every size near the target: inflate it instead
         report(f"decimation: {fine_v.shape[0]:,} envelope vertices to about {target}")
         try:
             v, tri = _coarse(fine_v, fine_f, target, points, margin, report)
         except CageMakerError as err:
-            failure = err
+            failure, failures = err, failures + 1
             report(f"decimation to {target} failed ({err})")
             continue
         quads = torch.zeros((0, 4), dtype=torch.long)
@@ -203,7 +208,7 @@ def _attempt(
             try:
                 v, tri, quads = _quadify(v, tri, points, margin)
             except CageMakerError as err:
-                failure = err
+                failure, failures = err, failures + 1
                 report(f"quads on the cage of {v.shape[0]} vertices failed ({err})")
                 continue
         fraction = quads.shape[0] / (quads.shape[0] + tri.shape[0])
