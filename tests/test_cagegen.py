@@ -226,3 +226,17 @@ def test_clearance_of_a_bent_quad_is_measured_on_its_patch():
         (part[far] >= 0.1).all() & (part[far] <= full[far] + 0.005 + 1e-12).all()
     )
     assert int(near.sum()) > 100 and int(far.sum()) > 100 and int((full < 0).sum()) > 100
+
+
+def test_quad_kind_warns_when_too_few_faces_become_quads(monkeypatch):
+    """Below the quad fraction the maker aims at, the cage with the most quads is returned with a
+    warning that says so (here the aim is raised out of reach)."""
+    from torchcage.cagegen import maker
+
+    monkeypatch.setattr(maker, "QUAD_FRACTION", 1.01)
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(1500, 3, dtype=torch.float64, generator=g) * torch.tensor([2.0, 1.0, 0.5], dtype=torch.float64)
+    with pytest.warns(UserWarning, match="faces are quads"):
+        cage = torchcage.make_cage(x, target_vertices=30, kind="quad", margin=0.05)
+    r = measure_cage(cage, x)
+    assert r.quads > 0 and r.outside == 0 and r.self_intersections == 0

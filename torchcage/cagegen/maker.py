@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -121,6 +122,10 @@ def make_cage(
             which setting to change).
         ImportError: the ``cage`` extra is not installed.
 
+    Warns:
+        UserWarning: ``kind="quad"`` and no decimation near the target gives at least 80% quads
+            (coarse cages of bent shapes); the cage with the most quads is returned.
+
     Examples:
         >>> import torch, torchcage
         >>> from torchcage.geometry import inside_cage
@@ -220,7 +225,13 @@ def _attempt(
     if best is None:
         assert failure is not None
         raise failure
-    _, v, tri, quads = best
+    fraction, v, tri, quads = best
+    if kind == "quad" and fraction < QUAD_FRACTION:
+        warnings.warn(
+            f"only {fraction:.0%} of the made cage's faces are quads (wanted {QUAD_FRACTION:.0%}): at this size too "
+            "many neighbouring triangles bend too much to make quads valid for QMVC; try a higher target_vertices",
+            stacklevel=3,
+        )
     if kind == "quad":
         report("tightening: pulling the farthest vertices back towards the shape")
         v = tighten(v, tri, quads, points, None if mesh.faces is None else torch.from_numpy(mesh.faces), margin)
