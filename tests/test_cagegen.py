@@ -240,3 +240,18 @@ def test_quad_kind_warns_when_too_few_faces_become_quads(monkeypatch):
         cage = torchcage.make_cage(x, target_vertices=30, kind="quad", margin=0.05)
     r = measure_cage(cage, x)
     assert r.quads > 0 and r.outside == 0 and r.self_intersections == 0
+
+
+def test_crossing_quads_finds_a_segment_through_the_other_split():
+    """A ridge quad (``q0``, ``q2`` raised): a segment rising under it to between the ``q1-q3``
+    split (z = 0.025 there) and the patch (z ~ 0.24) crosses only the other split, which the check
+    must see (the quad's tetrahedron is entered); moved away, nothing crosses."""
+    from torchcage.cagegen.checks import crossing_quads
+
+    quad = torch.tensor([[0.0, 0, 0.5], [1, 0, 0], [1, 1, 0.5], [0, 1, 0]], dtype=torch.float64)
+    spike = torch.tensor([[0.45, 0.5, -1.0], [0.45, 0.5, 0.2], [0.6, 0.4, -1.0]], dtype=torch.float64)
+    quads, tri = torch.tensor([[0, 1, 2, 3]]), torch.tensor([[4, 5, 6]])
+    assert crossing_quads(torch.cat([quad, spike]), tri, quads).tolist() == [True]
+    assert self_intersections(torch.cat([quad, spike]), tri, quads) > 0
+    away = spike + torch.tensor([5.0, 0, 0], dtype=torch.float64)
+    assert crossing_quads(torch.cat([quad, away]), tri, quads).tolist() == [False]

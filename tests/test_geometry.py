@@ -80,3 +80,22 @@ def test_nearest_triangle_native_torch_and_reference_agree() -> None:
         assert torch.allclose(picked, ref.values, atol=1e-14, rtol=0)
     d0, _ = nearest_triangle(x, v, tri)
     assert torch.allclose(d0, per_face.min(dim=1).values, atol=1e-14, rtol=0)
+
+
+def test_nearest_triangle_gives_nan_for_nan_input_on_both_backends() -> None:
+    """A NaN point, or a NaN corner of any triangle, gives a NaN distance (never a finite distance
+    to the remaining triangles), natively as in torch; bad slack shapes raise."""
+    from torchcage.geometry import nearest_triangle
+
+    v = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 5], [6, 5, 5], [5, 6, 5]], dtype=D64)
+    t = torch.tensor([[0, 1, 2], [3, 4, 5]])
+    x = torch.tensor([[0.2, 0.2, 1.0], [float("nan"), 0, 0]], dtype=D64)
+    bad = v.clone()
+    bad[4, 0] = float("nan")
+    backends = ("torch", "native") if tc._native.available() else ("torch",)
+    for backend in backends:
+        d, _ = nearest_triangle(x, v, t, backend=backend)
+        assert d[0] == 1.0 and torch.isnan(d[1])
+        assert torch.isnan(nearest_triangle(x[:1], bad, t, backend=backend)[0]).all()
+        with pytest.raises(ValueError, match="one value per triangle"):
+            nearest_triangle(x, v, t, slack=torch.zeros(3, dtype=D64), backend=backend)

@@ -159,8 +159,10 @@ def nearest_triangle(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Distance ``(N,)`` from points ``(N, 3)`` to a triangle soup ``vertices (V, 3)``,
     ``triangles (T, 3)``, and the index ``(N,)`` of the nearest triangle. Brute force: the native
-    kernel (float64 CPU tensors without a graph, about 50x faster) or torch in chunks of about
+    kernel (float64 CPU tensors without a graph, about 20x faster) or torch in chunks of about
     ``chunk`` point-triangle pairs.
+
+    A point or triangle with a NaN coordinate gives a NaN distance (both backends).
 
     Args:
         slack: ``(T,)`` subtracted from each triangle's distance before the minimum (a triangle
@@ -176,6 +178,10 @@ def nearest_triangle(
     """
     p = vertices.to(points.dtype)[triangles]  # (T, 3, 3)
     if slack is not None:
+        if slack.shape != triangles.shape[:1]:
+            raise ValueError(
+                f"slack must have one value per triangle, shape ({triangles.shape[0]},), got {tuple(slack.shape)}"
+            )
         slack = slack.to(points.dtype)
     if backend != "torch" and triangles.shape[0] and points.shape[0]:
         from . import _native

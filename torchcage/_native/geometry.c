@@ -48,8 +48,8 @@ static inline double tc_segment2(double ax, double ay, double az, double ex, dou
 }
 
 /* P (T, 3, 3) triangle corners; S (T,) slack subtracted from each triangle's distance (may be NULL);
- * X (n, 3); D (n,) out: min over triangles of |x - triangle| - S; I (n,) out: its triangle (-1 when
- * T = 0). A triangle's distance is to its plane where the point projects inside it, else to its
+ * X (n, 3); D (n,) out: min over triangles of |x - triangle| - S (NaN where a NaN takes part); I (n,)
+ * out: its triangle (-1 when T = 0). A triangle's distance is to its plane where the point projects inside it, else to its
  * nearest edge (degenerate triangles: edges only). */
 void tc_nearest3d(const double *P, long T, const double *S, const double *X, long n, int nthreads, double *D,
                   int *I) {
@@ -84,6 +84,14 @@ void tc_nearest3d(const double *P, long T, const double *S, const double *X, lon
                 d2 = u < v ? (u < w ? u : w) : (v < w ? v : w);
             }
             double d = sqrt(d2) - (S ? S[t] : 0.0);
+            /* a NaN point, corner or slack: the answer is NaN, as torch's min gives (the segment
+             * minima above would drop a NaN edge) */
+            const double any = ax + ay + az + bx + by + bz + cx + cy + cz; /* NaN if any one is */
+            if (d != d || any != any) {
+                best = NAN;
+                at = (int)t;
+                break;
+            }
             if (d < best) {
                 best = d;
                 at = (int)t;

@@ -33,6 +33,7 @@ __all__ = [
     "self_intersections",
     "signed_clearance",
     "tightness",
+    "unique_edges",
 ]
 
 #: Cells per side of the grid on which a quad's bilinear patch is measured.
@@ -54,7 +55,13 @@ def both_triangulations(triangles: torch.Tensor, quads: torch.Tensor) -> tuple[t
     return split02, split13
 
 
-def _edges(triangles: torch.Tensor) -> torch.Tensor:
+def unique_edges(triangles: torch.Tensor) -> torch.Tensor:
+    """The edges ``(E, 2)`` of triangles ``(T, 3)``, each once, smaller index first.
+
+    Examples:
+        >>> unique_edges(torch.tensor([[0, 1, 2], [2, 1, 3]])).tolist()
+        [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+    """
     e = torch.cat([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
     return torch.unique(e.sort(dim=1).values, dim=0)
 
@@ -103,7 +110,7 @@ def self_intersections(vertices: torch.Tensor, triangles: torch.Tensor, quads: t
     quads = torch.zeros((0, 4), dtype=torch.long) if quads is None else quads
     count = 0
     for tri in both_triangulations(triangles, quads) if quads.shape[0] else (triangles,):
-        count += edge_triangle_crossings(v, _edges(tri), tri).shape[0] + folded_edges(v, tri).shape[0]
+        count += edge_triangle_crossings(v, unique_edges(tri), tri).shape[0] + folded_edges(v, tri).shape[0]
     return count
 
 
@@ -177,9 +184,16 @@ def measured_surfaces(
 
 
 def crossing_quads(vertices: torch.Tensor, triangles: torch.Tensor, quads: torch.Tensor) -> torch.Tensor:
-    """Which quads ``(Q,)`` bool take part in a self-intersection (:func:`self_intersections`) of
-    either triangulation: one of their triangles is crossed, or an edge with both ends on the
-    quad crosses or folds.
+    """Which quads take part in a self-intersection (:func:`self_intersections`) of either
+    triangulation: one of their triangles is crossed, or an edge with both ends on the quad
+    crosses or folds.
+
+    Args:
+        vertices: ``(V, 3)``.
+        triangles: ``(T, 3)``, quads ``(Q, 4)``: the faces.
+
+    Returns:
+        ``(Q,)`` bool.
 
     Examples:
         >>> import torchcage
@@ -191,7 +205,7 @@ def crossing_quads(vertices: torch.Tensor, triangles: torch.Tensor, quads: torch
     T, Q = triangles.shape[0], quads.shape[0]
     hit = torch.zeros(Q, dtype=torch.bool)
     for tri in both_triangulations(triangles, quads):
-        edges = _edges(tri)
+        edges = unique_edges(tri)
         pairs = edge_triangle_crossings(v, edges, tri)
         t = pairs[:, 1][pairs[:, 1] >= T]
         hit[(t - T) % max(Q, 1)] = True

@@ -19,7 +19,7 @@ import torch
 
 from .._intersections import edge_triangle_crossings
 from ._deps import require
-from .checks import crossing_quads
+from .checks import crossing_quads, unique_edges
 
 #: Candidate quads need all pairwise corner-normal cosines at least this (strictly valid, not bent).
 MIN_COSINE = 0.1
@@ -47,8 +47,7 @@ def _other_split_crosses(vertices: torch.Tensor, triangles: torch.Tensor, quads:
     triangle surface through their other split: its diagonal ``q1-q3`` through a triangle, or an
     edge of the surface through one of the split's two triangles."""
     other = torch.cat([quads[:, [0, 1, 3]], quads[:, [1, 2, 3]]])  # (2 C, 3)
-    edges = torch.cat([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
-    edges = torch.unique(edges.sort(dim=1).values, dim=0)
+    edges = unique_edges(triangles)
     C = quads.shape[0]
     hit = torch.zeros(C, dtype=torch.bool)
     hit[edge_triangle_crossings(vertices, quads[:, [1, 3]], triangles)[:, 0]] = True

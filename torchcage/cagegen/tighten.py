@@ -111,10 +111,11 @@ def tighten(
             slack = float(d[i]) - 4 * margin
             if slack <= 0:
                 continue
+            own = quads[(quads == i).any(dim=1)]  # the faces at i: the only ones that move
+            own_tri = triangles[(triangles == i).any(dim=1)]
             for fraction in FRACTIONS:
                 trial = v.clone()
                 trial[i] = v[i] - fraction * slack * normal[i]
-                own = quads[(quads == i).any(dim=1)]  # the quads at i: still valid for QMVC?
                 if own.numel() and bool((corner_cosines(trial[own]) <= 0.2 * MIN_COSINE).any()):
                     continue
                 # only the faces at vertex i move, within the box of their old and new corners: points
@@ -122,8 +123,7 @@ def tighten(
                 corners = torch.cat([v[both[(both == i).any(dim=1)].flatten()], trial[i : i + 1]])
                 lo, hi = corners.amin(0) - margin, corners.amax(0) + margin
                 near = ((points >= lo) & (points <= hi)).all(dim=1)
-                at_i = (triangles == i).any(dim=1)
-                if near.any() and not _still_clear(points[near], v, trial, triangles[at_i], own, margin):
+                if near.any() and not _still_clear(points[near], v, trial, own_tri, own, margin):
                     continue
                 if self_intersections(trial, triangles, quads) > crossings:
                     continue
