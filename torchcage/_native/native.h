@@ -140,6 +140,16 @@ typedef struct {
     double D, kabs, u, v;
     int flat, inside, vertex, on;
 } quad_pair;
-void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, quad_pair *qp);
+void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, int project,
+                  quad_pair *qp);
+
+/* The four corner integrals of a bilinear quad to the relative tolerance tol (quadrature.c); gl:
+ * Gauss-Legendre nodes and weights on [0, 1], (TC_QMAX_ORDER + 1, 2, TC_QMAX_ORDER). */
+#define TC_QMAX_ORDER 16 /* MAX_ORDER in _quad_quadrature.py */
+void tc_quad_integrals(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
+                       const double *Nu, const double *Nv, double us, double vs, double tol, const double *gl,
+                       double *om);
+/* 1 if tc_quad_integrals takes the quad qi of P (seen from x) as one panel, without splitting it. */
+int tc_quad_whole(const double *P, const int *qi, const double *x, double tol);
 
 #endif

@@ -178,7 +178,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             for (long q = 0; q < Q; ++q) {
                 const int *qi = quads + 4 * q;
                 quad_pair qp;
-                tc_quad_pair(P, qi, x, size[q], tol, &qp);
+                tc_quad_pair(P, qi, x, size[q], tol, 1, &qp);
                 double u = qp.u, v = qp.v;
                 if (qp.on && ONQ[pt] < 0) { /* (a corner: its Lagrange values) */
                     ONQ[pt] = (int)q;

@@ -209,10 +209,53 @@ static void grid(double t, int n, double *nodes, double *len) {
     for (int k = 0; k < K; ++k) len[k] = (nodes[k + 1 < K ? k + 1 : K - 1] - nodes[k > 0 ? k - 1 : 0]) / 2;
 }
 
+/* The Riemann estimate Omega (Eqs. 22-23) of the four corner integrals on the adaptive grid around
+ * (u, v), separable in the bilinear basis (as riemann_sums in _qmvc3d.py); un..va: 4 (2n+1) scratch. */
+static void riemann_sums(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
+                         const double *Nu, const double *Nv, double u, double v, int n, double *un, double *om) {
+    const int K = 2 * n + 1;
+    double *ua = un + K, *vn = ua + K, *va = vn + K;
+    grid(u, n, un, ua);
+    grid(v, n, vn, va);
+    double S = 0, Su = 0, Sv = 0, Suv = 0;
+    for (int a = 0; a < K; ++a) {
+        double Pu[3], Qu[3], Ru[3];
+        for (int c = 0; c < 3; ++c) {
+            Pu[c] = p0[c] + un[a] * b[c];
+            Qu[c] = cc[c] + un[a] * dd[c];
+            Ru[c] = N0[c] + un[a] * Nu[c];
+        }
+        double acc0 = 0, acc1 = 0;
+#pragma omp simd reduction(+ : acc0, acc1)
+        for (int l = 0; l < K; ++l) {
+            double vv = vn[l];
+            double d0 = Pu[0] + vv * Qu[0], d1 = Pu[1] + vv * Qu[1], d2 = Pu[2] + vv * Qu[2];
+            double r2 = d0 * d0 + d1 * d1 + d2 * d2;
+            double Nd = (Ru[0] + vv * Nv[0]) * d0 + (Ru[1] + vv * Nv[1]) * d1 + (Ru[2] + vv * Nv[2]) * d2;
+            double f = Nd * va[l] / (r2 * r2);
+            acc0 += f;
+            acc1 += f * vv;
+        }
+        acc0 *= ua[a];
+        acc1 *= ua[a];
+        S += acc0;
+        Sv += acc1;
+        Su += un[a] * acc0;
+        Suv += un[a] * acc1;
+    }
+    om[0] = S - Su - Sv + Suv;
+    om[1] = Su - Suv;
+    om[2] = Suv;
+    om[3] = Sv - Suv;
+}
+
 /* Per point-quad quantities shared by QMVC and QGC: the corners minus the point, the kernel
  * kappa and pseudo-inverse rows, the mean vector, the tetrahedron's edge terms, the sheet's
- * parametrisation, and the smooth projection (u, v) of Algorithm 1 (see project in _qmvc3d.py). */
-void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, quad_pair *qp) {
+ * parametrisation, and the smooth projection (u, v) of Algorithm 1 (see project in _qmvc3d.py).
+ * Without project, (u, v) is the centre (or the corner the point sits on) and on means on a corner:
+ * for pairs whose quadrature never splits the quad, which are far from it. */
+void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, int project,
+                  quad_pair *qp) {
     double p[4][3], R2[4];
     int vertex = -1;
     for (int i = 0; i < 4; ++i) {
@@ -227,6 +270,10 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     for (int i = 0; i < 4; ++i) R[i] = sqrt(R2[i]);
     for (int a = 0; a < 4; ++a)
         for (int bb = a + 1; bb < 4; ++bb) {
+            if (!project && bb == a + 2) { /* a diagonal: the hull faces' alone */
+                g[a][bb] = g[bb][a] = 0.0;
+                continue;
+            }
             double c2 = dot3(c[a][bb], c[a][bb]), cn = sqrt(c2);
             g[a][bb] = g[bb][a] = c2 > 0 ? 0.5 * angle3(cn, dot3(p[a], p[bb]), R[a] * R[bb]) / cn : 0.0;
         }
@@ -269,9 +316,11 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     cross3(dd, cc, Nv);
     for (int c = 0; c < 3; ++c) nq[c] = N0[c] + 0.5 * (Nu[c] + Nv[c]);
     /* Projection (Algorithm 1). */
-    double pp[4][3], d[3], u, v;
+    double pp[4][3], d[3], u = 0.5, v = 0.5;
     memcpy(pp, p, sizeof(pp));
-    if (flat) {
+    if (!project) {
+        /* the centre, or the corner below */
+    } else if (flat) {
         memcpy(d, nq, sizeof(d));
     } else if (inside || vertex >= 0) {
         memcpy(d, m, sizeof(d));
@@ -315,7 +364,7 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     if (vertex >= 0) { /* on a corner: its parameters */
         u = (vertex == 1 || vertex == 2) ? 1.0 : 0.0;
         v = vertex >= 2 ? 1.0 : 0.0;
-    } else {
+    } else if (project) {
         intersect(pp, d, &u, &v);
     }
     double xi[3];
@@ -342,23 +391,25 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
      * its boundary too, it is on the quad, or it would get no weight from either face of an edge.) */
     /* (ON_QUAD_BAND tolerances: the projection is not the nearest point of a curved sheet; as in
      * _qmvc3d.py) */
-    qp->on = vertex >= 0 || dot3(xi, xi) <= (flat ? 2.0 : ON_QUAD_BAND * ON_QUAD_BAND) * tol * tol;
+    qp->on = vertex >= 0 || (project && dot3(xi, xi) <= (flat ? 2.0 : ON_QUAD_BAND * ON_QUAD_BAND) * tol * tol);
 }
 
 /*
  * P: (V, 3) vertices; quads: (Q, 4) int32; size: (Q,) longest edge or diagonal; X: (npts, 3) points;
- * tol: absolute on-cage tolerance; n: grid parameter. W: (npts, V) in/out: the triangles' raw weights
+ * tol: absolute on-cage tolerance; n: grid parameter; qtol > 0: the defining integrals to this relative
+ * tolerance (tc_quad_integrals with the Gauss table gl) instead of the Riemann sum, lambda = Omega .
+ * kappa / D (see qmvc3d_chunk in _qmvc3d.py). W: (npts, V) in/out: the triangles' raw weights
  * on entry (rows with on[p] = 1 are final); on exit the normalised coordinates, on[p] = 1 for the
  * points on the cage.
  */
 void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *X, long npts,
-               double tol, int n, int nthreads, double *W, unsigned char *on) {
+               double tol, int n, double qtol, const double *gl, int nthreads, double *W, unsigned char *on) {
     const int K = 2 * n + 1;
     double centre[3];
     const double far2 = tc_far_centre(P, V, 3, 1, 3, centre);
 #pragma omp parallel num_threads(nthreads)
     {
-        double *un = (double *)malloc(sizeof(double) * 4 * (size_t)K), *ua = un + K, *vn = ua + K, *va = vn + K;
+        double *un = (double *)malloc(sizeof(double) * 4 * (size_t)K);
 #pragma omp for schedule(dynamic, 16)
         for (long pt = 0; pt < npts; ++pt) {
             double *w = W + pt * V;
@@ -367,7 +418,10 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
             for (long q = 0; q < Q && !on[pt]; ++q) {
                 const int *qi = quads + 4 * q;
                 quad_pair qp;
-                tc_quad_pair(P, qi, x, size[q], tol, &qp);
+                /* The projection serves only the first split of the quadrature and the on-quad
+                 * test: a quad integrated whole is far from the point (see tc_quad_whole). */
+                int project = !(qtol > 0) || !tc_quad_whole(P, qi, x, qtol);
+                tc_quad_pair(P, qi, x, size[q], tol, project, &qp);
                 if (qp.vertex >= 0) {
                     memset(w, 0, sizeof(double) * (size_t)V);
                     w[qi[qp.vertex]] = 1.0;
@@ -388,8 +442,13 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                     break;
                 }
                 if (flat) continue; /* a planar quad seen edge-on: no weight */
-                double beta = far_blend(R, size[q]), wg[4];
-                if (beta > 0) gauss_weights(p[0], b, cc, dd, N0, Nu, Nv, wg);
+                double beta = far_blend(R, size[q]), wg[4], om[4];
+                if (qtol > 0) {
+                    tc_quad_integrals(p[0], b, cc, dd, N0, Nu, Nv, u, v, qtol, gl, om);
+                    for (int i = 0; i < 4; ++i) wg[i] = om[i];
+                } else if (beta > 0) {
+                    gauss_weights(p[0], b, cc, dd, N0, Nu, Nv, wg);
+                }
                 if (beta >= 1) { /* seen small: the Gauss rule alone */
                     for (int i = 0; i < 4; ++i) w[qi[i]] += wg[i];
                     continue;
@@ -400,43 +459,14 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                 for (int c = 0; c < 3; ++c)
                     res[c] = m[c] - (wb[0] * p[0][c] + wb[1] * p[1][c] + wb[2] * p[2][c] + wb[3] * p[3][c]);
                 for (int i = 0; i < 4; ++i) wb[i] += dot3(rows[i], res) * invD;
-                /* Riemann sum on the adaptive grid (Eqs. 22-23), separable in the bilinear basis. */
-                grid(u, n, un, ua);
-                grid(v, n, vn, va);
-                double S = 0, Su = 0, Sv = 0, Suv = 0;
-                for (int a = 0; a < K; ++a) {
-                    double Pu[3], Qu[3], Ru[3];
-                    for (int c = 0; c < 3; ++c) {
-                        Pu[c] = p[0][c] + un[a] * b[c];
-                        Qu[c] = cc[c] + un[a] * dd[c];
-                        Ru[c] = N0[c] + un[a] * Nu[c];
-                    }
-                    double acc0 = 0, acc1 = 0;
-#pragma omp simd reduction(+ : acc0, acc1)
-                    for (int l = 0; l < K; ++l) {
-                        double vv = vn[l];
-                        double d0 = Pu[0] + vv * Qu[0], d1 = Pu[1] + vv * Qu[1], d2 = Pu[2] + vv * Qu[2];
-                        double r2 = d0 * d0 + d1 * d1 + d2 * d2;
-                        double Nd = (Ru[0] + vv * Nv[0]) * d0 + (Ru[1] + vv * Nv[1]) * d1 + (Ru[2] + vv * Nv[2]) * d2;
-                        double f = Nd * va[l] / (r2 * r2);
-                        acc0 += f;
-                        acc1 += f * vv;
-                    }
-                    acc0 *= ua[a];
-                    acc1 *= ua[a];
-                    S += acc0;
-                    Sv += acc1;
-                    Su += un[a] * acc0;
-                    Suv += un[a] * acc1;
-                }
-                double om[4] = {S - Su - Sv + Suv, Su - Suv, Suv, Sv - Suv};
+                if (qtol <= 0) riemann_sums(p[0], b, cc, dd, N0, Nu, Nv, u, v, n, un, om);
                 double ok = 0, ow = 0, ww = 0;
                 for (int i = 0; i < 4; ++i) {
                     ok += om[i] * k[i];
                     ow += om[i] * wb[i];
                     ww += wb[i] * wb[i];
                 }
-                double lam = ow != 0 ? ok * invD * ww / ow : 0.0;
+                double lam = qtol > 0 ? ok * invD : (ow != 0 ? ok * invD * ww / ow : 0.0);
                 double wq[4];
                 for (int i = 0; i < 4; ++i) wq[i] = wb[i] + lam * k[i];
                 double Rmax = fmax(fmax(R[0], R[1]), fmax(R[2], R[3]));
@@ -463,7 +493,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                             ow2 += om[i] * wb2[i];
                             ww2 += wb2[i] * wb2[i];
                         }
-                        double lam2 = ow2 != 0 ? okh * ww2 / ow2 : 0.0;
+                        double lam2 = qtol > 0 ? okh : (ow2 != 0 ? okh * ww2 / ow2 : 0.0);
                         for (int i = 0; i < 4; ++i) wq[i] = wb2[i] + lam2 * kh[i];
                         for (int it = 0; it < REFINE; ++it) {
                             for (int c = 0; c < 3; ++c)

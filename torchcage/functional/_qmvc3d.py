@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import torch
 
 from ._mvc3d import TriangleCageData, _cross, _dot, face_weights, triangle_data
+from ._quad_quadrature import quad_integrals
 
 Vec = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -370,7 +371,7 @@ def project(x: torch.Tensor, data: QuadData) -> Projection:
 
 
 def qmvc3d_chunk(
-    x: torch.Tensor, data: QuadData, n: int
+    x: torch.Tensor, data: QuadData, n: int, tol: float | None = None
 ) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Unnormalised QMVC weights of every quad corner for a chunk of points.
 
@@ -378,6 +379,11 @@ def qmvc3d_chunk(
         x: ``(m, 3)`` points.
         data: the quads' constants.
         n: grid parameter (``(2n+1)^2`` samples per quad).
+        tol: if given, the defining integrals are computed to this relative tolerance
+            (:mod:`._quad_quadrature`) instead of by the Riemann sum, and the weights are their
+            orthogonal projection onto the solutions of ``A w = m`` (``lambda = Omega . kappa / D``:
+            no norm correction, which only serves the Riemann sum's bias); far quads take the
+            integrals themselves.
 
     Returns:
         ``(w, on, u, v, vertex)``: ``w`` four ``(Q, m)`` corner weights (zero where the pair is on
@@ -399,12 +405,21 @@ def qmvc3d_chunk(
     us = torch.where(okD, u, torch.full_like(u, 0.5))
     vs = torch.where(okD, v, torch.full_like(v, 0.5))
     p0s: Vec = tuple(torch.where(okD, p[0][i], p[0][i] - nq[i]) for i in range(3))  # type: ignore[assignment]
-    omega = riemann_sums(p0s, b, c, dd, us, vs, n)
+    if tol is None:
+        omega = riemann_sums(p0s, b, c, dd, us, vs, n)
+    else:
+        shape = us.shape
+        flat_vec = [tuple(t.expand(shape).reshape(-1) for t in vec) for vec in (p0s, b, c, dd)]
+        om = quad_integrals(*flat_vec, us.reshape(-1), vs.reshape(-1), tol)  # type: ignore[arg-type]
+        omega = [om[i].reshape(shape) for i in range(4)]
     ok_dot = sum(omega[i] * k[i] for i in range(4))
-    ow = sum(omega[i] * wbar[i] for i in range(4))
-    ww = sum(wbar[i] * wbar[i] for i in range(4))
-    ok_ow = ow != 0
-    lam = torch.where(ok_ow & okD, ok_dot * invD * ww / _safe(ow, ok_ow), torch.zeros_like(ow))
+    if tol is None:
+        ow = sum(omega[i] * wbar[i] for i in range(4))
+        ww = sum(wbar[i] * wbar[i] for i in range(4))
+        ok_ow = ow != 0
+        lam = torch.where(ok_ow & okD, ok_dot * invD * ww / _safe(ow, ok_ow), torch.zeros_like(ow))
+    else:
+        lam = torch.where(okD, ok_dot * invD, torch.zeros_like(ok_dot))
     w = [wbar[i] + lam * k[i] for i in range(4)]
     # kappa carries a relative error of about eps |x - q| / distance(x, quad's corner planes), so
     # A (lambda kappa) drifts off zero where lambda is large (near a quad): restore A w = m.
@@ -414,7 +429,7 @@ def qmvc3d_chunk(
     # Near a flat quad's plane the Cramer mean vector is the inaccurate part: use the split form.
     near_flat = okD & ~inside & (kabs < NEAR_FLAT * data.size * data.size * R2.max(dim=0).values.sqrt())
     if bool(near_flat.any()):
-        w = _near_flat_weights(x, data, near_flat, w, k, D, omega, p, rows)
+        w = _near_flat_weights(x, data, near_flat, w, k, D, omega, p, rows, exact=tol is not None)
     beta = far_blend(R2, data.size)
     far = torch.nonzero((beta > 0).reshape(-1)).squeeze(1)
     if far.numel():  # (only the pairs seen small: the rule on every pair cost 30% under autograd)
@@ -422,7 +437,10 @@ def qmvc3d_chunk(
         def pick(t: torch.Tensor) -> torch.Tensor:
             return t.expand_as(beta).reshape(-1).index_select(0, far)
 
-        wg = gauss_weights(*(tuple(pick(t) for t in vec) for vec in (p[0], b, c, dd)))  # type: ignore[arg-type]
+        if tol is None:
+            wg = gauss_weights(*(tuple(pick(t) for t in vec) for vec in (p[0], b, c, dd)))  # type: ignore[arg-type]
+        else:
+            wg = [pick(omega[i]) for i in range(4)]
         bf = beta.reshape(-1).index_select(0, far)
         w = [
             w[i]
@@ -466,10 +484,12 @@ def _near_flat_weights(
     omega: list[torch.Tensor],
     p: list[Vec],
     rows: list[Vec],
+    exact: bool = False,
 ) -> list[torch.Tensor]:
     """Weights for the pairs in ``sel`` ``(Q, m)`` from a particular solution that stays accurate
     near a flat quad's plane: the split triangles' mean value weights ``w_p`` (``A w_p = m``), made
-    least-norm by removing their ``kappa`` part, plus the estimated ``lambda kappa`` (Eq. 24)."""
+    least-norm by removing their ``kappa`` part, plus the estimated ``lambda kappa`` (Eq. 24; with
+    ``exact`` integrals ``omega``, ``lambda = omega . kappa_hat``, no norm correction)."""
     Q, m = sel.shape
     tw, _ = face_weights(x, data.split, far_field=False)  # three (2Q, m)
     t = [a.reshape(Q, 2, m) for a in tw]
@@ -484,8 +504,11 @@ def _near_flat_weights(
     ok = sum(omega[i] * kh[i] for i in range(4))
     ow = sum(omega[i] * wbar[i] for i in range(4))
     ww = sum(wbar[i] * wbar[i] for i in range(4))
-    good = use & (ow != 0)
-    lam = torch.where(good, ok * ww / _safe(ow, good), torch.zeros_like(ow))
+    if exact:
+        lam = torch.where(use, ok, torch.zeros_like(ok))
+    else:
+        good = use & (ow != 0)
+        lam = torch.where(good, ok * ww / _safe(ow, good), torch.zeros_like(ow))
     wn = [wbar[i] + lam * kh[i] for i in range(4)]
     # As in the general case, restore A w = A w_p (= m) against kappa's rounding error.
     invD = torch.where(use, 1.0 / _safe(D, use), torch.zeros_like(D))

@@ -12,12 +12,14 @@ from .. import _native
 from . import _mvc3d_native
 from ._mvc3d import PART_FAR_FIELD_RATIO, TriangleCageData
 from ._qmvc3d import QuadData
+from ._quad_quadrature import gauss_table
 
 __all__ = ["native_kernel", "native_tables"]
 
 
-def native_tables(verts: torch.Tensor, qdata: QuadData, n: int) -> dict[str, object]:
-    """``tc_qmvc3d``'s per-cage arguments (``n``: the Riemann sum's grid parameter)."""
+def native_tables(verts: torch.Tensor, qdata: QuadData, n: int, tol: float | None = None) -> dict[str, object]:
+    """``tc_qmvc3d``'s per-cage arguments (``n``: the Riemann sum's grid parameter; ``tol``: the
+    quadrature's relative tolerance, or ``None`` for the Riemann sum)."""
     P = verts.contiguous()
     quads = qdata.quads.to(torch.int32).contiguous()
     return {
@@ -28,17 +30,24 @@ def native_tables(verts: torch.Tensor, qdata: QuadData, n: int) -> dict[str, obj
         "size": qdata.size[:, 0].contiguous(),
         "tol": qdata.tol,
         "n": n,
+        "qtol": 0.0 if tol is None else tol,
+        "gl": gauss_table(),
     }
 
 
 def native_kernel(
-    lib: ctypes.CDLL, verts: torch.Tensor, tdata: TriangleCageData | None, qdata: QuadData | None, n: int
+    lib: ctypes.CDLL,
+    verts: torch.Tensor,
+    tdata: TriangleCageData | None,
+    qdata: QuadData | None,
+    n: int,
+    tol: float | None = None,
 ) -> Callable[[torch.Tensor], torch.Tensor]:
     """The native kernels (triangles: ``tc_mvc3d``, raw weights; quads: ``tc_qmvc3d``) as a chunk
     function ``x (m, 3) -> coordinates (m, V)``."""
     V = verts.shape[0]
     tri_tables = _mvc3d_native.native_tables(tdata) if tdata is not None else None
-    quad_tables = native_tables(verts, qdata, n) if qdata is not None else None
+    quad_tables = native_tables(verts, qdata, n, tol) if qdata is not None else None
     if tri_tables is not None and quad_tables is not None:
         # The triangles are part of the cage: their own sum does not show the far field's
         # cancellation, so faces seen small always take the far-field rule.

@@ -55,6 +55,26 @@ def check_quads(cage: Cage, allow_invalid: bool, what: str = "quad mean value co
                       stacklevel=3)  # fmt: skip
 
 
+def check_tol(tol: float | None) -> float | None:
+    """Check the ``tol`` argument of the quad coordinates (``None``: the paper's Riemann sum).
+
+    Raises:
+        ValueError: ``tol`` is not a number in ``[1e-14, 0.1]``.
+    """
+    if tol is None:
+        return None
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (MIN_TOL <= tol <= 0.1):
+        raise ValueError(
+            f"tol must be a number in [{MIN_TOL:g}, 0.1] (the relative error of the defining integrals), got {tol!r}; "
+            "pass tol=None for the paper's Riemann sum of resolution n"
+        )
+    return float(tol)
+
+
+#: The smallest ``tol`` accepted: below it float64 rounding, not the quadrature, sets the error.
+MIN_TOL = 1e-14
+
+
 def prepare_quad_call(
     points: torch.Tensor,
     cage: Cage,
@@ -89,6 +109,7 @@ def quad_mean_value_coordinates(
     progress: bool | Callable[[int, int], None] = False,
     backend: str = "auto",
     allow_invalid: bool = False,
+    tol: float | None = None,
 ) -> torch.Tensor:
     """Quad mean value coordinates (Thiery, Memari, Boubekeur 2018) for quad and triquad cages.
 
@@ -148,18 +169,21 @@ def quad_mean_value_coordinates(
             progress=progress,
             backend=backend,
             allow_invalid=allow_invalid,
+            tol=tol,
         )
+    quad_tol = check_tol(tol)
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
     lib = _native.select(backend, x, cage.vertices)
     T, Q = cage.triangles.shape[0], cage.quads.shape[0]
     tdata = triangle_data(verts, cage.triangles, tol) if T else None
     qdata = quad_data(verts, cage.quads, tol) if Q else None
     if lib is not None:
-        kernel = native_kernel(lib, verts, tdata, qdata, n)
+        kernel = native_kernel(lib, verts, tdata, qdata, n, quad_tol)
         size = chunk_size or 1 << 14
     else:
-        kernel = functools.partial(_torch_chunk, verts=verts, tdata=tdata, qdata=qdata, n=n)
-        size = chunk_size or max(16, (1 << 19) // (max(Q, 1) * (2 * n + 1) ** 2) + 1)
+        kernel = functools.partial(_torch_chunk, verts=verts, tdata=tdata, qdata=qdata, n=n, quad_tol=quad_tol)
+        samples = (2 * n + 1) ** 2 if quad_tol is None else 256
+        size = chunk_size or max(16, (1 << 19) // (max(Q, 1) * samples) + 1)
     parts = [kernel(x[sl]) for sl in chunks(x.shape[0], size, progress, desc="quad mean value coordinates")]
     out = torch.cat(parts) if parts else x.new_zeros((0, cage.num_vertices))
     bad = ~torch.isfinite(out.detach().sum(dim=1))
@@ -174,7 +198,12 @@ def quad_mean_value_coordinates(
 
 
 def _torch_chunk(
-    c: torch.Tensor, verts: torch.Tensor, tdata: TriangleCageData | None, qdata: QuadData | None, n: int
+    c: torch.Tensor,
+    verts: torch.Tensor,
+    tdata: TriangleCageData | None,
+    qdata: QuadData | None,
+    n: int,
+    quad_tol: float | None = None,
 ) -> torch.Tensor:
     """Normalised coordinates ``(m, V)`` of a chunk ``c`` ``(m, 3)`` with the torch kernels.
 
@@ -202,7 +231,7 @@ def _torch_chunk(
         onq_any = (pr.on & ~on[None, :]).any(dim=0) | on
         if bool(onq_any.any()):
             creg = torch.where(onq_any[:, None], outside_point(verts), c)
-    w, onq, u, v, vertex = qmvc3d_chunk(creg, qdata, n)
+    w, onq, u, v, vertex = qmvc3d_chunk(creg, qdata, n, quad_tol)
     if creg is not c:  # the projection of the points themselves (not of their stand-ins)
         onq, u, v, vertex = pr.on, pr.u, pr.v, pr.vertex
     quads = qdata.quads
