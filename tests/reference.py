@@ -211,15 +211,16 @@ def distance_to_triangles(points: torch.Tensor, vertices: torch.Tensor, triangle
     return torch.minimum(best, plane)
 
 
-def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: int = 16, angular_panels: int = 8):
+def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: int = 16, angular_panels: int = 16):
     """Independent reference of a bilinear quad's four corner integrals
     ``int phi_i N.(xi - x) / |xi - x|^4 du dv`` (the unnormalised QMVC weights of one quad).
 
-    Polar coordinates in the quad's parameters around the nearest point ``c`` of the sheet (Newton
-    from the best node of a grid; snapped to the boundary when within a tenth of the distance): four
-    triangles ``(c, edge)``, each by ``angular_panels`` Gauss panels in the angle and, along every
-    ray, geometric Gauss panels in the radius from ``r_max`` down to ``1e-3`` of the distance's
-    scale in the parameters (and one panel to 0). A different construction from torchcage's
+    Polar coordinates around the nearest point ``c`` of the sheet (Newton from the best node of a
+    grid; snapped to the boundary when within a tenth of the distance), in the parameters scaled by
+    the sheet's side lengths at ``c``: four triangles ``(c, edge)``, each by ``angular_panels``
+    Gauss panels in the angle and, along every ray, geometric Gauss panels in the radius from
+    ``r_max`` down to ``1e-3`` of the distance (and one panel to 0). Far quads (4 radii away): a
+    composite Gauss rule. A different construction from torchcage's
     quadtree of Gauss panels; converged when doubling the nodes changes nothing (the tests check).
 
     Args:
@@ -244,6 +245,14 @@ def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: in
         f = (N * X).sum(-1) / (r2 * r2)
         return np.stack([(1 - u) * (1 - v) * f, u * (1 - v) * f, u * v * f, (1 - u) * v * f])
 
+    centre = corners.mean(0)
+    if np.linalg.norm(x - centre) >= 4 * np.linalg.norm(corners - centre, axis=1).max():
+        # far: a composite 4 x 4 panels x 14^2 Gauss rule (converged to rounding at this ratio)
+        t, w = np.polynomial.legendre.leggauss(14)
+        t = ((np.arange(4)[:, None] + (t + 1) / 2) / 4).ravel()
+        w = np.tile(w / 8, 4)
+        Ug, Vg = np.meshgrid(t, t, indexing="ij")
+        return (integrand(Ug, Vg) * (w[:, None] * w[None, :])).sum(axis=(1, 2))
     g = np.linspace(0, 1, 21)
     U, V = np.meshgrid(g, g, indexing="ij")
     d2 = (sheet(U, V) ** 2).sum(-1)
@@ -260,15 +269,16 @@ def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: in
             break
         u, v = float(np.clip(u - step[0], 0, 1)), float(np.clip(v - step[1], 0, 1))
     h = float(np.sqrt((sheet(np.array(u), np.array(v)) ** 2).sum()))
-    scale = float(max(np.linalg.norm(b + v * dd), np.linalg.norm(c_ + u * dd)))
-    hp = h / scale  # the distance in the parameters
-    snap = 0.1 * hp
+    # polar coordinates in the parameters scaled by the sheet's side lengths at c (so that the
+    # nearly singular spot is round, not an ellipse of the panel's aspect)
+    Lu, Lv = float(np.linalg.norm(b + v * dd)), float(np.linalg.norm(c_ + u * dd))
+    snap = 0.1 * h / max(Lu, Lv)  # a tenth of the distance, in the parameters
     u = 0.0 if u < snap else (1.0 if u > 1 - snap else u)
     v = 0.0 if v < snap else (1.0 if v > 1 - snap else v)
-    c = np.array([u, v])
+    c = np.array([u * Lu, v * Lv])
     tr, wr = np.polynomial.legendre.leggauss(radial_nodes)
     ta, wa = np.polynomial.legendre.leggauss(angular_nodes)
-    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    square = np.array([[0.0, 0.0], [Lu, 0.0], [Lu, Lv], [0.0, Lv]])
     total = np.zeros(4)
     for e in range(4):
         A, B = square[e], square[(e + 1) % 4]
@@ -286,14 +296,14 @@ def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: in
         th = th.ravel()
         dirs = np.stack([np.cos(th), np.sin(th)], axis=1)
         rmax = de / (dirs @ n_e)
-        levels = max(1, int(np.ceil(np.log2(max(rmax.max() / (1e-3 * hp + 1e-300), 2.0)))))
+        levels = max(1, int(np.ceil(np.log2(max(rmax.max() / (1e-3 * h + 1e-300), 2.0)))))
         levels = min(levels, 80)
         bps = rmax[:, None] * np.concatenate([2.0 ** -np.arange(levels + 1), [0.0]])[None, :]
         lo, hi = bps[:, 1:], bps[:, :-1]  # (T, levels+1)
         r = ((lo + hi)[..., None] + (hi - lo)[..., None] * tr) / 2  # (T, L, R)
         wrr = (hi - lo)[..., None] / 2 * wr
-        uu = c[0] + r * dirs[:, 0, None, None]
-        vv = c[1] + r * dirs[:, 1, None, None]
+        uu = (c[0] + r * dirs[:, 0, None, None]) / Lu
+        vv = (c[1] + r * dirs[:, 1, None, None]) / Lv
         F = integrand(uu, vv)  # (4, T, L, R)
-        total += (F * (r * wrr)[None]).sum(axis=(2, 3)) @ wth
+        total += (F * (r * wrr)[None]).sum(axis=(2, 3)) @ wth / (Lu * Lv)
     return total

@@ -65,6 +65,7 @@ def deform_files(
     strict: bool = False,
     cage_vertices: int = 200,
     cage_kind: str | None = None,
+    tol: float | None = None,
 ) -> dict[str, Path]:
     """Deform a mesh with a cage and its deformed pose; write the results into ``out_dir``.
 
@@ -80,13 +81,15 @@ def deform_files(
 
     Points outside what the coordinates cover (for ``gc``, farther outside the cage than its
     exterior band; for ``qgc``, any point outside) are reported with their count; with ``strict``
-    they are an error.
+    they are an error. ``tol`` (``qmvc`` only) computes the quad integrals to that relative
+    tolerance instead of the paper's Riemann sum.
 
     Returns:
         The paths written, by name.
 
     Raises:
-        ValueError: an unknown method, format or up axis; with ``strict``, points outside the cage.
+        ValueError: an unknown method, format or up axis; ``tol`` with a method other than
+            ``qmvc``; with ``strict``, points outside the cage.
     """
     import warnings
 
@@ -96,6 +99,8 @@ def deform_files(
         raise ValueError(f"unknown mesh format {mesh_format!r}; choose from {', '.join(FORMATS)}")
     if up not in ("x", "y", "z"):
         raise ValueError(f"up must be x, y or z, got {up!r}")
+    if tol is not None and method != "qmvc":
+        raise ValueError(f"--tol is an option of --method qmvc (the quad integrals to a tolerance), not of {method}")
     import torchcage
     from torchcage.viz import Panel, render_panels
 
@@ -128,7 +133,11 @@ def deform_files(
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             module = build_module(
-                method, cage, v, progress=not quiet and (method == "lbc" or v.shape[0] * cage.num_vertices > 5e6)
+                method,
+                cage,
+                v,
+                progress=not quiet and (method == "lbc" or v.shape[0] * cage.num_vertices > 5e6),
+                tol=tol,
             )
     for w in caught:
         if issubclass(w.category, torchcage.OutsideCageWarning) and strict:
@@ -271,6 +280,7 @@ def _deform(args: argparse.Namespace) -> int:
         strict=args.strict,
         cage_vertices=args.cage_vertices,
         cage_kind=args.cage_kind,
+        tol=args.tol,
     )
     return 0
 
@@ -386,6 +396,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     dfm.add_argument(
         "--strict", action="store_true", help="fail (exit 2) when points lie outside the cage (Green methods)"
     )
+    dfm.add_argument(
+        "--tol", type=float, help="qmvc: the quad integrals to this relative tolerance (e.g. 1e-8) instead of the "
+        "paper's Riemann sum",
+    )  # fmt: skip
     dfm.set_defaults(func=_deform)
     vw = sub.add_parser("view", help="the cage editor in the browser: pose a cage, see the mesh deform, save OBJ")
     vw.add_argument("--mesh", help="mesh to deform (.obj, or any format trimesh reads); default: the bundled bar")

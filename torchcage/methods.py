@@ -43,7 +43,9 @@ METHOD_NAMES = {
 Progress = Callable[[int, "int | None", str], None]
 
 
-def build_module(method: str, cage: Cage, points: torch.Tensor, progress: bool | Progress = False) -> nn.Module:
+def build_module(
+    method: str, cage: Cage, points: torch.Tensor, progress: bool | Progress = False, tol: float | None = None
+) -> nn.Module:
     """The coordinate module of ``method`` for ``cage`` and ``points`` ``(N, D)``.
 
     ``mvc`` and ``gc`` split quads into triangles (along q0-q2); ``qmvc`` and ``qgc`` keep them.
@@ -54,24 +56,29 @@ def build_module(method: str, cage: Cage, points: torch.Tensor, progress: bool |
         points: ``(N, D)`` points to embed.
         progress: ``True`` for the methods' own progress bars, or a callable
             ``progress(done, total, message)`` (see :data:`Progress`).
+        tol: ``qmvc`` only: the quad integrals to this relative tolerance (see
+            :func:`torchcage.functional.quad_mean_value_coordinates`).
 
     Returns:
         The module: ``module(vertices (*, V, D)) -> (*, N, D)``.
 
     Raises:
-        ValueError: an unknown method (and every error of the module itself).
+        ValueError: an unknown method, or ``tol`` with a method other than ``qmvc`` (and every
+            error of the module itself).
     """
     import torchcage
 
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if tol is not None and method != "qmvc":
+        raise ValueError(f"tol is an option of qmvc (the quad integrals to a tolerance), not of {method}")
     by_points = _by_points(progress)
     if method == "mvc":
         return torchcage.MeanValueCoordinates(cage.triangulated(), points, progress=by_points)
     if method == "gc":
         return torchcage.GreenCoordinates(cage.triangulated(), points, progress=by_points)
     if method == "qmvc":
-        return torchcage.QuadMeanValueCoordinates(cage, points, progress=by_points)
+        return torchcage.QuadMeanValueCoordinates(cage, points, progress=by_points, tol=tol)
     if method == "qgc":
         return torchcage.QuadGreenCoordinates(cage, points, progress=by_points)
     if method == "mec":

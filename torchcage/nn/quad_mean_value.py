@@ -32,6 +32,8 @@ class QuadMeanValueCoordinates(DenseWeightsModule):
         progress: show a progress bar while computing the weights, or a callable
             ``progress(done, total)`` (points done so far).
         allow_invalid: compute even if some quads fail the validity predicate (with a warning).
+        tol: if given, the quads' defining integrals to this relative tolerance instead of the
+            Riemann sum of resolution ``n`` (the coordinates to within about ``tol``; docs/qmvc.md).
 
     Shape:
         - Input: ``(*, V, 3)`` deformed cage vertices, any leading batch shape.
@@ -58,15 +60,17 @@ class QuadMeanValueCoordinates(DenseWeightsModule):
         dtype: torch.dtype = torch.float64,
         progress: bool | Callable[[int, int], None] = False,
         allow_invalid: bool = False,
+        tol: float | None = None,
     ) -> None:
         pts = module_points(points, cage)
         cage = detached(cage)
         w = quad_mean_value_coordinates(
-            pts, cage, n, chunk_size=chunk_size, dtype=dtype, progress=progress, allow_invalid=allow_invalid
+            pts, cage, n, chunk_size=chunk_size, dtype=dtype, progress=progress, allow_invalid=allow_invalid, tol=tol
         )
         super().__init__(cage, pts)
         self.n = n
+        self.tol = tol
         self.register_buffer("weights", w)
 
     def extra_repr(self) -> str:
-        return super().extra_repr() + f", n={self.n}"
+        return super().extra_repr() + (f", n={self.n}" if self.tol is None else f", tol={self.tol:g}")

@@ -1,0 +1,203 @@
+"""Quad mean value coordinates to a tolerance (``tol=``): the quadrature's error bound, agreement
+with an independent reference of the defining integrals, the coordinates' properties, and the
+native and torch kernels against each other."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from reference import quad_weights_reference
+from support import QMVC_MODELS, cube, data_path, model_points, quad_adversarial_points, triquad
+
+import torchcage
+from torchcage import functional as F
+from torchcage._native import available as native_available
+from torchcage.functional import _quad_quadrature as QQ
+
+needs_native = pytest.mark.skipif(not native_available(), reason="the native kernels are not built")
+
+
+def qmvc_reference(x: torch.Tensor, cage: torchcage.Cage) -> torch.Tensor:
+    """Normalised QMVC ``(N, V)`` of points off the cage from the independent reference of each
+    quad's integrals (a triangle is the bilinear quad ``(a, b, c, c)``: its weights are the
+    triangle's mean value weights)."""
+    P = cage.vertices.to(torch.float64).numpy()
+    faces = [q for q in cage.quads.tolist()] + [[a, b, c, c] for a, b, c in cage.triangles.tolist()]
+    W = np.zeros((x.shape[0], P.shape[0]))
+    for i, xi in enumerate(x.to(torch.float64).numpy()):
+        for f in faces:
+            np.add.at(W[i], f, quad_weights_reference(xi, P[f]))
+    return torch.from_numpy(W / W.sum(axis=1, keepdims=True))
+
+
+def random_panel(g: torch.Generator) -> torch.Tensor:
+    """Corners ``(4, 3)`` of a random curved panel of aspect 1 to 8."""
+    aspect = [1.0, 2.0, 8.0][int(torch.randint(3, (1,), generator=g))]
+    base = torch.tensor([[0, 0, 0], [aspect, 0, 0], [aspect, 1, 0], [0, 1, 0]], dtype=torch.float64)
+    return base + 0.3 * torch.randn(4, 3, generator=g, dtype=torch.float64)
+
+
+def sheet_args(corners: torch.Tensor, x: torch.Tensor) -> tuple:
+    q0, q1, q2, q3 = corners
+
+    def vec(t: torch.Tensor) -> tuple:
+        return tuple(t[i].reshape(1) for i in range(3))
+
+    return vec(q0 - x), vec(q1 - q0), vec(q3 - q0), vec(q0 - q1 + q2 - q3)
+
+
+def test_the_gauss_error_stays_under_the_bound_on_random_panels() -> None:
+    # the a-priori model C m^3 rho^(-2m) that picks the orders, against a converged composite rule
+    g = torch.Generator().manual_seed(3)
+    worst = 0.0
+    for trial in range(40):
+        corners = random_panel(g)
+        ctr = corners.mean(0)
+        R = float((corners - ctr).norm(dim=1).max())
+        d = torch.randn(3, generator=g, dtype=torch.float64)
+        if trial % 3 == 0:
+            d[2] = 0.0  # in the panel's plane: the singularity on the real axis
+        q = [1.3, 1.6, 2.5, 4.0][trial % 4]
+        x = ctr + q * R * d / d.norm()
+        args = sheet_args(corners, x)
+        edges = torch.linspace(0, 1, 9, dtype=torch.float64)
+        u0, v0 = torch.meshgrid(edges[:-1], edges[:-1], indexing="ij")
+        K = u0.numel()
+        exp = [tuple(t.expand(K) for t in vec) for vec in args]
+        ref = QQ.gauss_panels(*exp, u0.reshape(-1), u0.reshape(-1) + 0.125, v0.reshape(-1), v0.reshape(-1) + 0.125, 16)
+        ref = ref.sum(dim=1)
+        one, zero = torch.ones(1, dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
+        rho = q + math.sqrt(q * q - 1)
+        for m in range(2, QQ.MAX_ORDER + 1):
+            err = float((QQ.gauss_panels(*args, zero, one, zero, one, m)[:, 0] - ref).abs().max())
+            bound = QQ.ERROR_C * m**3 * rho ** (-2 * m) * float(ref.abs().sum())
+            worst = max(worst, err / max(bound, 1e-300))
+            assert err <= bound + 1e-15 * float(ref.abs().sum()), (trial, q, m, err, bound)
+    assert worst > 1e-3  # the bound is not vacuous
+
+
+@pytest.mark.parametrize("tol", [1e-4, 1e-8, 1e-10])
+def test_the_quadrature_meets_the_tolerance_against_an_independent_reference(tol: float) -> None:
+    g = torch.Generator().manual_seed(7)
+    for trial in range(6):
+        corners = random_panel(g)
+        u, v = torch.rand(2, generator=g, dtype=torch.float64).tolist()
+        U, V = torch.tensor(u, dtype=torch.float64), torch.tensor(v, dtype=torch.float64)
+        q0, q1, q2, q3 = corners
+        xi = (1 - U) * (1 - V) * q0 + U * (1 - V) * q1 + U * V * q2 + (1 - U) * V * q3
+        normal = torch.linalg.cross((1 - V) * (q1 - q0) + V * (q2 - q3), (1 - U) * (q3 - q0) + U * (q2 - q1))
+        for h in (1.0, 1e-2, 1e-5, 1e-9):
+            x = xi + h * normal / normal.norm() * (1 if trial % 2 else -1)
+            ref = quad_weights_reference(x.numpy(), corners.numpy())
+            om = QQ.quad_integrals(*sheet_args(corners, x), U.reshape(1), V.reshape(1), tol)[:, 0].numpy()
+            # (at h from the sheet, the inputs' rounding moves the integrals by about eps / h)
+            # (and the reference is converged to about 1e-11 of the sum: test_the_reference_is_converged)
+            rounding = 1e-16 * float(corners.abs().max()) / h + 1e-11
+            assert np.abs(om - ref).max() <= (tol + rounding) * np.abs(ref).sum(), (trial, h, om, ref)
+
+
+def test_the_reference_is_converged() -> None:
+    # doubling its nodes changes nothing, on curved, elongated panels, near and far
+    g = torch.Generator().manual_seed(1)
+    for trial in range(2):
+        corners = random_panel(g).numpy()
+        for h in (1e-6, 1e-2, 0.5):
+            x = corners.mean(0) + np.array([0.01, -0.02, h])
+            a = quad_weights_reference(x, corners)
+            b = quad_weights_reference(x, corners, radial_nodes=40, angular_nodes=32, angular_panels=32)
+            assert np.abs(a - b).max() <= 1e-11 * np.abs(b).sum(), (trial, h)
+
+
+def _check_model(model: str, npts: int, tol: float, bound: float) -> tuple[float, float]:
+    cage = torchcage.load_cage(data_path("qmvc", f"{model}_Cage.obj"))
+    pts = model_points(model, cage, 200)
+    x = pts[torch.randperm(pts.shape[0], generator=torch.Generator().manual_seed(0))[:npts]]
+    ref = qmvc_reference(x, cage)
+    w = F.quad_mean_value_coordinates(x, cage, tol=tol)
+    w4 = F.quad_mean_value_coordinates(x, cage)
+    err, err4 = float((w - ref).abs().max()), float((w4 - ref).abs().max())
+    assert err <= bound, (model, err)
+    return err, err4
+
+
+def test_firehydrant_to_1e_8_against_the_reference() -> None:
+    err, err4 = _check_model("FireHydrant", 4, 1e-8, 1e-7)
+    assert err < 1e-3 * err4  # n = 4 is ~3e-3 off
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model", QMVC_MODELS)
+def test_every_model_to_1e_8_and_1e_4_against_the_reference(model: str) -> None:
+    _check_model(model, 25, 1e-8, 1e-7)
+    err, err4 = _check_model(model, 10, 1e-4, 1e-4)
+    assert err < err4
+
+
+@pytest.mark.parametrize("cage_fn", [cube, triquad])
+@pytest.mark.parametrize("tol", [1e-4, 1e-10])
+def test_properties_hold_to_rounding_at_any_tolerance(cage_fn, tol: float) -> None:
+    cage = cage_fn()
+    x = quad_adversarial_points(cage)
+    w = F.quad_mean_value_coordinates(x, cage, tol=tol)
+    assert torch.isfinite(w).all()
+    assert (w.sum(-1) - 1).abs().max() <= 1e-12
+    assert (w @ cage.vertices.to(torch.float64) - x).abs().max() <= 1e-10 * cage.scale
+
+
+@needs_native
+@pytest.mark.parametrize("model", ["FireHydrant", "Beast"])
+def test_native_and_torch_agree_and_interpolate(model: str) -> None:
+    cage = torchcage.load_cage(data_path("qmvc", f"{model}_Cage.obj"))
+    pts = model_points(model, cage, 200)
+    # (closer to a quad than 1e-6 of the size, the inputs' rounding sets the agreement, as for n)
+    near = quad_adversarial_points(cage, distances=(0.0, 1e-6, 1e-3))
+    x = torch.cat([pts[:: max(1, pts.shape[0] // 150)], near[:-9]])
+    a = F.quad_mean_value_coordinates(x, cage, tol=1e-8, backend="native")
+    b = F.quad_mean_value_coordinates(x, cage, tol=1e-8, backend="torch")
+    n = pts[:: max(1, pts.shape[0] // 150)].shape[0]
+    assert (a[:n] - b[:n]).abs().max() <= 1e-12  # the mesh's points (measured <= 4e-16)
+    assert (a[n:] - b[n:]).abs().max() <= 1e-11  # 1e-6 of the size off a quad: rounding (measured 2e-12)
+    assert (a @ cage.vertices.to(torch.float64) - x).abs().max() <= 1e-10 * cage.scale
+    # 2-5 cage sizes away the far field's cancelling total sets the agreement, as with n
+    far_a = F.quad_mean_value_coordinates(near[-9:], cage, tol=1e-8, backend="native")
+    far_b = F.quad_mean_value_coordinates(near[-9:], cage, tol=1e-8, backend="torch")
+    assert (far_a - far_b).abs().max() <= 1e-10
+    # on a quad: bilinear interpolation of its corners, exactly as the Riemann version
+    q = cage.quads[0]
+    c = cage.vertices.to(torch.float64)[q]
+    uv = torch.tensor([[0.3, 0.6], [0.9, 0.1]], dtype=torch.float64)
+    u, v = uv[:, 0], uv[:, 1]
+    hats = torch.stack([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], 1)
+    on = hats @ c
+    w = F.quad_mean_value_coordinates(on, cage, tol=1e-8)
+    assert (w[:, q] - hats).abs().max() <= 1e-12
+
+
+def test_gradients_are_finite_and_gradchecked() -> None:
+    cage = cube()
+    x = torch.tensor([[0.1, 0.2, -0.3], [0.5, -0.7, 0.95], [2.0, 0.5, 0.1]], dtype=torch.float64, requires_grad=True)
+    verts = cage.vertices.to(torch.float64).clone().requires_grad_(True)
+
+    def f(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        return F.quad_mean_value_coordinates(x, cage.with_vertices(v), tol=1e-11)
+
+    assert torch.autograd.gradcheck(f, (x, verts), atol=1e-6, rtol=1e-5)
+
+
+def test_tol_is_checked_and_reaches_the_module_and_methods() -> None:
+    cage = cube()
+    x = torch.zeros(1, 3, dtype=torch.float64)
+    for bad in (0.0, -1e-3, 1.0, float("nan"), "1e-8", True):
+        with pytest.raises(ValueError, match="tol must be"):
+            F.quad_mean_value_coordinates(x, cage, tol=bad)  # type: ignore[arg-type]
+    m = torchcage.QuadMeanValueCoordinates(cage, x + 0.1, tol=1e-8)
+    assert "tol=1e-08" in repr(m)
+    assert torch.allclose(m.weights, F.quad_mean_value_coordinates(x + 0.1, cage, tol=1e-8))
+    from torchcage.methods import build_module
+
+    with pytest.raises(ValueError, match="tol is an option of qmvc"):
+        build_module("mvc", cage, x, tol=1e-8)
+    assert build_module("qmvc", cage, x, tol=1e-8).tol == 1e-8
