@@ -211,7 +211,9 @@ def distance_to_triangles(points: torch.Tensor, vertices: torch.Tensor, triangle
     return torch.minimum(best, plane)
 
 
-def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: int = 16, angular_panels: int = 16):
+def quad_weights_reference(
+    x, corners, radial_nodes: int = 20, angular_nodes: int = 16, angular_panels: int = 32, green: bool = False
+):
     """Independent reference of a bilinear quad's four corner integrals
     ``int phi_i N.(xi - x) / |xi - x|^4 du dv`` (the unnormalised QMVC weights of one quad).
 
@@ -219,15 +221,17 @@ def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: in
     grid; snapped to the boundary when within a tenth of the distance), in the parameters scaled by
     the sheet's side lengths at ``c``: four triangles ``(c, edge)``, each by ``angular_panels``
     Gauss panels in the angle and, along every ray, geometric Gauss panels in the radius from
-    ``r_max`` down to ``1e-3`` of the distance (and one panel to 0). Far quads (4 radii away): a
-    composite Gauss rule. A different construction from torchcage's
+    ``r_max`` down to ``1e-3`` of the distance (and one panel to 0). Points off the quad's ball by a
+    quarter of its radius: a composite Gauss rule. A different construction from torchcage's
     quadtree of Gauss panels; converged when doubling the nodes changes nothing (the tests check).
 
     Args:
         x: ``(3,)`` float64 numpy point; corners: ``(4, 3)`` float64 numpy corners ``q0..q3``.
+        green: instead, the eight integrals of quad Green coordinates (without ``1 / 4 pi``):
+            ``int phi_i N.(xi - x) / |xi - x|^3`` and ``int phi_i / |xi - x|``.
 
     Returns:
-        ``(4,)`` numpy array.
+        ``(4,)`` (or ``(8,)``) numpy array.
     """
     import numpy as np
 
@@ -242,15 +246,23 @@ def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: in
         X = sheet(u, v)
         N = np.cross(b, c_) + u[..., None] * np.cross(b, dd) + v[..., None] * np.cross(dd, c_)
         r2 = (X * X).sum(-1)
+        hats = [(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v]
+        if green:
+            r = np.sqrt(r2)
+            f, g = (N * X).sum(-1) / (r2 * r), 1 / r
+            return np.stack([h * f for h in hats] + [h * g for h in hats])
         f = (N * X).sum(-1) / (r2 * r2)
-        return np.stack([(1 - u) * (1 - v) * f, u * (1 - v) * f, u * v * f, (1 - u) * v * f])
+        return np.stack([h * f for h in hats])
 
     centre = corners.mean(0)
-    if np.linalg.norm(x - centre) >= 4 * np.linalg.norm(corners - centre, axis=1).max():
-        # far: a composite 4 x 4 panels x 14^2 Gauss rule (converged to rounding at this ratio)
+    ratio = np.linalg.norm(x - centre) / np.linalg.norm(corners - centre, axis=1).max()
+    if ratio >= 1.25:
+        # off the quad's ball by a quarter radius: a composite Gauss rule of k x k panels, 14^2
+        # nodes each (every panel then 4 or more of its radii away: converged to rounding)
+        k = 4 if ratio >= 4 else 16
         t, w = np.polynomial.legendre.leggauss(14)
-        t = ((np.arange(4)[:, None] + (t + 1) / 2) / 4).ravel()
-        w = np.tile(w / 8, 4)
+        t = ((np.arange(k)[:, None] + (t + 1) / 2) / k).ravel()
+        w = np.tile(w / (2 * k), k)
         Ug, Vg = np.meshgrid(t, t, indexing="ij")
         return (integrand(Ug, Vg) * (w[:, None] * w[None, :])).sum(axis=(1, 2))
     g = np.linspace(0, 1, 21)
@@ -271,7 +283,9 @@ def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: in
     h = float(np.sqrt((sheet(np.array(u), np.array(v)) ** 2).sum()))
     # polar coordinates in the parameters scaled by the sheet's side lengths at c (so that the
     # nearly singular spot is round, not an ellipse of the panel's aspect)
-    Lu, Lv = float(np.linalg.norm(b + v * dd)), float(np.linalg.norm(c_ + u * dd))
+    # (bounded below: a triangle, the quad (a, b, c, c), has no u-length at its apex)
+    floor = 0.1 * max(np.linalg.norm(b), np.linalg.norm(c_))
+    Lu, Lv = max(float(np.linalg.norm(b + v * dd)), floor), max(float(np.linalg.norm(c_ + u * dd)), floor)
     snap = 0.1 * h / max(Lu, Lv)  # a tenth of the distance, in the parameters
     u = 0.0 if u < snap else (1.0 if u > 1 - snap else u)
     v = 0.0 if v < snap else (1.0 if v > 1 - snap else v)
@@ -279,7 +293,7 @@ def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: in
     tr, wr = np.polynomial.legendre.leggauss(radial_nodes)
     ta, wa = np.polynomial.legendre.leggauss(angular_nodes)
     square = np.array([[0.0, 0.0], [Lu, 0.0], [Lu, Lv], [0.0, Lv]])
-    total = np.zeros(4)
+    total = np.zeros(8 if green else 4)
     for e in range(4):
         A, B = square[e], square[(e + 1) % 4]
         n_e = np.array([(B - A)[1], -(B - A)[0]])
@@ -304,6 +318,6 @@ def quad_weights_reference(x, corners, radial_nodes: int = 20, angular_nodes: in
         wrr = (hi - lo)[..., None] / 2 * wr
         uu = (c[0] + r * dirs[:, 0, None, None]) / Lu
         vv = (c[1] + r * dirs[:, 1, None, None]) / Lv
-        F = integrand(uu, vv)  # (4, T, L, R)
+        F = integrand(uu, vv)  # (C, T, L, R)
         total += (F * (r * wrr)[None]).sum(axis=(2, 3)) @ wth / (Lu * Lv)
     return total

@@ -92,10 +92,10 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
     ),
     "tc_qgc3d": _parse(
         "P:f64*[V,3] V:i64 quads:i32*[Q,4] Q:i64 size:f64*[Q] pinv:f64*[Q,8,4] null:f64*[Q,8,4] origin:f64*[3] "
-        "pattern:i32*[Pn,3,2] Pn:i64 K:i32 X:f64*[n,3] n:i64 tol:f64 nthreads:i32 PHI:f64*![n,V] "
-        "PSIQ:f64*![n,4*Q] ONQ:i32*![n] UV:f64*![n,2] s_Pv:f64*[3,V] s_tri:i32*[3,2*Q] s_edges:i32*[2,s_E] "
-        "s_E:i64 s_eu:f64*[3,s_E] s_fe:i32*[3,2*Q] s_nrm:f64*[2*Q,3] s_two_area:f64*[2*Q] s_ell:f64*[2*Q,3] "
-        "s_edir:f64*[2*Q,3,3] s_eout:f64*[2*Q,3,3] s_gbary:f64*[2*Q,3,3]"
+        "pattern:i32*[Pn,3,2] Pn:i64 K:i32 X:f64*[n,3] n:i64 tol:f64 qtol:f64 gl:f64*[17,2,16] nthreads:i32 "
+        "PHI:f64*![n,V] PSIQ:f64*![n,4*Q] ONQ:i32*![n] UV:f64*![n,2] s_Pv:f64*[3,V] s_tri:i32*[3,2*Q] "
+        "s_edges:i32*[2,s_E] s_E:i64 s_eu:f64*[3,s_E] s_fe:i32*[3,2*Q] s_nrm:f64*[2*Q,3] s_two_area:f64*[2*Q] "
+        "s_ell:f64*[2*Q,3] s_edir:f64*[2*Q,3,3] s_eout:f64*[2*Q,3,3] s_gbary:f64*[2*Q,3,3]"
     ),
     "tc_mvcd3d": _parse(
         "P:f64*[V,3] V:i64 tri:i32*[T,3] T:i64 fe:i32*[T,3] NE:i64 E:f64*[T,3,3] nrm:f64*[T,3] two_area:f64*[T] "

@@ -143,12 +143,13 @@ typedef struct {
 void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, int project,
                   quad_pair *qp);
 
-/* The four corner integrals of a bilinear quad to the relative tolerance tol (quadrature.c); gl:
- * Gauss-Legendre nodes and weights on [0, 1], (TC_QMAX_ORDER + 1, 2, TC_QMAX_ORDER). */
+/* The four corner integrals of a bilinear quad (xi - x = p0 + u b + v cc + u v dd) to the relative
+ * tolerance tol (quadrature.c), or with green the eight of quad Green coordinates (without 1 / 4 pi);
+ * the first split at (us, vs); on: the point is at xi(us, vs) (principal values); gl: Gauss-Legendre
+ * nodes and weights on [0, 1], (TC_QMAX_ORDER + 1, 2, TC_QMAX_ORDER). */
 #define TC_QMAX_ORDER 16 /* MAX_ORDER in _quad_quadrature.py */
-void tc_quad_integrals(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
-                       const double *Nu, const double *Nv, double us, double vs, double tol, const double *gl,
-                       double *om);
+void tc_quad_integrals(const double *p0, const double *b, const double *cc, const double *dd, double us, double vs,
+                       int on, double tol, const double *gl, int green, double *om);
 /* 1 if tc_quad_integrals takes the quad qi of P (seen from x) as one panel, without splitting it. */
 int tc_quad_whole(const double *P, const int *qi, const double *x, double tol);
 

@@ -81,8 +81,9 @@ static void grid19(double t, int K, double *x) {
  */
 void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *pinv,
               const double *null, const double *origin, const int *pattern, long Pn, int K, const double *X, long n,
-              double tol, int nthreads, double *PHI, double *PSIQ, int *ONQ, double *UV, const double *s_Pv,
-              const int *s_tri, const int *s_edges, long s_E, const double *s_eu, const int *s_fe, const double *s_nrm,
+              double tol, double qtol, const double *gl, int nthreads, double *PHI, double *PSIQ, int *ONQ, double *UV,
+              const double *s_Pv, const int *s_tri, const int *s_edges, long s_E, const double *s_eu, const int *s_fe,
+              const double *s_nrm,
               const double *s_two_area, const double *s_ell, const double *s_edir, const double *s_eout,
               const double *s_gbary) {
     const int G = 2 * K + 1;
@@ -248,91 +249,106 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 double bar[8];
                 for (int i = 0; i < 8; ++i)
                     bar[i] = Ap[4 * i] * rhs[0] + Ap[4 * i + 1] * rhs[1] + Ap[4 * i + 2] * rhs[2] + Ap[4 * i + 3] * rhs[3];
-                /* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18). */
-                const double p0x = qp.p[0][0], p0y = qp.p[0][1], p0z = qp.p[0][2];
+                double est[8];
+                if (qtol > 0) {
+                    /* the defining integrals to the tolerance (on the quad too: both integrands are
+                     * O(1 / r) there, the principal value is the integral); no norm correction */
+                    tc_quad_integrals(qp.p[0], b, cc, dd, u, v, qp.on, qtol, gl, 1, est);
+                    for (int i = 0; i < 8; ++i) est[i] *= inv4pi;
+                } else {
+                    /* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18). */
+                    const double p0x = qp.p[0][0], p0y = qp.p[0][1], p0z = qp.p[0][2];
 #pragma omp simd
-                for (long g = 0; g < G * G; ++g) { /* grid nodes on the quad, minus the point */
-                    double uu = GA[g] + GB[g] * u, vv = GA[G * G + g] + GB[G * G + g] * v, uv = uu * vv;
-                    double sx = p0x + uu * b[0] + vv * cc[0] + uv * dd[0];
-                    double sy = p0y + uu * b[1] + vv * cc[1] + uv * dd[1];
-                    double sz = p0z + uu * b[2] + vv * cc[2] + uv * dd[2];
-                    Sx[g] = sx;
-                    Sy[g] = sy;
-                    Sz[g] = sz;
-                    SR[g] = sqrt(sx * sx + sy * sy + sz * sz);
-                }
-                const double *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
-                /* Edges: int dl / r (tc_edge_log_arg, then the logs in a loop of their own, vectorised
-                 * with libmvec) and 1 / length. */
+                    for (long g = 0; g < G * G; ++g) { /* grid nodes on the quad, minus the point */
+                        double uu = GA[g] + GB[g] * u, vv = GA[G * G + g] + GB[G * G + g] * v, uv = uu * vv;
+                        double sx = p0x + uu * b[0] + vv * cc[0] + uv * dd[0];
+                        double sy = p0y + uu * b[1] + vv * cc[1] + uv * dd[1];
+                        double sz = p0z + uu * b[2] + vv * cc[2] + uv * dd[2];
+                        Sx[g] = sx;
+                        Sy[g] = sy;
+                        Sz[g] = sz;
+                        SR[g] = sqrt(sx * sx + sy * sy + sz * sz);
+                    }
+                    const double *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
+                    /* Edges: int dl / r (tc_edge_log_arg, then the logs in a loop of their own, vectorised
+                     * with libmvec) and 1 / length. */
 #pragma omp simd
-                for (long e = 0; e < NE; ++e) {
-                    int j = EJ[e], k = EK[e];
-                    double ajx = Sx[j], ajy = Sy[j], ajz = Sz[j], Rj = SR[j], Rk = SR[k];
-                    double Ex = Sx[k] - ajx, Ey = Sy[k] - ajy, Ez = Sz[k] - ajz;
-                    double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
-                    double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
-                    double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
-                    double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
-                    double arg = tc_edge_log_arg(lj, lk, Rj, Rk, cx * cx + cy * cy + cz * cz);
-                    IE[e] = arg > 1e-300 ? arg : 1e-300;
-                    EINV[e] = invl; /* 1 / length (0 for a degenerate edge) */
-                }
+                    for (long e = 0; e < NE; ++e) {
+                        int j = EJ[e], k = EK[e];
+                        double ajx = Sx[j], ajy = Sy[j], ajz = Sz[j], Rj = SR[j], Rk = SR[k];
+                        double Ex = Sx[k] - ajx, Ey = Sy[k] - ajy, Ez = Sz[k] - ajz;
+                        double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
+                        double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
+                        double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
+                        double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
+                        double arg = tc_edge_log_arg(lj, lk, Rj, Rk, cx * cx + cy * cy + cz * cz);
+                        IE[e] = arg > 1e-300 ? arg : 1e-300;
+                        EINV[e] = invl; /* 1 / length (0 for a degenerate edge) */
+                    }
 #pragma omp simd
-                for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
-                /* Sub-triangles: Van Oosterom-Strackee solid angle (tan(omega / 2) = det / den,
-                 * det = h 2A), psi = (sum_e d_e I_e - h omega) / 4 pi with d_e the signed distance
-                 * of the foot point to edge e's line, and the bilinear basis at the centroid. */
-                double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
+                    for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
+                    /* Sub-triangles: Van Oosterom-Strackee solid angle (tan(omega / 2) = det / den,
+                     * det = h 2A), psi = (sum_e d_e I_e - h omega) / 4 pi with d_e the signed distance
+                     * of the foot point to edge e's line, and the bilinear basis at the centroid. */
+                    double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
 #pragma omp simd reduction(+ : e0, e1, e2, e3, e4, e5, e6, e7)
-                for (long t = 0; t < Pn; ++t) {
-                    int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
-                    double a0x = Sx[i0], a0y = Sy[i0], a0z = Sz[i0], R0 = SR[i0];
-                    double a1x = Sx[i1], a1y = Sy[i1], a1z = Sz[i1], R1 = SR[i1];
-                    double a2x = Sx[i2], a2y = Sy[i2], a2z = Sz[i2], R2 = SR[i2];
-                    double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
-                    double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
-                    double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
-                    double two_area = sqrt(crx * crx + cry * cry + crz * crz);
-                    double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
-                    double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
-                    double h = det * inv2A, ha = h >= 0 ? h : -h;
-                    double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
-                                 (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
-                    double omv = 2.0 * atan2(det, den);
-                    double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
-                    /* d_e = a_j . (E_e x cr) / (|E_e| 2A), E_e from corner j to corner k. */
-                    double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z; /* edge opposite corner 0 */
-                    double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
-                    double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z; /* opposite corner 1 */
-                    double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
-                    double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
-                    int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
-                    double d0 = m0 * inv2A * EINV[k0], d1 = m1 * inv2A * EINV[k1], d2 = m2 * inv2A * EINV[k2];
-                    double q0 = d0 * IE[k0], q1 = d1 * IE[k1], q2 = d2 * IE[k2];
-                    double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
-                    double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
-                    double uc = UA[t] + UB[t] * u, vc = VA[t] + VB[t] * v;
-                    double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
-                    double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
-                    double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
-                    double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
-                    e0 += b0 * so;
-                    e1 += b1 * so;
-                    e2 += b2 * so;
-                    e3 += b3 * so;
-                    e4 += b0 * sp;
-                    e5 += b1 * sp;
-                    e6 += b2 * sp;
-                    e7 += b3 * sp;
+                    for (long t = 0; t < Pn; ++t) {
+                        int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
+                        double a0x = Sx[i0], a0y = Sy[i0], a0z = Sz[i0], R0 = SR[i0];
+                        double a1x = Sx[i1], a1y = Sy[i1], a1z = Sz[i1], R1 = SR[i1];
+                        double a2x = Sx[i2], a2y = Sy[i2], a2z = Sz[i2], R2 = SR[i2];
+                        double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
+                        double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
+                        double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
+                        double two_area = sqrt(crx * crx + cry * cry + crz * crz);
+                        double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
+                        double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
+                        double h = det * inv2A, ha = h >= 0 ? h : -h;
+                        double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
+                                     (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+                        double omv = 2.0 * atan2(det, den);
+                        double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
+                        /* d_e = a_j . (E_e x cr) / (|E_e| 2A), E_e from corner j to corner k. */
+                        double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z; /* edge opposite corner 0 */
+                        double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
+                        double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z; /* opposite corner 1 */
+                        double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
+                        double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
+                        int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
+                        double d0 = m0 * inv2A * EINV[k0], d1 = m1 * inv2A * EINV[k1], d2 = m2 * inv2A * EINV[k2];
+                        double q0 = d0 * IE[k0], q1 = d1 * IE[k1], q2 = d2 * IE[k2];
+                        double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
+                        double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
+                        double uc = UA[t] + UB[t] * u, vc = VA[t] + VB[t] * v;
+                        double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
+                        double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
+                        double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
+                        double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
+                        e0 += b0 * so;
+                        e1 += b1 * so;
+                        e2 += b2 * so;
+                        e3 += b3 * so;
+                        e4 += b0 * sp;
+                        e5 += b1 * sp;
+                        e6 += b2 * sp;
+                        e7 += b3 * sp;
+                    }
+                    est[0] = e0;
+                    est[1] = e1;
+                    est[2] = e2;
+                    est[3] = e3;
+                    est[4] = e4;
+                    est[5] = e5;
+                    est[6] = e6;
+                    est[7] = e7;
                 }
-                double est[8] = {e0, e1, e2, e3, e4, e5, e6, e7};
-                /* Phi = Phi_bar + sum_i lambda_i kappa_i with the norm correction. */
+                /* Phi = Phi_bar + sum_i lambda_i kappa_i with the norm correction (none with qtol). */
                 double eb = 0, bb = 0, coef[4];
                 for (int i = 0; i < 8; ++i) {
                     eb += est[i] * bar[i];
                     bb += bar[i] * bar[i];
                 }
-                double scale = eb != 0 ? bb / eb : 0.0;
+                double scale = qtol > 0 ? 1.0 : (eb != 0 ? bb / eb : 0.0);
                 for (int j = 0; j < 4; ++j) {
                     coef[j] = 0;
                     for (int i = 0; i < 8; ++i) coef[j] += Nl[4 * i + j] * est[i];

@@ -444,7 +444,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                 if (flat) continue; /* a planar quad seen edge-on: no weight */
                 double beta = far_blend(R, size[q]), wg[4], om[4];
                 if (qtol > 0) {
-                    tc_quad_integrals(p[0], b, cc, dd, N0, Nu, Nv, u, v, qtol, gl, om);
+                    tc_quad_integrals(p[0], b, cc, dd, u, v, 0, qtol, gl, 0, om);
                     for (int i = 0; i < 4; ++i) wg[i] = om[i];
                 } else if (beta > 0) {
                     gauss_weights(p[0], b, cc, dd, N0, Nu, Nv, wg);

@@ -17,9 +17,11 @@ typedef struct {
     int depth;
 } panel;
 
-static inline void sheet(const double *p0, const double *b, const double *cc, const double *dd, double u, double v,
+/* xi - x = h + du b + dv cc + du dv dd at offsets (du, dv) from the centre (see centred() in
+ * _quad_quadrature.py). */
+static inline void sheet(const double *h, const double *b, const double *cc, const double *dd, double du, double dv,
                          double *X) {
-    for (int i = 0; i < 3; ++i) X[i] = p0[i] + u * b[i] + v * cc[i] + (u * v) * dd[i];
+    for (int i = 0; i < 3; ++i) X[i] = h[i] + du * b[i] + dv * cc[i] + (du * dv) * dd[i];
 }
 
 static inline double dist3(const double *a, const double *b) {
@@ -41,25 +43,27 @@ static int panel_order(double q, double lc, double lt) {
 /* om += the four corner integrals over [u0, u1] x [v0, v1] by the m x m Gauss rule (gl: nodes and
  * weights on [0, 1] of orders 0..TC_QMAX_ORDER, (TC_QMAX_ORDER + 1, 2, TC_QMAX_ORDER)). */
 static void gauss_panel(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
-                        const double *Nu, const double *Nv, const panel *pn, int m, const double *gl, double *om) {
+                        const double *Nu, const double *Nv, double us, double vs, const panel *pn, int m,
+                        const double *gl, double *om) {
     const double *t = gl + (size_t)m * 2 * TC_QMAX_ORDER, *g = t + TC_QMAX_ORDER;
     double du = pn->u1 - pn->u0, dv = pn->v1 - pn->v0, area = du * dv;
     double s0 = 0, s1 = 0, s2 = 0, s3 = 0;
     for (int a = 0; a < m; ++a) {
-        double U = pn->u0 + du * t[a];
-        /* along the row: xi - x = Pu + V Qu, N = Ru + V Nv */
+        double U = pn->u0 + du * t[a], DU = (pn->u0 - us) + du * t[a];
+        /* along the row: xi - x = Pu + DV Qu, N = Ru + DV Nv (offsets DU, DV from the centre) */
         double Pu[3], Qu[3], Ru[3];
         for (int i = 0; i < 3; ++i) {
-            Pu[i] = p0[i] + U * b[i];
-            Qu[i] = cc[i] + U * dd[i];
-            Ru[i] = N0[i] + U * Nu[i];
+            Pu[i] = p0[i] + DU * b[i];
+            Qu[i] = cc[i] + DU * dd[i];
+            Ru[i] = N0[i] + DU * Nu[i];
         }
         double lo = 0, hi = 0; /* sums of f (1 - V) and f V */
         for (int l = 0; l < m; ++l) {
-            double V = pn->v0 + dv * t[l];
-            double X0 = Pu[0] + V * Qu[0], X1 = Pu[1] + V * Qu[1], X2 = Pu[2] + V * Qu[2];
+            double V = pn->v0 + dv * t[l], DV = (pn->v0 - vs) + dv * t[l];
+            double X0 = Pu[0] + DV * Qu[0], X1 = Pu[1] + DV * Qu[1], X2 = Pu[2] + DV * Qu[2];
             double r2 = X0 * X0 + X1 * X1 + X2 * X2;
-            double f = ((Ru[0] + V * Nv[0]) * X0 + (Ru[1] + V * Nv[1]) * X1 + (Ru[2] + V * Nv[2]) * X2) / (r2 * r2) * g[l];
+            if (!(r2 > 0)) continue; /* a node on the point: a null set */
+            double f = ((Ru[0] + DV * Nv[0]) * X0 + (Ru[1] + DV * Nv[1]) * X1 + (Ru[2] + DV * Nv[2]) * X2) / (r2 * r2) * g[l];
             lo += f * (1 - V);
             hi += f * V;
         }
@@ -92,26 +96,82 @@ int tc_quad_whole(const double *P, const int *qi, const double *x, double tol) {
     return m >= 1 && m <= TC_QMAX_ORDER;
 }
 
-void tc_quad_integrals(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
-                       const double *Nu, const double *Nv, double us, double vs, double tol, const double *gl,
-                       double *om) {
+/* om += the eight corner integrals of quad Green coordinates over the panel, without the 1 / 4 pi:
+ * int phi_i N.(xi - x) / |xi - x|^3 (om[0..3], the solid angle's) and int phi_i / |xi - x|
+ * (om[4..7], the single layer's), as gauss_panels(green=True) in _quad_quadrature.py. */
+static void gauss_panel_green(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
+                              const double *Nu, const double *Nv, double us, double vs, const panel *pn, int m,
+                              const double *gl, double *om) {
+    const double *t = gl + (size_t)m * 2 * TC_QMAX_ORDER, *g = t + TC_QMAX_ORDER;
+    double du = pn->u1 - pn->u0, dv = pn->v1 - pn->v0, area = du * dv;
+    double s[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+    for (int a = 0; a < m; ++a) {
+        double U = pn->u0 + du * t[a], DU = (pn->u0 - us) + du * t[a];
+        double Pu[3], Qu[3], Ru[3];
+        for (int i = 0; i < 3; ++i) {
+            Pu[i] = p0[i] + DU * b[i];
+            Qu[i] = cc[i] + DU * dd[i];
+            Ru[i] = N0[i] + DU * Nu[i];
+        }
+        double lo = 0, hi = 0, glo = 0, ghi = 0;
+        for (int l = 0; l < m; ++l) {
+            double V = pn->v0 + dv * t[l], DV = (pn->v0 - vs) + dv * t[l];
+            double X0 = Pu[0] + DV * Qu[0], X1 = Pu[1] + DV * Qu[1], X2 = Pu[2] + DV * Qu[2];
+            double r2 = X0 * X0 + X1 * X1 + X2 * X2;
+            if (!(r2 > 0)) continue; /* a node on the point: a null set */
+            double r = sqrt(r2), ir = g[l] / r;
+            double f = ((Ru[0] + DV * Nv[0]) * X0 + (Ru[1] + DV * Nv[1]) * X1 + (Ru[2] + DV * Nv[2]) * X2) / (r * r * r) * g[l];
+            lo += f * (1 - V);
+            hi += f * V;
+            glo += ir * (1 - V);
+            ghi += ir * V;
+        }
+        double ga = g[a] * area, w0 = (1 - U) * ga, w1 = U * ga;
+        s[0] += w0 * lo;
+        s[1] += w1 * lo;
+        s[2] += w1 * hi;
+        s[3] += w0 * hi;
+        s[4] += w0 * glo;
+        s[5] += w1 * glo;
+        s[6] += w1 * ghi;
+        s[7] += w0 * ghi;
+    }
+    for (int i = 0; i < 8; ++i) om[i] += s[i];
+}
+
+void tc_quad_integrals(const double *p0, const double *b, const double *cc, const double *dd, double us, double vs,
+                       int on, double tol, const double *gl, int green, double *om) {
     panel stack[4 * (QMAX_DEPTH + 2)];
     int top = 0;
     const double lc = log(QERR_C), lt = log(tol);
-    om[0] = om[1] = om[2] = om[3] = 0.0;
+    for (int i = 0; i < (green ? 8 : 4); ++i) om[i] = 0.0;
+    /* the sheet about (us, vs), as centred() in _quad_quadrature.py */
+    double h[3], b1[3], c1[3], Nc[3], Nu[3], Nv[3];
+    for (int i = 0; i < 3; ++i) {
+        h[i] = on ? 0.0 : p0[i] + us * b[i] + vs * cc[i] + (us * vs) * dd[i];
+        b1[i] = b[i] + vs * dd[i];
+        c1[i] = cc[i] + us * dd[i];
+    }
+    cross3(b1, c1, Nc);
+    cross3(b1, dd, Nu);
+    cross3(dd, c1, Nv);
     stack[top++] = (panel){0.0, 1.0, 0.0, 1.0, 0};
     while (top > 0) {
         panel pn = stack[--top];
         if (!(pn.u1 > pn.u0) || !(pn.v1 > pn.v0)) continue; /* zero area: nothing */
         double X[4][3], ctr[3];
-        sheet(p0, b, cc, dd, pn.u0, pn.v0, X[0]);
-        sheet(p0, b, cc, dd, pn.u1, pn.v0, X[1]);
-        sheet(p0, b, cc, dd, pn.u1, pn.v1, X[2]);
-        sheet(p0, b, cc, dd, pn.u0, pn.v1, X[3]);
+        double a0 = pn.u0 - us, a1 = pn.u1 - us, e0 = pn.v0 - vs, e1 = pn.v1 - vs;
+        sheet(h, b1, c1, dd, a0, e0, X[0]);
+        sheet(h, b1, c1, dd, a1, e0, X[1]);
+        sheet(h, b1, c1, dd, a1, e1, X[2]);
+        sheet(h, b1, c1, dd, a0, e1, X[3]);
         int m = panel_order(panel_ratio(X, ctr), lc, lt);
         if (pn.depth == QMAX_DEPTH && (m == 0 || m > TC_QMAX_ORDER)) m = TC_QMAX_ORDER;
         if (m >= 1 && m <= TC_QMAX_ORDER) {
-            gauss_panel(p0, b, cc, dd, N0, Nu, Nv, &pn, m, gl, om);
+            if (green)
+                gauss_panel_green(h, b1, c1, dd, Nc, Nu, Nv, us, vs, &pn, m, gl, om);
+            else
+                gauss_panel(h, b1, c1, dd, Nc, Nu, Nv, us, vs, &pn, m, gl, om);
             continue;
         }
         double su, sv;

@@ -30,7 +30,8 @@ import torch
 from ._common import records_graph, safe_norm
 from ._green3d import triangle_green_geometry, triangle_integrals
 from ._mvc3d import _cross
-from ._qmvc3d import QuadData, Vec, project, quad_data
+from ._qmvc3d import Projection, QuadData, Vec, project, quad_data
+from ._quad_quadrature import quad_integrals
 
 
 @dataclass(frozen=True)
@@ -168,12 +169,18 @@ def fan_apex(
     return ua, va
 
 
-def qgc3d_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def qgc3d_chunk(
+    x: torch.Tensor, data: QuadGreenData, quad_tol: float | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-quad Green coordinates of a chunk of points.
 
     Args:
         x: ``(m, 3)`` points.
         data: the quads' constants.
+        quad_tol: if given, the null-space part from the defining integrals to this relative tolerance
+            (:mod:`._quad_quadrature`): ``Phi = Phi_bar + sum_i (Omega . kappa_i) kappa_i``, the
+            orthogonal projection of the integrals onto the solutions of the invariants (no norm
+            correction, which serves the Riemann sum's bias).
 
     Returns:
         ``(Phi (Q, m, 8), on (Q, m), hat (Q, m, 4))``: each quad's ``(phi_0..3, psi_0..3)`` for
@@ -208,6 +215,13 @@ def qgc3d_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor, tor
     rhs = torch.cat([rhs_pos, phi_f.sum(dim=(-1, -2))[..., None]], dim=-1)  # (Q, m, 4)
     phi_bar = torch.einsum("qij,qmj->qmi", data.pinv, rhs)  # (Q, m, 8)
 
+    if quad_tol is not None:
+        shape = u.shape
+        flat_vec = [tuple(t.expand(shape).reshape(-1) for t in vec) for vec in (p0, b, c, dd)]
+        # (on the quad too: both integrands are O(1 / r) there, the principal value is the integral)
+        om = quad_integrals(*flat_vec, u.reshape(-1), v.reshape(-1), quad_tol, green=True, on=pr.on.reshape(-1))  # type: ignore[arg-type]
+        est = (om / (4 * math.pi)).T.reshape(*shape, 8)
+        return _null_space_part(data, pr, phi_bar, est, exact=True)
     # --- Riemann estimate of the null-space part (Algorithm 1). ---
     K = data.K
     un, vn = grid_nodes(u, K), grid_nodes(v, K)  # (Q, m, 2K+1)
@@ -224,16 +238,27 @@ def qgc3d_chunk(x: torch.Tensor, data: QuadGreenData) -> tuple[torch.Tensor, tor
     est_psi = (bc * torch.where(Nn > 0, psi_t / torch.where(Nn > 0, Nn, 1.0), 0.0)[..., None]).sum(dim=-2)
     est = torch.cat([est_phi, est_psi], dim=-1)  # (Q, m, 8)
 
-    # --- Phi = Phi_bar + sum_i lambda_i kappa_i, with the norm correction. ---
-    eb = (est * phi_bar).sum(-1)
-    bb = (phi_bar * phi_bar).sum(-1)
-    ok = eb != 0
-    scale = torch.where(ok, bb / torch.where(ok, eb, 1.0), 0.0)
+    return _null_space_part(data, pr, phi_bar, est, exact=False)
+
+
+def _null_space_part(
+    data: QuadGreenData, pr: Projection, phi_bar: torch.Tensor, est: torch.Tensor, exact: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``Phi = Phi_bar + sum_i lambda_i kappa_i`` from the estimate ``est`` ``(Q, m, 8)`` of the
+    integrals: ``lambda_i = est . kappa_i``, with the norm correction unless ``exact``; and the
+    outputs of :func:`qgc3d_chunk`."""
+    if exact:
+        scale = torch.ones_like(est[..., 0])
+    else:
+        eb = (est * phi_bar).sum(-1)
+        bb = (phi_bar * phi_bar).sum(-1)
+        ok = eb != 0
+        scale = torch.where(ok, bb / torch.where(ok, eb, 1.0), 0.0)
     if data.null_proj is None:
         coef = torch.einsum("qji,qmj->qmi", data.null, est)  # est . kappa_i
         Phi = phi_bar + torch.einsum("qij,qmj->qmi", data.null, coef * scale[..., None])
     else:
         Phi = phi_bar + torch.einsum("qij,qmj->qmi", data.null_proj, est) * scale[..., None]
-    hat = _bilinear(u, v)
+    hat = _bilinear(pr.u, pr.v)
     corner = torch.nn.functional.one_hot(pr.vertex.clamp_min(0), 4).to(hat.dtype)
     return Phi, pr.on, torch.where((pr.vertex >= 0)[..., None], corner, hat)

@@ -10,14 +10,16 @@ import torch
 from .. import _native
 from ._green3d_native import native_chunk, native_subset_tables
 from ._qgc3d import QuadGreenData
+from ._quad_quadrature import gauss_table
 
 __all__ = ["native_quad_part", "native_quad_tables", "native_tri_part"]
 
 
-def native_quad_tables(verts: torch.Tensor, qdata: QuadGreenData) -> dict[str, object]:
+def native_quad_tables(verts: torch.Tensor, qdata: QuadGreenData, tol: float | None = None) -> dict[str, object]:
     """``tc_qgc3d``'s per-cage arguments: the quads' constants and, prefixed ``s_``, the Green
     kernel tables of the triangles ``(q0 q1 q2)``, ``(q0 q2 q3)`` of every quad (rows ``2q``,
-    ``2q + 1``): outside a quad's tetrahedron they give its invariants (see qgc3d.c)."""
+    ``2q + 1``): outside a quad's tetrahedron they give its invariants (see qgc3d.c). ``tol``: the
+    quadrature's relative tolerance, or ``None`` for the Riemann sum."""
     quads = qdata.quads
     split = torch.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
     s = native_subset_tables(verts, split, qdata.tol)
@@ -35,6 +37,8 @@ def native_quad_tables(verts: torch.Tensor, qdata: QuadGreenData) -> dict[str, o
         "Pn": qdata.pattern.shape[0],
         "K": qdata.K,
         "tol": qdata.tol,
+        "qtol": 0.0 if tol is None else tol,
+        "gl": gauss_table(),
         **{
             f"s_{k}": s[k]
             for k in ("Pv", "tri", "edges", "eu", "fe", "nrm", "two_area", "ell", "edir", "eout", "gbary")

@@ -110,9 +110,25 @@ def _legendre(m: int) -> tuple[list[float], list[float]]:
     return nodes, weights
 
 
-def _sheet(p0: Vec, b: Vec, c: Vec, dd: Vec, u: torch.Tensor, v: torch.Tensor) -> Vec:
-    """``xi(u, v) - x`` (vectors broadcast against ``u, v``)."""
-    return tuple(p0[i] + u * b[i] + v * c[i] + (u * v) * dd[i] for i in range(3))  # type: ignore[return-value]
+def centred(
+    p0: Vec, b: Vec, c: Vec, dd: Vec, us: torch.Tensor, vs: torch.Tensor, on: torch.Tensor | None = None
+) -> tuple[Vec, Vec, Vec, Vec]:
+    """The sheets ``xi - x = p0 + u b + v c + u v dd`` about ``(us, vs)``: ``(h, b', c', dd)`` with
+    ``xi - x = h + du b' + dv c' + du dv dd`` in ``du = u - us``, ``dv = v - vs`` (exact for a
+    bilinear sheet), so that near the point the differences are accurate to rounding of themselves,
+    not of ``|p0|``. Where ``on`` (the point lies on the quad), ``h = 0``: the point is taken at
+    ``xi(us, vs)`` and the integrals are principal values. Vectors ``(S,)`` each."""
+    h = [p0[i] + us * b[i] + vs * c[i] + (us * vs) * dd[i] for i in range(3)]
+    if on is not None:
+        h = [torch.where(on, torch.zeros_like(t), t) for t in h]
+    b1 = tuple(b[i] + vs * dd[i] for i in range(3))
+    c1 = tuple(c[i] + us * dd[i] for i in range(3))
+    return tuple(h), b1, c1, dd  # type: ignore[return-value]
+
+
+def _sheet(h: Vec, b: Vec, c: Vec, dd: Vec, du: torch.Tensor, dv: torch.Tensor) -> Vec:
+    """``xi - x`` at offsets ``du, dv`` from the centre (vectors broadcast against them)."""
+    return tuple(h[i] + du * b[i] + dv * c[i] + (du * dv) * dd[i] for i in range(3))  # type: ignore[return-value]
 
 
 def _cross(a: Vec, b: Vec) -> Vec:
@@ -120,11 +136,19 @@ def _cross(a: Vec, b: Vec) -> Vec:
 
 
 def panel_ratio(
-    p0: Vec, b: Vec, c: Vec, dd: Vec, u0: torch.Tensor, u1: torch.Tensor, v0: torch.Tensor, v1: torch.Tensor
+    sheet: tuple[Vec, Vec, Vec, Vec],
+    us: torch.Tensor,
+    vs: torch.Tensor,
+    u0: torch.Tensor,
+    u1: torch.Tensor,
+    v0: torch.Tensor,
+    v1: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Ratio ``|x - c_P| / R_P`` of panels ``[u0, u1] x [v0, v1]`` (all ``(K,)``; vectors ``(K,)``
-    each), and the lengths in space of their ``u`` and ``v`` sides (the longer of each pair)."""
-    X = [_sheet(p0, b, c, dd, uu, vv) for uu, vv in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))]
+    """Ratio ``|x - c_P| / R_P`` of panels ``[u0, u1] x [v0, v1]`` (all ``(K,)``) of the centred
+    sheets (:func:`centred`, vectors ``(K,)`` each, centres ``us, vs``), and the lengths in space of
+    their ``u`` and ``v`` sides (the longer of each pair)."""
+    a0, a1, b0, b1 = u0 - us, u1 - us, v0 - vs, v1 - vs
+    X = [_sheet(*sheet, uu, vv) for uu, vv in ((a0, b0), (a1, b0), (a1, b1), (a0, b1))]
     ctr = [(X[0][i] + X[1][i] + X[2][i] + X[3][i]) * 0.25 for i in range(3)]
 
     def dist(a: Vec | list[torch.Tensor], bb: Vec | list[torch.Tensor]) -> torch.Tensor:
@@ -139,31 +163,64 @@ def panel_ratio(
 
 
 def gauss_panels(
-    p0: Vec, b: Vec, c: Vec, dd: Vec, u0: torch.Tensor, u1: torch.Tensor, v0: torch.Tensor, v1: torch.Tensor, m: int
+    sheet: tuple[Vec, Vec, Vec, Vec],
+    us: torch.Tensor,
+    vs: torch.Tensor,
+    u0: torch.Tensor,
+    u1: torch.Tensor,
+    v0: torch.Tensor,
+    v1: torch.Tensor,
+    m: int,
+    green: bool = False,
 ) -> torch.Tensor:
-    """The four corner integrals over panels ``[u0, u1] x [v0, v1]`` ``(K,)`` by the ``m x m``
-    tensor Gauss rule; vectors ``(K,)`` each. Returns ``(4, K)``."""
+    """The four corner integrals over panels ``[u0, u1] x [v0, v1]`` ``(K,)`` of the centred
+    sheets (:func:`centred`, centres ``us, vs``) by the ``m x m`` tensor Gauss rule. Returns
+    ``(4, K)``, or with ``green`` the eight of quad Green coordinates ``(8, K)`` (see
+    :func:`quad_integrals`)."""
+    h, b, c, dd = sheet
     t, g = (torch.tensor(a, dtype=u0.dtype, device=u0.device) for a in _gauss(m))
     du, dv = u1 - u0, v1 - v0
-    U = (u0[:, None] + du[:, None] * t)[:, :, None]  # (K, m, 1)
+    U = (u0[:, None] + du[:, None] * t)[:, :, None]  # (K, m, 1) for the basis
     V = (v0[:, None] + dv[:, None] * t)[:, None, :]  # (K, 1, m)
-    N0, Nu, Nv = _cross(b, c), _cross(b, dd), _cross(dd, c)
-    # along a row (fixed U): xi - x = Pu + V Qu, N = Ru + V Nv (the native kernel's order)
-    Pu = [p0[i][:, None, None] + U * b[i][:, None, None] for i in range(3)]
-    Qu = [c[i][:, None, None] + U * dd[i][:, None, None] for i in range(3)]
-    Ru = [N0[i][:, None, None] + U * Nu[i][:, None, None] for i in range(3)]
-    X = [Pu[i] + V * Qu[i] for i in range(3)]
-    N = [Ru[i] + V * Nv[i][:, None, None] for i in range(3)]
+    DU = ((u0 - us)[:, None] + du[:, None] * t)[:, :, None]  # offsets from the centre: for xi - x
+    DV = ((v0 - vs)[:, None] + dv[:, None] * t)[:, None, :]
+    Nc, Nu, Nv = _cross(b, c), _cross(b, dd), _cross(dd, c)  # N = Nc + du Nu + dv Nv
+    # along a row (fixed U): xi - x = Pu + DV Qu, N = Ru + DV Nv (the native kernel's order)
+    Pu = [h[i][:, None, None] + DU * b[i][:, None, None] for i in range(3)]
+    Qu = [c[i][:, None, None] + DU * dd[i][:, None, None] for i in range(3)]
+    Ru = [Nc[i][:, None, None] + DU * Nu[i][:, None, None] for i in range(3)]
+    X = [Pu[i] + DV * Qu[i] for i in range(3)]
+    N = [Ru[i] + DV * Nv[i][:, None, None] for i in range(3)]
     r2 = X[0] * X[0] + X[1] * X[1] + X[2] * X[2]
-    f = (N[0] * X[0] + N[1] * X[1] + N[2] * X[2]) / (r2 * r2) * g
-    lo, hi = (f * (1 - V)).sum(dim=-1), (f * V).sum(dim=-1)  # (K, m)
+    ok = r2 > 0  # (a node on the point: a null set, where the integrands are O(1 / r) on the quad)
+    r2 = torch.where(ok, r2, torch.ones_like(r2))
+    Nd = N[0] * X[0] + N[1] * X[1] + N[2] * X[2]
+    gw = torch.where(ok, g, torch.zeros_like(r2))
     ga = g * (du * dv)[:, None]
     U = U[..., 0]
-    return torch.stack([((1 - U) * ga * lo).sum(-1), (U * ga * lo).sum(-1), (U * ga * hi).sum(-1),
-                        ((1 - U) * ga * hi).sum(-1)])  # fmt: skip
+    if green:
+        r = torch.sqrt(r2)
+        fs = [Nd / (r * r * r) * gw, gw / r]
+    else:
+        fs = [Nd / (r2 * r2) * gw]
+    out = []
+    for f in fs:
+        lo, hi = (f * (1 - V)).sum(dim=-1), (f * V).sum(dim=-1)  # (K, m)
+        out += [((1 - U) * ga * lo).sum(-1), (U * ga * lo).sum(-1), (U * ga * hi).sum(-1), ((1 - U) * ga * hi).sum(-1)]
+    return torch.stack(out)
 
 
-def quad_integrals(p0: Vec, b: Vec, c: Vec, dd: Vec, us: torch.Tensor, vs: torch.Tensor, tol: float) -> torch.Tensor:
+def quad_integrals(
+    p0: Vec,
+    b: Vec,
+    c: Vec,
+    dd: Vec,
+    us: torch.Tensor,
+    vs: torch.Tensor,
+    tol: float,
+    green: bool = False,
+    on: torch.Tensor | None = None,
+) -> torch.Tensor:
     """The corner integrals ``Omega`` ``(4, S)`` of ``S`` point–quad pairs to the relative
     tolerance ``tol``.
 
@@ -171,6 +228,10 @@ def quad_integrals(p0: Vec, b: Vec, c: Vec, dd: Vec, us: torch.Tensor, vs: torch
         p0, b, c, dd: the sheets ``xi - x = p0 + u b + v c + u v dd``, three ``(S,)`` each.
         us, vs: ``(S,)`` the points' projections onto the quads, in ``[0, 1]`` (the first split).
         tol: relative tolerance (``> 0``).
+        green: instead, the eight integrals of quad Green coordinates ``(8, S)`` (without their
+            ``1 / 4 pi``): ``int phi_i N.(xi - x) / |xi - x|^3`` (the solid angle's, rows 0-3) and
+            ``int phi_i / |xi - x|`` (the single layer's, rows 4-7), over ``du dv``.
+        on: ``(S,)`` bool, the point lies on the quad (at ``xi(us, vs)``): principal values.
 
     Examples:
         >>> import torch
@@ -182,15 +243,18 @@ def quad_integrals(p0: Vec, b: Vec, c: Vec, dd: Vec, us: torch.Tensor, vs: torch
         (torch.Size([4, 1]), True)
     """
     S = us.shape[0]
-    out = us.new_zeros((4, S))
+    us, vs = us.detach(), vs.detach()  # (a change of variables: the integrals do not depend on them)
+    full = centred(p0, b, c, dd, us, vs, on)
+    out = us.new_zeros((8 if green else 4, S))
     pid = torch.arange(S, device=us.device)
     u0, v0 = us.new_zeros(S), us.new_zeros(S)
     u1, v1 = us.new_ones(S), us.new_ones(S)
     for depth in range(MAX_DEPTH + 1):
         if pid.numel() == 0:
             break
-        sel: Vec = tuple(tuple(a[i].index_select(0, pid) for i in range(3)) for a in (p0, b, c, dd))  # type: ignore[assignment]
-        q, lu, lv = panel_ratio(*sel, u0, u1, v0, v1)  # type: ignore[misc]
+        sel = tuple(tuple(a[i].index_select(0, pid) for i in range(3)) for a in full)
+        cu, cv = us.index_select(0, pid), vs.index_select(0, pid)
+        q, lu, lv = panel_ratio(sel, cu, cv, u0, u1, v0, v1)  # type: ignore[arg-type]
         m = order(q, tol)
         if depth == MAX_DEPTH:
             m = torch.where((m == 0) | (m > MAX_ORDER), MAX_ORDER, m)
@@ -200,15 +264,14 @@ def quad_integrals(p0: Vec, b: Vec, c: Vec, dd: Vec, us: torch.Tensor, vs: torch
         for mm in torch.unique(m[done & ~empty]).tolist():
             k = torch.nonzero(done & ~empty & (m == mm)).squeeze(1)
             part = gauss_panels(
-                *(tuple(t.index_select(0, k) for t in vec) for vec in sel),  # type: ignore[arg-type]
-                u0[k], u1[k], v0[k], v1[k], int(mm),
+                tuple(tuple(t.index_select(0, k) for t in vec) for vec in sel),  # type: ignore[arg-type]
+                cu[k], cv[k], u0[k], u1[k], v0[k], v1[k], int(mm), green,
             )  # fmt: skip
             out = out.index_add(1, pid[k], part)
         keep = torch.nonzero(~done & ~empty).squeeze(1)
         pid, u0, u1, v0, v1, lu, lv = (t.index_select(0, keep) for t in (pid, u0, u1, v0, v1, lu, lv))
         if depth == 0:
-            su = us.index_select(0, pid).detach()
-            sv = vs.index_select(0, pid).detach()
+            su, sv = us.index_select(0, pid), vs.index_select(0, pid)
             cut_u = cut_v = torch.ones_like(su, dtype=torch.bool)
         else:
             su, sv = 0.5 * (u0 + u1), 0.5 * (v0 + v1)

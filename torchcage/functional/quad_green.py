@@ -15,16 +15,18 @@ from ._green3d import triangle_green_geometry, triangle_integrals
 from ._green3d_native import native_subset_tables
 from ._qgc3d import QuadGreenData, qgc3d_chunk, quad_green_data
 from ._qgc3d_native import native_quad_part, native_quad_tables, native_tri_part
-from .quad_mean_value import prepare_quad_call
+from .quad_mean_value import check_tol, prepare_quad_call
 
 __all__ = ["quad_green_coordinates"]
 
 
-def _quad_part_torch(x: torch.Tensor, qdata: QuadGreenData, V: int) -> tuple[torch.Tensor, ...]:
+def _quad_part_torch(
+    x: torch.Tensor, qdata: QuadGreenData, V: int, quad_tol: float | None = None
+) -> tuple[torch.Tensor, ...]:
     """Quads' ``phi`` ``(m, V)`` and ``psi`` ``(m, 4Q)``, the first quad each point lies on (or -1)
     and the interpolating values ``(m, V)`` there, with the torch kernel."""
     m = x.shape[0]
-    Phi, on_q, b = qgc3d_chunk(x, qdata)  # (Q, m, 8), (Q, m), (Q, m, 4)
+    Phi, on_q, b = qgc3d_chunk(x, qdata, quad_tol)  # (Q, m, 8), (Q, m), (Q, m, 4)
     quads = qdata.quads
     phi = torch.zeros(m, V, dtype=x.dtype, device=x.device)
     for k in range(4):
@@ -91,6 +93,7 @@ def quad_green_coordinates(
     progress: bool | Callable[[int, int], None] = False,
     backend: str = "auto",
     allow_invalid: bool = False,
+    tol: float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Green coordinates for triquad cages (Thiery and Boubekeur 2022).
 
@@ -102,7 +105,8 @@ def quad_green_coordinates(
     with ``n`` the unit outward triangle normals and ``N_{q,k} = (q_{k+1} - q_k) x (q_{k+3} - q_k)``
     the unnormalised corner normals of quad ``q`` (:meth:`Cage.quad_corner_normals`). This
     identity (linear precision) is exact by construction; the rest of each quad's coordinates is
-    estimated by an adaptive Riemann sum on ``4 (n+1)^2`` sub-triangles of the quad.
+    estimated by an adaptive Riemann sum on ``4 (n+1)^2`` sub-triangles of the quad, or, with
+    ``tol``, computed from the defining integrals to that relative tolerance.
 
     Args:
         points: ``(*, 3)`` points inside the cage.
@@ -118,6 +122,9 @@ def quad_green_coordinates(
         backend: ``"auto"`` (default): the native C kernel for the quads with float64 CPU points
             when no autograd graph is needed, else the torch kernel; ``"torch"`` or ``"native"``.
         allow_invalid: compute even if some quads fail the validity predicate (with a warning).
+        tol: if given, the quads' integrals (``int phi_k dOmega`` and ``int phi_k / r``, per
+            corner) to this relative tolerance by an error-controlled Gauss quadrature instead of
+            the Riemann sum (``n`` is then unused; docs/green.md).
 
     Gradients: the torch kernel is differentiable with respect to the points and the cage
     vertices; ``"auto"`` picks it when either requires grad.
@@ -154,7 +161,9 @@ def quad_green_coordinates(
             progress=progress,
             backend=backend,
             allow_invalid=allow_invalid,
+            tol=tol,
         )
+    quad_tol = check_tol(tol)
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid, "quad Green coordinates")
     x = snap_to_vertices(x, verts, VERTEX_SNAP * ON_CAGE_TOLERANCE * cage.scale)  # (the limit at the vertex)
     T, Q, V = cage.triangles.shape[0], cage.quads.shape[0], cage.num_vertices
@@ -172,10 +181,10 @@ def quad_green_coordinates(
         )
     if qdata is not None:
         if lib is not None:
-            tables_q = native_quad_tables(verts, qdata)
+            tables_q = native_quad_tables(verts, qdata, quad_tol)
             quad_part = functools.partial(native_quad_part, qdata=qdata, tables=tables_q, lib=lib)
         else:
-            quad_part = functools.partial(_quad_part_torch, qdata=qdata, V=V)
+            quad_part = functools.partial(_quad_part_torch, qdata=qdata, V=V, quad_tol=quad_tol)
     if lib is not None:
         size = chunk_size or 1 << 14
     else:
