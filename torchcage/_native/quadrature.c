@@ -8,9 +8,10 @@
 
 #include "native.h"
 
-#define QERR_C 50.0 /* ERROR_C */
+#define QERR_C 30.0 /* ERROR_C */
 #define QMIN_RATIO 1.3 /* MIN_RATIO */
 #define QMAX_DEPTH 48 /* MAX_DEPTH */
+#define SPLIT_GAIN 1.5 /* SPLIT_GAIN */
 
 typedef struct {
     double u0, u1, v0, v1;
@@ -29,15 +30,23 @@ static inline double dist3(const double *a, const double *b) {
     return sqrt(d0 * d0 + d1 * d1 + d2 * d2);
 }
 
-/* Gauss order per direction for a panel at the ratio q: the least m with C m^3 rho^(-2m) <= tol
- * (0 below QMIN_RATIO, TC_QMAX_ORDER + 1 where none does), as order() in _quad_quadrature.py;
- * lc = log(QERR_C), lt = log(tol). */
-static int panel_order(double q, double lc, double lt) {
-    if (!(q >= QMIN_RATIO)) return 0;
+/* The least m with C m rho^(-2m) <= tol at the ratio q, or TC_QMAX_ORDER + 1 where none is. */
+static int least_order(double q, double lc, double lt) {
     double log_rho = log(q + sqrt(q * q - 1));
     for (int k = 1; k <= TC_QMAX_ORDER; ++k)
-        if (lc + 3 * log((double)k) - 2 * k * log_rho <= lt) return k;
+        if (lc + log((double)k) - 2 * k * log_rho <= lt) return k;
     return TC_QMAX_ORDER + 1;
+}
+
+/* Gauss order per direction for a panel at the ratio q (lc = log(QERR_C), lt = log(tol)), as order()
+ * in _quad_quadrature.py: 0 (split) below QMIN_RATIO, where no order up to TC_QMAX_ORDER is enough,
+ * or where four children at SPLIT_GAIN times the ratio would take fewer nodes. */
+static int panel_order(double q, double lc, double lt) {
+    if (!(q >= QMIN_RATIO)) return 0;
+    int m = least_order(q, lc, lt);
+    if (m > TC_QMAX_ORDER) return 0;
+    int mc = least_order(SPLIT_GAIN * q, lc, lt);
+    return 4 * mc * mc < m * m ? 0 : m;
 }
 
 /* om += the four corner integrals over [u0, u1] x [v0, v1] by the m x m Gauss rule (gl: nodes and
@@ -62,7 +71,7 @@ static void gauss_panel(const double *p0, const double *b, const double *cc, con
             double V = pn->v0 + dv * t[l], DV = (pn->v0 - vs) + dv * t[l];
             double X0 = Pu[0] + DV * Qu[0], X1 = Pu[1] + DV * Qu[1], X2 = Pu[2] + DV * Qu[2];
             double r2 = X0 * X0 + X1 * X1 + X2 * X2;
-            if (!(r2 > 0)) continue; /* a node on the point: a null set */
+            r2 = r2 > 0 ? r2 : INFINITY; /* a node on the point: a null set (contributes 0) */
             double f = ((Ru[0] + DV * Nv[0]) * X0 + (Ru[1] + DV * Nv[1]) * X1 + (Ru[2] + DV * Nv[2]) * X2) / (r2 * r2) * g[l];
             lo += f * (1 - V);
             hi += f * V;
@@ -92,8 +101,7 @@ int tc_quad_whole(const double *P, const int *qi, const double *x, double tol) {
     double X[4][3], ctr[3];
     for (int k = 0; k < 4; ++k)
         for (int i = 0; i < 3; ++i) X[k][i] = P[3 * qi[k] + i] - x[i];
-    int m = panel_order(panel_ratio(X, ctr), log(QERR_C), log(tol));
-    return m >= 1 && m <= TC_QMAX_ORDER;
+    return panel_order(panel_ratio(X, ctr), log(QERR_C), log(tol)) > 0;
 }
 
 /* om += the eight corner integrals of quad Green coordinates over the panel, without the 1 / 4 pi:
@@ -118,7 +126,7 @@ static void gauss_panel_green(const double *p0, const double *b, const double *c
             double V = pn->v0 + dv * t[l], DV = (pn->v0 - vs) + dv * t[l];
             double X0 = Pu[0] + DV * Qu[0], X1 = Pu[1] + DV * Qu[1], X2 = Pu[2] + DV * Qu[2];
             double r2 = X0 * X0 + X1 * X1 + X2 * X2;
-            if (!(r2 > 0)) continue; /* a node on the point: a null set */
+            r2 = r2 > 0 ? r2 : INFINITY; /* a node on the point: a null set (contributes 0) */
             double r = sqrt(r2), ir = g[l] / r;
             double f = ((Ru[0] + DV * Nv[0]) * X0 + (Ru[1] + DV * Nv[1]) * X1 + (Ru[2] + DV * Nv[2]) * X2) / (r * r * r) * g[l];
             lo += f * (1 - V);
@@ -166,7 +174,7 @@ void tc_quad_integrals(const double *p0, const double *b, const double *cc, cons
         sheet(h, b1, c1, dd, a1, e1, X[2]);
         sheet(h, b1, c1, dd, a0, e1, X[3]);
         int m = panel_order(panel_ratio(X, ctr), lc, lt);
-        if (pn.depth == QMAX_DEPTH && (m == 0 || m > TC_QMAX_ORDER)) m = TC_QMAX_ORDER;
+        if (pn.depth == QMAX_DEPTH && m == 0) m = TC_QMAX_ORDER;
         if (m >= 1 && m <= TC_QMAX_ORDER) {
             if (green)
                 gauss_panel_green(h, b1, c1, dd, Nc, Nu, Nv, us, vs, &pn, m, gl, om);

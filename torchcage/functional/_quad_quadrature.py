@@ -1,4 +1,4 @@
-r"""Error-controlled quadrature of the defining integrals of quad mean value coordinates.
+r"""Error-controlled quadrature of the defining integrals of quad mean value and quad Green coordinates.
 
 For a bilinear sheet ``xi(u, v) - x = p0 + u b + v c + u v dd`` over ``[0, 1]^2`` (relative to the
 point ``x``) with normal ``N = xi_u x xi_v = b x c + u (b x dd) + v (dd x c)``, the four corner
@@ -7,27 +7,33 @@ integrals are
     Omega_i = int phi_i(u, v) N . (xi - x) / |xi - x|^4 du dv,
 
 ``phi = ((1-u)(1-v), u(1-v), uv, (1-u)v)``: the mean value weights of the quad's corners
-(Thiery et al. 2018, Eq. 8 written in the quad's parameters). This module computes them to a
-relative tolerance ``tol``:
+(Thiery et al. 2018, Eq. 8 written in the quad's parameters); quad Green coordinates (Thiery and
+Boubekeur 2022) need ``int phi_i N . (xi - x) / |xi - x|^3`` and ``int phi_i / |xi - x|`` (``green``).
+This module computes them to a relative tolerance ``tol``:
 
 - The domain is cut into rectangular panels. A panel's corners span a bilinear sheet that lies in
   their convex hull, so inside the ball around their centroid ``c_P`` of radius ``R_P`` (the farthest
   corner). The integrand is analytic on the panel with the singularity ``x`` at the ratio
-  ``q = |x - c_P| / R_P``, and the ``m x m`` tensor Gauss–Legendre rule's relative error is below
-  ``C m^3 rho^(-2m)`` with ``rho = q + sqrt(q^2 - 1)`` (the Bernstein ellipse through a singularity
-  at that ratio; ``m^3`` for the integrand's pole of high order; :data:`ERROR_C` is calibrated with
-  a margin on random curved, elongated panels seen from all sides: the tests check the bound).
-- A panel takes the least order ``m`` with ``C rho^(-2m) <= tol``; if that exceeds :data:`MAX_ORDER`
-  (or ``q < MIN_RATIO``) it is split: the first time at the point's projection ``(u*, v*)`` onto
-  the quad (so the nearly singular spot sits at a corner of each part, and bisection grades the
-  panels geometrically towards it), then in halves (the longer side in space alone when the panel
-  is more than twice as long as wide).
+  ``q = |x - c_P| / R_P``, and the ``m x m`` tensor Gauss–Legendre rule's error is below
+  ``C m rho^(-2m)`` times the panel's integral of ``|N| / |xi - x|^3`` (the integrand without its
+  cosine), with ``rho = q + sqrt(q^2 - 1)`` (the Bernstein ellipse through a singularity at that
+  ratio); :data:`ERROR_C` is calibrated with a margin on random curved, elongated panels seen from
+  all sides (the tests check the bound).
+- A panel takes the least order ``m`` with ``C m rho^(-2m) <= tol``; if that exceeds
+  :data:`MAX_ORDER`, if ``q < MIN_RATIO``, or if its four children would take fewer nodes, it is
+  split: the first time at the point's projection ``(u*, v*)`` onto the quad (so the nearly
+  singular spot sits at a corner of each part, and bisection grades the panels geometrically
+  towards it), then in halves (the longer side in space alone when the panel is more than twice
+  as long as wide). The sheet is written about ``(u*, v*)`` (:func:`centred`), so that near the
+  point its offsets are accurate to their own rounding.
 - The rule is a-priori (a bound on the error from the geometry, no second rule): every panel is
   evaluated once, and the torch and native kernels take the same decisions.
 
-The error in each integral is at most ``tol`` times the integral of ``|f|``; for the normalised
-coordinates of a point inside the cage this is at most about ``tol`` (the weights are positive
-there and their sum is the total), whatever the cage's size.
+The error in each integral is then at most ``tol`` times the integral of ``|N| / |xi - x|^3`` over
+the quad; for the normalised coordinates of a point inside the cage this is about ``tol`` (the total
+weight is the same integral with the cosine of the angle under which the point sees the surface),
+whatever the cage's size: the coordinates are scale-invariant. The Green integrands are milder
+(``1 / r^2`` and ``1 / r``): the same orders bound their errors relative to their own magnitudes.
 """
 
 from __future__ import annotations
@@ -39,10 +45,11 @@ import torch
 
 Vec = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
-#: Constant of the error model ``C m^3 rho^(-2m)`` (relative to the panel's integral of ``|f|``).
-#: The worst measured over 2,000 random panels (aspect 1-10, corners off a plane by up to half the
-#: width, points at ratios 1.3-5 in every direction and in the panel's plane), orders 2-16, is 25.
-ERROR_C = 50.0
+#: Constant of the error model ``C m rho^(-2m)``, relative to the panel's integral of
+#: ``|N| / |xi - x|^3`` (the integrand without its cosine). The worst measured over 2,000 random
+#: panels (aspect 1-10, corners off a plane by up to half the width, points at ratios 1.3-5 in every
+#: direction and in the panel's plane), orders 2-16, is 20 (tests/test_quad_tolerance.py checks it).
+ERROR_C = 30.0
 
 #: The least ratio ``|x - c_P| / R_P`` at which a panel is integrated (below it: split). With
 #: :data:`MAX_ORDER` chosen for the cost: FireHydrant, all vertices, tol 1e-8: 1.2x the Riemann
@@ -52,21 +59,34 @@ MIN_RATIO = 1.3
 #: The highest Gauss order per direction; a panel needing more is split.
 MAX_ORDER = 16
 
+#: A panel is split where four children, each seen at this many times its ratio (their radius halves,
+#: their distance shrinks by at most the parent's radius), would take fewer nodes than it.
+SPLIT_GAIN = 2.0
+
 #: Panels at this depth are integrated at :data:`MAX_ORDER` whatever their ratio (a point within
 #: ``2^-MAX_DEPTH`` of the quad's size; points that close are on the cage for the callers).
 MAX_DEPTH = 48
 
 
-def order(q: torch.Tensor, tol: float) -> torch.Tensor:
-    """Gauss order per direction for panels at ratios ``q`` ``(K,)``: the least ``m`` with
-    ``C m^3 rho^(-2m) <= tol`` (0 where ``q < MIN_RATIO``, ``MAX_ORDER + 1`` where no ``m`` up
-    to :data:`MAX_ORDER` does)."""
-    qs = q.clamp_min(MIN_RATIO)
-    log_rho = torch.log(qs + torch.sqrt(qs * qs - 1))
+def _least_order(q: torch.Tensor, tol: float) -> torch.Tensor:
+    """The least ``m`` with ``C m rho^(-2m) <= tol`` at ratios ``q >= 1``, or ``MAX_ORDER + 1``."""
+    log_rho = torch.log(q + torch.sqrt(q * q - 1))
     m = torch.full_like(q, MAX_ORDER + 1)
     for k in range(MAX_ORDER, 0, -1):
-        m = torch.where(math.log(ERROR_C) + 3 * math.log(k) - 2 * k * log_rho <= math.log(tol), float(k), m)
-    return torch.where(q >= MIN_RATIO, m, torch.zeros_like(m)).to(torch.int64)
+        m = torch.where(math.log(ERROR_C) + math.log(k) - 2 * k * log_rho <= math.log(tol), float(k), m)
+    return m
+
+
+def order(q: torch.Tensor, tol: float) -> torch.Tensor:
+    """Gauss order per direction for panels at ratios ``q`` ``(K,)``: the least ``m`` with
+    ``C m rho^(-2m) <= tol``, or 0 (split) where ``q < MIN_RATIO``, where no ``m`` up to
+    :data:`MAX_ORDER` is enough, or where four children at :data:`SPLIT_GAIN` times the ratio would
+    take fewer nodes (``4 m_child^2 < m^2``)."""
+    qs = q.clamp_min(MIN_RATIO)
+    m = _least_order(qs, tol)
+    mc = _least_order(SPLIT_GAIN * qs, tol)
+    split = (q < MIN_RATIO) | (m > MAX_ORDER) | (4 * mc * mc < m * m)
+    return torch.where(split, torch.zeros_like(m), m).to(torch.int64)
 
 
 @functools.lru_cache(maxsize=64)
@@ -257,8 +277,8 @@ def quad_integrals(
         q, lu, lv = panel_ratio(sel, cu, cv, u0, u1, v0, v1)  # type: ignore[arg-type]
         m = order(q, tol)
         if depth == MAX_DEPTH:
-            m = torch.where((m == 0) | (m > MAX_ORDER), MAX_ORDER, m)
-        done = (m >= 1) & (m <= MAX_ORDER)
+            m = torch.where(m == 0, MAX_ORDER, m)
+        done = m >= 1
         # zero-area panels (a projection on the boundary) contribute nothing
         empty = (u1 <= u0) | (v1 <= v0)
         for mm in torch.unique(m[done & ~empty]).tolist():
