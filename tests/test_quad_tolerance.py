@@ -228,9 +228,27 @@ def test_tol_is_checked_and_reaches_the_module_and_methods() -> None:
     assert torch.allclose(m.weights, F.quad_mean_value_coordinates(x + 0.1, cage, tol=1e-8))
     from torchcage.methods import build_module
 
-    with pytest.raises(ValueError, match="tol is an option of qmvc"):
+    with pytest.raises(ValueError, match="tol is an option of qmvc and qgc"):
         build_module("mvc", cage, x, tol=1e-8)
     assert build_module("qmvc", cage, x, tol=1e-8).tol == 1e-8
+    qgc = build_module("qgc", cage, x + 0.1, tol=1e-8)
+    assert "tol=1e-08" in repr(qgc)
+    assert torch.allclose(qgc.phi, F.quad_green_coordinates(x + 0.1, cage, tol=1e-8)[0])
+
+
+def test_the_cli_takes_tol(tmp_path, capsys) -> None:
+    from torchcage.cli import main
+
+    d = torchcage.data
+    args = ["deform", "--cage", str(d.path("bar_cage.obj")), "--deformed", str(d.path("bar_cage_deformed.obj")),
+            "--mesh", str(d.path("bar.obj")), "--no-picture"]  # fmt: skip
+    assert main([*args, "--out", str(tmp_path / "a"), "--method", "qmvc", "--tol", "1e-6"]) == 0
+    assert main([*args, "--out", str(tmp_path / "b"), "--method", "qmvc"]) == 0
+    a, _ = torchcage.load_mesh(tmp_path / "a" / "deformed_mesh.obj")
+    b, _ = torchcage.load_mesh(tmp_path / "b" / "deformed_mesh.obj")
+    assert 0 < float((a - b).abs().max()) < 0.05  # the same deformation, from different integrals
+    assert main([*args, "--out", str(tmp_path / "c"), "--method", "mvc", "--tol", "1e-6"]) == 2  # refused
+    assert "--tol is an option of --method qmvc and qgc" in capsys.readouterr().err
 
 
 def test_similarity_and_mirror_symmetry_hold_with_tol() -> None:

@@ -81,15 +81,15 @@ def deform_files(
 
     Points outside what the coordinates cover (for ``gc``, farther outside the cage than its
     exterior band; for ``qgc``, any point outside) are reported with their count; with ``strict``
-    they are an error. ``tol`` (``qmvc`` only) computes the quad integrals to that relative
-    tolerance instead of the paper's Riemann sum.
+    they are an error. ``tol`` (``qmvc`` and ``qgc``) computes the quad integrals to that relative
+    tolerance instead of the papers' Riemann sums.
 
     Returns:
         The paths written, by name.
 
     Raises:
         ValueError: an unknown method, format or up axis; ``tol`` with a method other than
-            ``qmvc``; with ``strict``, points outside the cage.
+            ``qmvc`` and ``qgc``; with ``strict``, points outside the cage.
     """
     import warnings
 
@@ -99,8 +99,10 @@ def deform_files(
         raise ValueError(f"unknown mesh format {mesh_format!r}; choose from {', '.join(FORMATS)}")
     if up not in ("x", "y", "z"):
         raise ValueError(f"up must be x, y or z, got {up!r}")
-    if tol is not None and method != "qmvc":
-        raise ValueError(f"--tol is an option of --method qmvc (the quad integrals to a tolerance), not of {method}")
+    if tol is not None and method not in ("qmvc", "qgc"):
+        raise ValueError(
+            f"--tol is an option of --method qmvc and qgc (the quad integrals to a tolerance), not {method}"
+        )
     import torchcage
     from torchcage.viz import Panel, render_panels
 
@@ -397,8 +399,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--strict", action="store_true", help="fail (exit 2) when points lie outside the cage (Green methods)"
     )
     dfm.add_argument(
-        "--tol", type=float, help="qmvc: the quad integrals to this relative tolerance (e.g. 1e-8) instead of the "
-        "paper's Riemann sum",
+        "--tol", type=float, help="qmvc, qgc: the quad integrals to this relative tolerance (e.g. 1e-8) instead of "
+        "the papers' Riemann sums",
     )  # fmt: skip
     dfm.set_defaults(func=_deform)
     vw = sub.add_parser("view", help="the cage editor in the browser: pose a cage, see the mesh deform, save OBJ")

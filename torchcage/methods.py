@@ -56,22 +56,22 @@ def build_module(
         points: ``(N, D)`` points to embed.
         progress: ``True`` for the methods' own progress bars, or a callable
             ``progress(done, total, message)`` (see :data:`Progress`).
-        tol: ``qmvc`` only: the quad integrals to this relative tolerance (see
+        tol: ``qmvc`` and ``qgc`` only: the quad integrals to this relative tolerance (see
             :func:`torchcage.functional.quad_mean_value_coordinates`).
 
     Returns:
         The module: ``module(vertices (*, V, D)) -> (*, N, D)``.
 
     Raises:
-        ValueError: an unknown method, or ``tol`` with a method other than ``qmvc`` (and every
-            error of the module itself).
+        ValueError: an unknown method, or ``tol`` with a method other than ``qmvc`` and ``qgc``
+            (and every error of the module itself).
     """
     import torchcage
 
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    if tol is not None and method != "qmvc":
-        raise ValueError(f"tol is an option of qmvc (the quad integrals to a tolerance), not of {method}")
+    if tol is not None and method not in ("qmvc", "qgc"):
+        raise ValueError(f"tol is an option of qmvc and qgc (the quad integrals to a tolerance), not of {method}")
     by_points = _by_points(progress)
     if method == "mvc":
         return torchcage.MeanValueCoordinates(cage.triangulated(), points, progress=by_points)
@@ -80,7 +80,7 @@ def build_module(
     if method == "qmvc":
         return torchcage.QuadMeanValueCoordinates(cage, points, progress=by_points, tol=tol)
     if method == "qgc":
-        return torchcage.QuadGreenCoordinates(cage, points, progress=by_points)
+        return torchcage.QuadGreenCoordinates(cage, points, progress=by_points, tol=tol)
     if method == "mec":
         return torchcage.MaximumEntropyCoordinates(cage, points, progress=by_points)
     if method == "hc":

@@ -40,6 +40,8 @@ class QuadGreenCoordinates(CageModule):
         allow_invalid: compute even if some quads fail the validity predicate (with a warning).
         progress: ``True`` for a progress bar while computing the coordinates, or a callable
             ``progress(done, total)`` (points done so far).
+        tol: if given, the quads' integrals to this relative tolerance instead of the Riemann sum
+            of parameter ``n`` (docs/green.md).
 
     Shape:
         - Input: ``(*, V, 3)`` deformed cage vertices.
@@ -72,16 +74,18 @@ class QuadGreenCoordinates(CageModule):
         dtype: torch.dtype = torch.float64,
         allow_invalid: bool = False,
         progress: bool | Callable[[int, int], None] = False,
+        tol: float | None = None,
     ) -> None:
         if correction not in ("conformal", "area"):
             raise ValueError(f"correction must be 'conformal' or 'area', got {correction!r}")
         pts = module_points(points, cage)
         cage = detached(cage)
         phi, psi = quad_green_coordinates(
-            pts, cage, n, chunk_size=chunk_size, dtype=dtype, allow_invalid=allow_invalid, progress=progress
+            pts, cage, n, chunk_size=chunk_size, dtype=dtype, allow_invalid=allow_invalid, progress=progress, tol=tol
         )
         super().__init__(cage, pts)
         self.correction = correction
+        self.tol = tol
         warn_outside(phi.sum(dim=-1).reshape(-1), "quad Green coordinates")
         self.register_buffer("phi", phi)
         self.register_buffer("psi", psi)
@@ -96,4 +100,5 @@ class QuadGreenCoordinates(CageModule):
         )
 
     def extra_repr(self) -> str:
-        return super().extra_repr() + f", correction={self.correction!r}"
+        tol = "" if self.tol is None else f", tol={self.tol:g}"
+        return super().extra_repr() + f", correction={self.correction!r}" + tol
