@@ -290,9 +290,13 @@ def test_qgc_to_1e_6_is_within_1e_5_of_1e_9(model: str) -> None:
     T = cage.triangles.shape[0]
     nt = cage.triangle_normals().to(torch.float64)[:T]  # (the cage's own triangles come first)
     rec = phi9 @ cage.vertices.to(torch.float64) + psi9[:, :T] @ nt + psi9[:, T:] @ N
-    inside = x.shape[0] - near.shape[0]
-    assert (rec - x)[:inside].abs().max() <= 1e-10 * cage.scale
-    assert (phi9[:inside].sum(-1) - 1).abs().max() <= 1e-10
+    from test_quad_green import inside_bilinear
+
+    inside = inside_bilinear(x, cage, (6, 12))  # (the mesh's points inside: Beast's cage leaves some out)
+    inside[x.shape[0] - near.shape[0] :] = False
+    assert int(inside.sum()) > 50
+    assert (rec - x)[inside].abs().max() <= 1e-10 * cage.scale
+    assert (phi9[inside].sum(-1) - 1).abs().max() <= 1e-10
 
 
 @needs_native
