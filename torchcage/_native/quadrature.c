@@ -30,11 +30,17 @@ static inline double dist3(const double *a, const double *b) {
     return sqrt(d0 * d0 + d1 * d1 + d2 * d2);
 }
 
+/* log(k) for k = 0..TC_QMAX_ORDER (entry 0 unused). */
+static const double LOGK[TC_QMAX_ORDER + 1] = {
+    0.0, 0.0, 0.6931471805599453, 1.0986122886681098, 1.3862943611198906, 1.6094379124341003, 1.791759469228055,
+    1.9459101490553132, 2.0794415416798357, 2.1972245773362196, 2.302585092994046, 2.3978952727983707,
+    2.4849066497880004, 2.5649493574615367, 2.6390573296152584, 2.70805020110221, 2.772588722239781};
+
 /* The least m with C m rho^(-2m) <= tol at the ratio q, or TC_QMAX_ORDER + 1 where none is. */
 static int least_order(double q, double lc, double lt) {
     double log_rho = log(q + sqrt(q * q - 1));
     for (int k = 1; k <= TC_QMAX_ORDER; ++k)
-        if (lc + log((double)k) - 2 * k * log_rho <= lt) return k;
+        if (lc + LOGK[k] - 2 * k * log_rho <= lt) return k;
     return TC_QMAX_ORDER + 1;
 }
 
