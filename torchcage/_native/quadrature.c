@@ -1,8 +1,9 @@
 /*
- * Error-controlled quadrature of the four corner integrals of a bilinear quad (quad mean value
- * coordinates' defining integrals), float64: the same panels, orders and decisions as
- * torchcage/functional/_quad_quadrature.py (see its docstring for the error model). One pair per
- * call, depth-first over a stack of panels.
+ * Error-controlled quadrature of the corner integrals of a bilinear quad, float64: the four of quad
+ * mean value coordinates or the eight of quad Green coordinates, to a relative tolerance. The same
+ * panels, orders and decisions as torchcage/functional/_quad_quadrature.py (see its docstring for
+ * the error model C m rho^(-2m)); the sheet written about the point's projection. One pair per call,
+ * depth-first over a stack of panels.
  */
 #include <math.h>
 
