@@ -24,6 +24,7 @@ from .errors import (
 from .functional.deform import deform
 from .io import load_cage, load_mesh, save_cage, save_mesh
 from .nn import (
+    BoundedBiharmonicWeights,
     GreenCoordinates,
     HarmonicCoordinates,
     LocalBarycentricCoordinates,
@@ -37,6 +38,7 @@ from .viewer import view
 __version__ = "0.1.0"
 
 __all__ = [
+    "BoundedBiharmonicWeights",
     "Cage",
     "CageError",
     "CageOrientationError",

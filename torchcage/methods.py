@@ -21,11 +21,12 @@ from .cage import Cage
 
 __all__ = ["METHODS", "METHOD_HELP", "METHOD_NAMES", "build_module"]
 
-METHODS = ("mvc", "gc", "qmvc", "qgc", "lbc", "hc", "mec")
+METHODS = ("mvc", "gc", "qmvc", "qgc", "lbc", "hc", "bbw", "mec")
 METHOD_HELP = (
     "coordinates: mvc (mean value, any closed cage, quads split), gc (Green, quasi-conformal, quads split), "
     "qmvc (quad mean value, quads kept), qgc (quad Green, quads kept), lbc (local barycentric, solved on a mesh "
-    "of the cage interior; slower, with progress), hc (harmonic, solved on a mesh of the cage interior), mec "
+    "of the cage interior; slower, with progress), hc (harmonic, solved on a mesh of the cage interior), bbw "
+    "(bounded biharmonic weights, solved on that mesh; no linear precision), mec "
     "(maximum entropy: positive, with the mvc or qmvc prior; points must be inside the cage); default mvc"
 )
 METHOD_NAMES = {
@@ -35,6 +36,7 @@ METHOD_NAMES = {
     "qgc": "quad Green coordinates (qgc)",
     "lbc": "local barycentric coordinates (lbc)",
     "hc": "harmonic coordinates (hc)",
+    "bbw": "bounded biharmonic weights (bbw)",
     "mec": "maximum entropy coordinates (mec)",
 }
 
@@ -87,6 +89,15 @@ def build_module(
         if callable(progress):
             progress(0, None, "meshing the cage interior and solving")
         return torchcage.HarmonicCoordinates(cage, points)
+    if method == "bbw":
+        if callable(progress):
+            progress(0, None, "meshing the cage interior")
+        if callable(progress):
+            report = progress
+            return torchcage.BoundedBiharmonicWeights(
+                cage, points, progress=lambda it, gap: report(it, None, f"iteration {it}, gap {gap:.2g}")
+            )
+        return torchcage.BoundedBiharmonicWeights(cage, points, progress=bool(progress))
     # lbc: an iterative solve of unknown length; it reports its iteration and residuals
     if callable(progress):
         progress(0, None, "meshing the cage interior")

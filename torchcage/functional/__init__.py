@@ -4,6 +4,7 @@ Every function takes query points ``(*, D)`` and a :class:`~torchcage.Cage` and 
 coordinates ``(*, V)`` (or their derivatives), computed in float64 by default.
 """
 
+from .biharmonic import bounded_biharmonic_weights, solve_bounded_biharmonic_weights
 from .deform import deform
 from .green import green_coordinates
 from .green_derivatives import green_derivatives
@@ -16,6 +17,7 @@ from .quad_green import quad_green_coordinates
 from .quad_mean_value import quad_mean_value_coordinates
 
 __all__ = [
+    "bounded_biharmonic_weights",
     "deform",
     "green_coordinates",
     "green_derivatives",
@@ -29,6 +31,7 @@ __all__ = [
     "mean_value_hessians",
     "quad_green_coordinates",
     "quad_mean_value_coordinates",
+    "solve_bounded_biharmonic_weights",
     "solve_harmonic_coordinates",
     "solve_local_barycentric",
 ]

@@ -19,7 +19,7 @@ from ..solvers.harmonic import HarmonicResult, solve_harmonic
 from ._common import as_inputs, check_points
 from .local_barycentric import locate
 
-__all__ = ["harmonic_coordinates", "solve_harmonic_coordinates"]
+__all__ = ["harmonic_coordinates", "interpolate_on_mesh", "solve_harmonic_coordinates"]
 
 
 def solve_harmonic_coordinates(
@@ -91,26 +91,34 @@ def harmonic_coordinates(
     lead = points.shape[:-1]
     flat = check_points(points, cage)
     result = solution if solution is not None else solve_harmonic_coordinates(cage, **options)
+    out = interpolate_on_mesh(flat, result.domain, result.weights, chunk_size)
+    return out.to(dtype=flat.dtype, device=flat.device).reshape(*lead, out.shape[1])
+
+
+def interpolate_on_mesh(flat: torch.Tensor, domain: Domain, weights: torch.Tensor, chunk_size: int) -> torch.Tensor:
+    """Values ``weights (Nv, V)`` at the mesh vertices interpolated linearly at points ``flat (N, D)``
+    through their containing cell, ``(N, V)`` float64 on the points' device; differentiable with
+    respect to points that require grad. Points outside the mesh take the value of the nearest
+    mesh point, with a warning."""
     x = flat.detach().to(torch.float64).cpu()
-    V = result.weights.shape[1]
+    V = weights.shape[1]
     grad = flat.requires_grad and torch.is_grad_enabled()
     parts = []
     outside = 0
     for s in range(0, x.shape[0], chunk_size):
-        cell, bary, inside = locate(x[s : s + chunk_size], result.domain)
+        cell, bary, inside = locate(x[s : s + chunk_size], domain)
         outside += int((~inside).sum())
-        corners = result.domain.cells[cell]  # (n, D + 1)
+        corners = domain.cells[cell]  # (n, D + 1)
         if grad:  # the barycentric coordinates again, differentiable (linear in the point in its cell)
-            bary = _differentiable_bary(flat[s : s + chunk_size], result.domain.vertices[corners], bary, inside)
-        parts.append(torch.einsum("nk,nkv->nv", bary, result.weights[corners].to(bary)))
-    out = torch.cat(parts) if parts else torch.zeros(0, V, dtype=torch.float64)
+            bary = _differentiable_bary(flat[s : s + chunk_size], domain.vertices[corners], bary, inside)
+        parts.append(torch.einsum("nk,nkv->nv", bary, weights[corners].to(bary)))
     if outside:
         warnings.warn(
             f"{outside} points lie outside the meshed interior of the cage; they got the coordinates of "
             "the nearest point of the mesh",
-            stacklevel=2,
+            stacklevel=3,
         )
-    return out.to(dtype=flat.dtype, device=flat.device).reshape(*lead, V)
+    return torch.cat(parts) if parts else torch.zeros(0, V, dtype=torch.float64)
 
 
 def _differentiable_bary(x: torch.Tensor, p: torch.Tensor, bary: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
