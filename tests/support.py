@@ -268,3 +268,22 @@ def sample_inside(cage: torchcage.Cage, n: int, seed: int = 0) -> torch.Tensor:
     lo, hi = v.min(0).values, v.max(0).values
     x = lo + (hi - lo) * torch.rand(6 * n, cage.dim, generator=g, dtype=torch.float64)
     return x[inside_cage(x, cage)][:n]
+
+
+def p1_stiffness(vertices, cells):
+    """The P1 stiffness matrix ``(n, n)`` (scipy CSR), assembled cell by cell from the inverse of
+    each cell's ``[1, x]`` matrix (the hat functions' coefficients): an assembly independent of
+    the library's (which inverts edge matrices in torch). ``vertices (n, D)``, ``cells (C, D + 1)``
+    numpy arrays."""
+    import numpy as np
+    from scipy.sparse import coo_matrix
+
+    n, k = vertices.shape[0], cells.shape[1]
+    D = k - 1
+    M = np.concatenate([np.ones((cells.shape[0], k, 1)), vertices[cells]], axis=2)  # (C, k, k)
+    grads = np.linalg.inv(M)[:, 1:, :]  # (C, D, k): rows 1..D of the coefficients are the gradients
+    vol = np.abs(np.linalg.det(M)) / math.factorial(D)
+    local = vol[:, None, None] * np.einsum("cda,cdb->cab", grads, grads)
+    rows = np.repeat(cells, k, axis=1).ravel()
+    cols = np.tile(cells, (1, k)).ravel()
+    return coo_matrix((local.ravel(), (rows, cols)), shape=(n, n)).tocsr()

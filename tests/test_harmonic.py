@@ -8,7 +8,7 @@ import itertools
 import numpy as np
 import pytest
 import torch
-from support import box_cage, data_path, l_shape, sample_inside, triquad
+from support import box_cage, data_path, l_shape, p1_stiffness, sample_inside, triquad
 
 import torchcage as tc
 from torchcage import functional as F
@@ -28,21 +28,12 @@ _inside = sample_inside
 
 
 def _independent_p1(vertices: np.ndarray, cells: np.ndarray, boundary: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """The P1 harmonic extension, assembled cell by cell from the inverse of each cell's
-    ``[1, x]`` matrix (the hat functions' coefficients) and solved by scipy's spsolve."""
-    from scipy.sparse import coo_matrix
+    """The P1 harmonic extension: the stiffness matrix assembled independently
+    (:func:`support.p1_stiffness`), solved by scipy's spsolve."""
     from scipy.sparse.linalg import spsolve
 
-    n, k = vertices.shape[0], cells.shape[1]
-    D = k - 1
-    M = np.concatenate([np.ones((cells.shape[0], k, 1)), vertices[cells]], axis=2)  # (C, k, k)
-    coef = np.linalg.inv(M)  # columns: hat functions; rows 1..D: their gradients
-    grads = coef[:, 1:, :]  # (C, D, k)
-    vol = np.abs(np.linalg.det(M)) / np.prod(np.arange(1, D + 1))
-    local = vol[:, None, None] * np.einsum("cda,cdb->cab", grads, grads)
-    rows = np.repeat(cells, k, axis=1).ravel()
-    cols = np.tile(cells, (1, k)).ravel()
-    K = coo_matrix((local.ravel(), (rows, cols)), shape=(n, n)).tocsr()
+    n = vertices.shape[0]
+    K = p1_stiffness(vertices, cells)
     free = np.setdiff1d(np.arange(n), boundary)
     W = np.zeros((n, values.shape[1]))
     W[boundary] = values
