@@ -152,3 +152,18 @@ def test_firehydrant() -> None:
     assert torch.equal(W[dom.boundary], dom.boundary_values)
     tight = solve_bbw(dom, tol=1e-8)  # the objective within 0.1% of a tight solve (the issue's target)
     assert bool(((res.energy - tight.energy) / tight.energy <= 1e-3).all())
+
+
+def test_cli(tmp_path) -> None:
+    """``torchcage deform --method bbw`` writes what the module gives for the same pose."""
+    from test_cli import _cube_files
+
+    from torchcage.cli import main
+
+    args = _cube_files(tmp_path)
+    assert main([*args, "--out", str(tmp_path / "bbw"), "--method", "bbw", "--no-picture"]) == 0
+    rest, _ = tc.load_mesh(tmp_path / "bbw" / "rest_mesh.obj")
+    moved, _ = tc.load_mesh(tmp_path / "bbw" / "deformed_mesh.obj")
+    cage, pose = tc.load_cage(tmp_path / "cage.obj"), tc.load_cage(tmp_path / "pose.obj")
+    expect = tc.BoundedBiharmonicWeights(cage, rest.to(D64))(pose.vertices.to(D64))
+    assert torch.allclose(moved.to(D64), expect, atol=1e-5)  # (the OBJ's printed digits)
