@@ -129,6 +129,7 @@ def test_the_quadrature_meets_the_tolerance_against_a_reference(tol: float, gree
             assert (np.abs(om - ref).max(1) <= (tol + rounding) * np.abs(ref).sum(1)).all(), (trial, h, om, ref)
 
 
+@pytest.mark.slow
 def test_the_reference_is_converged() -> None:
     # doubling its nodes changes nothing, on curved, elongated panels, near and far
     g = torch.Generator().manual_seed(1)
