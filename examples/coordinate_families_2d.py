@@ -5,7 +5,10 @@ Mean value (closed form, can be negative), maximum entropy (MVC made positive), 
 on a mesh of the interior, positive on a good mesh), bounded biharmonic weights (solved on the same
 kind of mesh, in [0, 1], smooth) and local barycentric coordinates (positive and local). Top row:
 the weight, red positive, blue negative (x10, so that small negative lobes show); grey outside the
-polygon. Bottom row: a grid inside the polygon after the circled vertex moves right and up.
+polygon. Bottom row: a grid inside the polygon after the circled vertex moves right and up; each
+point moves by the weighted displacements of the cage vertices, ``x + w @ (V' - V)`` (the same as
+``w @ V'`` for the coordinates with linear precision; bounded biharmonic weights need it to keep
+the rest pose).
 
 Usage: ``python examples/coordinate_families_2d.py [out.png]``
 """
@@ -37,7 +40,7 @@ def _grid_lines(cage: torchcage.Cage, n: int = 24, samples: int = 200) -> list[t
     return lines
 
 
-def _draw_deformation(lines, weights, pose, lo, hi, size, title) -> Image.Image:
+def _draw_deformation(lines, weights, rest, pose, lo, hi, size, title) -> Image.Image:
     """The deformed grid (polylines, split where a line leaves the polygon) and the posed cage."""
     img = Image.new("RGB", (size, size), (255, 255, 255))
     d = ImageDraw.Draw(img)
@@ -46,10 +49,10 @@ def _draw_deformation(lines, weights, pose, lo, hi, size, title) -> Image.Image:
         sx, sy = size / (hi[0] - lo[0]), size / (hi[1] - lo[1])
         return [((float(x) - lo[0]) * sx, (hi[1] - float(y)) * sy) for x, y in p]
 
-    for inside, w in zip(lines, weights, strict=True):
-        moved = w @ pose
+    for (line, inside), w in zip(lines, weights, strict=True):
+        moved = line + w @ (pose - rest)  # (the displacement form: x + w (V' - V))
         run = []
-        for ok, q in zip(inside[1], moved, strict=True):
+        for ok, q in zip(inside, moved, strict=True):
             if ok:
                 run.append(q)
             elif run:
@@ -96,7 +99,8 @@ def main(out: str = "coordinate_families.png", size: int = 300) -> None:
             full = torch.zeros(line.shape[0], w.shape[1], dtype=torch.float64)
             full[ok], wl = wl[: int(ok.sum())], wl[int(ok.sum()) :]
             parts.append(full)
-        image.paste(_draw_deformation(lines, parts, pose, lo, hi, size, name), (k * (size + 8), size + 8))
+        panel = _draw_deformation(lines, parts, cage.vertices, pose, lo, hi, size, name)
+        image.paste(panel, (k * (size + 8), size + 8))
         print(f"{name}: min {float(w[:, vertex].min()):.3f}, max {float(w[:, vertex].max()):.3f}")
     image.save(out)
     print(f"wrote {out}")

@@ -123,9 +123,18 @@ def test_module_translation_and_outside_points() -> None:
     m = tc.BoundedBiharmonicWeights(cage, x, target_cells=1500)
     assert m.weights.shape == (40, cage.num_vertices)
     shift = torch.tensor([0.3, -2.0, 1.0], dtype=D64)
-    out = m(torch.stack([cage.vertices, cage.vertices + shift]))  # partition of unity: translations
-    assert out.shape == (2, 40, 3) and torch.allclose(out[1] - out[0], shift.expand(40, 3), atol=1e-12)
-    assert "gap" in repr(m)
+    out = m(torch.stack([cage.vertices, cage.vertices + shift]))
+    assert out.shape == (2, 40, 3)
+    assert torch.allclose(out[0], x, atol=1e-12) and torch.allclose(out[1], x + shift, atol=1e-12)  # displacements
+    pose = cage.vertices * torch.tensor([1.5, 1.0, 0.8], dtype=D64)
+    plain = tc.BoundedBiharmonicWeights(cage, x, solution=m.solution, displacements=False)
+    assert torch.allclose(plain(pose), m.weights @ pose, atol=1e-14)
+    assert torch.allclose(m(pose), x + m.weights @ (pose - cage.vertices), atol=1e-12)
+    assert float((plain(cage.vertices) - x).abs().max()) > 1e-3  # (no linear precision: why displacements)
+    assert "gap" in repr(m) and "displacements=False" in repr(plain)
+    f32 = tc.BoundedBiharmonicWeights(cage, x.float(), solution=m.solution, dtype=torch.float32)
+    assert f32(cage.vertices.float()).dtype == torch.float32
+    assert torch.allclose(f32(cage.vertices.float()).double(), x, atol=1e-5)
     with pytest.warns(UserWarning, match="outside the meshed interior"):
         F.bounded_biharmonic_weights(torch.tensor([[9.0, 9.0, 9.0]], dtype=D64), cage, solution=m.solution)
 
@@ -138,7 +147,7 @@ def test_build_module() -> None:
     seen = []
     m = build_module("bbw", cage, x, progress=lambda done, total, msg: seen.append(msg))
     assert isinstance(m, tc.BoundedBiharmonicWeights) and seen
-    assert torch.allclose(m(cage.vertices + 1.0), m(cage.vertices) + 1.0, atol=1e-12)
+    assert torch.allclose(m(cage.vertices), x, atol=1e-12) and torch.allclose(m(cage.vertices + 1.0), x + 1.0)
 
 
 @pytest.mark.slow
