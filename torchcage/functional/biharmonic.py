@@ -68,7 +68,9 @@ def bounded_biharmonic_weights(
     boundary values (barycentric on triangles, bilinear on quads, Lagrange at the vertices) and
     ``0 <= w <= 1``; the weights are then divided by their sum (Jacobson et al. 2011). So they are
     smooth, nonnegative, bounded by one and a partition of unity, but, unlike harmonic
-    coordinates, **without linear precision**. Pass ``solution=`` (from
+    coordinates, **without linear precision** (``w @ V`` is not ``x``): deform with the cage
+    vertices' displacements, ``x + w @ (V' - V)``, as
+    :class:`~torchcage.BoundedBiharmonicWeights` does. Pass ``solution=`` (from
     :func:`solve_bounded_biharmonic_weights`) to reuse a solve for more points.
 
     Args:
