@@ -10,10 +10,10 @@ Run it on a machine with a CUDA GPU and triton::
 
 ``--interpret`` runs a tiny smoke version on the CPU through Triton's interpreter (no timing
 meaning; it checks that the script runs). Green coordinates (rows ``gc triton``, ``gc torch
-eager``: the bare integrals) on the same points, with the speed-up. The MVC derivatives
+eager``: the bare integrals) on the same points, with the speed-up. The 3D MVC derivatives
 (gradients, Hessians) still come from autograd of the torch kernel on a GPU (rows ``grad
-(autograd)`` and ``grad+Hess 4096``, timed as they run today); their Triton kernels are the issue's
-next step.
+(autograd)`` and ``grad+Hess 4096``, timed as they run today); the 2D ones have a Triton kernel
+(rows ``d2 triton`` against ``d2 torch``, autograd of the torch kernel, on a 512 x 512 grid).
 """
 
 from __future__ import annotations
@@ -103,6 +103,39 @@ def _green_rows(name: str, x: torch.Tensor, c: torchcage.Cage, dtype: torch.dtyp
         print(f"{'':51s} gc triton: {speed:.1f}x the eager kernel's speed, largest difference {err:.1e}")
 
 
+def _derivative_2d_rows(device: str, repeats: int, side: int) -> None:
+    """2D mean value gradients and Hessians (the image warps' derivatives) on a ``side x side`` grid
+    over the bundled polygon: the Triton derivative kernel against autograd of the torch kernel
+    (float64), with the speed-up and the largest difference (relative to each row's largest
+    entry)."""
+    cage = torchcage.load_cage(torchcage.data.path("blob2d.obj")).to(torch.float64).to(device)
+    lo, hi = cage.vertices.amin(0), cage.vertices.amax(0)
+    t = torch.linspace(0.02, 0.98, side, dtype=torch.float64, device=device)
+    gx, gy = torch.meshgrid(lo[0] + (hi[0] - lo[0]) * t, lo[1] + (hi[1] - lo[1]) * t, indexing="xy")
+    x = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=1)
+    runs = {
+        "d2 triton": lambda: F.mean_value_derivatives(x, cage, order=2, backend="triton"),
+        "d2 torch": lambda: F.mean_value_derivatives(x, cage, order=2, backend="torch"),
+    }
+    name = f"2D derivatives, blob2d ({x.shape[0]:,} pts)"
+    med = {}
+    for method, fn in runs.items():
+        try:
+            first, med[method], peak = _time(fn, device, repeats)
+        except Exception as err:
+            print(f"{name:42s} {'float64':8s} {method:14s} failed: {type(err).__name__}: {err}")
+            continue
+        print(f"{name:42s} {'float64':8s} {method:14s} {first:9.4f} {med[method]:9.4f} {peak:9.1f}")
+    if len(med) == 2:
+        (_, gt, ht), (_, ge, he) = (fn() for fn in runs.values())
+        err = max(
+            float(((a - b).abs().flatten(1).amax(1) / b.abs().flatten(1).amax(1).clamp_min(1e-300)).max())
+            for a, b in ((gt, ge), (ht, he))
+        )
+        speed = med["d2 torch"] / med["d2 triton"]
+        print(f"{'':51s} d2 triton: {speed:.1f}x autograd's speed, largest difference {err:.1e}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_data_argument(ap)
@@ -170,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
                         print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} failed: {type(err).__name__}: {err}")
                         continue
                     print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} {first:9.4f} {med:9.4f} {peak:9.1f}")
+    _derivative_2d_rows(device, args.repeats, 16 if args.interpret else 512)
     return 0
 
 

@@ -218,6 +218,94 @@ def test_gradients_through_the_autograd_function() -> None:
     assert torch.allclose(g, torch.ones_like(g), atol=1e-10)  # linear precision: d(lam V)/dx = I
 
 
+# ---- 2D mean value derivatives --------------------------------------------------------------------
+
+
+def _row_rel(a: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Per-row error relative to the row's largest reference entry, ``(n,)``."""
+    a, ref = a.reshape(a.shape[0], -1).double(), ref.reshape(ref.shape[0], -1).double()
+    return (a - ref).abs().amax(dim=1) / ref.abs().amax(dim=1).clamp_min(1e-300)
+
+
+@pytest.mark.parametrize("name", sorted(POLYGONS))
+def test_2d_derivatives_match_the_native_kernel(name: str) -> None:
+    """The analytic gradients and Hessians of 2D mean value coordinates on the polygons' adversarial
+    points, against the native kernel (float64):
+
+    * coordinates within 1e-12 (relative to ``max(1, |lam|)``), the on-polygon flags identical;
+    * gradients and Hessians within 1e-10 of the row's largest entry at the points that are not far
+      and farther than 1e-4 of the size from every vertex (measured: 3e-11);
+    * at the far points (380 to 9e8 sizes) gradients within 1e-10 (measured 6e-13); the Hessians
+      (down to 1e-21) cancel in every backend, more the farther: within ``3e-9 + 2e-14 r / size``
+      (measured 1e-9 at 380 sizes, 4.5e-6 at 9e8, where the torch kernel is 9e-6 from the native);
+    * closer than 1e-4 of the size to a vertex the weights' ``1 / distance`` cancels in the
+      quotient and every backend's derivatives lose accuracy (the native kernel's Hessians break
+      linear precision by 1e10 at 1e-13 distances, the Triton kernel's alike): finite only.
+    """
+    from torchcage.functional.mean_value_derivatives import derivatives_flat
+
+    cage = POLYGONS[name]
+    x, cats = _points(cage, per=16)
+    ref_backend = "native" if tc._native.available() else "torch"
+    L, G, H, on = derivatives_flat(x, cage, 2, backend=ref_backend)
+    lam, g, h, on_t = derivatives_flat(x.to(DEVICE), cage.to(DEVICE), 2, backend="triton")
+    lam, g, h, on_t = lam.cpu(), g.cpu(), h.cpu(), on_t.cpu()
+    assert torch.equal(on_t, on) and bool(torch.isfinite(g).all() and torch.isfinite(h).all())
+    assert float(_rel(lam, L).max()) < 1e-12
+    size = float((cage.vertices.amax(0) - cage.vertices.amin(0)).norm())
+    r = (x - cage.vertices.mean(dim=0)).norm(dim=1) / size
+    dist = torch.cdist(x, cage.vertices).amin(dim=1) / size
+    far = torch.tensor([c == "far" for c in cats])
+    eg, eh = _row_rel(g, G), _row_rel(h, H)
+    regular = ~on & ~far & (dist > 1e-4)
+    assert float(eg[regular].max()) < 1e-10 and float(eh[regular].max()) < 1e-10, (name, float(eh[regular].max()))
+    assert float(eg[far].max()) < 1e-10
+    assert bool((eh[far] < 3e-9 + 2e-14 * r[far]).all()), (name, (eh[far] / (3e-9 + 2e-14 * r[far])).max())
+    lam_on = L[on]
+    assert torch.allclose(lam[on], lam_on, atol=1e-12) and torch.allclose(g[on], G[on], atol=1e-12)
+
+
+def test_2d_derivatives_through_the_public_function_and_autograd(monkeypatch) -> None:
+    """``backend="triton"`` in ``F.mean_value_derivatives`` (2D; 3D cages are refused with the way
+    out), and the autograd Functions' analytic gradients and Hessians taken from the Triton kernel
+    (routed to it here on CPU tensors, as they are for CUDA points): backward and double backward
+    against the native kernel's gradients and Hessians."""
+    import importlib
+
+    mvd = importlib.import_module("torchcage.functional.mean_value_derivatives")  # (the module, not the function)
+
+    cage = POLYGONS["blob"].to(DEVICE)
+    x = torch.tensor([[0.1, 0.2], [-0.3, 0.25], [0.4, -0.1]], dtype=D64, device=DEVICE)
+    got = F.mean_value_derivatives(x, cage, backend="triton")
+    ref = F.mean_value_derivatives(x.cpu(), POLYGONS["blob"], backend="native" if tc._native.available() else "torch")
+    for a, b in zip(got, ref, strict=True):
+        assert torch.allclose(a.cpu(), b, rtol=1e-10, atol=1e-12)
+    with pytest.raises(RuntimeError, match="2D polygons"):
+        F.mean_value_derivatives(torch.zeros(1, 3, dtype=D64, device=DEVICE), CAGES["cube"], backend="triton")
+    calls = []
+    original = mvd._triton_derivatives
+
+    def spy(*args, **kwargs):
+        calls.append(args[2])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(mvd, "_library", lambda backend, x: None)
+    monkeypatch.setattr(mvd, "_triton_serves", lambda backend, x, cage: cage.dim == 2)
+    monkeypatch.setattr(mvd, "_triton_derivatives", spy)
+    if DEVICE == "cpu":  # (the autograd Functions take the analytic path for CPU points and the library)
+        import torchcage.autograd.mean_value as amv
+
+        monkeypatch.setattr(amv, "_analytic", lambda points: True)
+    xg = x.clone().requires_grad_()
+    lam = F.mean_value_coordinates(xg, cage)
+    w = torch.linspace(-1.0, 1.0, lam.shape[1], dtype=D64, device=DEVICE)
+    (g,) = torch.autograd.grad((lam * w).sum(), xg, create_graph=True)  # backward
+    (h,) = torch.autograd.grad(g[:, 0].sum(), xg)  # double backward
+    assert torch.allclose(g.cpu(), torch.einsum("nvc,v->nc", ref[1], w.cpu()), rtol=1e-10, atol=1e-12)
+    assert torch.allclose(h.cpu(), torch.einsum("nvd,v->nd", ref[2][:, :, 0, :], w.cpu()), rtol=1e-10, atol=1e-12)
+    assert 1 in calls and 2 in calls  # gradients and Hessians both came from the Triton kernel
+
+
 # ---- 3D Green coordinates -------------------------------------------------------------------------
 
 

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 from torch._C._functorch import is_functorch_wrapped_tensor
 
-from .. import _native
+from .. import _native, _triton
 from ..cage import Cage
 from ..functional._common import check_finite, on_cage_tolerance, result_dtype
 from ..functional._edge_line import edge_line_offsets as _edge_line_offsets
@@ -160,9 +160,12 @@ def _vertex_vjp_plain(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor
 
 
 def _analytic(points: Tensor) -> bool:
-    """Whether the native analytic derivatives serve points ``(N, D)`` (CPU, library loadable);
-    else the point derivatives come from autograd of the torch kernel, on any device."""
-    return points.device.type == "cpu" and _native.library() is not None
+    """Whether analytic derivatives serve points ``(N, D)``: the native kernel (CPU, library
+    loadable) or, for 2D points on CUDA, the Triton kernel; else the point derivatives come from
+    autograd of the torch kernel, on any device."""
+    if points.device.type == "cpu":
+        return _native.library() is not None
+    return points.shape[-1] == 2 and points.device.type == "cuda" and _triton.available(points)
 
 
 def _point_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:

@@ -51,9 +51,9 @@ __all__ = ["derivatives_flat", "mean_value_derivatives", "mean_value_gradients",
 def _library(backend: str, x: torch.Tensor) -> object | None:
     """The native library when it serves this call (``"auto"``: CPU points and a loadable
     library), else ``None`` (the torch path)."""
-    if backend not in ("auto", "native", "torch"):
-        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
-    if backend == "torch" or (backend == "auto" and x.device.type != "cpu"):
+    if backend not in ("auto", "native", "torch", "triton"):
+        raise ValueError(f"backend must be 'auto', 'native', 'torch' or 'triton', got {backend!r}")
+    if backend in ("torch", "triton") or (backend == "auto" and x.device.type != "cpu"):
         return None
     lib = _native.library()
     if lib is None and backend == "native":
@@ -82,6 +82,8 @@ def derivatives_flat(
         PointsError: points where the coordinates are undefined (the total weight vanishes).
     """
     lib = _library(backend, x)
+    if lib is None and _triton_serves(backend, x, cage):
+        return _triton_derivatives(x, cage, order, chunk_size, progress)
     if lib is None:
         return torch_derivatives(x, cage, order, chunk_size, progress)
     D, V = cage.dim, cage.num_vertices
@@ -96,6 +98,42 @@ def derivatives_flat(
     for sl in chunks(n, size, progress, desc="mean value derivatives"):
         H = hess[sl] if order == 2 else None
         _mvcd_native.native_chunk(x[sl], tables, lib, order, lam[sl], grad[sl], H, flags[sl])
+    bad = torch.nonzero(flags == 2).flatten()[:10].tolist()
+    if bad:
+        raise PointsError(
+            f"mean value coordinates are undefined at points {bad} (the total weight vanishes there); move these points"
+        )
+    return lam, grad, hess, flags == 1
+
+
+def _triton_serves(backend: str, x: torch.Tensor, cage: Cage) -> bool:
+    """Whether the Triton kernel computes these derivatives: ``"triton"`` insists (2D polygons
+    only, and where Triton runs), ``"auto"`` takes it for 2D points on CUDA."""
+    from .. import _triton
+
+    if backend == "triton" and cage.dim != 2:
+        raise RuntimeError(
+            "the Triton kernel of mean value derivatives covers 2D polygons; for 3D cages use backend='auto' "
+            "(the native kernel on the CPU, autograd of the torch kernel on other devices)"
+        )
+    return cage.dim == 2 and _triton.serves(backend, x, False)
+
+
+def _triton_derivatives(
+    x: torch.Tensor, cage: Cage, order: int, chunk_size: int | None, progress: bool | Callable[[int, int], None]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`derivatives_flat` by the Triton kernel (2D, float64, on the points' device)."""
+    from .._triton.mvcd2d import mvcd2d_triton
+
+    n, V = x.shape[0], cage.num_vertices
+    lam = x.new_empty((n, V), dtype=torch.float64)
+    grad = x.new_empty((n, V, 2), dtype=torch.float64)
+    hess = x.new_empty((n, V, 2, 2) if order == 2 else (0,), dtype=torch.float64)
+    flags = torch.zeros(n, dtype=torch.uint8, device=x.device)
+    for sl in chunks(n, chunk_size if chunk_size is not None else 4096, progress, desc="mean value derivatives"):
+        lam[sl], grad[sl], h, flags[sl] = mvcd2d_triton(x[sl], cage, order)
+        if order == 2:
+            hess[sl] = h
     bad = torch.nonzero(flags == 2).flatten()[:10].tolist()
     if bad:
         raise PointsError(
@@ -124,9 +162,10 @@ def mean_value_derivatives(
         order: 1 (gradients) or 2 (gradients and Hessians).
         chunk_size: points per chunk (memory grows with ``chunk_size x V x D^2``). Default: 4096.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
-        backend: ``"auto"`` (default): the native kernel for CPU points when it is loadable, else
-            autograd of the torch kernel on the points' device (the same values to about 1e-10);
-            ``"native"`` or ``"torch"`` to force one.
+        backend: ``"auto"`` (default): the native kernel for CPU points when it is loadable; for
+            2D points on CUDA the Triton kernel where triton is installed; else autograd of the
+            torch kernel on the points' device (the same values to about 1e-10). ``"native"``,
+            ``"torch"`` or ``"triton"`` (2D) to force one.
 
     Computed in float64, returned in the points' dtype and device.
     These values are plain tensors (no autograd graph): to differentiate through the coordinates,
