@@ -287,3 +287,16 @@ def p1_stiffness(vertices, cells):
     rows = np.repeat(cells, k, axis=1).ravel()
     cols = np.tile(cells, (1, k)).ravel()
     return coo_matrix((local.ravel(), (rows, cols)), shape=(n, n)).tocsr()
+
+
+def cube_files(tmp_path, scale: float = 0.5):
+    """A cube cage, a stretched pose and a small sphere mesh (``scale`` times the cube's half-size)."""
+    from torchcage.testing import icosphere
+
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+    torchcage.save_cage(tmp_path / "cage.obj", cube)
+    torchcage.save_cage(tmp_path / "pose.obj", cube, cube.vertices * torch.tensor([1.5, 1.0, 1.0], dtype=torch.float64))
+    ball = icosphere(1)
+    torchcage.save_mesh(tmp_path / "mesh.obj", scale * ball.vertices, ball.triangles)
+    return ["deform", "--cage", str(tmp_path / "cage.obj"), "--deformed", str(tmp_path / "pose.obj"),
+            "--mesh", str(tmp_path / "mesh.obj")]  # fmt: skip

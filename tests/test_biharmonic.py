@@ -165,11 +165,11 @@ def test_firehydrant() -> None:
 
 def test_cli(tmp_path) -> None:
     """``torchcage deform --method bbw`` writes what the module gives for the same pose."""
-    from test_cli import _cube_files
+    from support import cube_files
 
     from torchcage.cli import main
 
-    args = _cube_files(tmp_path)
+    args = cube_files(tmp_path)
     assert main([*args, "--out", str(tmp_path / "bbw"), "--method", "bbw", "--no-picture"]) == 0
     rest, _ = tc.load_mesh(tmp_path / "bbw" / "rest_mesh.obj")
     moved, _ = tc.load_mesh(tmp_path / "bbw" / "deformed_mesh.obj")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+from support import cube_files
 
 import torchcage
 from torchcage.cli import main
@@ -65,22 +66,9 @@ def test_demo_with_green_coordinates(tmp_path):
     assert torch.allclose(expect, moved, atol=1e-12)
 
 
-def _cube_files(tmp_path, scale: float = 0.5):
-    """A cube cage, a stretched pose and a small sphere mesh (``scale`` times the cube's half-size)."""
-    from torchcage.testing import icosphere
-
-    cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
-    torchcage.save_cage(tmp_path / "cage.obj", cube)
-    torchcage.save_cage(tmp_path / "pose.obj", cube, cube.vertices * torch.tensor([1.5, 1.0, 1.0], dtype=torch.float64))
-    ball = icosphere(1)
-    torchcage.save_mesh(tmp_path / "mesh.obj", scale * ball.vertices, ball.triangles)
-    return ["deform", "--cage", str(tmp_path / "cage.obj"), "--deformed", str(tmp_path / "pose.obj"),
-            "--mesh", str(tmp_path / "mesh.obj")]  # fmt: skip
-
-
 def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
     """Issue 22 items 4 and 14: --method lbc, --format, --up / camera, --strict."""
-    args = _cube_files(tmp_path)
+    args = cube_files(tmp_path)
     assert main([*args, "--out", str(tmp_path / "lbc"), "--method", "lbc", "--no-picture"]) == 0
     rest, _ = torchcage.load_mesh(tmp_path / "lbc" / "rest_mesh.obj")
     moved, _ = torchcage.load_mesh(tmp_path / "lbc" / "deformed_mesh.obj")
@@ -100,7 +88,7 @@ def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
         v, f = torchcage.load_mesh(tmp_path / "ply" / "deformed_mesh.ply")
         assert v.shape == (42, 3) and f.shape == (80, 3)
     (tmp_path / "poke").mkdir()
-    poke = _cube_files(tmp_path / "poke", scale=1.4)  # the sphere pokes out of the cube a little
+    poke = cube_files(tmp_path / "poke", scale=1.4)  # the sphere pokes out of the cube a little
     capsys.readouterr()
     assert main([*poke, "--out", str(tmp_path / "gc0"), "--method", "gc", "--no-picture"]) == 0
     assert "outside" not in capsys.readouterr().err  # within the exterior band: continued, no warning
@@ -108,7 +96,7 @@ def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
     v1, _ = torchcage.load_mesh(tmp_path / "gc0" / "deformed_mesh.obj")
     assert (v1 - v0).norm(dim=1).max() < 1.0  # no point sent to the origin
     (tmp_path / "big").mkdir()
-    outside = _cube_files(tmp_path / "big", scale=3.0)  # far outside the cube
+    outside = cube_files(tmp_path / "big", scale=3.0)  # far outside the cube
     capsys.readouterr()
     assert main([*outside, "--out", str(tmp_path / "gc"), "--method", "gc", "--no-picture"]) == 0
     assert "outside it" in capsys.readouterr().err

@@ -89,15 +89,14 @@ def build_module(
         if callable(progress):
             progress(0, None, "meshing the cage interior and solving")
         return torchcage.HarmonicCoordinates(cage, points)
-    if method == "bbw":
-        if callable(progress):
-            progress(0, None, "meshing the cage interior")
-        if callable(progress):
-            report = progress
-            return torchcage.BoundedBiharmonicWeights(
-                cage, points, progress=lambda it, gap: report(it, None, f"iteration {it}, gap {gap:.2g}")
-            )
-        return torchcage.BoundedBiharmonicWeights(cage, points, progress=bool(progress))
+    if method == "bbw":  # an iterative solve: it reports its iteration and certified gap
+        if not callable(progress):
+            return torchcage.BoundedBiharmonicWeights(cage, points, progress=bool(progress))
+        report = progress
+        report(0, None, "meshing the cage interior")
+        return torchcage.BoundedBiharmonicWeights(
+            cage, points, progress=lambda it, gap: report(it, None, f"iteration {it}, gap {gap:.2g}")
+        )
     # lbc: an iterative solve of unknown length; it reports its iteration and residuals
     if callable(progress):
         progress(0, None, "meshing the cage interior")
