@@ -47,9 +47,13 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_matrix
 
 from .domain import Domain
 from .harmonic import _has_cholespy, _stiffness_scipy
@@ -94,7 +98,7 @@ class BBWResult:
     history: list[tuple[int, float]] = field(default_factory=list)
 
 
-def biharmonic_matrix(vertices: torch.Tensor, cells: torch.Tensor):
+def biharmonic_matrix(vertices: torch.Tensor, cells: torch.Tensor) -> csr_matrix:
     """The discrete biharmonic operator ``Q = K M^-1 K`` ``(Nv, Nv)`` as a scipy CSR matrix.
 
     ``K`` is the P1 stiffness matrix and ``M`` the lumped mass matrix (each vertex takes
@@ -105,7 +109,7 @@ def biharmonic_matrix(vertices: torch.Tensor, cells: torch.Tensor):
         cells: ``(C, D + 1)`` triangles or tetrahedra.
 
     Returns:
-        ``scipy.sparse.csr_matrix`` ``(Nv, Nv)``, symmetric positive semidefinite, ``Q 1 = 0``.
+        ``(Nv, Nv)``, symmetric positive semidefinite, ``Q 1 = 0``.
 
     Examples:
         >>> import torch
