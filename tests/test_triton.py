@@ -266,10 +266,10 @@ def test_2d_derivatives_match_the_native_kernel(name: str) -> None:
 
 
 def test_2d_derivatives_through_the_public_function_and_autograd(monkeypatch) -> None:
-    """``backend="triton"`` in ``F.mean_value_derivatives`` (2D; 3D cages are refused with the way
-    out), and the autograd Functions' analytic gradients and Hessians taken from the Triton kernel
-    (routed to it here on CPU tensors, as they are for CUDA points): backward and double backward
-    against the native kernel's gradients and Hessians."""
+    """``backend="triton"`` in ``F.mean_value_derivatives`` (2D), and the autograd Functions'
+    analytic gradients and Hessians taken from the Triton kernel (routed to it here on CPU tensors,
+    as they are for CUDA points): backward and double backward against the native kernel's
+    gradients and Hessians."""
     import importlib
 
     mvd = importlib.import_module("torchcage.functional.mean_value_derivatives")  # (the module, not the function)
@@ -280,8 +280,6 @@ def test_2d_derivatives_through_the_public_function_and_autograd(monkeypatch) ->
     ref = F.mean_value_derivatives(x.cpu(), POLYGONS["blob"], backend="native" if tc._native.available() else "torch")
     for a, b in zip(got, ref, strict=True):
         assert torch.allclose(a.cpu(), b, rtol=1e-10, atol=1e-12)
-    with pytest.raises(RuntimeError, match="2D polygons"):
-        F.mean_value_derivatives(torch.zeros(1, 3, dtype=D64, device=DEVICE), CAGES["cube"], backend="triton")
     calls = []
     original = mvd._triton_derivatives
 
@@ -303,6 +301,110 @@ def test_2d_derivatives_through_the_public_function_and_autograd(monkeypatch) ->
     (h,) = torch.autograd.grad(g[:, 0].sum(), xg)  # double backward
     assert torch.allclose(g.cpu(), torch.einsum("nvc,v->nc", ref[1], w.cpu()), rtol=1e-10, atol=1e-12)
     assert torch.allclose(h.cpu(), torch.einsum("nvd,v->nd", ref[2][:, :, 0, :], w.cpu()), rtol=1e-10, atol=1e-12)
+    assert 1 in calls and 2 in calls  # gradients and Hessians both came from the Triton kernel
+
+
+# ---- 3D mean value derivatives --------------------------------------------------------------------
+
+
+def _edge_distance(x: torch.Tensor, cage: tc.Cage) -> torch.Tensor:
+    """Distance ``(n,)`` of points ``x`` to the cage's nearest edge (vertices included)."""
+    e = cage.unique_edges()
+    a, b = cage.vertices[e[:, 0]], cage.vertices[e[:, 1]]
+    d = b - a
+    t = (((x[:, None] - a[None]) * d[None]).sum(-1) / (d * d).sum(-1)).clamp(0.0, 1.0)
+    return (x[:, None] - (a[None] + t[..., None] * d[None])).norm(dim=-1).amin(dim=1)
+
+
+@pytest.mark.parametrize("name", sorted(CAGES))
+def test_3d_derivatives_match_the_native_kernel(name: str) -> None:
+    """The analytic gradients and Hessians of 3D mean value coordinates on the cages' adversarial
+    points, against the native kernel (float64):
+
+    * coordinates within 1e-12 (relative to ``max(1, |lam|)``; plus the points' own rounding,
+      ``4 eps max|p| / size``, on the cube moved 1e6 away, where the native derivative kernel is
+      6e-11 from the native coordinates kernel next to an edge), the on-cage flags identical, and on
+      the faces the interpolant's gradient (on edges and vertices it is one-sided: a face's, which
+      may differ between backends);
+    * gradients and Hessians within 1e-10 of the row's largest entry at the points that are not far
+      and farther than 1e-4 of the size from every edge (measured on the eight QMVC cages: 1e-12
+      and 8e-11);
+    * at the far points (380 to 1e9 sizes) gradients within 1e-10 (measured 4e-12); the Hessians
+      cancel in every backend, more the farther: within ``1.5e-8 + 1e-13 r / size`` (measured
+      2.4 times ``3e-9 + 2e-14 r / size`` on Bench at 380 sizes, where the torch kernel is 6.7);
+    * closer than 1e-4 of the size to an edge, the weights of the two faces there carry ``1 / h``
+      parts that cancel in the quotient, and every backend's derivatives lose accuracy (Hessians
+      off by up to 1e-1 relative at 1e-14 of the size, torch against native alike): finite only.
+    """
+    from torchcage.functional.mean_value_derivatives import derivatives_flat
+
+    cage = CAGES[name]
+    x, cats = _points(cage, per=6)
+    ref_backend = "native" if tc._native.available() else "torch"
+    L, G, H, on = derivatives_flat(x, cage, 2, backend=ref_backend)
+    lam, g, h, on_t = derivatives_flat(x.to(DEVICE), cage.to(DEVICE), 2, backend="triton")
+    lam, g, h, on_t = lam.cpu(), g.cpu(), h.cpu(), on_t.cpu()
+    assert torch.equal(on_t, on) and bool(torch.isfinite(g).all() and torch.isfinite(h).all())
+    size = float((cage.vertices.amax(0) - cage.vertices.amin(0)).norm())
+    rounding = 4 * torch.finfo(D64).eps * float(cage.vertices.abs().max()) / size  # of the points themselves
+    assert float(_rel(lam, L).max()) < 1e-12 + rounding
+    r = (x - cage.vertices.mean(dim=0)).norm(dim=1) / size
+    far = torch.tensor([c == "far" for c in cats])
+    face = torch.tensor([c == "face" for c in cats]) & on
+    eg, eh = _row_rel(g, G), _row_rel(h, H)
+    regular = ~on & ~far & (_edge_distance(x, cage) / size > 1e-4)
+    assert float(eg[regular].max()) < 1e-10 and float(eh[regular].max()) < 1e-10, (name, float(eh[regular].max()))
+    assert float(eg[far].max()) < 1e-10
+    assert bool((eh[far] < 1.5e-8 + 1e-13 * r[far]).all()), (name, (eh[far] / (1.5e-8 + 1e-13 * r[far])).max())
+    assert torch.allclose(lam[on], L[on], atol=1e-12) and torch.allclose(g[face], G[face], atol=1e-12)
+
+
+def test_3d_derivatives_through_the_public_function_and_autograd(monkeypatch) -> None:
+    """``backend="triton"`` in ``F.mean_value_derivatives`` for a 3D cage, batched points, and the
+    autograd Functions' analytic gradients and Hessians taken from the Triton kernel (routed to it
+    here on CPU tensors, as they are for CUDA points): backward and double backward against the
+    native kernel's gradients and Hessians; a thin face's neighbours and a point on the cage are
+    redone by the torch kernel's derivatives."""
+    import importlib
+
+    mvd = importlib.import_module("torchcage.functional.mean_value_derivatives")  # (the module, not the function)
+
+    cage = CAGES["cube"].to(DEVICE)
+    x = torch.tensor([[[0.1, 0.2, -0.3], [0.5, -0.45, 0.9]], [[-0.99, 0.0, 0.2], [2.0, 1.0, -3.0]]], dtype=D64)
+    ref_backend = "native" if tc._native.available() else "torch"
+    got = F.mean_value_derivatives(x.to(DEVICE), cage, backend="triton")
+    ref = F.mean_value_derivatives(x, CAGES["cube"], backend=ref_backend)
+    for a, b in zip(got, ref, strict=True):
+        assert a.shape == b.shape and torch.allclose(a.cpu(), b, rtol=1e-10, atol=1e-12)
+    sliver = sliver_cube().triangulated()
+    xs = torch.tensor([[0.0, 0.0, 0.0], [0.2, -0.1, 0.3]], dtype=D64)
+    got = F.mean_value_derivatives(xs.to(DEVICE), sliver.to(DEVICE), backend="triton")
+    ref = F.mean_value_derivatives(xs, sliver, backend=ref_backend)
+    for a, b in zip(got, ref, strict=True):
+        assert torch.allclose(a.cpu(), b, rtol=1e-9, atol=1e-11)
+    calls = []
+    original = mvd._triton_derivatives
+
+    def spy(*args, **kwargs):
+        calls.append(args[2])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(mvd, "_library", lambda backend, x: None)
+    monkeypatch.setattr(mvd, "_triton_serves", lambda backend, x, cage: True)
+    monkeypatch.setattr(mvd, "_triton_derivatives", spy)
+    if DEVICE == "cpu":  # (the autograd Functions take the analytic path for CPU points and the library)
+        import torchcage.autograd.mean_value as amv
+
+        monkeypatch.setattr(amv, "_analytic", lambda points: True)
+    pts = x.reshape(-1, 3)
+    xg = pts.to(DEVICE).clone().requires_grad_()
+    lam = F.mean_value_coordinates(xg, cage)
+    w = torch.linspace(-1.0, 1.0, lam.shape[1], dtype=D64, device=DEVICE)
+    (g,) = torch.autograd.grad((lam * w).sum(), xg, create_graph=True)  # backward
+    (h,) = torch.autograd.grad(g[:, 2].sum(), xg)  # double backward
+    _, G, H = F.mean_value_derivatives(pts, CAGES["cube"], backend=ref_backend)
+    assert torch.allclose(g.cpu(), torch.einsum("nvc,v->nc", G, w.cpu()), rtol=1e-10, atol=1e-12)
+    assert torch.allclose(h.cpu(), torch.einsum("nvd,v->nd", H[:, :, 2, :], w.cpu()), rtol=1e-10, atol=1e-12)
     assert 1 in calls and 2 in calls  # gradients and Hessians both came from the Triton kernel
 
 

@@ -16,12 +16,21 @@ import os
 
 import torch
 
-__all__ = ["available", "interpreted", "reason", "serves"]
+__all__ = ["available", "device_function", "interpreted", "reason", "serves"]
 
 
 def interpreted() -> bool:
     """Whether Triton runs its interpreter (``TRITON_INTERPRET=1``: kernels on CPU tensors)."""
     return os.environ.get("TRITON_INTERPRET", "0") not in ("", "0")
+
+
+def device_function(fn):
+    """``triton.jit`` for a device function called by kernels; under the interpreter the plain
+    function (each call of a jit function there patches ``triton.language`` anew, about 1 ms, and
+    the kernel's own patch already holds while it runs; the compiled path is unchanged)."""
+    import triton
+
+    return fn if interpreted() else triton.jit(fn)
 
 
 def reason(t: torch.Tensor | None = None) -> str | None:

@@ -3,14 +3,15 @@ on a GPU and in Triton's interpreter (which runs no libdevice function), in floa
 
 from __future__ import annotations
 
-import triton
 import triton.language as tl
+
+from . import device_function
 
 PI = 3.141592653589793
 HALF_PI = 1.5707963267948966
 
 
-@triton.jit
+@device_function
 def atan(t):
     """``atan(t)``: ``|t| > 1`` reflected (``pi/2 - atan(1/t)``), two half-angle steps
     (``z / (1 + sqrt(1 + z^2))``, down to ``|z| <= tan(pi/16)``), then 12 terms of the series
@@ -38,7 +39,7 @@ def atan(t):
     return tl.where(t < 0, -r, r)
 
 
-@triton.jit
+@device_function
 def atan2(y, x):
     """``atan2(y, x)`` in ``(-pi, pi]`` (0 at the origin)."""
     ax = tl.abs(x)
@@ -55,7 +56,7 @@ LN2 = 0.6931471805599453
 SQRT2 = 1.4142135623730951
 
 
-@triton.jit
+@device_function
 def log(x):
     """``log(x)`` for ``x > 0`` (0 elsewhere): the exponent taken out by a binary search on powers
     of two (``2^512 .. 2^1``; the constants past float32's range never select), the mantissa

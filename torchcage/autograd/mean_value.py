@@ -161,11 +161,11 @@ def _vertex_vjp_plain(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor
 
 def _analytic(points: Tensor) -> bool:
     """Whether analytic derivatives serve points ``(N, D)``: the native kernel (CPU, library
-    loadable) or, for 2D points on CUDA, the Triton kernel; else the point derivatives come from
+    loadable) or, for points on CUDA, the Triton kernel; else the point derivatives come from
     autograd of the torch kernel, on any device."""
     if points.device.type == "cpu":
         return _native.library() is not None
-    return points.shape[-1] == 2 and points.device.type == "cuda" and _triton.available(points)
+    return points.device.type == "cuda" and _triton.available(points)
 
 
 def _point_vjp(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor) -> Tensor:

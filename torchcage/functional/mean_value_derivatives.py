@@ -107,31 +107,29 @@ def derivatives_flat(
 
 
 def _triton_serves(backend: str, x: torch.Tensor, cage: Cage) -> bool:
-    """Whether the Triton kernel computes these derivatives: ``"triton"`` insists (2D polygons
-    only, and where Triton runs), ``"auto"`` takes it for 2D points on CUDA."""
+    """Whether the Triton kernel computes these derivatives: ``"triton"`` insists (where Triton
+    runs), ``"auto"`` takes it for points on CUDA."""
     from .. import _triton
 
-    if backend == "triton" and cage.dim != 2:
-        raise RuntimeError(
-            "the Triton kernel of mean value derivatives covers 2D polygons; for 3D cages use backend='auto' "
-            "(the native kernel on the CPU, autograd of the torch kernel on other devices)"
-        )
-    return cage.dim == 2 and _triton.serves(backend, x, False)
+    return _triton.serves(backend, x, False)
 
 
 def _triton_derivatives(
     x: torch.Tensor, cage: Cage, order: int, chunk_size: int | None, progress: bool | Callable[[int, int], None]
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`derivatives_flat` by the Triton kernel (2D, float64, on the points' device)."""
-    from .._triton.mvcd2d import mvcd2d_triton
+    """:func:`derivatives_flat` by the Triton kernel (float64, on the points' device)."""
+    if cage.dim == 2:
+        from .._triton.mvcd2d import mvcd2d_triton as kernel
+    else:
+        from .._triton.mvcd3d import mvcd3d_triton as kernel
 
-    n, V = x.shape[0], cage.num_vertices
+    n, V, D = x.shape[0], cage.num_vertices, cage.dim
     lam = x.new_empty((n, V), dtype=torch.float64)
-    grad = x.new_empty((n, V, 2), dtype=torch.float64)
-    hess = x.new_empty((n, V, 2, 2) if order == 2 else (0,), dtype=torch.float64)
+    grad = x.new_empty((n, V, D), dtype=torch.float64)
+    hess = x.new_empty((n, V, D, D) if order == 2 else (0,), dtype=torch.float64)
     flags = torch.zeros(n, dtype=torch.uint8, device=x.device)
     for sl in chunks(n, chunk_size if chunk_size is not None else 4096, progress, desc="mean value derivatives"):
-        lam[sl], grad[sl], h, flags[sl] = mvcd2d_triton(x[sl], cage, order)
+        lam[sl], grad[sl], h, flags[sl] = kernel(x[sl], cage, order)
         if order == 2:
             hess[sl] = h
     bad = torch.nonzero(flags == 2).flatten()[:10].tolist()
@@ -163,9 +161,9 @@ def mean_value_derivatives(
         chunk_size: points per chunk (memory grows with ``chunk_size x V x D^2``). Default: 4096.
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): the native kernel for CPU points when it is loadable; for
-            2D points on CUDA the Triton kernel where triton is installed; else autograd of the
+            points on CUDA the Triton kernel where triton is installed; else autograd of the
             torch kernel on the points' device (the same values to about 1e-10). ``"native"``,
-            ``"torch"`` or ``"triton"`` (2D) to force one.
+            ``"torch"`` or ``"triton"`` to force one.
 
     Computed in float64, returned in the points' dtype and device.
     These values are plain tensors (no autograd graph): to differentiate through the coordinates,
