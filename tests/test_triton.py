@@ -321,9 +321,11 @@ def test_3d_derivatives_match_the_native_kernel(name: str) -> None:
     """The analytic gradients and Hessians of 3D mean value coordinates on the cages' adversarial
     points, against the native kernel (float64):
 
-    * coordinates within 1e-12 (relative to ``max(1, |lam|)``; plus the points' own rounding,
-      ``4 eps max|p| / size``, on the cube moved 1e6 away, where the native derivative kernel is
-      6e-11 from the native coordinates kernel next to an edge), the on-cage flags identical, and on
+    * coordinates within 2e-11 (relative to ``max(1, |lam|)``; measured 8e-12 on Bench's support
+      planes, where the native derivative kernel is 1.3e-11 from both coordinate kernels, 1e-13
+      elsewhere), plus the points' own rounding ``4 eps max|p| / size`` (on the cube moved 1e6
+      away, where next to an edge the native derivative kernel is 6e-11 from the coordinate
+      kernels); the on-cage flags identical, and on
       the faces the interpolant's gradient (on edges and vertices it is one-sided: a face's, which
       may differ between backends);
     * gradients and Hessians within 1e-10 of the row's largest entry at the points that are not far
@@ -347,7 +349,7 @@ def test_3d_derivatives_match_the_native_kernel(name: str) -> None:
     assert torch.equal(on_t, on) and bool(torch.isfinite(g).all() and torch.isfinite(h).all())
     size = float((cage.vertices.amax(0) - cage.vertices.amin(0)).norm())
     rounding = 4 * torch.finfo(D64).eps * float(cage.vertices.abs().max()) / size  # of the points themselves
-    assert float(_rel(lam, L).max()) < 1e-12 + rounding
+    assert float(_rel(lam, L).max()) < 2e-11 + rounding
     r = (x - cage.vertices.mean(dim=0)).norm(dim=1) / size
     far = torch.tensor([c == "far" for c in cats])
     face = torch.tensor([c == "face" for c in cats]) & on
@@ -356,7 +358,7 @@ def test_3d_derivatives_match_the_native_kernel(name: str) -> None:
     assert float(eg[regular].max()) < 1e-10 and float(eh[regular].max()) < 1e-10, (name, float(eh[regular].max()))
     assert float(eg[far].max()) < 1e-10
     assert bool((eh[far] < 1.5e-8 + 1e-13 * r[far]).all()), (name, (eh[far] / (1.5e-8 + 1e-13 * r[far])).max())
-    assert torch.allclose(lam[on], L[on], atol=1e-12) and torch.allclose(g[face], G[face], atol=1e-12)
+    assert torch.allclose(lam[on], L[on], atol=1e-12 + rounding) and torch.allclose(g[face], G[face], atol=1e-12)
 
 
 def test_3d_derivatives_through_the_public_function_and_autograd(monkeypatch) -> None:

@@ -16,7 +16,7 @@ import os
 
 import torch
 
-__all__ = ["available", "device_function", "interpreted", "reason", "serves"]
+__all__ = ["available", "device_function", "interpreted", "reason", "serves", "warps"]
 
 
 def interpreted() -> bool:
@@ -24,13 +24,25 @@ def interpreted() -> bool:
     return os.environ.get("TRITON_INTERPRET", "0") not in ("", "0")
 
 
-def device_function(fn):
-    """``triton.jit`` for a device function called by kernels; under the interpreter the plain
-    function (each call of a jit function there patches ``triton.language`` anew, about 1 ms, and
-    the kernel's own patch already holds while it runs; the compiled path is unchanged)."""
+def device_function(fn=None, *, noinline: bool = False):  # a decorator of Triton device functions
+    """``triton.jit`` for a device function called by kernels (``noinline=True``: compiled once and
+    called, for large functions called several times, which keeps the kernels' compile time in
+    bounds); under the interpreter the plain function (each call of a jit function there patches
+    ``triton.language`` anew, about 1 ms, and the kernel's own patch already holds while it runs;
+    the compiled path is unchanged)."""
     import triton
 
-    return fn if interpreted() else triton.jit(fn)
+    def wrap(f):
+        return f if interpreted() else triton.jit(f, noinline=noinline)
+
+    return wrap if fn is None else wrap(fn)
+
+
+def warps(block: int) -> int:
+    """Warps per program for a block of ``block`` points, one point per thread (1 to 4): a 1D block
+    smaller than ``32 num_warps`` is replicated across the warps, every warp doing the same work
+    (Triton's default is 4 warps)."""
+    return max(1, min(4, block // 32))
 
 
 def reason(t: torch.Tensor | None = None) -> str | None:

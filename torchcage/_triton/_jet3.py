@@ -154,12 +154,16 @@ def atan_over(z):
     a1 = tl.zeros_like(z)
     a2 = tl.zeros_like(z)
     p = tl.zeros_like(z) + 1.0  # z^(2k - 2)
-    for k in tl.static_range(1, 10):
-        c = (1.0 - 2.0 * (k % 2)) / (2 * k + 1)
-        a2 += c * (2 * k) * (2 * k - 1) * p
-        a1 += c * (2 * k) * p * zs
+    k2 = tl.zeros_like(z) + 2.0  # 2k as a float
+    sgn = tl.zeros_like(z) - 1.0  # (-1)^k
+    for _k in range(1, 10):
+        c = sgn / (k2 + 1.0)
+        a2 += c * k2 * (k2 - 1.0) * p
+        a1 += c * k2 * p * zs
         a0 += c * p * z2
         p *= z2
+        k2 += 2.0
+        sgn = -sgn
     zc = tl.where(small, 1.0, z)
     A = atan2(zc, tl.zeros_like(zc) + 1.0) / zc
     q = 1.0 / (1.0 + zc * zc)

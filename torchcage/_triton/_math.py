@@ -7,8 +7,8 @@ import triton.language as tl
 
 from . import device_function
 
-PI = 3.141592653589793
-HALF_PI = 1.5707963267948966
+PI = tl.constexpr(3.141592653589793)
+HALF_PI = tl.constexpr(1.5707963267948966)
 
 
 @device_function
@@ -52,8 +52,8 @@ def atan2(y, x):
     return tl.where(y < 0, -r, r)
 
 
-LN2 = 0.6931471805599453
-SQRT2 = 1.4142135623730951
+LN2 = tl.constexpr(0.6931471805599453)
+SQRT2 = tl.constexpr(1.4142135623730951)
 
 
 @device_function

@@ -25,13 +25,13 @@ import triton.language as tl
 from ..functional._far_triangle import FAR_RATIO
 from ..functional._green3d import PERPENDICULAR_PLANE_RATIO, PERPENDICULAR_VERTEX_RATIO, TriangleGreenData
 from ..functional._thin_triangle import THIN_ASPECT, THIN_DISTANCE
-from . import interpreted
+from . import interpreted, warps
 from ._math import atan2, log
 from .mvc3d import _thin_pair
 
 __all__ = ["gc3d_triton", "triton_tables"]
 
-INV_4PI = 0.07957747154594767
+INV_4PI = tl.constexpr(0.07957747154594767)
 
 
 @triton.jit
@@ -323,5 +323,7 @@ def gc3d_triton(
     flags = torch.empty(n, dtype=torch.int32, device=x.device)
     if n == 0:
         return phi, psi, flags
-    _gc3d_kernel[(triton.cdiv(n, block),)](x.contiguous(), n, **tables, PHI=phi, PSI=psi, flags=flags, BLOCK=block)
+    _gc3d_kernel[(triton.cdiv(n, block),)](
+        x.contiguous(), n, **tables, PHI=phi, PSI=psi, flags=flags, BLOCK=block, num_warps=warps(block)
+    )
     return phi, psi, flags

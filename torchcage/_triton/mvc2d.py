@@ -15,7 +15,7 @@ import triton.language as tl
 
 from ..cage import Cage
 from ..functional._common import FAR_MOMENT, on_cage_tolerance
-from . import interpreted
+from . import interpreted, warps
 
 __all__ = ["mvc2d_triton", "triton_tables"]
 
@@ -110,5 +110,6 @@ def mvc2d_triton(
     W = torch.empty((n, tables["V"]), dtype=x.dtype, device=x.device)
     flags = torch.empty(n, dtype=torch.int32, device=x.device)
     if n:
-        _mvc2d_kernel[(triton.cdiv(n, block),)](x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block)
+        grid = (triton.cdiv(n, block),)
+        _mvc2d_kernel[grid](x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block, num_warps=warps(block))
     return W, flags

@@ -27,12 +27,12 @@ from ..functional._mvc3d import (
     TriangleCageData,
 )
 from ..functional._thin_triangle import THIN_DISTANCE
-from . import interpreted
+from . import interpreted, warps
 from ._math import PI, atan, atan2
 
 __all__ = ["mvc3d_triton"]
 
-TWO_PI = 6.283185307179586
+TWO_PI = tl.constexpr(6.283185307179586)
 #: The split form serves pairs with ``|h| < TRITON_SPLIT_FORM_RATIO min |a_i|``: wider than the
 #: native kernel's band (``SPLIT_FORM_RATIO``, 0.01), where the direct form computed with this
 #: kernel's arctangent lost 1e-10 of a face's weight on Bench at 0.013 (the split form is exact for
@@ -389,5 +389,6 @@ def mvc3d_triton(
     flags = torch.empty(n, dtype=torch.int32, device=x.device)
     if n == 0:
         return W, flags
-    _mvc3d_kernel[(triton.cdiv(n, block),)](x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block)
+    grid = (triton.cdiv(n, block),)
+    _mvc3d_kernel[grid](x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block, num_warps=warps(block))
     return W, flags

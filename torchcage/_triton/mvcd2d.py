@@ -24,7 +24,7 @@ import triton.language as tl
 
 from ..cage import Cage
 from ..functional._common import FAR_MOMENT, on_cage_tolerance
-from . import interpreted
+from . import interpreted, warps
 
 __all__ = ["derivative_tables", "mvcd2d_triton"]
 
@@ -231,7 +231,9 @@ def mvcd2d_triton(
     if block is None:
         block = min(1024, triton.next_power_of_2(max(n, 16))) if interpreted() else 128
     if n:
-        _mvcd2d_kernel[(triton.cdiv(n, block),)](xs, n, **tables, ACC=acc, flags=flags, ends=ends, BLOCK=block)
+        _mvcd2d_kernel[(triton.cdiv(n, block),)](
+            xs, n, **tables, ACC=acc, flags=flags, ends=ends, BLOCK=block, num_warps=warps(block)
+        )
     on = flags == 1
     lo, hi = P.min(dim=0).values, P.max(dim=0).values
     c = 0.5 * (lo + hi)

@@ -8,8 +8,8 @@ Per point–face pair, as the native kernel chooses:
   ``h int phi_i / |p - x|^4 dA``, differentiated under the integral;
 * **near the support plane** (``|h| < near_c min |a_i|``): the split form with jets, the divided
   difference of ``G`` where an edge is seen under a small angle; the nearest face whose foot point
-  the point sees inside keeps its singular part ``k s_i / h`` apart (written to ``SING``), any other
-  such face folds it back in;
+  the point sees inside keeps its singular part ``k s_i / h`` apart (its index and winding written
+  to ``SFACE``, ``SWIND``), any other such face folds it back in;
 * **direct** otherwise: ``U dw = dm + W e_c`` with the edges' jets ``theta_e / (2 |N_e|)``.
 
 The kernel writes the raw weights' jets; :func:`mvcd3d_triton` normalises them in torch (the sum,
@@ -19,8 +19,8 @@ kernel's derivatives (:mod:`torchcage.functional._mvcd_torch`), on the same devi
 
 Shapes: ``P (V, 3)``, ``tri (T, 3)`` int32, per-face tables ``(T, ...)``, ``X (n, 3)`` ->
 ``ACC (n, V, 10)`` (value, gradient, Hessian xx yy zz xy xz yz of each vertex's weight),
-``SING (n, 34)`` (``h``, the normal, three jets ``k s_i``), ``SIDX (n, 3)`` int32 (-1: none) and
-``flags (n,)`` int32 (1: redo the point).
+``SFACE (n,)`` int32 (the kept face, -1: none), ``SWIND (n,)`` and ``flags (n,)`` int32 (1: redo the
+point).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from ..functional._common import FAR_MOMENT
 from ..functional._mvcd_native import native_tables
 from ..functional._mvcd_torch import torch_derivatives
 from ..functional._thin_triangle import THIN_ASPECT, THIN_DISTANCE
-from . import device_function, interpreted
+from . import device_function, interpreted, warps
 from ._jet3 import (
     atan_over,
     jadd,
@@ -57,7 +57,7 @@ from .mvc3d import _thin_pair
 
 __all__ = ["mvcd3d_triton"]
 
-TWO_PI = 6.283185307179586
+TWO_PI = tl.constexpr(6.283185307179586)
 
 
 @device_function
@@ -92,12 +92,16 @@ def _g_closed(t):
     a1 = tl.zeros_like(t) - 1.0 / 3.0
     a2 = tl.zeros_like(t)
     p = tl.zeros_like(t) + 1.0  # t^(k - 2)
-    for k in tl.static_range(2, 24):
-        c = (1.0 - 2.0 * (k % 2)) / (2 * k + 1)
-        a2 += c * k * (k - 1) * p
-        a1 += c * k * p * ts
+    kf = tl.zeros_like(t) + 2.0  # k as a float
+    sgn = tl.zeros_like(t) + 1.0  # (-1)^k
+    for _k in range(2, 24):
+        c = sgn / (2.0 * kf + 1.0)
+        a2 += c * kf * (kf - 1.0) * p
+        a1 += c * kf * p * ts
         a0 += c * p * ts * ts
         p *= ts
+        kf += 1.0
+        sgn = -sgn
     tc = tl.where(small, 1.0, t)
     s = tl.sqrt(tc)
     g = atan(s) / s
@@ -114,6 +118,16 @@ def _g_fun(t, gl_y, gl_w, ng, NG: tl.constexpr):
     a = tl.zeros_like(t)
     b = tl.zeros_like(t)
     c = tl.zeros_like(t)
+    if NG == 1:  # node by node (a GPU)
+        for q in range(ng):
+            y = tl.load(gl_y + q)
+            y2 = y * y
+            r = 1.0 / (1.0 + t * y2)
+            wr = tl.load(gl_w + q) * r
+            a += wr
+            b -= wr * y2 * r
+            c += 2.0 * wr * y2 * y2 * r * r
+        return a, b, c
     for q0 in range(0, ng, NG):
         qo = q0 + tl.arange(0, NG)
         qm = (qo < ng)[None, :]
@@ -137,6 +151,23 @@ def _g_divdiff(U, u, gl_y, gl_w, ng, NG: tl.constexpr):
     d3 = tl.zeros_like(U)
     d4 = tl.zeros_like(U)
     d5 = tl.zeros_like(U)
+    if NG == 1:  # node by node (a GPU)
+        for q in range(ng):
+            y = tl.load(gl_y + q)
+            w = tl.load(gl_w + q)
+            y2 = y * y
+            y4 = y2 * y2
+            y6 = y4 * y2
+            a = 1.0 / (1.0 + U * y2)
+            b = 1.0 / (1.0 + u * y2)
+            wab = w * a * b
+            d0 -= y2 * wab
+            d1 += y4 * wab * a
+            d2 += y4 * wab * b
+            d3 -= 2.0 * y6 * wab * a * a
+            d4 -= y6 * wab * a * b
+            d5 -= 2.0 * y6 * wab * b * b
+        return d0, d1, d2, d3, d4, d5
     for q0 in range(0, ng, NG):
         qo = q0 + tl.arange(0, NG)
         qm = (qo < ng)[None, :]
@@ -194,66 +225,88 @@ def _edge_phi(aj, ak):
 
 
 @device_function
-def _direct_grad(Ni, N0, N1, N2, p0, p1, p2, W, Fv, idet):
-    """Row ``i`` of the weights' gradients (``face_direct``)."""
-    FvN = _cross(Fv, Ni)
-    n0 = _dot(Ni, N0)
-    n1 = _dot(Ni, N1)
-    n2 = _dot(Ni, N2)
-    gx = (W * Ni[0] + FvN[0] + p0[1] * n0 + p1[1] * n1 + p2[1] * n2) * idet
-    gy = (W * Ni[1] + FvN[1] + p0[2] * n0 + p1[2] * n1 + p2[2] * n2) * idet
-    gz = (W * Ni[2] + FvN[2] + p0[3] * n0 + p1[3] * n1 + p2[3] * n2) * idet
-    return gx, gy, gz
+def _axpy(y, a, x):
+    """``y + a x`` for vectors ``x, y``."""
+    return y[0] + a * x[0], y[1] + a * x[1], y[2] + a * x[2]
 
 
 @device_function
-def _direct_hess(Ni, M, Fx, Fy, Fz, gW, idet):
+def _direct_hess(Ni, M0, M1, M2, M3, M4, M5, Fx, Fy, Fz, gW, idet):
     """Row ``i`` of the weights' Hessians: ``N_i . M_cd + (F_c x N_i)_d + (F_d x N_i)_c
     + dW/dx_d N_ic + dW/dx_c N_id`` (``face_direct``)."""
     A = _cross(Fx, Ni)
     B = _cross(Fy, Ni)
     C = _cross(Fz, Ni)
-    hxx = (_dot(Ni, M[0]) + 2.0 * A[0] + 2.0 * gW[0] * Ni[0]) * idet
-    hyy = (_dot(Ni, M[1]) + 2.0 * B[1] + 2.0 * gW[1] * Ni[1]) * idet
-    hzz = (_dot(Ni, M[2]) + 2.0 * C[2] + 2.0 * gW[2] * Ni[2]) * idet
-    hxy = (_dot(Ni, M[3]) + A[1] + B[0] + gW[1] * Ni[0] + gW[0] * Ni[1]) * idet
-    hxz = (_dot(Ni, M[4]) + A[2] + C[0] + gW[2] * Ni[0] + gW[0] * Ni[2]) * idet
-    hyz = (_dot(Ni, M[5]) + B[2] + C[1] + gW[2] * Ni[1] + gW[1] * Ni[2]) * idet
+    hxx = (_dot(Ni, M0) + 2.0 * A[0] + 2.0 * gW[0] * Ni[0]) * idet
+    hyy = (_dot(Ni, M1) + 2.0 * B[1] + 2.0 * gW[1] * Ni[1]) * idet
+    hzz = (_dot(Ni, M2) + 2.0 * C[2] + 2.0 * gW[2] * Ni[2]) * idet
+    hxy = (_dot(Ni, M3) + A[1] + B[0] + gW[1] * Ni[0] + gW[0] * Ni[1]) * idet
+    hxz = (_dot(Ni, M4) + A[2] + C[0] + gW[2] * Ni[0] + gW[0] * Ni[2]) * idet
+    hyz = (_dot(Ni, M5) + B[2] + C[1] + gW[2] * Ni[1] + gW[1] * Ni[2]) * idet
     return hxx, hyy, hzz, hxy, hxz, hyz
 
 
 @device_function
 def _face_direct(a0, a1, a2, A2, h):
-    """The direct evaluation: the three corners' weight jets (``face_direct``)."""
-    p0 = _edge_phi(a1, a2)
-    p1 = _edge_phi(a2, a0)
-    p2 = _edge_phi(a0, a1)
+    """The direct evaluation: the three corners' weight jets (``face_direct``). The edges' jets
+    ``phi_e`` are summed in a loop: ``m = sum phi_e N_e``, ``F_v = sum phi_e E_e``,
+    ``F_c = sum dphi_e/dx_c E_e``, ``M_k = sum (H phi_e)_k N_e`` and, per corner,
+    ``Q_i = sum_e grad phi_e (N_i . N_e)``."""
     N0 = _cross(a1, a2)
     N1 = _cross(a2, a0)
     N2 = _cross(a0, a1)
-    E0 = _sub(a1, a2)
-    E1 = _sub(a2, a0)
-    E2 = _sub(a0, a1)
-    m = _comb(N0, N1, N2, p0[0], p1[0], p2[0])
-    Fv = _comb(E0, E1, E2, p0[0], p1[0], p2[0])
-    Fx = _comb(E0, E1, E2, p0[1], p1[1], p2[1])
-    Fy = _comb(E0, E1, E2, p0[2], p1[2], p2[2])
-    Fz = _comb(E0, E1, E2, p0[3], p1[3], p2[3])
-    M = (_comb(N0, N1, N2, p0[4], p1[4], p2[4]), _comb(N0, N1, N2, p0[5], p1[5], p2[5]),
-         _comb(N0, N1, N2, p0[6], p1[6], p2[6]), _comb(N0, N1, N2, p0[7], p1[7], p2[7]),
-         _comb(N0, N1, N2, p0[8], p1[8], p2[8]), _comb(N0, N1, N2, p0[9], p1[9], p2[9]))  # fmt: skip
+    z = tl.zeros_like(h)
+    m = (z, z, z)
+    Fv = (z, z, z)
+    Fx = (z, z, z)
+    Fy = (z, z, z)
+    Fz = (z, z, z)
+    M0 = (z, z, z)
+    M1 = (z, z, z)
+    M2 = (z, z, z)
+    M3 = (z, z, z)
+    M4 = (z, z, z)
+    M5 = (z, z, z)
+    Q0 = (z, z, z)
+    Q1 = (z, z, z)
+    Q2 = (z, z, z)
+    for e in range(3):
+        aj = _pick(e, a1, a2, a0)
+        ak = _pick(e, a2, a0, a1)
+        Ne = _cross(aj, ak)
+        Ee = _sub(aj, ak)
+        p = _edge_phi(aj, ak)
+        m = _axpy(m, p[0], Ne)
+        Fv = _axpy(Fv, p[0], Ee)
+        Fx = _axpy(Fx, p[1], Ee)
+        Fy = _axpy(Fy, p[2], Ee)
+        Fz = _axpy(Fz, p[3], Ee)
+        M0 = _axpy(M0, p[4], Ne)
+        M1 = _axpy(M1, p[5], Ne)
+        M2 = _axpy(M2, p[6], Ne)
+        M3 = _axpy(M3, p[7], Ne)
+        M4 = _axpy(M4, p[8], Ne)
+        M5 = _axpy(M5, p[9], Ne)
+        gp = (p[1], p[2], p[3])
+        Q0 = _axpy(Q0, _dot(N0, Ne), gp)
+        Q1 = _axpy(Q1, _dot(N1, Ne), gp)
+        Q2 = _axpy(Q2, _dot(N2, Ne), gp)
     idet = 1.0 / (A2 * h)
     w0 = _dot(N0, m) * idet
     w1 = _dot(N1, m) * idet
     w2 = _dot(N2, m) * idet
     W = w0 + w1 + w2
-    g0 = _direct_grad(N0, N0, N1, N2, p0, p1, p2, W, Fv, idet)
-    g1 = _direct_grad(N1, N0, N1, N2, p0, p1, p2, W, Fv, idet)
-    g2 = _direct_grad(N2, N0, N1, N2, p0, p1, p2, W, Fv, idet)
+    # gradient rows: (W N_i + F_v x N_i + Q_i) / det
+    g0 = _axpy(_axpy(_cross(Fv, N0), W, N0), 1.0, Q0)
+    g1 = _axpy(_axpy(_cross(Fv, N1), W, N1), 1.0, Q1)
+    g2 = _axpy(_axpy(_cross(Fv, N2), W, N2), 1.0, Q2)
+    g0 = (g0[0] * idet, g0[1] * idet, g0[2] * idet)
+    g1 = (g1[0] * idet, g1[1] * idet, g1[2] * idet)
+    g2 = (g2[0] * idet, g2[1] * idet, g2[2] * idet)
     gW = (g0[0] + g1[0] + g2[0], g0[1] + g1[1] + g2[1], g0[2] + g1[2] + g2[2])
-    H0 = _direct_hess(N0, M, Fx, Fy, Fz, gW, idet)
-    H1 = _direct_hess(N1, M, Fx, Fy, Fz, gW, idet)
-    H2 = _direct_hess(N2, M, Fx, Fy, Fz, gW, idet)
+    H0 = _direct_hess(N0, M0, M1, M2, M3, M4, M5, Fx, Fy, Fz, gW, idet)
+    H1 = _direct_hess(N1, M0, M1, M2, M3, M4, M5, Fx, Fy, Fz, gW, idet)
+    H2 = _direct_hess(N2, M0, M1, M2, M3, M4, M5, Fx, Fy, Fz, gW, idet)
     return (
         (w0, g0[0], g0[1], g0[2], H0[0], H0[1], H0[2], H0[3], H0[4], H0[5]),
         (w1, g1[0], g1[1], g1[2], H1[0], H1[1], H1[2], H1[3], H1[4], H1[5]),
@@ -300,6 +353,16 @@ def _face_far(x, f, n, h, far_nodes, far_coef, Q, QT: tl.constexpr):
     w0 = jconst(0.0, h)
     w1 = jconst(0.0, h)
     w2 = jconst(0.0, h)
+    if QT == 1:  # node by node (a GPU: 2D tiles of one column cost the compiler minutes)
+        for q in range(Q):
+            base = (f * Q + q) * 3
+            d = (tl.load(far_nodes + base) - x[0], tl.load(far_nodes + base + 1) - x[1],
+                 tl.load(far_nodes + base + 2) - x[2])  # fmt: skip
+            g = _far_integrand(d, n, h)
+            w0 = jadd(w0, jscale(g, tl.load(far_coef + base)))
+            w1 = jadd(w1, jscale(g, tl.load(far_coef + base + 1)))
+            w2 = jadd(w2, jscale(g, tl.load(far_coef + base + 2)))
+        return w0, w1, w2
     for q0 in range(0, Q, QT):
         qo = q0 + tl.arange(0, QT)
         ok = qo < Q
@@ -372,44 +435,59 @@ def _near_edge(aj, ak, Ee, n, h, hj, h2, Pn, le, tol, gl_y, gl_w, ng, NG: tl.con
 
 
 @device_function
-def _gram_row(s_i, S, T0, T1, T2, G, i):
-    """``B_i = s_i S + sum_e T_e (E_i . E_e)``."""
-    B = jmul(s_i, S)
-    B = jadd(B, jscale(T0, tl.load(G + 3 * i)))
-    B = jadd(B, jscale(T1, tl.load(G + 3 * i + 1)))
-    return jadd(B, jscale(T2, tl.load(G + 3 * i + 2)))
+def _pick(e, a, b, c):
+    """Vector ``a``, ``b`` or ``c`` for ``e = 0, 1, 2`` (a loop index)."""
+    return (tl.where(e == 0, a[0], tl.where(e == 1, b[0], c[0])), tl.where(e == 0, a[1], tl.where(e == 1, b[1], c[1])),
+            tl.where(e == 0, a[2], tl.where(e == 1, b[2], c[2])))  # fmt: skip
 
 
 @device_function
-def _face_near(a0, a1, a2, f, n, h, A2, ell, gram, tol, gl_y, gl_w, ng, NG):
+def _face_near(a0, a1, a2, f, n, h, A2, ell, gram, tol, gl_y, gl_w, ng, NG: tl.constexpr):
     """The split form near the support plane (``face_near_plane``): the three weight jets, the three
     singular jets ``k s_i`` (the weight's singular part is ``k s_i / h``; 0 unless the point sees the
-    foot inside), whether the point lies on the face, whether it winds."""
+    foot inside), whether the point lies on the face, its winding number (+-1 or 0). The edges run in a loop
+    (one copy of the edge's code: the compile time stays in bounds)."""
     hj = jlinear(h, -n[0], -n[1], -n[2])
     h2 = jmul(hj, hj)
     Pn = (2.0 * (1.0 - n[0] * n[0]), 2.0 * (1.0 - n[1] * n[1]), 2.0 * (1.0 - n[2] * n[2]), -2.0 * n[0] * n[1],
           -2.0 * n[0] * n[2], -2.0 * n[1] * n[2])  # fmt: skip
-    s0, T0, S0, w0, o0 = _near_edge(a1, a2, _sub(a1, a2), n, h, hj, h2, Pn, tl.load(ell + 3 * f), tol, gl_y, gl_w, ng,
-                                    NG)  # fmt: skip
-    s1, T1, S1, w1, o1 = _near_edge(a2, a0, _sub(a2, a0), n, h, hj, h2, Pn, tl.load(ell + 3 * f + 1), tol, gl_y, gl_w,
-                                    ng, NG)  # fmt: skip
-    s2, T2, S2, w2, o2 = _near_edge(a0, a1, _sub(a0, a1), n, h, hj, h2, Pn, tl.load(ell + 3 * f + 2), tol, gl_y, gl_w,
-                                    ng, NG)  # fmt: skip
-    S = jadd(jadd(S0, S1), S2)
-    on = ~(o0 | o1 | o2) & (tl.abs(h) <= tol)
-    wind = tl.floor((w0 + w1 + w2) / TWO_PI + 0.5)
-    i4A = 1.0 / (2.0 * A2)
     G = gram + 9 * f
+    S = jconst(0.0, h)
+    C0 = jconst(0.0, h)  # C_i = sum_e T_e (E_i . E_e)
+    C1 = jconst(0.0, h)
+    C2 = jconst(0.0, h)
+    s0 = jconst(0.0, h)
+    s1 = jconst(0.0, h)
+    s2 = jconst(0.0, h)
+    angle = tl.zeros_like(h)
+    outside = h != h
+    for e in range(3):
+        aj = _pick(e, a1, a2, a0)
+        ak = _pick(e, a2, a0, a1)
+        se, Te, Se, we, oe = _near_edge(aj, ak, _sub(aj, ak), n, h, hj, h2, Pn, tl.load(ell + 3 * f + e), tol, gl_y,
+                                        gl_w, ng, NG)  # fmt: skip
+        S = jadd(S, Se)
+        C0 = jadd(C0, jscale(Te, tl.load(G + e)))
+        C1 = jadd(C1, jscale(Te, tl.load(G + 3 + e)))
+        C2 = jadd(C2, jscale(Te, tl.load(G + 6 + e)))
+        s0 = jwhere(e == 0, se, s0)
+        s1 = jwhere(e == 1, se, s1)
+        s2 = jwhere(e == 2, se, s2)
+        angle += we
+        outside = outside | oe
+    on = ~outside & (tl.abs(h) <= tol)
+    wind = tl.floor(angle / TWO_PI + 0.5)
+    i4A = 1.0 / (2.0 * A2)
     k = TWO_PI * wind * i4A
     return (
-        jscale(jmul(hj, _gram_row(s0, S, T0, T1, T2, G, 0)), i4A),
-        jscale(jmul(hj, _gram_row(s1, S, T0, T1, T2, G, 1)), i4A),
-        jscale(jmul(hj, _gram_row(s2, S, T0, T1, T2, G, 2)), i4A),
+        jscale(jmul(hj, jadd(jmul(s0, S), C0)), i4A),
+        jscale(jmul(hj, jadd(jmul(s1, S), C1)), i4A),
+        jscale(jmul(hj, jadd(jmul(s2, S), C2)), i4A),
         jscale(s0, k),
         jscale(s1, k),
         jscale(s2, k),
         on,
-        wind != 0,
+        wind,
     )
 
 
@@ -429,16 +507,10 @@ def _acc(row, v, m, a):
     tl.store(base + 9, tl.load(base + 9, mask=m, other=0.0) + a[9], mask=m)
 
 
-@device_function
-def _store_jet(ptr, m, a):
-    for k in tl.static_range(10):
-        tl.store(ptr + k, a[k], mask=m)
-
-
 @triton.jit
 def _mvcd3d_kernel(
     X, n, P, V, tri, T, nrm, two_area, ell, gram, longest, thin, far_nodes, far_coef, Q, far_c, near_c,
-    gl_y, gl_w, ng, tol, thin_distance, ACC, SING, SIDX, flags, BLOCK: tl.constexpr, QT: tl.constexpr,
+    gl_y, gl_w, ng, tol, thin_distance, ACC, SFACE, SWIND, flags, BLOCK: tl.constexpr, QT: tl.constexpr,
     NG: tl.constexpr,
 ):  # fmt: skip
     offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
@@ -459,6 +531,8 @@ def _mvcd3d_kernel(
     si0 = tl.zeros_like(offs) - 1
     si1 = tl.zeros_like(offs) - 1
     si2 = tl.zeros_like(offs) - 1
+    sf = tl.zeros_like(offs) - 1
+    swind = tl.zeros_like(x[0])
     for f in range(T):
         i0 = tl.load(tri + 3 * f)
         i1 = tl.load(tri + 3 * f + 1)
@@ -492,26 +566,26 @@ def _mvcd3d_kernel(
             w2 = jwhere(far, q2, w2)
         near = near & ~at_vertex
         if tl.sum((near & live).to(tl.int32)) > 0:
-            e0, e1, e2, g0, g1, g2, on, winds = _face_near(a0, a1, a2, f, nv, h, A2, ell, gram, tol, gl_y, gl_w, ng, NG)
+            e0, e1, e2, g0, g1, g2, on, wind = _face_near(a0, a1, a2, f, nv, h, A2, ell, gram, tol, gl_y, gl_w, ng, NG)
             w0 = jwhere(near, e0, w0)
             w1 = jwhere(near, e1, w1)
             w2 = jwhere(near, e2, w2)
             redo = redo | (near & on)
-            m2 = near & winds & ~on & live
+            m2 = near & (wind != 0) & ~on & live
             nearer = tl.abs(h) < tl.abs(sh)
             old = m2 & has & nearer  # the kept part folds back in, this face's is kept
             new = m2 & has & ~nearer  # this face's part folds in
             take = m2 & (~has | nearer)
             if tl.sum(old.to(tl.int32)) > 0:
                 hold = jlinear(tl.where(old, sh, 1.0), -sn[0], -sn[1], -sn[2])
-                _acc(row, si0, old, jdiv(ss0, hold))
-                _acc(row, si1, old, jdiv(ss1, hold))
-                _acc(row, si2, old, jdiv(ss2, hold))
-            if tl.sum(new.to(tl.int32)) > 0:
+                for i in range(3):  # (a loop: one copy of the accumulation's code)
+                    _acc(row, tl.where(i == 0, si0, tl.where(i == 1, si1, si2)), old,
+                         jdiv(jwhere(i == 0, ss0, jwhere(i == 1, ss1, ss2)), hold))  # fmt: skip
+            if tl.sum(new.to(tl.int32)) > 0:  # (the same vertices as this face's weights)
                 hnew = jlinear(tl.where(new, h, 1.0), -nv[0], -nv[1], -nv[2])
-                _acc(row, i0, new, jdiv(g0, hnew))
-                _acc(row, i1, new, jdiv(g1, hnew))
-                _acc(row, i2, new, jdiv(g2, hnew))
+                w0 = jadd(w0, jwhere(new, jdiv(g0, hnew), jconst(0.0, h)))
+                w1 = jadd(w1, jwhere(new, jdiv(g1, hnew), jconst(0.0, h)))
+                w2 = jadd(w2, jwhere(new, jdiv(g2, hnew), jconst(0.0, h)))
             sh = tl.where(take, h, sh)
             sn = (tl.where(take, nv[0], sn[0]), tl.where(take, nv[1], sn[1]), tl.where(take, nv[2], sn[2]))
             ss0 = jwhere(take, g0, ss0)
@@ -520,23 +594,17 @@ def _mvcd3d_kernel(
             si0 = tl.where(take, i0, si0)
             si1 = tl.where(take, i1, si1)
             si2 = tl.where(take, i2, si2)
+            sf = tl.where(take, f, sf)
+            swind = tl.where(take, wind, swind)
             has = has | m2
         redo = redo | at_vertex
         keep = live & ~at_vertex
-        _acc(row, i0, keep, w0)
-        _acc(row, i1, keep, w1)
-        _acc(row, i2, keep, w2)
-    srow = SING + offs.to(tl.int64) * 34
-    tl.store(srow, sh, mask=live)
-    tl.store(srow + 1, sn[0], mask=live)
-    tl.store(srow + 2, sn[1], mask=live)
-    tl.store(srow + 3, sn[2], mask=live)
-    _store_jet(srow + 4, live, ss0)
-    _store_jet(srow + 14, live, ss1)
-    _store_jet(srow + 24, live, ss2)
-    tl.store(SIDX + 3 * offs, tl.where(has, si0, -1), mask=live)
-    tl.store(SIDX + 3 * offs + 1, tl.where(has, si1, -1), mask=live)
-    tl.store(SIDX + 3 * offs + 2, tl.where(has, si2, -1), mask=live)
+        for i in range(3):
+            _acc(row, tl.where(i == 0, i0, tl.where(i == 1, i1, i2)), keep, jwhere(i == 0, w0, jwhere(i == 1, w1, w2)))
+    # the kept face and its winding: the caller rebuilds k s_i and h from them (a few stores: every
+    # memory operation costs the compiler's coalescing pass time)
+    tl.store(SFACE + offs, tl.where(has, sf, -1), mask=live)
+    tl.store(SWIND + offs, swind, mask=live)
     tl.store(flags + offs, tl.where(redo, 1, 0), mask=live)
 
 
@@ -600,6 +668,26 @@ def _totals(acc: torch.Tensor, xs: torch.Tensor, P: torch.Tensor) -> torch.Tenso
     return total
 
 
+def _singular(
+    x: torch.Tensor, face: torch.Tensor, wind: torch.Tensor, tables: dict[str, object]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The kept singular part of points ``x (m, 3)`` next to faces ``face (m,)`` of winding ``wind``:
+    the jets ``(m, 10)`` of ``h = n . (p_0 - x)``, ``(m, 3, 10)`` of ``k s_i`` (``s_i = n . N_i``,
+    ``k = 2 pi wind / (4 area)``; affine in ``x``) and the corners' vertices ``(m, 3)``."""
+    idx = tables["tri"][face].long()  # (m, 3)
+    p = tables["P"][idx]  # (m, 3, 3)
+    a = p - x[:, None, :]
+    n = tables["nrm"][face]  # (m, 3)
+    h = (n * a[:, 0]).sum(dim=1)
+    N = torch.cross(a.roll(-1, dims=1), a.roll(-2, dims=1), dim=2)  # N_i = a_{i+1} x a_{i+2}
+    E = p.roll(-1, dims=1) - p.roll(-2, dims=1)
+    k = 2.0 * torch.pi * wind / (2.0 * tables["two_area"][face])
+    ks = torch.zeros(x.shape[0], 3, 10, dtype=x.dtype, device=x.device)
+    ks[..., 0] = k[:, None] * (N * n[:, None, :]).sum(dim=2)
+    ks[..., 1:4] = k[:, None, None] * torch.cross(E, n[:, None, :].expand_as(E), dim=2)
+    return _linear_jet(h, -n), ks, idx
+
+
 def mvcd3d_triton(
     x: torch.Tensor, cage: Cage, order: int, block: int | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -618,8 +706,8 @@ def mvcd3d_triton(
     xs = x.detach().to(dtype).contiguous()
     n, V = xs.shape[0], tables["V"]
     acc = torch.empty((n, V, 10), dtype=dtype, device=x.device)
-    sing = torch.empty((n, 34), dtype=dtype, device=x.device)
-    sidx = torch.empty((n, 3), dtype=torch.int32, device=x.device)
+    sface = torch.empty(n, dtype=torch.int32, device=x.device)
+    swind = torch.empty(n, dtype=dtype, device=x.device)
     flags = torch.empty(n, dtype=torch.int32, device=x.device)
     if block is None:
         block = min(512, triton.next_power_of_2(max(n, 16))) if interpreted() else 32
@@ -628,21 +716,29 @@ def mvcd3d_triton(
     gtile = triton.next_power_of_2(int(tables["ng"])) if interpreted() else 1
     if n:
         _mvcd3d_kernel[(triton.cdiv(n, block),)](
-            xs, n, **tables, ACC=acc, SING=sing, SIDX=sidx, flags=flags, BLOCK=block, QT=tile, NG=gtile
+            xs,
+            n,
+            **tables,
+            ACC=acc,
+            SFACE=sface,
+            SWIND=swind,
+            flags=flags,
+            BLOCK=block,
+            QT=tile,
+            NG=gtile,
+            num_warps=warps(block),
         )
     total = _totals(acc, xs, P)
-    kept = sidx[:, 0] >= 0
     num = acc
-    if bool(kept.any()):  # lam_v = (k s_v + h r_v) / (k sum s + h sum r)
-        rows = torch.nonzero(kept).flatten()
-        hj = _linear_jet(sing[rows, 0], -sing[rows, 1:4])[:, None, :]  # (m, 1, 10)
+    rows = torch.nonzero(sface >= 0).flatten()
+    if rows.numel():  # lam_v = (k s_v + h r_v) / (k sum s + h sum r)
+        hj, ks, idx = _singular(xs[rows], sface[rows].long(), swind[rows], tables)
         num = acc.clone()
-        num[rows] = _jet_mul(hj, acc[rows])
-        ks = sing[rows, 4:].reshape(-1, 3, 10)
+        num[rows] = _jet_mul(hj[:, None, :], acc[rows])
         for i in range(3):
-            num[rows, sidx[rows, i].long()] += ks[:, i]
+            num[rows, idx[:, i]] += ks[:, i]
         total = total.clone()
-        total[rows] = _jet_mul(hj[:, 0], acc[rows].sum(dim=1)) + ks.sum(dim=1)
+        total[rows] = _jet_mul(hj, acc[rows].sum(dim=1)) + ks.sum(dim=1)
     redo = flags == 1
     bad = ~redo & ~((total[:, 0] != 0) & torch.isfinite(total[:, 0]))
     safe = torch.where(bad[:, None], torch.ones_like(total), total)
