@@ -10,10 +10,10 @@ Run it on a machine with a CUDA GPU and triton::
 
 ``--interpret`` runs a tiny smoke version on the CPU through Triton's interpreter (no timing
 meaning; it checks that the script runs). Green coordinates (rows ``gc triton``, ``gc torch
-eager``: the bare integrals) on the same points, with the speed-up. The 3D MVC derivatives
-(gradients, Hessians) still come from autograd of the torch kernel on a GPU (rows ``grad
-(autograd)`` and ``grad+Hess 4096``, timed as they run today); the 2D ones have a Triton kernel
-(rows ``d2 triton`` against ``d2 torch``, autograd of the torch kernel, on a 512 x 512 grid).
+eager``: the bare integrals) on the same points, with the speed-up. The MVC gradients and Hessians
+(float64): the Triton derivative kernel against autograd of the torch kernel (rows ``d2 triton``,
+``d2 torch``; 3D on the first 4096 points and on all, 2D on a 512 x 512 grid), and the gradient of a
+loss through the autograd Function (``grad (backward)``).
 """
 
 from __future__ import annotations
@@ -63,22 +63,42 @@ def _torch_kernel(x: torch.Tensor, cage: torchcage.Cage) -> torch.Tensor:
     return coordinates_flat(x, cage, backend="torch")
 
 
-def _derivative_runs(x: torch.Tensor, cage: torchcage.Cage) -> dict:
-    """Derivatives as they run on a GPU today: the gradient of a loss through the autograd Function
-    (values from the Triton kernel, backward by autograd of the torch kernel), and gradients with
-    Hessians from ``mean_value_derivatives`` (autograd of the torch kernel); no Triton kernels of
-    the derivatives yet."""
-    g = torch.randn(cage.num_vertices, dtype=x.dtype, device=x.device)
+def _derivative_3d_rows(name: str, x: torch.Tensor, cage: torchcage.Cage, device: str, repeats: int, m: int) -> None:
+    """3D mean value gradients and Hessians (float64, as every backend computes them): the Triton
+    derivative kernel against autograd of the torch kernel on the first ``m`` points, with the
+    speed-up and the largest difference (relative to each row's largest entry); the Triton kernel
+    on all points; and the gradient of a loss through the autograd Function (backward: values and
+    point derivatives from the Triton kernels on a GPU)."""
+    xs = x[:m]
+    w = torch.randn(cage.num_vertices, dtype=x.dtype, device=x.device)
 
-    def grad() -> torch.Tensor:
+    def backward() -> torch.Tensor:
         xr = x.detach().requires_grad_()
-        (gx,) = torch.autograd.grad((F.mean_value_coordinates(xr, cage, dtype=x.dtype) @ g).sum(), xr)
+        (gx,) = torch.autograd.grad((F.mean_value_coordinates(xr, cage) @ w).sum(), xr)
         return gx
 
-    def hess() -> torch.Tensor:
-        return F.mean_value_derivatives(x[:4096], cage, order=2)[2]
-
-    return {"grad (autograd)": grad, "grad+Hess 4096": hess}
+    runs = {
+        f"d2 triton {m}": lambda: F.mean_value_derivatives(xs, cage, order=2, backend="triton"),
+        f"d2 torch {m}": lambda: F.mean_value_derivatives(xs, cage, order=2, backend="torch"),
+        "d2 triton all": lambda: F.mean_value_derivatives(x, cage, order=2, backend="triton"),
+        "grad (backward)": backward,
+    }
+    med = {}
+    for method, fn in runs.items():
+        try:
+            first, med[method], peak = _time(fn, device, repeats)
+        except Exception as err:
+            print(f"{name:42s} {'float64':8s} {method:14s} failed: {type(err).__name__}: {err}")
+            continue
+        print(f"{name:42s} {'float64':8s} {method:14s} {first:9.4f} {med[method]:9.4f} {peak:9.1f}")
+    a, b = f"d2 triton {m}", f"d2 torch {m}"
+    if a in med and b in med:
+        (_, gt, ht), (_, ge, he) = runs[a](), runs[b]()
+        err = max(
+            float(((p - q).abs().flatten(1).amax(1) / q.abs().flatten(1).amax(1).clamp_min(1e-300)).max())
+            for p, q in ((gt, ge), (ht, he))
+        )
+        print(f"{'':51s} d2 triton: {med[b] / med[a]:.1f}x autograd's speed, largest difference {err:.1e}")
 
 
 def _green_rows(name: str, x: torch.Tensor, c: torchcage.Cage, dtype: torch.dtype, device: str, repeats: int) -> None:
@@ -196,13 +216,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{'':51s} triton: {base / tri:.1f}x the eager kernel's speed, largest difference {err:.1e}")
             if pts.shape[0] <= 10**6 or args.interpret:
                 _green_rows(name, x, c, dtype, device, args.repeats)
-                for method, fn in _derivative_runs(x, c).items():
-                    try:
-                        first, med, peak = _time(fn, device, args.repeats)
-                    except Exception as err:
-                        print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} failed: {type(err).__name__}: {err}")
-                        continue
-                    print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} {first:9.4f} {med:9.4f} {peak:9.1f}")
+                if dtype == torch.float64 and (not args.interpret or name == cases[0][0]):  # (interpreted: minutes)
+                    _derivative_3d_rows(name, x, c, device, args.repeats, 64 if args.interpret else 4096)
     _derivative_2d_rows(device, args.repeats, 16 if args.interpret else 512)
     return 0
 

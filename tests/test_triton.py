@@ -329,8 +329,10 @@ def test_3d_derivatives_match_the_native_kernel(name: str) -> None:
       the faces the interpolant's gradient (on edges and vertices it is one-sided: a face's, which
       may differ between backends);
     * gradients and Hessians within 1e-10 of the row's largest entry at the points that are not far
-      and farther than 1e-4 of the size from every edge (measured on the eight QMVC cages: 1e-12
-      and 8e-11);
+      and farther than 1e-4 of the size from every edge (measured on the eight QMVC cages: 3e-11
+      and 8e-11), Hessians within twice the torch kernel's distance from the native one where that
+      is larger (a point on Bench's coplanar faces' plane 1.5 sizes out: the Hessian cancels,
+      Triton 2.1e-9 and torch 2.7e-9 from native);
     * at the far points (380 to 1e9 sizes) gradients within 1e-10 (measured 4e-12); the Hessians
       cancel in every backend, more the farther: within ``1.5e-8 + 1e-13 r / size`` (measured
       2.4 times ``3e-9 + 2e-14 r / size`` on Bench at 380 sizes, where the torch kernel is 6.7);
@@ -355,7 +357,12 @@ def test_3d_derivatives_match_the_native_kernel(name: str) -> None:
     face = torch.tensor([c == "face" for c in cats]) & on
     eg, eh = _row_rel(g, G), _row_rel(h, H)
     regular = ~on & ~far & (_edge_distance(x, cage) / size > 1e-4)
-    assert float(eg[regular].max()) < 1e-10 and float(eh[regular].max()) < 1e-10, (name, float(eh[regular].max()))
+    # where the Hessians cancel (outside, on coplanar faces' planes) the backends themselves differ:
+    # there the bound is twice the torch kernel's distance from the native one
+    _, Gt, Ht, _ = derivatives_flat(x[regular], cage, 2, backend="torch")
+    spread = torch.maximum(_row_rel(Ht, H[regular]), _row_rel(Gt, G[regular]))
+    assert float(eg[regular].max()) < 1e-10, (name, float(eg[regular].max()))
+    assert bool((eh[regular] < torch.clamp(2 * spread, min=1e-10)).all()), (name, float(eh[regular].max()))
     assert float(eg[far].max()) < 1e-10
     assert bool((eh[far] < 1.5e-8 + 1e-13 * r[far]).all()), (name, (eh[far] / (1.5e-8 + 1e-13 * r[far])).max())
     assert torch.allclose(lam[on], L[on], atol=1e-12 + rounding) and torch.allclose(g[face], G[face], atol=1e-12)

@@ -105,7 +105,7 @@ def _far_face(x0, x1, x2, far, f, h, far_nodes, far_w, far_bary, Q, psi, om, p0,
 @triton.jit
 def _gc3d_kernel(
     X, n, P, V, tri, T, nrm, two_area, ell, edir, eout, gbary, thin, far2, far_nodes, far_w, far_bary, Q, tol,
-    plane_c, vertex_c, thin_distance, tiny, huge, PHI, PSI, flags, BLOCK: tl.constexpr,
+    plane_c, vertex_c, thin_distance, tiny: tl.constexpr, huge: tl.constexpr, PHI, PSI, flags, BLOCK: tl.constexpr,
 ):  # fmt: skip
     offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = offs < n
@@ -302,6 +302,8 @@ def triton_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, 
         "plane_c": PERPENDICULAR_PLANE_RATIO,
         "vertex_c": PERPENDICULAR_VERTEX_RATIO,
         "thin_distance": THIN_DISTANCE,
+        # (compile-time constants: a Python float argument reaches a compiled kernel as an fp32
+        # scalar, where 1e-300 is 0 and 1e300 inf; the interpreter keeps it in float64)
         "tiny": 1e-300 if vertices.dtype == torch.float64 else 1e-30,
         "huge": 1e300 if vertices.dtype == torch.float64 else 1e30,
     }

@@ -689,7 +689,7 @@ def _singular(
 
 
 def mvcd3d_triton(
-    x: torch.Tensor, cage: Cage, order: int, block: int | None = None
+    x: torch.Tensor, cage: Cage, order: int, block: int | None = None, tables: dict[str, object] | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Coordinates ``lam (n, V)``, gradients ``(n, V, 3)``, Hessians ``(n, V, 3, 3)`` (empty for
     ``order=1``) and flags ``(n,)`` (uint8: 1 on the cage, 2 the total weight vanishes) of points
@@ -698,10 +698,12 @@ def mvcd3d_triton(
     torch kernel's derivatives (:mod:`torchcage.functional._mvcd_torch`), on the same device.
 
     The public way in is ``F.mean_value_derivatives(points, cage, backend="triton")`` (or
-    ``"auto"`` for CUDA points); the autograd Functions take it for CUDA points.
+    ``"auto"`` for CUDA points); the autograd Functions take it for CUDA points. ``tables``:
+    :func:`derivative_tables` of the cage on the points' device (built here when ``None``).
     """
     dtype = torch.float64
-    tables = derivative_tables(cage, x.device)
+    if tables is None:
+        tables = derivative_tables(cage, x.device)
     P = tables["P"]
     xs = x.detach().to(dtype).contiguous()
     n, V = xs.shape[0], tables["V"]

@@ -26,9 +26,10 @@ all exact up to rounding:
 
 In 2D each edge adds ``tan(alpha/2) / r`` to its two vertices, with ``tan(alpha/2)`` in one of two
 cancellation-free forms. The kernels are native C (``_native/mvcd3d.c``, ``mvcd2d.c``, glue and
-thresholds in ``_mvcd_native``), with a small second-order jet type doing the chain rule. Where
-they cannot serve (a GPU, no C compiler), ``_mvcd_torch`` differentiates the torch kernel of the
-coordinates instead.
+thresholds in ``_mvcd_native``), with a small second-order jet type doing the chain rule; for
+CUDA points the Triton kernels ``_triton/mvcd3d.py`` and ``mvcd2d.py`` evaluate the same formulas.
+Where none serves (no C compiler, no triton), ``_mvcd_torch`` differentiates the torch kernel of
+the coordinates instead.
 """
 
 from __future__ import annotations
@@ -121,7 +122,11 @@ def _triton_derivatives(
     if cage.dim == 2:
         from .._triton.mvcd2d import mvcd2d_triton as kernel
     else:
-        from .._triton.mvcd3d import mvcd3d_triton as kernel
+        from functools import partial
+
+        from .._triton.mvcd3d import derivative_tables, mvcd3d_triton
+
+        kernel = partial(mvcd3d_triton, tables=derivative_tables(cage, x.device))  # (built once for all chunks)
 
     n, V, D = x.shape[0], cage.num_vertices, cage.dim
     lam = x.new_empty((n, V), dtype=torch.float64)
