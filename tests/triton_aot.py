@@ -7,7 +7,9 @@ Each kernel is launched once through its Python wrapper with the launch intercep
 are recorded (types as Triton's launcher gives them: a Python float is an ``fp32`` scalar, an int
 ``i32``) and compiled for ``cuda:sm`` (90, an H100/H200, by default). Run by
 ``tests/test_triton_compile.py`` in a process of its own, as Triton decides between its
-interpreter and its compiler when a kernel is defined (``TRITON_INTERPRET``).
+interpreter and its compiler when a kernel is defined (``TRITON_INTERPRET``, set to 0 when run as a
+script). Importing this module (pytest's doctest collection) imports neither triton nor torchcage's
+kernels.
 """
 
 from __future__ import annotations
@@ -19,13 +21,7 @@ import sys
 import tempfile
 import time
 
-os.environ["TRITON_INTERPRET"] = "0"
-
 import torch
-import triton
-from triton.backends.compiler import GPUTarget
-
-import torchcage as tc
 
 _TYPES = {torch.float64: "*fp64", torch.float32: "*fp32", torch.int32: "*i32", torch.int64: "*i64", torch.uint8: "*u8"}
 
@@ -68,6 +64,7 @@ def _recorded(module: object, name: str, call) -> tuple[object, dict[str, object
 
 
 def _kernels() -> list[tuple[str, object, dict[str, object]]]:
+    import torchcage as tc
     from torchcage._triton import gc3d, mvc2d, mvc3d, mvcd2d, mvcd3d
     from torchcage.functional._green3d import triangle_green_data
     from torchcage.functional._mvc3d import triangle_cage_data
@@ -97,6 +94,8 @@ def _kernels() -> list[tuple[str, object, dict[str, object]]]:
 
 def _usage(cubin: bytes) -> str:
     """Registers and stack (spills) per thread, by the ``cuobjdump`` of Triton's wheel."""
+    import triton
+
     tool = os.path.join(os.path.dirname(triton.__file__), "backends", "nvidia", "bin", "cuobjdump")
     with tempfile.NamedTemporaryFile(suffix=".cubin") as f:
         f.write(cubin)
@@ -110,6 +109,9 @@ def _usage(cubin: bytes) -> str:
 
 
 def main(sm: int = 90) -> int:
+    import triton
+    from triton.backends.compiler import GPUTarget
+
     target = GPUTarget("cuda", sm, 32)
     for label, kernel, args in _kernels():
         constexprs = {kernel.arg_names[i]: args[kernel.arg_names[i]] for i in kernel.constexprs}
@@ -129,4 +131,5 @@ def main(sm: int = 90) -> int:
 
 
 if __name__ == "__main__":
+    os.environ["TRITON_INTERPRET"] = "0"
     sys.exit(main(int(sys.argv[1]) if len(sys.argv) > 1 else 90))
