@@ -63,6 +63,20 @@ def _torch_kernel(x: torch.Tensor, cage: torchcage.Cage) -> torch.Tensor:
     return coordinates_flat(x, cage, backend="torch")
 
 
+def _time_rows(name: str, dtype: str, runs: dict, device: str, repeats: int) -> dict[str, float]:
+    """Time each of ``runs`` (method name -> callable), print a table row per method (or why it
+    failed) and return the medians of those that ran."""
+    med = {}
+    for method, fn in runs.items():
+        try:
+            first, med[method], peak = _time(fn, device, repeats)
+        except Exception as err:  # (a failure is a result too)
+            print(f"{name:42s} {dtype:8s} {method:14s} failed: {type(err).__name__}: {err}")
+            continue
+        print(f"{name:42s} {dtype:8s} {method:14s} {first:9.4f} {med[method]:9.4f} {peak:9.1f}")
+    return med
+
+
 def _derivative_3d_rows(name: str, x: torch.Tensor, cage: torchcage.Cage, device: str, repeats: int, m: int) -> None:
     """3D mean value gradients and Hessians (float64, as every backend computes them): the Triton
     derivative kernel against autograd of the torch kernel on the first ``m`` points, with the
@@ -83,14 +97,7 @@ def _derivative_3d_rows(name: str, x: torch.Tensor, cage: torchcage.Cage, device
         "d2 triton all": lambda: F.mean_value_derivatives(x, cage, order=2, backend="triton"),
         "grad (backward)": backward,
     }
-    med = {}
-    for method, fn in runs.items():
-        try:
-            first, med[method], peak = _time(fn, device, repeats)
-        except Exception as err:
-            print(f"{name:42s} {'float64':8s} {method:14s} failed: {type(err).__name__}: {err}")
-            continue
-        print(f"{name:42s} {'float64':8s} {method:14s} {first:9.4f} {med[method]:9.4f} {peak:9.1f}")
+    med = _time_rows(name, "float64", runs, device, repeats)
     a, b = f"d2 triton {m}", f"d2 torch {m}"
     if a in med and b in med:
         (_, gt, ht), (_, ge, he) = runs[a](), runs[b]()
@@ -108,14 +115,7 @@ def _green_rows(name: str, x: torch.Tensor, c: torchcage.Cage, dtype: torch.dtyp
         "gc triton": lambda: green_flat(x, c, backend="triton"),
         "gc torch eager": lambda: green_flat(x, c, backend="torch"),
     }
-    med = {}
-    for method, fn in runs.items():
-        try:
-            first, med[method], peak = _time(fn, device, repeats)
-        except Exception as err:
-            print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} failed: {type(err).__name__}: {err}")
-            continue
-        print(f"{name:42s} {str(dtype)[6:]:8s} {method:14s} {first:9.4f} {med[method]:9.4f} {peak:9.1f}")
+    med = _time_rows(name, str(dtype)[6:], runs, device, repeats)
     if len(med) == 2:
         t, e = (torch.cat(fn(), dim=1).double() for fn in runs.values())
         err = float(((t - e).abs() / e.abs().clamp_min(1)).max())
@@ -138,14 +138,7 @@ def _derivative_2d_rows(device: str, repeats: int, side: int) -> None:
         "d2 torch": lambda: F.mean_value_derivatives(x, cage, order=2, backend="torch"),
     }
     name = f"2D derivatives, blob2d ({x.shape[0]:,} pts)"
-    med = {}
-    for method, fn in runs.items():
-        try:
-            first, med[method], peak = _time(fn, device, repeats)
-        except Exception as err:
-            print(f"{name:42s} {'float64':8s} {method:14s} failed: {type(err).__name__}: {err}")
-            continue
-        print(f"{name:42s} {'float64':8s} {method:14s} {first:9.4f} {med[method]:9.4f} {peak:9.1f}")
+    med = _time_rows(name, "float64", runs, device, repeats)
     if len(med) == 2:
         (_, gt, ht), (_, ge, he) = (fn() for fn in runs.values())
         err = max(

@@ -265,22 +265,14 @@ def test_2d_derivatives_match_the_native_kernel(name: str) -> None:
     assert torch.allclose(lam[on], lam_on, atol=1e-12) and torch.allclose(g[on], G[on], atol=1e-12)
 
 
-def test_2d_derivatives_through_the_public_function_and_autograd(monkeypatch) -> None:
-    """``backend="triton"`` in ``F.mean_value_derivatives`` (2D), and the autograd Functions'
-    analytic gradients and Hessians taken from the Triton kernel (routed to it here on CPU tensors,
-    as they are for CUDA points): backward and double backward against the native kernel's
-    gradients and Hessians."""
+def _route_derivatives_to_triton(monkeypatch) -> list[int]:
+    """Send the mean value derivatives (public function and autograd Functions) to the Triton
+    kernel, as they go for CUDA points (here on CPU tensors too); returns the list of orders the
+    kernel was called with."""
     import importlib
 
     mvd = importlib.import_module("torchcage.functional.mean_value_derivatives")  # (the module, not the function)
-
-    cage = POLYGONS["blob"].to(DEVICE)
-    x = torch.tensor([[0.1, 0.2], [-0.3, 0.25], [0.4, -0.1]], dtype=D64, device=DEVICE)
-    got = F.mean_value_derivatives(x, cage, backend="triton")
-    ref = F.mean_value_derivatives(x.cpu(), POLYGONS["blob"], backend="native" if tc._native.available() else "torch")
-    for a, b in zip(got, ref, strict=True):
-        assert torch.allclose(a.cpu(), b, rtol=1e-10, atol=1e-12)
-    calls = []
+    calls: list[int] = []
     original = mvd._triton_derivatives
 
     def spy(*args, **kwargs):
@@ -288,12 +280,27 @@ def test_2d_derivatives_through_the_public_function_and_autograd(monkeypatch) ->
         return original(*args, **kwargs)
 
     monkeypatch.setattr(mvd, "_library", lambda backend, x: None)
-    monkeypatch.setattr(mvd, "_triton_serves", lambda backend, x, cage: cage.dim == 2)
+    monkeypatch.setattr(mvd, "_triton_serves", lambda backend, x, cage: True)
     monkeypatch.setattr(mvd, "_triton_derivatives", spy)
     if DEVICE == "cpu":  # (the autograd Functions take the analytic path for CPU points and the library)
         import torchcage.autograd.mean_value as amv
 
         monkeypatch.setattr(amv, "_analytic", lambda points: True)
+    return calls
+
+
+def test_2d_derivatives_through_the_public_function_and_autograd(monkeypatch) -> None:
+    """``backend="triton"`` in ``F.mean_value_derivatives`` (2D), and the autograd Functions'
+    analytic gradients and Hessians taken from the Triton kernel (routed to it here on CPU tensors,
+    as they are for CUDA points): backward and double backward against the native kernel's
+    gradients and Hessians."""
+    cage = POLYGONS["blob"].to(DEVICE)
+    x = torch.tensor([[0.1, 0.2], [-0.3, 0.25], [0.4, -0.1]], dtype=D64, device=DEVICE)
+    got = F.mean_value_derivatives(x, cage, backend="triton")
+    ref = F.mean_value_derivatives(x.cpu(), POLYGONS["blob"], backend="native" if tc._native.available() else "torch")
+    for a, b in zip(got, ref, strict=True):
+        assert torch.allclose(a.cpu(), b, rtol=1e-10, atol=1e-12)
+    calls = _route_derivatives_to_triton(monkeypatch)
     xg = x.clone().requires_grad_()
     lam = F.mean_value_coordinates(xg, cage)
     w = torch.linspace(-1.0, 1.0, lam.shape[1], dtype=D64, device=DEVICE)
@@ -374,10 +381,6 @@ def test_3d_derivatives_through_the_public_function_and_autograd(monkeypatch) ->
     here on CPU tensors, as they are for CUDA points): backward and double backward against the
     native kernel's gradients and Hessians; a thin face's neighbours and a point on the cage are
     redone by the torch kernel's derivatives."""
-    import importlib
-
-    mvd = importlib.import_module("torchcage.functional.mean_value_derivatives")  # (the module, not the function)
-
     cage = CAGES["cube"].to(DEVICE)
     x = torch.tensor([[[0.1, 0.2, -0.3], [0.5, -0.45, 0.9]], [[-0.99, 0.0, 0.2], [2.0, 1.0, -3.0]]], dtype=D64)
     ref_backend = "native" if tc._native.available() else "torch"
@@ -391,20 +394,7 @@ def test_3d_derivatives_through_the_public_function_and_autograd(monkeypatch) ->
     ref = F.mean_value_derivatives(xs, sliver, backend=ref_backend)
     for a, b in zip(got, ref, strict=True):
         assert torch.allclose(a.cpu(), b, rtol=1e-9, atol=1e-11)
-    calls = []
-    original = mvd._triton_derivatives
-
-    def spy(*args, **kwargs):
-        calls.append(args[2])
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(mvd, "_library", lambda backend, x: None)
-    monkeypatch.setattr(mvd, "_triton_serves", lambda backend, x, cage: True)
-    monkeypatch.setattr(mvd, "_triton_derivatives", spy)
-    if DEVICE == "cpu":  # (the autograd Functions take the analytic path for CPU points and the library)
-        import torchcage.autograd.mean_value as amv
-
-        monkeypatch.setattr(amv, "_analytic", lambda points: True)
+    calls = _route_derivatives_to_triton(monkeypatch)
     pts = x.reshape(-1, 3)
     xg = pts.to(DEVICE).clone().requires_grad_()
     lam = F.mean_value_coordinates(xg, cage)

@@ -76,13 +76,6 @@ def _sub(a, b):
 
 
 @device_function
-def _comb(a, b, c, ka, kb, kc):
-    """``ka a + kb b + kc c`` for vectors ``a, b, c``."""
-    return (ka * a[0] + kb * b[0] + kc * c[0], ka * a[1] + kb * b[1] + kc * c[1],
-            ka * a[2] + kb * b[2] + kc * c[2])  # fmt: skip
-
-
-@device_function
 def _g_closed(t):
     """``G(t) = atan(sqrt t) / sqrt t`` and its first two derivatives for ``0 <= t <= 1``: the
     alternating series below 0.1 (24 terms), the closed form above (``mvcd3d.c: g_closed``)."""
