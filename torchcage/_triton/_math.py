@@ -22,7 +22,8 @@ def atan(t):
     z = z / (1.0 + tl.sqrt(1.0 + z * z))
     z = z / (1.0 + tl.sqrt(1.0 + z * z))
     s = z * z
-    p = -1.0 / 23.0
+    # (a float literal alone becomes an fp32 scalar on a GPU: -1/23 lost its fp64 digits)
+    p = tl.zeros_like(s) - 1.0 / 23.0
     p = p * s + 1.0 / 21.0
     p = p * s - 1.0 / 19.0
     p = p * s + 1.0 / 17.0
@@ -82,7 +83,7 @@ def log(x):
     e = tl.where(hi, e + 1.0, e)
     z = (m - 1.0) / (m + 1.0)
     s = z * z
-    q = 1.0 / 23.0
+    q = tl.zeros_like(s) + 1.0 / 23.0
     q = q * s + 1.0 / 21.0
     q = q * s + 1.0 / 19.0
     q = q * s + 1.0 / 17.0

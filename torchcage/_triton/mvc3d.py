@@ -24,13 +24,14 @@ from ..functional._mvc3d import (
     CANCELLATION_RATIO,
     FAR_ALWAYS_RATIO,
     FAR_FIELD_RATIO,
+    PART_FAR_FIELD_RATIO,
     TriangleCageData,
 )
 from ..functional._thin_triangle import THIN_DISTANCE
 from . import interpreted, warps
 from ._math import PI, atan, atan2
 
-__all__ = ["mvc3d_triton"]
+__all__ = ["mvc3d_triton", "part_tables"]
 
 TWO_PI = tl.constexpr(6.283185307179586)
 #: The split form serves pairs with ``|h| < TRITON_SPLIT_FORM_RATIO min |a_i|``: wider than the
@@ -71,21 +72,16 @@ def _stable_edge(s_e, d_e, h, ell_e):
 
 
 @triton.jit
-def _face_weights(x0, x1, x2, f, P, tri, nrm, two_area, ell, gram, tol, near_c):
-    """Weights of face ``f`` at a block of points (direct or split form) with the pair's facts:
-    ``(i0, i1, i2, w0, w1, w2, on_face, at_vertex, b0, b1, b2, rmin)``."""
-    i0 = tl.load(tri + 3 * f)
-    i1 = tl.load(tri + 3 * f + 1)
-    i2 = tl.load(tri + 3 * f + 2)
-    a0x = tl.load(P + 3 * i0) - x0
-    a0y = tl.load(P + 3 * i0 + 1) - x1
-    a0z = tl.load(P + 3 * i0 + 2) - x2
-    a1x = tl.load(P + 3 * i1) - x0
-    a1y = tl.load(P + 3 * i1 + 1) - x1
-    a1z = tl.load(P + 3 * i1 + 2) - x2
-    a2x = tl.load(P + 3 * i2) - x0
-    a2y = tl.load(P + 3 * i2 + 1) - x1
-    a2z = tl.load(P + 3 * i2 + 2) - x2
+def face_form(
+    a0x, a0y, a0z, a1x, a1y, a1z, a2x, a2y, a2z, nx, ny, nz, A2, l0, l1, l2,
+    g00, g01, g02, g10, g11, g12, g20, g21, g22, tol, near_c,
+):  # fmt: skip
+    """Mean value weights of a triangle with corners ``a_i`` (minus the point; block tensors), unit
+    normal ``n``, twice its area ``A2``, edge lengths ``l_e`` (edge ``e`` opposite corner ``e``) and
+    edge Gram matrix ``g_ef = E_e . E_f`` (``E_e = a_{e+1} - a_{e+2}``): the direct vector form, or
+    the split form where ``|h| < near_c min |a_i|`` (or within ``tol`` of a corner); a triangle of
+    no area weighs nothing. Returns ``(w0, w1, w2, s0, s1, s2, h, rmin, R0, R1, R2, split, dead)``
+    (``s_e = n . N_e``, ``h = n . a_0``)."""
     R0 = tl.sqrt(a0x * a0x + a0y * a0y + a0z * a0z)
     R1 = tl.sqrt(a1x * a1x + a1y * a1y + a1z * a1z)
     R2 = tl.sqrt(a2x * a2x + a2y * a2y + a2z * a2z)
@@ -106,16 +102,12 @@ def _face_weights(x0, x1, x2, f, P, tri, nrm, two_area, ell, gram, tol, near_c):
     d1 = a2x * a0x + a2y * a0y + a2z * a0z
     d2 = a0x * a1x + a0y * a1y + a0z * a1z
     # m = sum_e (theta_e / 2) N_e / |N_e| (0 where N_e = 0)
-    g0 = 0.5 * _half_angle(nn0, d0, R1 * R2) / tl.where(nn0 > 0, nn0, 1.0)
-    g1 = 0.5 * _half_angle(nn1, d1, R2 * R0) / tl.where(nn1 > 0, nn1, 1.0)
-    g2 = 0.5 * _half_angle(nn2, d2, R0 * R1) / tl.where(nn2 > 0, nn2, 1.0)
-    mx = g0 * N0x + g1 * N1x + g2 * N2x
-    my = g0 * N0y + g1 * N1y + g2 * N2y
-    mz = g0 * N0z + g1 * N1z + g2 * N2z
-    nx = tl.load(nrm + 3 * f)
-    ny = tl.load(nrm + 3 * f + 1)
-    nz = tl.load(nrm + 3 * f + 2)
-    A2 = tl.load(two_area + f)
+    t0 = 0.5 * _half_angle(nn0, d0, R1 * R2) / tl.where(nn0 > 0, nn0, 1.0)
+    t1 = 0.5 * _half_angle(nn1, d1, R2 * R0) / tl.where(nn1 > 0, nn1, 1.0)
+    t2 = 0.5 * _half_angle(nn2, d2, R0 * R1) / tl.where(nn2 > 0, nn2, 1.0)
+    mx = t0 * N0x + t1 * N1x + t2 * N2x
+    my = t0 * N0y + t1 * N1y + t2 * N2y
+    mz = t0 * N0z + t1 * N1z + t2 * N2z
     h = nx * a0x + ny * a0y + nz * a0z
     det = A2 * h
     inv = 1.0 / tl.where(det != 0, det, 1.0)
@@ -127,9 +119,6 @@ def _face_weights(x0, x1, x2, f, P, tri, nrm, two_area, ell, gram, tol, near_c):
     s0 = nx * N0x + ny * N0y + nz * N0z
     s1 = nx * N1x + ny * N1y + nz * N1z
     s2 = nx * N2x + ny * N2y + nz * N2z
-    l0 = tl.load(ell + 3 * f)
-    l1 = tl.load(ell + 3 * f + 1)
-    l2 = tl.load(ell + 3 * f + 2)
     wa0, t0, r0, ok0 = _stable_edge(s0, d0, h, l0)
     wa1, t1, r1, ok1 = _stable_edge(s1, d1, h, l1)
     wa2, t2, r2, ok2 = _stable_edge(s2, d2, h, l2)
@@ -138,13 +127,12 @@ def _face_weights(x0, x1, x2, f, P, tri, nrm, two_area, ell, gram, tol, near_c):
     t2 = tl.where(ok2, t2, 1.0 / tl.where(R0 * R1 > 0, R0 * R1, 1.0))
     S_rest = r0 + r1 + r2
     wind = tl.floor((wa0 + wa1 + wa2) / TWO_PI + 0.5)
-    inv4A = 1.0 / (2.0 * A2)
+    inv4A = 1.0 / (2.0 * tl.where(A2 > 0, A2, 1.0))
     safe_h = tl.where(h != 0, h, 1.0)
     sing = tl.where(wind != 0, TWO_PI * wind / safe_h, 0.0) * inv4A
-    G = gram + 9 * f
-    B0 = s0 * S_rest + t0 * tl.load(G) + t1 * tl.load(G + 1) + t2 * tl.load(G + 2)
-    B1 = s1 * S_rest + t0 * tl.load(G + 3) + t1 * tl.load(G + 4) + t2 * tl.load(G + 5)
-    B2 = s2 * S_rest + t0 * tl.load(G + 6) + t1 * tl.load(G + 7) + t2 * tl.load(G + 8)
+    B0 = s0 * S_rest + t0 * g00 + t1 * g01 + t2 * g02
+    B1 = s1 * S_rest + t0 * g10 + t1 * g11 + t2 * g12
+    B2 = s2 * S_rest + t0 * g20 + t1 * g21 + t2 * g22
     split = (tl.abs(h) < near_c * rmin) | (rmin <= tol)
     # (a face of no area, such as a sliver rounded to float32, holds nothing and weighs nothing)
     dead = (tl.zeros_like(h) + A2) <= 0
@@ -152,6 +140,29 @@ def _face_weights(x0, x1, x2, f, P, tri, nrm, two_area, ell, gram, tol, near_c):
     w0 = tl.where(flat, 0.0, tl.where(split, h * B0 * inv4A + s0 * sing, w0))
     w1 = tl.where(flat, 0.0, tl.where(split, h * B1 * inv4A + s1 * sing, w1))
     w2 = tl.where(flat, 0.0, tl.where(split, h * B2 * inv4A + s2 * sing, w2))
+    return w0, w1, w2, s0, s1, s2, h, rmin, R0, R1, R2, split, dead
+
+
+@triton.jit
+def _face_weights(x0, x1, x2, f, P, tri, nrm, two_area, ell, gram, tol, near_c):
+    """Weights of face ``f`` at a block of points (:func:`face_form`) with the pair's facts:
+    ``(i0, i1, i2, w0, w1, w2, on_face, at_vertex, b0, b1, b2, rmin)``."""
+    i0 = tl.load(tri + 3 * f)
+    i1 = tl.load(tri + 3 * f + 1)
+    i2 = tl.load(tri + 3 * f + 2)
+    l0 = tl.load(ell + 3 * f)
+    l1 = tl.load(ell + 3 * f + 1)
+    l2 = tl.load(ell + 3 * f + 2)
+    G = gram + 9 * f
+    w0, w1, w2, s0, s1, s2, h, rmin, R0, R1, R2, split, dead = face_form(
+        tl.load(P + 3 * i0) - x0, tl.load(P + 3 * i0 + 1) - x1, tl.load(P + 3 * i0 + 2) - x2,
+        tl.load(P + 3 * i1) - x0, tl.load(P + 3 * i1 + 1) - x1, tl.load(P + 3 * i1 + 2) - x2,
+        tl.load(P + 3 * i2) - x0, tl.load(P + 3 * i2 + 1) - x1, tl.load(P + 3 * i2 + 2) - x2,
+        tl.load(nrm + 3 * f), tl.load(nrm + 3 * f + 1), tl.load(nrm + 3 * f + 2), tl.load(two_area + f),
+        l0, l1, l2,
+        tl.load(G), tl.load(G + 1), tl.load(G + 2), tl.load(G + 3), tl.load(G + 4), tl.load(G + 5),
+        tl.load(G + 6), tl.load(G + 7), tl.load(G + 8), tol, near_c,
+    )  # fmt: skip
     # on the face (within tol) or at a vertex
     at_vertex = rmin <= tol
     inside = (s0 >= -tol * l0) & (s1 >= -tol * l1) & (s2 >= -tol * l2)
@@ -232,7 +243,7 @@ def _far_face(x0, x1, x2, f, h, far_nodes, far_coef, Q, scale):
 def _mvc3d_kernel(
     X, n, P, V, tri, T, nrm, two_area, ell, gram, longest, thin, far_nodes, far_coef, Q,
     c0, c1, c2, far2, rad2, tol, near_c, far_c, cancel_c, far_always, thin_distance,
-    W, flags, BLOCK: tl.constexpr,
+    W, flags, BLOCK: tl.constexpr, NORMALIZE: tl.constexpr = True,
 ):  # fmt: skip
     offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = offs < n
@@ -283,8 +294,12 @@ def _mvc3d_kernel(
     y1 = x1 - c1
     y2 = x2 - c2
     yy = y0 * y0 + y1 * y1 + y2 * y2
-    # the far pass scales each point's weights by scale^2, scale = max(1, |y|^2 / radius^2)
-    scale = tl.maximum(yy / rad2, 1.0)
+    # the far pass scales each point's weights by scale^2, scale = max(1, |y|^2 / radius^2) (raw
+    # weights, unnormalised, keep their scale)
+    if NORMALIZE:
+        scale = tl.maximum(yy / rad2, 1.0)
+    else:
+        scale = tl.zeros_like(yy) + 1.0
     if tl.sum(far.to(tl.int32)) > 0:
         # the face weights cancel (far outside) or faces are seen very small: the faces seen small
         # take the quadrature, the others their forms again
@@ -313,16 +328,19 @@ def _mvc3d_kernel(
             tl.store(row + i1, tl.load(row + i1, mask=far, other=0.0) + w1, mask=far)
             tl.store(row + i2, tl.load(row + i2, mask=far, other=0.0) + w2, mask=far)
     # normalise: the sum, or far away the first moment (W (P - c)) . y / |y|^2
-    distant = yy > far2
-    s = tl.zeros_like(x0)
-    mom = tl.zeros_like(x0)
-    for v in range(V):
-        wv = tl.load(row + v, mask=live, other=0.0)
-        s += wv
-        pv = (tl.load(P + 3 * v) - c0) * y0 + (tl.load(P + 3 * v + 1) - c1) * y1 + (tl.load(P + 3 * v + 2) - c2) * y2
-        mom += wv * pv
-    den = tl.where(distant, mom / tl.where(distant, yy, 1.0), s)
-    inv = 1.0 / den
+    if NORMALIZE:
+        distant = yy > far2
+        s = tl.zeros_like(x0)
+        mom = tl.zeros_like(x0)
+        for v in range(V):
+            wv = tl.load(row + v, mask=live, other=0.0)
+            s += wv
+            pv = (tl.load(P + 3 * v) - c0) * y0 + (tl.load(P + 3 * v + 1) - c1) * y1 + (tl.load(P + 3 * v + 2) - c2) * y2
+            mom += wv * pv
+        den = tl.where(distant, mom / tl.where(distant, yy, 1.0), s)
+        inv = 1.0 / den
+    else:
+        inv = tl.zeros_like(x0) + 1.0
     for v in range(V):
         wv = tl.load(row + v, mask=live, other=0.0)
         tl.store(row + v, tl.where(on, 0.0, wv * inv), mask=live)
@@ -375,13 +393,25 @@ def triton_tables(data: TriangleCageData) -> dict[str, object]:
     }
 
 
+def part_tables(data: TriangleCageData) -> dict[str, object]:
+    """:func:`triton_tables` for the triangles of a triquad cage (raw weights, ``normalize=False``):
+    their own sum does not show the far field's cancellation, so faces seen small always take the
+    quadrature (as the native kernel's part mode)."""
+    tables = triton_tables(data)
+    tables["cancel_c"] = 0.0
+    tables["far_c"] = PART_FAR_FIELD_RATIO
+    return tables
+
+
 def mvc3d_triton(
-    x: torch.Tensor, tables: dict[str, object], block: int | None = None
+    x: torch.Tensor, tables: dict[str, object], block: int | None = None, normalize: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Normalised mean value coordinates ``(n, V)`` of points ``x`` ``(n, 3)`` (the tables' dtype and
     device) and their flags ``(n,)`` int32: 1 on the cage, 2 where the caller must redo the point
     with the torch kernel (a thin face seen from a few widths). ``block``: points per program (64 on
-    a GPU; the interpreter runs one op per call over the block, so there the block is large)."""
+    a GPU; the interpreter runs one op per call over the block, so there the block is large).
+    ``normalize=False``: the raw weights (rows on the cage hold their final values), for the
+    triangles of a triquad cage (tables from :func:`part_tables`)."""
     n = x.shape[0]
     if block is None:
         block = min(4096, triton.next_power_of_2(max(n, 16))) if interpreted() else 64
@@ -390,5 +420,7 @@ def mvc3d_triton(
     if n == 0:
         return W, flags
     grid = (triton.cdiv(n, block),)
-    _mvc3d_kernel[grid](x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block, num_warps=warps(block))
+    _mvc3d_kernel[grid](
+        x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block, NORMALIZE=normalize, num_warps=warps(block)
+    )
     return W, flags

@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import torch
 
-from .. import _native
+from .. import _native, _triton
 from ..cage import Cage
 from ..errors import CageError, PointsError
 from ._batch import over_cage_batch
@@ -134,7 +134,9 @@ def quad_mean_value_coordinates(
             whatever it is (float32 would lose accuracy near the cage: see docs/accuracy.md).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): the native C kernel for float64 CPU points when no autograd
-            graph is needed, else the torch kernel; ``"torch"`` or ``"native"`` to force one.
+            graph is needed, the Triton kernel for CUDA points (with triton installed, no graph,
+            ``tol=None``), else the torch kernel; ``"torch"``, ``"native"`` or ``"triton"`` to force
+            one (docs/gpu.md).
         allow_invalid: compute even if some quads are invalid (with a warning) instead of raising.
         tol: if given (in ``[1e-14, 0.1]``), the exact coordinates: the quads' defining integrals
             to this relative tolerance by an error-controlled Gauss quadrature (``n`` is then
@@ -152,6 +154,8 @@ def quad_mean_value_coordinates(
         CageError: a 2D cage, or invalid quads (unless ``allow_invalid``).
         PointsError: points of the wrong shape or device, NaN or inf, or points outside the cage
             where the total weight vanishes.
+        ValueError: ``backend="triton"`` with ``tol`` (the Triton kernel computes the Riemann sum).
+        RuntimeError: ``backend="triton"`` or ``"native"`` where that kernel cannot serve.
 
     Examples:
         >>> import torch, torchcage
@@ -181,13 +185,22 @@ def quad_mean_value_coordinates(
         )
     quad_tol = check_tol(tol)
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
-    lib = _native.select(backend, x, cage.vertices)
+    if backend == "triton" and quad_tol is not None:
+        raise ValueError(
+            "backend='triton' computes the paper's Riemann sum (tol=None); the exact integrals (tol=...) run on "
+            "backend='torch' or 'native'"
+        )
+    use_triton = quad_tol is None and _triton.serves(backend, x, records_graph(x, verts))
+    lib = None if use_triton or backend == "triton" else _native.select(backend, x, cage.vertices)
     T, Q = cage.triangles.shape[0], cage.quads.shape[0]
     tdata = triangle_data(verts, cage.triangles, tol) if T else None
     qdata = quad_data(verts, cage.quads, tol) if Q else None
     if lib is not None:
         kernel = native_kernel(lib, verts, tdata, qdata, n, quad_tol)
         size = chunk_size or 1 << 14
+    elif use_triton:
+        kernel = _triton_kernel(verts, tdata, qdata, n)
+        size = chunk_size or max(256, (1 << 23) // cage.num_vertices)
     else:
         kernel = functools.partial(_torch_chunk, verts=verts, tdata=tdata, qdata=qdata, n=n, quad_tol=quad_tol)
         samples = (2 * n + 1) ** 2 if quad_tol is None else 256
@@ -203,6 +216,50 @@ def quad_mean_value_coordinates(
         )
     (out,) = far_unity(out, x, verts)
     return out.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
+
+
+def _triton_kernel(
+    verts: torch.Tensor, tdata: TriangleCageData | None, qdata: QuadData | None, n: int
+) -> Callable[[torch.Tensor], torch.Tensor]:
+    """The Triton kernels (triangles: raw mean value weights; quads: ``_triton.qmvc3d``) as a chunk
+    function ``x (m, 3) -> coordinates (m, V)``, normalised on the device; points the triangle
+    kernel flags (a thin face seen from a few widths) are redone by the torch kernel."""
+    from .._triton.mvc3d import mvc3d_triton, part_tables
+    from .._triton.qmvc3d import qmvc3d_triton, triton_tables
+
+    tri_tables = part_tables(tdata) if tdata is not None else None
+    quad_tables = triton_tables(verts, qdata, n) if qdata is not None else None
+
+    def kernel(c: torch.Tensor) -> torch.Tensor:
+        c = c.contiguous()
+        if tri_tables is not None:
+            W, flags = mvc3d_triton(c, tri_tables, normalize=quad_tables is None)
+            if quad_tables is None:  # a triangle cage: normalised by the triangle kernel
+                return _redo(W, flags, c, verts, tdata, qdata, n)
+        else:
+            W = torch.zeros((c.shape[0], verts.shape[0]), dtype=c.dtype, device=c.device)
+            flags = torch.zeros(c.shape[0], dtype=torch.int32, device=c.device)
+        qmvc3d_triton(c, quad_tables, W, flags)
+        W = normalise_weights(W, flags == 1, verts, c)
+        return _redo(W, flags, c, verts, tdata, qdata, n)
+
+    return kernel
+
+
+def _redo(
+    W: torch.Tensor,
+    flags: torch.Tensor,
+    c: torch.Tensor,
+    verts: torch.Tensor,
+    tdata: TriangleCageData | None,
+    qdata: QuadData | None,
+    n: int,
+) -> torch.Tensor:
+    """``W`` with the rows flagged 2 by the Triton triangle kernel computed by the torch kernel."""
+    redo = torch.nonzero(flags == 2).flatten()
+    if redo.numel():
+        W = W.index_copy(0, redo, _torch_chunk(c.index_select(0, redo), verts, tdata, qdata, n))
+    return W
 
 
 def _torch_chunk(
