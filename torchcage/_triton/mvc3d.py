@@ -335,7 +335,8 @@ def _mvc3d_kernel(
         for v in range(V):
             wv = tl.load(row + v, mask=live, other=0.0)
             s += wv
-            pv = (tl.load(P + 3 * v) - c0) * y0 + (tl.load(P + 3 * v + 1) - c1) * y1 + (tl.load(P + 3 * v + 2) - c2) * y2
+            pv = (tl.load(P + 3 * v) - c0) * y0 + (tl.load(P + 3 * v + 1) - c1) * y1
+            pv += (tl.load(P + 3 * v + 2) - c2) * y2
             mom += wv * pv
         den = tl.where(distant, mom / tl.where(distant, yy, 1.0), s)
         inv = 1.0 / den

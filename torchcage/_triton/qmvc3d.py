@@ -56,7 +56,8 @@ def _edge_term(cx, cy, cz, ax, ay, az, bx, by, bz, Ra, Rb):
     """``theta_ab / (2 |p_a x p_b|)`` from ``c = p_a x p_b`` (0 where ``c`` vanishes)."""
     c2 = cx * cx + cy * cy + cz * cz
     cn = tl.sqrt(c2)
-    return tl.where(c2 > 0, 0.5 * _half_angle(cn, _dot(ax, ay, az, bx, by, bz), Ra * Rb) / tl.where(c2 > 0, cn, 1.0), 0.0)
+    theta = _half_angle(cn, _dot(ax, ay, az, bx, by, bz), Ra * Rb)
+    return tl.where(c2 > 0, 0.5 * theta / tl.where(c2 > 0, cn, 1.0), 0.0)
 
 
 @device_function
@@ -96,7 +97,7 @@ def _corner_triangle(ax, ay, az, bx, by, bz, cx, cy, cz):
     g01 = _dot(E0x, E0y, E0z, E1x, E1y, E1z)
     g02 = _dot(E0x, E0y, E0z, E2x, E2y, E2z)
     g12 = _dot(E1x, E1y, E1z, E2x, E2y, E2z)
-    w0, w1, w2, s0, s1, s2, h, rmin, R0, R1, R2, split, dead = face_form(
+    w0, w1, w2, _s0, _s1, _s2, _h, _rmin, _R0, _R1, _R2, _split, _dead = face_form(
         ax, ay, az, bx, by, bz, cx, cy, cz, nx * inv, ny * inv, nz * inv, A2,
         tl.sqrt(g00), tl.sqrt(g11), tl.sqrt(g22), g00, g01, g02, g01, g11, g12, g02, g12, g22,
         0.0, TRITON_SPLIT_FORM_RATIO,
