@@ -65,7 +65,8 @@ def _recorded(module: object, name: str, call) -> tuple[object, dict[str, object
 
 def _kernels() -> list[tuple[str, object, dict[str, object]]]:
     import torchcage as tc
-    from torchcage._triton import gc3d, mvc2d, mvc3d, mvcd2d, mvcd3d
+    from torchcage._triton import gc3d, mvc2d, mvc3d, mvcd2d, mvcd3d, qmvc3d
+    from torchcage.functional._qmvc3d import quad_data
     from torchcage.functional._green3d import triangle_green_data
     from torchcage.functional._mvc3d import triangle_cage_data
 
@@ -85,6 +86,14 @@ def _kernels() -> list[tuple[str, object, dict[str, object]]]:
         k, a = _recorded(gc3d, "_gc3d_kernel", lambda c=c, dt=dt: gc3d.gc3d_triton(
             x3.to(dt), gc3d.triton_tables(triangle_green_data(c, dt), c.vertices)))  # fmt: skip
         out.append((f"gc3d {dt}", k, a))
+    quads = tc.load_cage(tc.data.path("cube.obj")).to(D)
+    k, a = _recorded(mvc3d, "_mvc3d_kernel", lambda: mvc3d.mvc3d_triton(
+        x3, mvc3d.part_tables(triangle_cage_data(cube, D)), normalize=False))  # fmt: skip
+    out.append(("mvc3d raw weights", k, a))
+    k, a = _recorded(qmvc3d, "_qmvc3d_kernel", lambda: qmvc3d.qmvc3d_triton(
+        x3, qmvc3d.triton_tables(quads.vertices, quad_data(quads.vertices, quads.quads, 1e-12), 4),
+        torch.zeros(4, 8, dtype=D), torch.zeros(4, dtype=torch.int32)))  # fmt: skip
+    out.append(("qmvc3d", k, a))
     k, a = _recorded(mvcd2d, "_mvcd2d_kernel", lambda: mvcd2d.mvcd2d_triton(x2, square, 2))
     out.append(("mvcd2d", k, a))
     k, a = _recorded(mvcd3d, "_mvcd3d_kernel", lambda: mvcd3d.mvcd3d_triton(x3, cube, 2))

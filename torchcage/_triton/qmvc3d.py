@@ -39,6 +39,8 @@ NREFINE = tl.constexpr(REFINE)
 #: ``16 eps`` (float64): the rounding level of ``kappa`` (relative to ``sum_i prod_{j != i} |p_j|``).
 NOISE = tl.constexpr(16.0 * 2.220446049250313e-16)
 BIG = tl.constexpr(1e300)
+#: The split form of the hull and split triangles (as the mean value kernel's, :mod:`.mvc3d`).
+SPLIT = tl.constexpr(TRITON_SPLIT_FORM_RATIO)
 
 
 @device_function
@@ -100,7 +102,7 @@ def _corner_triangle(ax, ay, az, bx, by, bz, cx, cy, cz):
     w0, w1, w2, _s0, _s1, _s2, _h, _rmin, _R0, _R1, _R2, _split, _dead = face_form(
         ax, ay, az, bx, by, bz, cx, cy, cz, nx * inv, ny * inv, nz * inv, A2,
         tl.sqrt(g00), tl.sqrt(g11), tl.sqrt(g22), g00, g01, g02, g01, g11, g12, g02, g12, g22,
-        0.0, TRITON_SPLIT_FORM_RATIO,
+        0.0, SPLIT,
     )  # fmt: skip
     return w0, w1, w2, ok
 
