@@ -13,7 +13,9 @@ meaning; it checks that the script runs). Green coordinates (rows ``gc triton``,
 eager``: the bare integrals) on the same points, with the speed-up. The MVC gradients and Hessians
 (float64): the Triton derivative kernel against autograd of the torch kernel (rows ``d2 triton``,
 ``d2 torch``; 3D on the first 4096 points and on all, 2D on a 512 x 512 grid), and the gradient of a
-loss through the autograd Function (``grad (backward)``).
+loss through the autograd Function (``grad (backward)``). Quad mean value coordinates on the quad
+cages (float64): the Triton kernel against the eager torch kernel on the first 4096 points
+(``qmvc triton 4096``, ``qmvc torch 4096``), and the Triton kernel on all points.
 """
 
 from __future__ import annotations
@@ -123,6 +125,24 @@ def _green_rows(name: str, x: torch.Tensor, c: torchcage.Cage, dtype: torch.dtyp
         print(f"{'':51s} gc triton: {speed:.1f}x the eager kernel's speed, largest difference {err:.1e}")
 
 
+def _quad_rows(name: str, x: torch.Tensor, cage: torchcage.Cage, device: str, repeats: int, m: int) -> None:
+    """Quad mean value coordinates (float64, as every backend computes them; the paper's ``n = 4``):
+    the Triton kernel against the eager torch kernel on the first ``m`` points, with the speed-up
+    and the largest difference, and the Triton kernel on all points."""
+    xs = x[:m]
+    runs = {
+        f"qmvc triton {m}": lambda: F.quad_mean_value_coordinates(xs, cage, backend="triton"),
+        f"qmvc torch {m}": lambda: F.quad_mean_value_coordinates(xs, cage, backend="torch"),
+        "qmvc triton all": lambda: F.quad_mean_value_coordinates(x, cage, backend="triton"),
+    }
+    med = _time_rows(name, "float64", runs, device, repeats)
+    a, b = f"qmvc triton {m}", f"qmvc torch {m}"
+    if a in med and b in med:
+        t, e = runs[a](), runs[b]()
+        err = float(((t - e).abs() / e.abs().clamp_min(1)).max())
+        print(f"{'':51s} qmvc triton: {med[b] / med[a]:.1f}x the eager kernel's speed, largest difference {err:.1e}")
+
+
 def _derivative_2d_rows(device: str, repeats: int, side: int) -> None:
     """2D mean value gradients and Hessians (the image warps' derivatives) on a ``side x side`` grid
     over the bundled polygon: the Triton derivative kernel against autograd of the torch kernel
@@ -164,17 +184,18 @@ def main(argv: list[str] | None = None) -> int:
         device = "cuda"
     else:
         raise SystemExit("no CUDA device: run this on a GPU machine (or --interpret for a smoke run on the CPU)")
-    cases = []
+    cases, quad_cases = [], []
     for model in ("FireHydrant", "Beast"):
         loaded = load_model(args.data, model)
         if loaded is None:
             print(f"{model}: not in the data folder, skipped", file=sys.stderr)
             continue
-        mesh, cage = loaded
-        cage = cage.triangulated()
+        mesh, quad_cage = loaded
+        cage = quad_cage.triangulated()
         if args.interpret:
             mesh = mesh[:256]
         cases.append((f"{model} ({mesh.shape[0]:,} pts, {cage.triangles.shape[0]} tri)", mesh, cage))
+        quad_cases.append((f"{model} ({mesh.shape[0]:,} pts, {quad_cage.quads.shape[0]} quads)", mesh, quad_cage))
     if cases:
         _, mesh, cage = cases[0]
         lo, hi = mesh.min(dim=0).values, mesh.max(dim=0).values
@@ -211,6 +232,11 @@ def main(argv: list[str] | None = None) -> int:
                 _green_rows(name, x, c, dtype, device, args.repeats)
                 if dtype == torch.float64 and (not args.interpret or name == cases[0][0]):  # (interpreted: minutes)
                     _derivative_3d_rows(name, x, c, device, args.repeats, 64 if args.interpret else 4096)
+    for name, pts, cage in quad_cases[: 1 if args.interpret else None]:  # (interpreted: a minute per case)
+        x = pts.to(device, torch.float64)
+        _quad_rows(
+            name, x[:64] if args.interpret else x, cage.to(device), device, args.repeats, 32 if args.interpret else 4096
+        )
     _derivative_2d_rows(device, args.repeats, 16 if args.interpret else 512)
     return 0
 
