@@ -1,10 +1,11 @@
 """The Triton kernel of quad mean value coordinates against the native one, run by Triton's
 interpreter on CPU tensors (``TRITON_INTERPRET=1``; CI's own step: ``pytest -m triton``) or on a GPU.
 
-Target (issue 16): float64 within 1e-12 of the native kernel, relative to ``max(1, |lam|)``.
-Where the Riemann scheme itself is ill-conditioned (points within ~1e-6 of a quad, whose projection
-and so whose grid move with the point), the coordinates change by up to 3e-10 when the point moves
-by one ulp, in the native kernel alone; there the bound is four times that measured sensitivity.
+Target (issue 16): float64 within 1e-12 of the native kernel, relative to ``max(1, |lam|)``
+(measured: 6e-13 at worst, Bench). Where the coordinates are ill-conditioned in every backend
+(points next to a quad, down to 1e-15 of the size, and points 1e9 sizes away), the native kernel's
+own coordinates move by up to 6e-7 when the point moves by one ulp; there the bound is four times
+that measured sensitivity (measured: at most 0.95 times it).
 """
 
 from __future__ import annotations
@@ -53,9 +54,9 @@ def _rel(a: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 def _sensitivity(x: torch.Tensor, cage: tc.Cage, ref: torch.Tensor) -> torch.Tensor:
     """How much the reference kernel's coordinates move (``_rel``) when the points move by about
-    one ulp (four random relative perturbations of ``eps``), ``(n,)``."""
+    one ulp (eight random relative perturbations of ``eps``), ``(n,)``."""
     out = torch.zeros(x.shape[0], dtype=D64)
-    for k in range(4):
+    for k in range(8):
         g = torch.Generator().manual_seed(k)
         xp = x * (1 + 2.2e-16 * torch.randn(x.shape, generator=g, dtype=D64))
         out = torch.maximum(out, _rel(F.quad_mean_value_coordinates(xp, cage, backend=REF), ref))
