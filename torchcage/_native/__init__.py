@@ -187,7 +187,7 @@ def select(
         RuntimeError: ``"native"`` where the native kernel cannot serve (the message says why).
     """
     if backend not in ("auto", "native", "torch"):
-        hint = " ('triton' serves mean value and 3D Green coordinates)" if backend == "triton" else ""
+        hint = " ('triton' serves mean value, 3D Green and quad mean value coordinates)" if backend == "triton" else ""
         raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}{hint}")
     if backend == "torch" or points.shape[-1] not in dims:
         return None

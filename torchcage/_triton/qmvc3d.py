@@ -63,6 +63,12 @@ def _edge_term(cx, cy, cz, ax, ay, az, bx, by, bz, Ra, Rb):
 
 
 @device_function
+def _corner(P, i, x0, x1, x2):
+    """Vertex ``i`` of ``P`` minus the block's points."""
+    return tl.load(P + 3 * i) - x0, tl.load(P + 3 * i + 1) - x1, tl.load(P + 3 * i + 2) - x2
+
+
+@device_function
 def _pick(j, v0, v1, v2, v3):
     """``v_j`` for a scalar ``j`` in 0..3."""
     return tl.where(j == 0, v0, tl.where(j == 1, v1, tl.where(j == 2, v2, v3)))
@@ -134,25 +140,20 @@ def _qmvc3d_kernel(
     h3 = tl.zeros_like(offs)
     hu = zero
     hv = zero
-    tol2 = tol * tol
+    # (tol reaches a compiled kernel as an fp32 scalar: its square is taken in float64, where a tiny
+    # cage's tolerance does not underflow)
+    tolv = zero + tol
+    tol2 = tolv * tolv
     K = 2 * N + 1
     for q in range(Q):
         i0 = tl.load(quads + 4 * q)
         i1 = tl.load(quads + 4 * q + 1)
         i2 = tl.load(quads + 4 * q + 2)
         i3 = tl.load(quads + 4 * q + 3)
-        p0x = tl.load(P + 3 * i0) - x0
-        p0y = tl.load(P + 3 * i0 + 1) - x1
-        p0z = tl.load(P + 3 * i0 + 2) - x2
-        p1x = tl.load(P + 3 * i1) - x0
-        p1y = tl.load(P + 3 * i1 + 1) - x1
-        p1z = tl.load(P + 3 * i1 + 2) - x2
-        p2x = tl.load(P + 3 * i2) - x0
-        p2y = tl.load(P + 3 * i2 + 1) - x1
-        p2z = tl.load(P + 3 * i2 + 2) - x2
-        p3x = tl.load(P + 3 * i3) - x0
-        p3y = tl.load(P + 3 * i3 + 1) - x1
-        p3z = tl.load(P + 3 * i3 + 2) - x2
+        p0x, p0y, p0z = _corner(P, i0, x0, x1, x2)
+        p1x, p1y, p1z = _corner(P, i1, x0, x1, x2)
+        p2x, p2y, p2z = _corner(P, i2, x0, x1, x2)
+        p3x, p3y, p3z = _corner(P, i3, x0, x1, x2)
         S0 = _dot(p0x, p0y, p0z, p0x, p0y, p0z)
         S1 = _dot(p1x, p1y, p1z, p1x, p1y, p1z)
         S2 = _dot(p2x, p2y, p2z, p2x, p2y, p2z)

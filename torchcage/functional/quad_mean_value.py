@@ -154,7 +154,8 @@ def quad_mean_value_coordinates(
         CageError: a 2D cage, or invalid quads (unless ``allow_invalid``).
         PointsError: points of the wrong shape or device, NaN or inf, or points outside the cage
             where the total weight vanishes.
-        ValueError: ``backend="triton"`` with ``tol`` (the Triton kernel computes the Riemann sum).
+        ValueError: an unknown ``backend``, or ``"triton"`` with ``tol`` (the Triton kernel computes
+            the Riemann sum).
         RuntimeError: ``backend="triton"`` or ``"native"`` where that kernel cannot serve.
 
     Examples:
@@ -185,6 +186,8 @@ def quad_mean_value_coordinates(
         )
     quad_tol = check_tol(tol)
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
+    if backend not in ("auto", "torch", "native", "triton"):
+        raise ValueError(f"backend must be 'auto', 'torch', 'native' or 'triton', got {backend!r}")
     if backend == "triton" and quad_tol is not None:
         raise ValueError(
             "backend='triton' computes the paper's Riemann sum (tol=None); the exact integrals (tol=...) run on "
