@@ -65,6 +65,12 @@ def _check_finite_vertices(v: torch.Tensor) -> None:
         )
 
 
+def _unit(n: torch.Tensor) -> torch.Tensor:
+    """``n / |n|`` along the last axis for vectors of order-one size (zero vectors stay zero)."""
+    norm = torch.linalg.vector_norm(n, dim=-1, keepdim=True)
+    return n / norm.clamp_min(torch.finfo(n.dtype).tiny)
+
+
 def _batch_name(index: torch.Tensor, batch_shape: torch.Size) -> str:
     """``" in batch element (i, j)"`` for a flat index into ``batch_shape`` (empty when unbatched)."""
     if len(batch_shape) == 0:
@@ -207,9 +213,11 @@ class Cage:
                         f"({e.dtype}); or pass faces=None for one closed polygon given in order"
                     )
                 self.edges = e.long()
+        self._geometry_checked = False
         if validate is True:
             _check_finite_vertices(v)
             self._validate(geometry=True)
+            self._geometry_checked = True
             n_faces = self.triangles.shape[0] + 2 * self.quads.shape[0] + self.edges.shape[0]
             if check_intersections or (check_intersections is None and n_faces <= INTERSECTION_CHECK_FACES):
                 self._check_intersections()
@@ -241,6 +249,46 @@ class Cage:
         if validate:
             _check_finite_vertices(v)
             c._validate_geometry(flip=False)
+            c._geometry_checked = True
+        return c
+
+    def check_geometry(self) -> Cage:
+        """Check every batch element's geometry, once: finite vertices, coordinates whose products stay
+        finite, no zero-area face and no coincident vertices (zero-length edge). Orientation is not
+        checked here (a learnt pose may turn a cage inside out; the coordinates stay defined).
+
+        The constructor (``validate=True``) and ``with_vertices(..., validate=True)`` run these checks;
+        cages built without them (``validate=False`` or ``"topology"``, :meth:`with_vertices` in a loop)
+        are checked by every function that computes coordinates, so no path answers silently for a
+        cage that cannot be computed with. A cage that passed is remembered (no second check).
+
+        Returns:
+            This cage.
+
+        Raises:
+            CageError: NaN or inf vertices, or coordinates too large for float64 products.
+            DegenerateFaceError: a zero-area face or zero-length edge (the batch element is named).
+
+        Examples:
+            >>> import torch, torchcage
+            >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+            >>> bad = cube.vertices.clone(); bad[1] = bad[0]
+            >>> cube.with_vertices(bad).check_geometry()
+            Traceback (most recent call last):
+            ...
+            torchcage.errors.DegenerateFaceError: ...
+        """
+        if not getattr(self, "_geometry_checked", False):
+            _check_finite_vertices(self.vertices.detach())
+            self._check_degenerate()
+            self._geometry_checked = True
+        return self
+
+    def _like(self, v: torch.Tensor, tri: torch.Tensor | None = None, quads: torch.Tensor | None = None) -> Cage:
+        """This cage's topology around ``v`` (a part or a view of its vertices): the geometry check
+        carries over."""
+        c = Cage._trusted(v, self.triangles if tri is None else tri, self.quads if quads is None else quads, self.edges)
+        c._geometry_checked = getattr(self, "_geometry_checked", False)
         return c
 
     # ------------------------------------------------------------------ basic properties
@@ -281,12 +329,12 @@ class Cage:
                 f"cage[{index!r}] must select batch elements only (batch shape {tuple(self.batch_shape)}), "
                 f"got vertices of shape {tuple(v.shape)}"
             )
-        return Cage._trusted(v, self.triangles, self.quads, self.edges)
+        return self._like(v)
 
     def unbind(self) -> list[Cage]:
         """The batch elements as a list of cages, over the flattened batch shape."""
         flat = self.vertices.reshape(-1, self.num_vertices, self.dim)
-        return [Cage._trusted(v, self.triangles, self.quads, self.edges) for v in flat.unbind(0)]
+        return [self._like(v) for v in flat.unbind(0)]
 
     @property
     def dtype(self) -> torch.dtype:
@@ -347,7 +395,7 @@ class Cage:
             return self
         q = self.quads
         split = torch.stack([q[:, [0, 1, 2]], q[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
-        return Cage._trusted(self.vertices, torch.cat([self.triangles, split]), self.quads[:0], self.edges)
+        return self._like(self.vertices, torch.cat([self.triangles, split]), self.quads[:0])
 
     def unique_edges(self) -> torch.Tensor:
         """The undirected edges of the faces as given (quad diagonals excluded), ``(E, 2)`` int64
@@ -396,8 +444,14 @@ class Cage:
         """
         tri = self.triangulated().triangles
         p = self.vertices[..., tri, :]
-        n = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
-        return torch.nn.functional.normalize(n, dim=-1) if unit else n
+        a, b = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]
+        if not unit:
+            return torch.linalg.cross(a, b, dim=-1)
+        # scale-free: the edges divided by their largest component before the cross product, so that
+        # tiny or huge cages neither underflow nor meet a fixed clamp (|n| = 1 at any size)
+        m = torch.maximum(a.abs().amax(dim=-1, keepdim=True), b.abs().amax(dim=-1, keepdim=True))
+        m = m.clamp_min(torch.finfo(m.dtype).tiny)
+        return _unit(torch.linalg.cross(a / m, b / m, dim=-1))
 
     def quad_corner_normals(self) -> torch.Tensor:
         """Unnormalised quad corner normals ``N_k = (q_{k+1} - q_k) x (q_{k+3} - q_k)``, ``(*B, Q, 4, 3)``."""
@@ -410,7 +464,9 @@ class Cage:
         if self.dim != 2:
             raise CageError("edge_normals() is for 2D cages; use triangle_normals() in 3D")
         d = self.vertices[..., self.edges[:, 1], :] - self.vertices[..., self.edges[:, 0], :]
-        return torch.nn.functional.normalize(torch.stack([d[..., 1], -d[..., 0]], dim=-1), dim=-1)
+        m = d.abs().amax(dim=-1, keepdim=True).clamp_min(torch.finfo(d.dtype).tiny)
+        d = d / m  # scale-free, as in triangle_normals
+        return _unit(torch.stack([d[..., 1], -d[..., 0]], dim=-1))
 
     def signed_volume(self) -> torch.Tensor:
         """Signed volume (3D) or signed area (2D), ``(*B,)``; positive for an outward-oriented cage."""
@@ -430,7 +486,10 @@ class Cage:
         if not v.is_floating_point():
             raise TypeError(f"a cage's vertices must stay floating point, got {v.dtype}")
         dev = v.device
-        return Cage._trusted(v, self.triangles.to(dev), self.quads.to(dev), self.edges.to(dev))
+        c = Cage._trusted(v, self.triangles.to(dev), self.quads.to(dev), self.edges.to(dev))
+        # a lower precision can round vertices together or overflow: check again then
+        c._geometry_checked = getattr(self, "_geometry_checked", False) and v.dtype == self.vertices.dtype
+        return c
 
     @classmethod
     def _from_faces(cls, v: torch.Tensor, faces: torch.Tensor) -> Cage:
@@ -446,6 +505,7 @@ class Cage:
         """Build without validation from parts already known to be valid."""
         c = cls.__new__(cls)
         c.vertices, c.triangles, c.quads, c.edges = v, tri, quads, edges
+        c._geometry_checked = False
         return c
 
     # ------------------------------------------------------------------ validation
@@ -531,6 +591,13 @@ class Cage:
             )
         scales = self._scales().reshape(-1)
         batch = self.batch_shape
+        # relative to each element's box (corner at the origin, unit diagonal): tolerances hold at any
+        # scale and translation, and products of tiny or huge coordinates neither underflow nor overflow
+        lo = v.amin(dim=1, keepdim=True)
+        v = (v - lo) / scales.clamp_min(torch.finfo(torch.float64).tiny)[:, None, None]
+        scales = torch.ones_like(scales)
+        self._check_coincident(v, scales, batch)
+        self._check_enclosed(v, batch)
         if self.dim == 3:
             self._check_areas_3d(v, scales, batch)
         else:
@@ -543,6 +610,60 @@ class Cage:
                     f"edges {torch.nonzero(bad[b]).flatten()[:10].tolist()}{_batch_name(b, batch)} have zero "
                     "length (coincident vertices); remove duplicate vertices"
                 )
+
+    def _check_coincident(self, v: torch.Tensor, scales: torch.Tensor, batch: torch.Size) -> None:
+        """No two vertices at one position in any batch element of ``v`` ``(B, V, D)``: no face edge
+        shorter than ``DEGENERATE_TOLERANCE`` of the size (a quad with two corners together keeps a
+        positive area), and no two vertices equal anywhere (a pinch). Vectorised over the batch."""
+        if self.dim == 3:
+            edges = self.unique_edges()
+            if edges.numel():
+                length = (v[:, edges[:, 1]] - v[:, edges[:, 0]]).norm(dim=-1)  # (B, E)
+                bad = length <= DEGENERATE_TOLERANCE * scales[:, None]
+                if bool(bad.any()):
+                    b = int(torch.nonzero(bad.any(dim=1))[0])
+                    pairs = edges[torch.nonzero(bad[b]).flatten()[:10]].tolist()
+                    raise DegenerateFaceError(
+                        f"vertices {pairs}{_batch_name(b, batch)} coincide (face edges of zero length); "
+                        "remove the duplicate vertices (merge them and drop the faces that collapse) or move them apart"
+                    )
+        # exact duplicates anywhere: a lexicographic order (stable sorts, last key first) puts them side by side
+        order = torch.arange(v.shape[1], device=v.device).expand(v.shape[0], -1)
+        for k in reversed(range(v.shape[-1])):
+            key = torch.gather(v[..., k], 1, order)
+            order = torch.gather(order, 1, torch.sort(key, dim=1, stable=True).indices)
+        s = torch.gather(v, 1, order[..., None].expand(-1, -1, v.shape[-1]))
+        same = (s[:, 1:] == s[:, :-1]).all(dim=-1)  # (B, V - 1)
+        if bool(same.any()):
+            b = int(torch.nonzero(same.any(dim=1))[0])
+            i = int(torch.nonzero(same[b])[0])
+            pair = sorted([int(order[b, i]), int(order[b, i + 1])])
+            raise DegenerateFaceError(
+                f"vertices {pair}{_batch_name(b, batch)} are at the same position "
+                f"({int(same[b].sum())} coincident pair(s)); remove the duplicates or move them apart"
+            )
+
+    def _check_enclosed(self, v: torch.Tensor, batch: torch.Size) -> None:
+        """Every batch element of ``v`` ``(B, V, D)`` (boxes of unit diagonal) encloses a volume (an
+        area in 2D) above ``DEGENERATE_TOLERANCE``: a flat cage (faces folded onto one plane, a polygon
+        folded onto a line) has no inside, and its coordinates would be meaningless."""
+        c = v - v.mean(dim=1, keepdim=True)
+        if self.dim == 2:
+            a, b = c[:, self.edges[:, 0]], c[:, self.edges[:, 1]]
+            size = 0.5 * (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]).sum(dim=-1)
+        else:
+            tri = self.triangulated().triangles
+            a, b, d = c[:, tri[:, 0]], c[:, tri[:, 1]], c[:, tri[:, 2]]
+            size = (a * torch.linalg.cross(b, d, dim=-1)).sum(dim=(-2, -1)) / 6.0
+        flat = size.abs() <= DEGENERATE_TOLERANCE
+        if bool(flat.any()):
+            b = int(torch.nonzero(flat)[0])
+            what = "volume" if self.dim == 3 else "area"
+            raise DegenerateFaceError(
+                f"the cage{_batch_name(b, batch)} encloses no {what} (it is flat: {what} "
+                f"{float(size[b]):.2g} of its bounding box); a cage must enclose the points, so give it some "
+                "thickness"
+            )
 
     def _check_orientation(self, flip: bool) -> None:
         """A batch that is inside out everywhere is flipped (with a warning) when ``flip``; a batch

@@ -53,7 +53,7 @@ def over_cage_batch(fn: Callable[..., Any], points: torch.Tensor, cage: Cage, **
     N, V, D = points.shape[-2], cage.num_vertices, cage.dim
     pts = points.expand(*batch, N, D).reshape(-1, N, D)
     verts = cage.vertices.expand(*batch, V, D).reshape(-1, V, D)
-    results = [fn(pts[b], cage.with_vertices(verts[b]), **kwargs) for b in range(verts.shape[0])]
+    results = [fn(pts[b], cage._like(verts[b]), **kwargs) for b in range(verts.shape[0])]
     if isinstance(results[0], tuple):
         return tuple(_stack([r[k] for r in results], batch) for k in range(len(results[0])))
     return _stack(results, batch)

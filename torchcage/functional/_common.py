@@ -250,6 +250,7 @@ def as_inputs(points: Any, cage: Any) -> tuple[torch.Tensor, Cage]:
     Raises:
         TypeError: ``cage`` is not a Cage (a ``(vertices, faces)`` pair is named as such).
         PointsError: points or cage on the ``meta`` device, which holds no values to compute with.
+        CageError: a cage whose geometry cannot be computed with (:meth:`~torchcage.Cage.check_geometry`).
     """
     if not isinstance(cage, Cage):
         if isinstance(cage, (tuple, list)) and len(cage) == 2:
@@ -268,6 +269,11 @@ def as_inputs(points: Any, cage: Any) -> tuple[torch.Tensor, Cage]:
             "coordinates cannot be computed on the meta device (it holds shapes, not values); compute them on a "
             "real device (cpu, cuda) and move the module with .to(device) afterwards"
         )
+    if not (is_functorch_wrapped_tensor(cage.vertices) or torch.compiler.is_compiling()):
+        # a cage built without geometric checks (validate=False / "topology", with_vertices in a loop)
+        # is checked here once: NaN/inf vertices, coincident vertices, zero-area faces raise instead of
+        # answering NaN or a finite wrong value (a cage that passed is not checked again)
+        cage.check_geometry()
     return points, cage
 
 
