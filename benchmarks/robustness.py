@@ -9,9 +9,13 @@ the custom autograd Functions where they exist). Prints one table: queries, non-
 non-finite gradients, the worst partition of unity and linear precision (relative to the cage
 size; far points relative to their distance) and the category where each occurs.
 
+A second table counts damaged cages (coincident or pinched vertices, folded flat, NaN/inf vertices),
+given through the constructor, ``with_vertices`` and a ``validate="topology"`` batch to every
+closed-form family: each must be refused with a ``CageError``, none answered.
+
 Usage:
     python benchmarks/robustness.py [--data ../shared/data] [--per-category 2000] [--grad-per-category 200]
-        [--dtype float64|float32] [--families mvc3d,mvc2d,...]
+        [--dtype float64|float32] [--families mvc3d,mvc2d,...] [--invalid-trials 20]
 
 The test suite runs a small slice (``tests/test_robustness.py``).
 """
@@ -425,6 +429,83 @@ def print_table(results: dict) -> None:
             print(f"  {fam}: ... {len(st.errors) - 8} more")
 
 
+DAMAGES = ("coincident neighbours", "duplicate (pinch)", "folded flat", "NaN vertex", "inf vertex")
+PATHS = ("constructor", "with_vertices", "topology-only batch")
+INVALID_FUNCTIONS = {
+    "mvc": lambda x, c: F.mean_value_coordinates(x, c.triangulated()),
+    "mvc_derivatives": lambda x, c: F.mean_value_derivatives(x, c.triangulated(), order=1),
+    "gc": lambda x, c: F.green_coordinates(x, c.triangulated()),
+    "green_derivatives": lambda x, c: F.green_derivatives(x, c.triangulated(), order=1),
+    "qmvc": lambda x, c: F.quad_mean_value_coordinates(x, c),
+    "qgc": lambda x, c: F.quad_green_coordinates(x, c),
+}
+
+
+def _damaged(v: torch.Tensor, edges: torch.Tensor, damage: str, g: torch.Generator) -> torch.Tensor:
+    """A copy of vertices ``(V, 3)`` with one kind of damage at random places."""
+    v = v.clone()
+    if damage == "coincident neighbours":
+        i, j = edges[int(torch.randint(edges.shape[0], (1,), generator=g))].tolist()
+        v[i] = v[j]
+    elif damage == "duplicate (pinch)":
+        i, j = torch.randperm(v.shape[0], generator=g)[:2].tolist()
+        v[i] = v[j]
+    elif damage == "folded flat":
+        n = torch.nn.functional.normalize(torch.randn(3, generator=g, dtype=v.dtype), dim=0)
+        v = v - (v @ n)[:, None] * n  # every vertex projected onto one plane
+    else:
+        v[int(torch.randint(v.shape[0], (1,), generator=g)), int(torch.randint(3, (1,), generator=g))] = (
+            math.nan if damage == "NaN vertex" else math.inf
+        )
+    return v
+
+
+def sweep_invalid(trials: int, seed: int = 0) -> dict:
+    """Damaged cages (random star cages with quads, scaled by 1e-6..1e6 and moved by up to 1e6 of
+    their size) given through each path that builds a cage, to each closed-form family: how many
+    answers came back (silent: the defect this guards against) against clear CageErrors; and the
+    largest ``| |n| - 1 |`` of the unit triangle normals at those scales."""
+    from torchcage.errors import CageError
+
+    g = torch.Generator().manual_seed(seed)
+    box = torchcage.load_cage(torchcage.data.path("cube.obj")).to(torch.float64)
+    counts = {(d, p): [0, 0] for d in DAMAGES for p in PATHS}  # [refused, answered]
+    worst_normal = 0.0
+    for _ in range(trials):
+        scale = 10 ** float(torch.empty(1).uniform_(-6, 6, generator=g))
+        shift = scale * 10 ** float(torch.empty(1).uniform_(0, 6, generator=g)) * torch.randn(3, generator=g)
+        rest = box.vertices * (0.7 + 0.6 * torch.rand(box.vertices.shape[0], 1, generator=g, dtype=torch.float64))
+        cage = torchcage.Cage(rest * scale + shift.double(), box.faces)
+        worst_normal = max(worst_normal, float((cage.triangle_normals().norm(dim=-1) - 1).abs().max()))
+        x = cage.vertices.mean(0) + 0.2 * scale * torch.randn(16, 3, generator=g, dtype=torch.float64)
+        for damage in DAMAGES:
+            bad = _damaged(cage.vertices, cage.unique_edges(), damage, g)
+            for path in PATHS:
+                for fn in INVALID_FUNCTIONS.values():
+                    try:
+                        if path == "constructor":
+                            c = torchcage.Cage(bad, cage.faces)
+                        elif path == "with_vertices":
+                            c = cage.with_vertices(bad)
+                        else:
+                            c = torchcage.Cage(torch.stack([cage.vertices, bad]), cage.faces, validate="topology")
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("ignore")
+                            fn(x, c)
+                        counts[damage, path][1] += 1
+                    except CageError:
+                        counts[damage, path][0] += 1
+    return {"counts": counts, "normals": worst_normal}
+
+
+def print_invalid(result: dict) -> None:
+    print(f"\n{'damaged cage':24s} " + " ".join(f"{p:>22s}" for p in PATHS) + "   (refused / answered)")
+    for d in DAMAGES:
+        cells = " ".join(f"{result['counts'][d, p][0]:>12d} / {result['counts'][d, p][1]:<7d}" for p in PATHS)
+        print(f"{d:24s} {cells}")
+    print(f"unit triangle normals at scales 1e-6..1e6, moved by up to 1e6: worst | |n| - 1 | = {result['normals']:.1e}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -444,6 +525,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--seed", type=int, default=0, help="seed of the adversarial points (runs with different seeds add up)"
     )
+    ap.add_argument(
+        "--invalid-trials",
+        type=int,
+        default=20,
+        help="damaged cages (coincident, pinched, flat, NaN/inf vertices) per kind and path, to every closed-form "
+        "family: each must be refused with a CageError (0 skips the table)",
+    )
     args = ap.parse_args(argv)
     global DEFORMED_CATEGORIES, GRAD_ONLY, SEED
     GRAD_ONLY = args.grad_only
@@ -454,6 +542,8 @@ def main(argv: list[str] | None = None) -> int:
     dtype = None if args.dtype == "float64" else torch.float32
     results = run(args.families.split(","), data, args.per_category, args.grad_per_category, dtype, seed=args.seed)
     print_table(results)
+    if args.invalid_trials > 0:
+        print_invalid(sweep_invalid(args.invalid_trials, seed=args.seed))
     return 0
 
 
