@@ -1,0 +1,25 @@
+"""Cages for Gaussian splat scenes and radiance fields.
+
+- :class:`GaussianScene`, :func:`read_ply`, :func:`write_ply`: the 3D Gaussian splatting PLY file
+  as tensors (numpy alone; a read file written back is the same bytes).
+- :func:`rotate_sh`, :func:`eval_sh`: view-dependent colours (real spherical harmonics, degrees
+  0-3) and their exact rotation.
+"""
+
+from __future__ import annotations
+
+from .ply import PlyError, PlyLayout, read_ply, write_ply
+from .scene import GaussianScene, quaternion_to_matrix
+from .sh import eval_sh, rotate_sh, sh_basis
+
+__all__ = [
+    "GaussianScene",
+    "PlyError",
+    "PlyLayout",
+    "eval_sh",
+    "quaternion_to_matrix",
+    "read_ply",
+    "rotate_sh",
+    "sh_basis",
+    "write_ply",
+]
