@@ -8,17 +8,23 @@
 
 from __future__ import annotations
 
+from .deform import DeformedGaussians, DeformGaussians
+from .inverse import RestPoints, rest_points
 from .ply import PlyError, PlyLayout, read_ply, write_ply
 from .scene import GaussianScene, quaternion_to_matrix
 from .sh import eval_sh, rotate_sh, sh_basis
 
 __all__ = [
+    "DeformGaussians",
+    "DeformedGaussians",
     "GaussianScene",
     "PlyError",
     "PlyLayout",
+    "RestPoints",
     "eval_sh",
     "quaternion_to_matrix",
     "read_ply",
+    "rest_points",
     "rotate_sh",
     "sh_basis",
     "write_ply",
