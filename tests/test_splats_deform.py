@@ -189,3 +189,38 @@ def test_inverse_on_the_data_sets_deformed_poses(model: str, method: str) -> Non
     assert int(inside.sum()) > 50
     assert float(out.residual[inside].max()) <= 1e-10
     assert int(out.iterations[inside].max()) <= 8
+
+
+def test_renderer_places_a_gaussian_where_the_camera_sees_it() -> None:
+    """One small opaque Gaussian in front of the camera: the brightest change at its projection,
+    its colour there (c(d) + 1/2), background elsewhere."""
+    from torchcage.splats.render import Camera, render
+    from torchcage.splats.sh import C0
+
+    cam = Camera(eye=(0.0, 0.0, 5.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), width=41, height=31)
+    mean = torch.tensor([[0.0, 0.0, 0.0]], dtype=D64)  # on the optical axis: the centre of pixel (15, 20)
+    cov = (0.02**2) * torch.eye(3, dtype=D64)[None]
+    rgb = torch.tensor([0.9, 0.2, 0.1], dtype=D64)
+    sh = ((rgb - 0.5) / C0)[None, None, :]
+    img = render(mean, cov, sh, torch.tensor([8.0], dtype=D64), cam, background=(0.0, 0.0, 0.0))
+    _, px = cam.project(mean)
+    peak = torch.nonzero(img.sum(-1) == img.sum(-1).max())[0]
+    assert peak.tolist() == [15, 20] and px[0].tolist() == [20.5, 15.5]
+    assert torch.allclose(img[15, 20], 0.99 * rgb, atol=1e-12)  # opacity capped at 0.99 there
+    assert float(img[0, 0].abs().max()) == 0.0
+
+
+@pytest.mark.slow
+def test_the_splats_example_runs(tmp_path) -> None:
+    import runpy
+    import sys
+
+    script = str(__import__("pathlib").Path(__file__).resolve().parents[1] / "examples" / "splats.py")
+    argv = sys.argv
+    sys.argv = [script, "--out", str(tmp_path), "--gaussians", "400", "--samples", "8", "--image-scale", "0.2"]
+    try:
+        with pytest.raises(SystemExit) as stop:
+            runpy.run_path(script, run_name="__main__")
+    finally:
+        sys.argv = argv
+    assert stop.value.code == 0 and (tmp_path / "splats.png").exists()
