@@ -7,14 +7,21 @@ rotation angle; the Green deformation's anisotropy ``s1 / s3`` (1 for a conforma
 coordinates are quasi-conformal); and the same anisotropy for mean value coordinates on the same
 cage and pose, on the same colour scale.
 
-Usage: ``python examples/green_jacobian.py [out.png]`` (default: docs/images/green_jacobian.png)
+Usage: ``python examples/green_jacobian.py [out.png]`` (default: docs/images/green_jacobian.png).
+Needs matplotlib (its colour maps): ``pip install 'torchcage[examples]'``.
 """
 
 from __future__ import annotations
 
 import sys
 
-import matplotlib
+try:
+    import matplotlib
+except ModuleNotFoundError as err:  # an optional dependency: say which extra brings it
+    sys.exit(
+        f"examples/green_jacobian.py needs {err.name}, which is not installed: pip install 'torchcage[examples]' "
+        "(or pip install matplotlib)"
+    )
 import torch
 
 import torchcage

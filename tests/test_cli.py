@@ -91,7 +91,8 @@ def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
     poke = cube_files(tmp_path / "poke", scale=1.4)  # the sphere pokes out of the cube a little
     capsys.readouterr()
     assert main([*poke, "--out", str(tmp_path / "gc0"), "--method", "gc", "--no-picture"]) == 0
-    assert "outside" not in capsys.readouterr().err  # within the exterior band: continued, no warning
+    err = capsys.readouterr().err  # continued through the nearest faces, and said (issue 43 item 4: every point out)
+    assert "points lie outside the cage" in err and "nearest faces" in err and err.count("outside the cage") == 1
     v0, _ = torchcage.load_mesh(tmp_path / "gc0" / "rest_mesh.obj")
     v1, _ = torchcage.load_mesh(tmp_path / "gc0" / "deformed_mesh.obj")
     assert (v1 - v0).norm(dim=1).max() < 1.0  # no point sent to the origin
@@ -99,7 +100,7 @@ def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
     outside = cube_files(tmp_path / "big", scale=3.0)  # far outside the cube
     capsys.readouterr()
     assert main([*outside, "--out", str(tmp_path / "gc"), "--method", "gc", "--no-picture"]) == 0
-    assert "outside it" in capsys.readouterr().err
+    assert "points lie outside the cage" in capsys.readouterr().err
     assert main([*outside, "--out", str(tmp_path / "gc2"), "--method", "gc", "--strict"]) == 2
     assert "--strict" in capsys.readouterr().err
 

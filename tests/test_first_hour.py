@@ -174,7 +174,8 @@ def test_self_intersecting_cages_are_refused() -> None:
     """Item 10: a bow-tie polygon and a 3D cage pushed through itself name the crossing pair; an
     independent check: the crossing point lies on both the edge and the face."""
     with pytest.raises(torchcage.CageTopologyError, match=r"edges 0 \[0, 1\] and 2 \[2, 3\] cross"):
-        torchcage.Cage([[0.0, 0], [1, 1], [1, 0], [0, 1]])
+        # (an uneven bow-tie: a symmetric one encloses no net area and is refused as flat first)
+        torchcage.Cage([[0.0, 0], [1, 1], [1, 0], [0, 2]])
     cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
     v = cube.vertices.clone()
     v[0] = -1.5 * v[0]  # corner 0 pushed through the opposite corner's faces

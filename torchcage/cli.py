@@ -13,12 +13,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import torch
 
-from .methods import METHOD_HELP, METHOD_NAMES, METHODS, build_module
+from .functional.deform import OUTSIDE_TOLERANCE
+from .methods import METHOD_EXTRAS, METHOD_HELP, METHOD_NAMES, METHODS, OUTSIDE_EFFECT, build_module
 
 __all__ = ["main"]
 
@@ -26,6 +28,41 @@ __all__ = ["main"]
 DEFAULT_PORT = 8765
 #: Mesh formats written by ``deform --format`` (OBJ directly, the others through trimesh).
 FORMATS = ("obj", "ply", "glb", "stl", "off")
+#: Choices of ``--up`` (the mesh's up axis, for pictures and the editor's camera).
+UP_CHOICES = ("auto", "x", "y", "z")
+#: ``--up auto`` takes z when the mesh's z extent is the largest and at least this many times its
+#: y extent (a z-up model standing, like the bundled bar); otherwise y, the OBJ convention.
+UP_Z_RATIO = 1.5
+UP_HELP = (
+    "the mesh's up axis, for the picture: x, y, z, or auto (default): z when the mesh is longest along z and "
+    f"at least {UP_Z_RATIO:g} times longer along z than along y (a z-up model standing), else y (the OBJ "
+    "convention; the axis of least extent is often not up)"
+)
+
+
+def up_axis(choice: str, vertices: torch.Tensor) -> str:
+    """The up axis for ``--up choice``: ``choice`` itself, or for ``"auto"`` the rule of
+    :data:`UP_HELP` (z for a mesh longest along z by :data:`UP_Z_RATIO` over y, else y).
+
+    Args:
+        choice: ``"auto"``, ``"x"``, ``"y"`` or ``"z"``.
+        vertices: ``(N, 3)`` mesh vertices.
+
+    Examples:
+        >>> import torch
+        >>> standing, lying = torch.tensor([[0.0, 0, 0], [1, 1, 3]]), torch.tensor([[0.0, 0, 0], [3, 1, 1]])
+        >>> up_axis("auto", standing), up_axis("auto", lying), up_axis("x", lying)
+        ('z', 'y', 'x')
+    """
+    if choice not in UP_CHOICES:
+        raise ValueError(f"up must be one of {', '.join(UP_CHOICES)}, got {choice!r}")
+    if choice != "auto":
+        return choice
+    if vertices.shape[0] == 0 or vertices.shape[-1] != 3:
+        return "y"
+    extent = (vertices.amax(0) - vertices.amin(0)).double()
+    x, y, z = (float(e) for e in extent)
+    return "z" if z >= x and z >= UP_Z_RATIO * y else "y"
 
 
 class _Timer:
@@ -59,7 +96,7 @@ def deform_files(
     picture: bool = True,
     quiet: bool = False,
     mesh_format: str = "obj",
-    up: str = "z",
+    up: str = "auto",
     azimuth: float = 35.0,
     elevation: float = 20.0,
     strict: bool = False,
@@ -77,11 +114,13 @@ def deform_files(
     Writes ``rest_mesh.<fmt>``, ``deformed_mesh.<fmt>`` (``mesh_format``: obj, ply, glb, stl, off;
     all but OBJ through trimesh), ``rest_cage.obj``, ``deformed_cage.obj`` (quads kept) and, with
     ``picture=True``, ``deformation.png`` (rest and deformed side by side, seen with ``up`` as the
-    vertical axis from the camera's ``azimuth`` and ``elevation`` in degrees).
+    vertical axis, ``"auto"`` by :func:`up_axis`, from the camera's ``azimuth`` and ``elevation``
+    in degrees).
 
-    Points outside what the coordinates cover (for ``gc``, farther outside the cage than its
-    exterior band; for ``qgc``, any point outside) are reported with their count; with ``strict``
-    they are an error. ``tol`` (``qmvc`` and ``qgc``) computes the quad integrals to that relative
+    Mesh vertices outside the cage (by more than
+    :data:`torchcage.functional.deform.OUTSIDE_TOLERANCE` of its size) are reported for every
+    method, with their count, how far out they reach and what the method does with them; with
+    ``strict`` they are an error. ``tol`` (``qmvc`` and ``qgc``) computes the quad integrals to that relative
     tolerance instead of the papers' Riemann sums.
 
     Returns:
@@ -91,19 +130,18 @@ def deform_files(
         ValueError: an unknown method, format or up axis; ``tol`` with a method other than
             ``qmvc`` and ``qgc``; with ``strict``, points outside the cage.
     """
-    import warnings
-
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     if mesh_format not in FORMATS:
         raise ValueError(f"unknown mesh format {mesh_format!r}; choose from {', '.join(FORMATS)}")
-    if up not in ("x", "y", "z"):
-        raise ValueError(f"up must be x, y or z, got {up!r}")
+    if up not in UP_CHOICES:
+        raise ValueError(f"up must be one of {', '.join(UP_CHOICES)}, got {up!r}")
     if tol is not None and method not in ("qmvc", "qgc"):
         raise ValueError(
             f"--tol is an option of --method qmvc and qgc (the quad integrals to a tolerance), not {method}"
         )
     import torchcage
+    from torchcage.functional.deform import find_outside
     from torchcage.viz import Panel, render_panels
 
     out = Path(out_dir)
@@ -131,6 +169,13 @@ def deform_files(
         raise torchcage.CageError(
             f"the deformed cage {deformed_path} must have the rest cage's faces and {cage.num_vertices} vertices{hint}"
         )
+    with timer("outside check"):
+        found = find_outside(v, cage)
+    if found.count:
+        message = found.message(OUTSIDE_EFFECT[method])
+        if strict:
+            raise ValueError(f"{message} (--strict)")
+        print(f"torchcage: warning: {message}", file=sys.stderr)
     with timer(f"coordinates ({method}, {v.shape[0]} points, {cage.num_vertices} cage vertices)"):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -142,8 +187,11 @@ def deform_files(
                 tol=tol,
             )
     for w in caught:
-        if issubclass(w.category, torchcage.OutsideCageWarning) and strict:
-            raise ValueError(f"{w.message} (--strict)")
+        if issubclass(w.category, torchcage.OutsideCageWarning):
+            if found.count:
+                continue  # said above, for every method alike
+            if strict:
+                raise ValueError(f"{w.message} (--strict)")
         print(f"torchcage: warning: {w.message}", file=sys.stderr)
     with timer("deform"):
         with torch.no_grad():
@@ -163,7 +211,7 @@ def deform_files(
         with timer("picture"):
             edges = cage.unique_edges()
             # the renderer looks at z-up worlds: turn the chosen up axis into z (a rotation)
-            turn = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}[up]
+            turn = _TURN[up_axis(up, v)]
             from torchcage.viz import CAGE_EDGE_COLOR, MESH_COLOR
 
             faces_desc = ", ".join(
@@ -192,6 +240,10 @@ def deform_files(
         print("timings:")
         print(timer.report())
     return paths
+
+
+#: Axis permutations (rotations) that bring the up axis to z, the renderer's vertical.
+_TURN = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}
 
 
 def _default_kind(method: str) -> str:
@@ -228,7 +280,7 @@ def _make_cage(args: argparse.Namespace) -> int:
     torchcage.save_cage(out, cage)
     written = [out]
     if not args.no_picture:
-        turn = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}[args.up]
+        turn = _TURN[up_axis(args.up, v)]
         faces_desc = f"{cage.triangles.shape[0]} triangles, {cage.quads.shape[0]} quads"
         image = render_panels(
             [
@@ -309,7 +361,10 @@ def _view(args: argparse.Namespace) -> int:
         torchcage.save_cage(made, cage)
         print(f"torchcage view: made a cage of {cage.num_vertices} vertices, written to {made}", flush=True)
         mesh = (v, f)
-    options = dict(method=args.method, pose=args.deformed, host=args.host, out=args.out, up=args.up)
+    elif args.up == "auto":
+        mesh = torchcage.load_mesh(mesh)
+    up = up_axis(args.up, mesh[0]) if isinstance(mesh, tuple) else args.up
+    options = dict(method=args.method, pose=args.deformed, host=args.host, out=args.out, up=up)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -352,30 +407,67 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def kernel_library() -> str:
+    """Which library serves the CPU kernels: the native variant, or torch and why."""
+    from torchcage import _native
+
+    if _native.available():
+        return f"native ({_native.variant()})"
+    reason = _native.failure_reason()
+    return "torch (native kernels " + (f"unavailable: {reason})" if reason else "turned off or not built)")
+
+
 def _bench(args: argparse.Namespace) -> int:
-    """Time mean value coordinates on this machine: bundled bar cage, random points inside."""
+    """Time mean value coordinates on this machine: bundled bar cage, random points inside.
+
+    Prints a header at once, then each row as it is measured (the first native call may build the
+    kernels)."""
     import torchcage
     from torchcage import _native
     from torchcage import functional as F
     from torchcage._timing import best_of
 
     cage = torchcage.load_cage(torchcage.data.path("bar_cage.obj")).triangulated()
+    print(f"mean value coordinates: {args.points:,} points inside the bundled bar cage "
+          f"({cage.triangles.shape[0]} triangles), float64, {torch.get_num_threads()} threads, "
+          f"best of {args.repeat}", flush=True)  # fmt: skip
+    print(f"kernels: {kernel_library()}", flush=True)
     g = torch.Generator().manual_seed(0)
     x = (torch.rand(args.points, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([1.1, 1.1, 3.2]).double()
     backends = (["native"] if _native.available() else []) + ["torch"]
-    print(f"mean value coordinates, {args.points} points, {cage.triangles.shape[0]} triangles, float64, "
-          f"{torch.get_num_threads()} threads")  # fmt: skip
-    print(f"{'backend':<8}{'best ms':>10}{'Mpts/s':>9}")
+    print(f"{'backend':<8}{'best ms':>10}{'Mpts/s':>9}", flush=True)
     for backend in backends:
         F.mean_value_coordinates(x[:1000], cage, backend=backend)  # warm up (and build the native kernel)
         _, best, _ = best_of(lambda b=backend: F.mean_value_coordinates(x, cage, backend=b), args.repeat)
-        print(f"{backend:<8}{1000 * best:>10.1f}{args.points / best / 1e6:>9.2f}")
+        print(f"{backend:<8}{1000 * best:>10.1f}{args.points / best / 1e6:>9.2f}", flush=True)
     return 0
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings on the command line: one line, ``torchcage: warning: ...`` (no source line)."""
+    print(f"torchcage: warning: {message}", file=sys.stderr if file is None else file, flush=True)
+
+
+def _epilog() -> str:
+    by_extra: dict[str, list[str]] = {}
+    for method, extra in METHOD_EXTRAS.items():
+        by_extra.setdefault(extra, []).append(method)
+    needs = "; ".join(f"--method {', '.join(m)} need pip install 'torchcage[{e}]'" for e, m in by_extra.items())
+    plain = ", ".join(m for m in METHODS if m not in METHOD_EXTRAS)
+    return (
+        f"Extras: --method {plain} need only torch; {needs}; make-cage and --cage auto need "
+        "pip install 'torchcage[cage]'; mesh formats other than OBJ need pip install 'torchcage[mesh]'."
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchcage`` command."""
-    parser = argparse.ArgumentParser(prog="torchcage", description="Cage coordinates for deformation.")
+    from . import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="torchcage", description="Cage coordinates for deformation.", epilog=_epilog()
+    )
+    parser.add_argument("--version", action="version", version=f"torchcage {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="deform the bundled bar with its cage; write meshes and a picture")
     demo.add_argument("--out", default="torchcage_demo", help="output folder (default: ./torchcage_demo)")
@@ -391,12 +483,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     dfm.add_argument("--out", required=True, help="output folder")
     dfm.add_argument("--method", default="mvc", choices=METHODS, help=METHOD_HELP)
     dfm.add_argument("--format", default="obj", choices=FORMATS, help="format of the meshes written (default obj)")
-    dfm.add_argument("--up", default="z", choices=("x", "y", "z"), help="the mesh's up axis, for the picture")
+    dfm.add_argument("--up", default="auto", choices=UP_CHOICES, help=UP_HELP)
     dfm.add_argument("--azimuth", type=float, default=35.0, help="picture camera azimuth, degrees")
     dfm.add_argument("--elevation", type=float, default=20.0, help="picture camera elevation, degrees")
     dfm.add_argument("--no-picture", action="store_true", help="skip the PNG picture")
     dfm.add_argument(
-        "--strict", action="store_true", help="fail (exit 2) when points lie outside the cage (Green methods)"
+        "--strict",
+        action="store_true",
+        help="fail (exit 2) when mesh vertices lie outside the cage (any method; by more than "
+        f"{OUTSIDE_TOLERANCE:g} of its size); without it they warn with their count and how far out they reach",
     )
     dfm.add_argument(
         "--tol", type=float, help="qmvc, qgc: the quad integrals to this relative tolerance (e.g. 1e-8) instead of "
@@ -413,7 +508,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     vw.add_argument("--out", default=".", help="folder that Save writes into (default: the current folder)")
     vw.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback; others warn)")
     vw.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT}; 0: any free port)")
-    vw.add_argument("--up", default="z", choices=("x", "y", "z"), help="the mesh's up axis (default z)")
+    vw.add_argument(
+        "--up", default="auto", choices=UP_CHOICES, help=UP_HELP.replace("for the picture", "for the camera")
+    )
     vw.add_argument("--no-browser", action="store_true", help="print the address without opening a browser")
     vw.add_argument("--verbose", action="store_true", help="log each request")
     _cage_maker_arguments(vw)
@@ -425,22 +522,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     mk.add_argument("--kind", default="triangle", choices=("triangle", "quad"), help="triangles, or quad-dominant")
     mk.add_argument("--margin", type=float, help="least clearance, fraction of the diagonal (default 0.005)")
     mk.add_argument("--resolution", type=_positive_int, default=128, help="envelope voxels along the longest side")
-    mk.add_argument("--up", default="z", choices=("x", "y", "z"), help="the mesh's up axis, for the picture")
+    mk.add_argument("--up", default="auto", choices=UP_CHOICES, help=UP_HELP)
     mk.add_argument("--azimuth", type=float, default=35.0, help="picture camera azimuth, degrees")
     mk.add_argument("--elevation", type=float, default=20.0, help="picture camera elevation, degrees")
     mk.add_argument("--no-picture", action="store_true", help="skip the PNG picture")
     mk.add_argument("--quiet", action="store_true", help="print nothing but errors")
     mk.set_defaults(func=_make_cage)
-    bench = sub.add_parser("bench", help="time mean value coordinates on this machine (bundled cage)")
-    bench.add_argument("--points", type=_positive_int, default=100_000)
-    bench.add_argument("--repeat", type=_positive_int, default=3)
+    bench = sub.add_parser(
+        "bench",
+        help="time mean value coordinates on this machine (bundled cage); says which kernel library serves",
+    )
+    bench.add_argument(
+        "--points", type=_positive_int, default=100_000, help="random points inside the cage (default 100000)"
+    )
+    bench.add_argument(
+        "--repeat", type=_positive_int, default=3, help="timed runs per backend; the best is shown (default 3)"
+    )
     bench.set_defaults(func=_bench)
     args = parser.parse_args(argv)
-    try:
-        return args.func(args)
-    except (ValueError, TypeError, FileNotFoundError, ImportError) as err:
-        print(f"torchcage: error: {err}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning  # (restored on leaving the block)
+        try:
+            return args.func(args)
+        except (ValueError, TypeError, FileNotFoundError, ImportError) as err:
+            print(f"torchcage: error: {err}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -152,11 +152,11 @@ def save_cage(path: PathLike, cage: Cage, vertices: torch.Tensor | None = None) 
     Path(path).write_text(text)
 
 
-def _trimesh() -> Any:
+def _trimesh(action: str = "reading") -> Any:
     try:
         import trimesh
     except ImportError as err:  # pragma: no cover - depends on the environment
-        raise ImportError("reading this mesh format needs trimesh: pip install 'torchcage[mesh]'") from err
+        raise ImportError(f"{action} this mesh format needs trimesh: pip install 'torchcage[mesh]'") from err
     return trimesh
 
 
@@ -231,4 +231,4 @@ def save_mesh(path: PathLike, vertices: torch.Tensor, faces: torch.Tensor) -> No
     if str(path).lower().endswith(".obj"):
         Path(path).write_text(_format_rows("v", v, "%.17g") + _format_rows("f", f + 1, "%d"))
         return
-    _trimesh().Trimesh(vertices=v, faces=f, process=False).export(path)
+    _trimesh("writing").Trimesh(vertices=v, faces=f, process=False).export(path)

@@ -18,16 +18,29 @@ import torch
 from torch import nn
 
 from .cage import Cage
+from .functional.deform import OUTSIDE_EFFECT
 
-__all__ = ["METHODS", "METHOD_HELP", "METHOD_NAMES", "build_module"]
+__all__ = ["METHODS", "METHOD_EXTRAS", "METHOD_HELP", "METHOD_NAMES", "OUTSIDE_EFFECT", "build_module"]
 
 METHODS = ("mvc", "gc", "qmvc", "qgc", "lbc", "hc", "bbw", "mec")
+#: The optional extra (``pip install 'torchcage[<extra>]'``) that a method needs: the methods
+#: solved on a mesh of the cage's interior need scipy (the mesher, the sparse solvers); the others
+#: need nothing beyond torch.
+METHOD_EXTRAS = {"lbc": "lbc", "hc": "lbc", "bbw": "lbc"}
+
+
+def _needs(method: str) -> str:
+    extra = METHOD_EXTRAS.get(method)
+    return f"; needs torchcage[{extra}]" if extra else ""
+
+
 METHOD_HELP = (
     "coordinates: mvc (mean value, any closed cage, quads split), gc (Green, quasi-conformal, quads split), "
     "qmvc (quad mean value, quads kept), qgc (quad Green, quads kept), lbc (local barycentric, solved on a mesh "
-    "of the cage interior; slower, with progress), hc (harmonic, solved on a mesh of the cage interior), bbw "
-    "(bounded biharmonic weights, solved on that mesh; no linear precision), mec "
-    "(maximum entropy: positive, with the mvc or qmvc prior; points must be inside the cage); default mvc"
+    f"of the cage interior; slower, with progress{_needs('lbc')}), hc (harmonic, solved on a mesh of the cage "
+    f"interior{_needs('hc')}), bbw (bounded biharmonic weights, solved on that mesh; no linear precision"
+    f"{_needs('bbw')}), mec (maximum entropy: positive, with the mvc or qmvc prior; points must be inside the "
+    "cage); default mvc"
 )
 METHOD_NAMES = {
     "mvc": "mean value coordinates (mvc)",

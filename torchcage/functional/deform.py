@@ -5,11 +5,13 @@ under autograd on each call (rest cage and points differentiable: the Neural Cag
 
 from __future__ import annotations
 
-from typing import Any
+import warnings
+from typing import Any, NamedTuple
 
 import torch
 
 from ..cage import Cage
+from ..errors import OutsideCageWarning
 from ._common import safe_norm
 from ._qgc3d import corner_normals
 from ._stretch import conformal_stretch, stretched_normals, stretched_triangle_normals
@@ -18,7 +20,15 @@ from .mean_value import mean_value_coordinates
 from .quad_green import quad_green_coordinates
 from .quad_mean_value import quad_mean_value_coordinates
 
-__all__ = ["deform", "green_deformation", "quad_corner_factors", "quad_green_deformation"]
+__all__ = [
+    "OUTSIDE_TOLERANCE",
+    "Outside",
+    "deform",
+    "find_outside",
+    "green_deformation",
+    "quad_corner_factors",
+    "quad_green_deformation",
+]
 
 _PATTERN = (torch.arange(5, dtype=torch.float64) + 0.5) / 5
 
@@ -114,11 +124,124 @@ def quad_green_deformation(
     return out
 
 
+#: Points farther outside the cage than this fraction of its size (bounding-box diagonal), beyond
+#: the rounding of their coordinates, are reported by :func:`find_outside` (and warn in
+#: :func:`deform` and ``torchcage deform``, for every family).
+OUTSIDE_TOLERANCE = 1e-6
+
+
+class Outside(NamedTuple):
+    """Points outside a cage (:func:`find_outside`).
+
+    Attributes:
+        count: how many points lie outside (over the batch, for a batched cage).
+        total: how many points were checked (over the batch).
+        max_distance: the largest distance outside, relative to the cage's size (its bounding-box
+            diagonal; per batch element); 0 when none lies outside.
+        mask: ``(*B, N)`` bool, True for the points outside.
+    """
+
+    count: int
+    total: int
+    max_distance: float
+    mask: torch.Tensor
+
+    def message(self, effect: str = "") -> str:
+        """One line: the count, how far, and ``effect`` (what the coordinates do with them)."""
+        text = (
+            f"{self.count:,} of {self.total:,} points lie outside the cage, up to {self.max_distance:.3g} of its "
+            "size (bounding-box diagonal) away from it"
+        )
+        return f"{text}: {effect}" if effect else text
+
+
+def find_outside(points: torch.Tensor, cage: Cage, tolerance: float = OUTSIDE_TOLERANCE) -> Outside:
+    """The points that lie outside a cage by more than ``tolerance`` times its size (plus the
+    rounding of the coordinates), and how far: the winding number (3D; quads split along
+    ``q0-q2``) or the crossing rule (2D) picks the candidates, their distance to the boundary
+    decides. Vectorised and chunked over points (:func:`torchcage.geometry.winding_number`,
+    :func:`torchcage.geometry.distance_to_cage`); no graph.
+
+    Args:
+        points: ``(N, D)``, or ``(*B, N, D)`` with a batched cage (``(N, D)`` is shared).
+        cage: the cage, ``(V, D)`` or batched ``(*B, V, D)``.
+        tolerance: the distance outside, relative to the cage's size, that still counts as on it.
+
+    Returns:
+        :class:`Outside`: the count, the total, the largest distance relative to the size and
+        the ``(*B, N)`` mask.
+
+    Examples:
+        >>> import torch, torchcage
+        >>> from torchcage.functional.deform import find_outside
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))  # [-1, 1]^3, size 2 sqrt(3)
+        >>> r = find_outside(torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0]]), cube)
+        >>> r.count, r.total, round(r.max_distance * 12**0.5, 6), r.mask.tolist()
+        (1, 3, 2.0, [False, False, True])
+    """
+    from ..geometry import distance_to_cage, inside_cage
+
+    x = points.detach()
+    B = cage.batch_shape
+    x = x.expand(*B, *x.shape[-2:]) if B else x
+    cages = cage.unbind() if cage.is_batched else [cage]
+    flat = x.reshape(len(cages), *x.shape[-2:])
+    dtype = torch.float64 if x.device.type != "mps" else torch.float32
+    masks, count, worst = [], 0, 0.0
+    for c, p in zip(cages, flat, strict=True):
+        c = c.to(dtype=dtype, device=x.device)
+        p = p.to(dtype)
+        v = c.vertices.detach()
+        size = c.scale
+        # the rounding of the coordinates as given (float32 points on the cage round to just outside it)
+        rounding = 8 * torch.finfo(x.dtype).eps * float(v.abs().max()) if v.numel() else 0.0
+        mask = torch.zeros(p.shape[0], dtype=torch.bool, device=x.device)
+        if p.shape[0] and size > 0:
+            candidates = torch.nonzero(~inside_cage(p, c)).flatten()
+            if candidates.numel():
+                d = distance_to_cage(p[candidates], c)
+                far = d > tolerance * size + rounding
+                mask[candidates[far]] = True
+                if bool(far.any()):
+                    worst = max(worst, float(d[far].max()) / size)
+        count += int(mask.sum())
+        masks.append(mask)
+    mask = torch.stack(masks).reshape(*x.shape[:-1]) if masks else torch.zeros(x.shape[:-1], dtype=torch.bool)
+    return Outside(count, int(mask.numel()), worst, mask)
+
+
+#: What each family does with points outside the cage (the end of the outside warning).
+OUTSIDE_EFFECT = {
+    "mvc": "mean value coordinates extrapolate there (defined, but the farther out a point lies the less it "
+    "follows the cage); enlarge the cage around them",
+    "qmvc": "quad mean value coordinates extrapolate there (defined, but the farther out a point lies the less it "
+    "follows the cage); enlarge the cage around them",
+    "gc": "Green coordinates continue them through the nearest faces, exact at rest but extrapolating those "
+    "faces' motion; enlarge the cage around them",
+    "qgc": "quad Green coordinates are defined inside the cage only and map these points to (nearly) the "
+    "origin; enlarge the cage around them or use mean value coordinates",
+    "lbc": "they take the coordinates of the nearest point of the meshed interior (they move with it, not with "
+    "the cage); enlarge the cage around them",
+    "hc": "they take the coordinates of the nearest point of the meshed interior (they move with it, not with "
+    "the cage); enlarge the cage around them",
+    "bbw": "they take the coordinates of the nearest point of the meshed interior (they move with it, not with "
+    "the cage); enlarge the cage around them",
+    "mec": "maximum entropy coordinates exist only inside the cage; enlarge the cage around them or use mean "
+    "value coordinates",
+}
+
 _METHODS = ("mvc", "qmvc", "gc", "qgc")
+_OUTSIDE = ("warn", "error", "ignore")
 
 
 def deform(
-    points: torch.Tensor, cage: Cage, vertices: torch.Tensor, method: str = "mvc", **options: Any
+    points: torch.Tensor,
+    cage: Cage,
+    vertices: torch.Tensor,
+    method: str = "mvc",
+    *,
+    outside: str = "warn",
+    **options: Any,
 ) -> torch.Tensor:
     """Deform points with coordinates recomputed, under autograd, on every call: differentiable
     with respect to the points, the rest cage's vertices and the deformed vertices (a network that
@@ -136,10 +259,21 @@ def deform(
         vertices: deformed vertices ``(*, V, D)`` (``(*, *B, V, D)`` for a batched cage).
         method: ``"mvc"`` (mean value), ``"qmvc"`` (quad mean value), ``"gc"`` (Green), ``"qgc"``
             (quad Green; ``correction=`` is passed to the deformation).
+        outside: points outside the cage by more than :data:`OUTSIDE_TOLERANCE` of its size:
+            ``"warn"`` (default: a :class:`torchcage.OutsideCageWarning` with their count and the
+            largest distance, for every method), ``"error"`` (a
+            :class:`torchcage.errors.PointsError` with the same message) or ``"ignore"`` (no
+            check: saves a winding-number pass per call, about the cost of the mean value
+            coordinates themselves, in a training loop that keeps its points inside).
         **options: passed to the coordinate function (``chunk_size``, ``n``, ``backend``, ...).
 
     Returns:
         ``(*, *B, N, D)`` deformed points.
+
+    Raises:
+        ValueError: an unknown method or ``outside``; ``vertices`` whose shape does not end with
+            ``(V, D)`` or whose batch dimensions do not broadcast with the cage's ``*B``.
+        PointsError: with ``outside="error"``, points outside the cage.
 
     Examples:
         >>> import torch, torchcage
@@ -157,6 +291,21 @@ def deform(
     if not isinstance(vertices, torch.Tensor) or tuple(vertices.shape[-2:]) != (cage.num_vertices, cage.dim):
         shape = tuple(vertices.shape) if isinstance(vertices, torch.Tensor) else type(vertices).__name__
         raise ValueError(f"vertices must have shape (*, {cage.num_vertices}, {cage.dim}), got {shape}")
+    if outside not in _OUTSIDE:
+        raise ValueError(f"outside must be one of {_OUTSIDE}, got {outside!r}")
+    B = cage.batch_shape
+    lead = tuple(vertices.shape[:-2])
+    tail = lead[max(0, len(lead) - len(B)) :]
+    if any(a != b and a != 1 for a, b in zip(reversed(tail), reversed(B), strict=False)):
+        raise ValueError(
+            f"deformed vertices of shape {tuple(vertices.shape)} do not match the batched rest cage of batch shape "
+            f"{tuple(B)}: their dimensions before ({cage.num_vertices}, {cage.dim}) must end with {tuple(B)} (one "
+            f"deformed cage per rest cage, e.g. ({', '.join(map(str, B))}, {cage.num_vertices}, {cage.dim}), or "
+            f"(K, {', '.join(map(str, B))}, {cage.num_vertices}, {cage.dim}) for K poses of each), or with 1s that "
+            "broadcast"
+        )
+    if outside != "ignore":
+        _check_outside(points, cage, method, outside)
     if method == "mvc":
         return torch.matmul(mean_value_coordinates(points, cage, **options).to(vertices.dtype), vertices)
     if method == "qmvc":
@@ -168,3 +317,32 @@ def deform(
     correction = options.pop("correction", "conformal")
     phi, psi = quad_green_coordinates(points, cage, **options)
     return quad_green_deformation(phi, psi, cage.vertices, vertices, cage.triangles, cage.quads, correction)
+
+
+def _check_outside(points: Any, cage: Cage, method: str, outside: str) -> None:
+    """Warn about (or refuse) points outside the cage; malformed points are left to the coordinate
+    function's own checks (and messages)."""
+    if (
+        not isinstance(points, torch.Tensor)
+        or points.dim() < 2
+        or points.shape[-1] != cage.dim
+        or points.is_complex()
+        or not points.is_floating_point()
+        or points.device.type == "meta"
+        or not bool(torch.isfinite(points).all())
+    ):
+        return
+    try:
+        if torch.broadcast_shapes(points.shape[:-2], cage.batch_shape) != cage.batch_shape:
+            return
+    except RuntimeError:
+        return
+    found = find_outside(points, cage)
+    if not found.count:
+        return
+    message = found.message(OUTSIDE_EFFECT[method])
+    if outside == "error":
+        from ..errors import PointsError
+
+        raise PointsError(message + ' (outside="error")')
+    warnings.warn(message, OutsideCageWarning, stacklevel=3)
