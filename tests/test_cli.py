@@ -114,3 +114,130 @@ def test_bench_validates_arguments(capsys):
     with pytest.raises(SystemExit):
         main(["deform", "--help"])
     assert "qgc (quad Green" in capsys.readouterr().out
+
+
+def test_bench_prints_as_it_goes_and_names_the_kernel_library(capsys, monkeypatch):
+    """Issue 43 item 7: the header and the kernel library are out before the first measurement
+    ends, and each row as it is measured; every option has help."""
+    import pytest
+
+    import torchcage._timing
+    from torchcage import _native
+    from torchcage.cli import kernel_library
+
+    seen = []
+    real = torchcage._timing.best_of
+
+    def spy(fn, repeat):
+        seen.append(capsys.readouterr().out)  # what was printed before this measurement
+        return real(fn, repeat)
+
+    monkeypatch.setattr(torchcage._timing, "best_of", spy)
+    assert main(["bench", "--points", "500", "--repeat", "1"]) == 0
+    rest = capsys.readouterr().out
+    backends = (["native"] if _native.available() else []) + ["torch"]
+    assert len(seen) == len(backends)
+    assert "mean value coordinates: 500 points" in seen[0] and f"kernels: {kernel_library()}" in seen[0]
+    assert "Mpts/s" in seen[0] and not any(line.startswith(backends[0]) for line in seen[0].splitlines())
+    if len(backends) == 2:  # the native row is out before the torch measurement starts
+        assert seen[1].startswith("native") and "torch" not in seen[1]
+    assert rest.startswith("torch")
+    library = kernel_library()
+    assert library.startswith("native (") if _native.available() else library.startswith("torch (native kernels")
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    text = capsys.readouterr().out
+    assert "--points POINTS  random points" in text and "--repeat REPEAT  timed runs" in text
+
+
+def test_version_and_extras_in_help(capsys):
+    from importlib.metadata import version
+
+    import pytest
+
+    from torchcage.methods import METHOD_EXTRAS
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out.strip() == f"torchcage {version('torchcage')}"
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    top = " ".join(capsys.readouterr().out.split())
+    assert "--method lbc, hc, bbw need pip install 'torchcage[lbc]'" in top and "'torchcage[cage]'" in top
+    with pytest.raises(SystemExit):
+        main(["deform", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for method, extra in METHOD_EXTRAS.items():
+        assert f"needs torchcage[{extra}]" in text.split(f"{method} (")[1].split(")")[0]
+    assert "mvc (mean value, any closed cage, quads split)" in text  # no extra named for the others
+
+
+def test_extras_named_in_help_are_the_ones_pyproject_declares():
+    """The methods solved on a mesh of the interior import scipy; the extra the help names brings it."""
+    from pathlib import Path
+
+    import pytest
+
+    from torchcage.methods import METHOD_EXTRAS
+
+    tomllib = pytest.importorskip("tomllib")  # (Python >= 3.11)
+
+    extras = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"
+    ]
+    for extra in set(METHOD_EXTRAS.values()):
+        assert any(dep.startswith("scipy") for dep in extras[extra])
+    assert any(dep.startswith("matplotlib") for dep in extras["examples"])  # examples/green_jacobian.py's message
+
+
+def test_warnings_print_as_one_clean_line(tmp_path, capsys):
+    """An inverted cage flips with a warning: on the command line it is one line, no Python frame."""
+    args = cube_files(tmp_path)
+    for name in ("cage.obj", "pose.obj"):  # both files turned inside out (faces reversed)
+        p = tmp_path / name
+        p.write_text(
+            "".join(
+                " ".join(["f", *line.split()[1:][::-1]]) + "\n" if line.startswith("f ") else line + "\n"
+                for line in p.read_text().splitlines()
+            )
+        )
+    assert main([*args, "--out", str(tmp_path / "o"), "--no-picture"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    flips = [line for line in err if "oriented inward" in line]
+    assert flips and all(line.startswith("torchcage: warning: the cage is oriented inward") for line in flips)
+    assert not any("UserWarning" in line or "warnings.warn" in line or ".py:" in line for line in err), err
+
+
+def test_ply_without_trimesh_says_writing(tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "trimesh", None)  # import trimesh raises ImportError
+    args = cube_files(tmp_path)
+    assert main([*args, "--out", str(tmp_path / "o"), "--format", "ply", "--no-picture"]) == 2
+    err = capsys.readouterr().err
+    assert "writing this mesh format needs trimesh: pip install 'torchcage[mesh]'" in err and "reading" not in err
+
+
+def test_up_axis_default_and_auto_rule(capsys):
+    """Issue 43 item 9: --up defaults to auto: y (the OBJ convention) unless the mesh stands
+    along z; models of the data set's kind (y-up, long along x, thin along z) are not laid down."""
+    import pytest
+
+    from torchcage.cli import UP_Z_RATIO, up_axis
+
+    def box(x, y, z):
+        return torch.tensor([[0.0, 0.0, 0.0], [x, y, z]])
+
+    assert up_axis("auto", box(1, 1, 3)) == "z"  # the bundled bar stands along z
+    assert up_axis("auto", box(2.0, 0.51, 0.45)) == "y"  # a bench: longest along x
+    assert up_axis("auto", box(1.0, 0.92, 0.42)) == "y"  # an animal: thinnest along z, yet z is not up
+    assert up_axis("auto", box(1.24, 1.84, 1.71)) == "y"  # a head, y-up
+    assert up_axis("auto", box(1, 1, 0.99 * UP_Z_RATIO)) == "y" and up_axis("auto", box(1, 1, UP_Z_RATIO)) == "z"
+    assert all(up_axis(a, box(1, 1, 3)) == a for a in "xyz")
+    with pytest.raises(ValueError, match="up must be one of"):
+        up_axis("w", box(1, 1, 1))
+    for command in ("make-cage", "deform", "view"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert "{auto,x,y,z}" in text and "auto (default)" in text and "else y (the OBJ convention" in text
