@@ -99,7 +99,7 @@ class DeformGaussians(nn.Module):
         *,
         method: str = "mvc",
         module: nn.Module | None = None,
-        chunk_size: int = 1 << 16,
+        chunk_size: int = 1 << 14,
         min_scale: float = 1e-6,
         progress: bool | Callable[[int, int], None] = False,
     ) -> None:
