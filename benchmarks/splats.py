@@ -75,8 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     J = torch.func.vmap(torch.func.jacrev(mapped))(x)
     t1 = time.perf_counter()
-    ref = DeformGaussians(cage, scene.replace(**{k: getattr(scene, k)[: args.baseline] for k in
-                                                 ("means", "log_scales", "rotations", "opacity_logits", "sh")}))(pose)  # fmt: skip
+    fields = ("means", "log_scales", "rotations", "opacity_logits", "sh")
+    ref = DeformGaussians(cage, scene.replace(**{k: getattr(scene, k)[: args.baseline] for k in fields}))(pose)
     err = float((ref.jacobians - J).abs().max())
     _row("baseline: autograd Jacobians only (mvc)", args.baseline, t1 - t0, peak_since(before), f"(|dJ| {err:.1e})")
     # inverse mapping
