@@ -11,14 +11,17 @@ in the browser (:mod:`torchcage.viewer`). ``torchcage make-cage`` makes an enclo
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Literal
 
 import torch
 
+from .cage import Cage
 from .functional.deform import OUTSIDE_TOLERANCE
 from .methods import METHOD_EXTRAS, METHOD_HELP, METHOD_NAMES, METHODS, OUTSIDE_EFFECT, build_module
 
@@ -150,13 +153,15 @@ def deform_files(
     auto = str(cage_path) == "auto"
     with timer("load"):
         v, f = torchcage.load_mesh(mesh_path)
-        cage = None if auto else torchcage.load_cage(cage_path)
+        loaded = None if auto else torchcage.load_cage(cage_path)
         # a pose may fold through itself
-        pose = None if deformed_path is None else torchcage.load_cage(deformed_path, check_intersections=False)
-    if auto:
+        posed = None if deformed_path is None else torchcage.load_cage(deformed_path, check_intersections=False)
+    if loaded is None:
         with timer(f"make cage ({cage_vertices} vertices)"):
-            cage = auto_cage(v, f, cage_vertices, cage_kind or _default_kind(method), quiet)
-    pose = cage if pose is None else pose
+            cage = auto_cage(v, f, cage_vertices, _cage_kind(cage_kind, method), quiet)
+    else:
+        cage = loaded
+    pose = cage if posed is None else posed
     if pose.num_vertices != cage.num_vertices or not (
         torch.equal(pose.triangles, cage.triangles) and torch.equal(pose.quads, cage.quads)
     ):
@@ -246,11 +251,24 @@ def deform_files(
 _TURN = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}
 
 
-def _default_kind(method: str) -> str:
+def _default_kind(method: str) -> Literal["triangle", "quad"]:
     return "quad" if method in ("qmvc", "qgc") else "triangle"
 
 
-def auto_cage(vertices: torch.Tensor, faces: torch.Tensor, target: int, kind: str, quiet: bool = False):
+def _cage_kind(kind: str | None, method: str) -> Literal["triangle", "quad"]:
+    """``--cage-kind``, or the method's default: quads for ``qmvc`` and ``qgc``, else triangles."""
+    if kind is None:
+        return _default_kind(method)
+    if kind == "triangle":
+        return "triangle"
+    if kind == "quad":
+        return "quad"
+    raise ValueError(f"cage kind must be 'triangle' or 'quad', got {kind!r}")
+
+
+def auto_cage(
+    vertices: torch.Tensor, faces: torch.Tensor, target: int, kind: Literal["triangle", "quad"], quiet: bool = False
+) -> Cage:
     """A cage made from a mesh for ``--cage auto`` (:func:`torchcage.make_cage`, progress on stderr)."""
     import torchcage
 
@@ -355,7 +373,7 @@ def _view(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"no such file: {path}")
     if cage == "auto":
         v, f = torchcage.load_mesh(mesh)
-        cage = auto_cage(v, f, args.cage_vertices, args.cage_kind or _default_kind(args.method))
+        cage = auto_cage(v, f, args.cage_vertices, _cage_kind(args.cage_kind, args.method))
         Path(args.out).mkdir(parents=True, exist_ok=True)
         made = Path(args.out) / "made_cage.obj"
         torchcage.save_cage(made, cage)
@@ -438,7 +456,7 @@ def _bench(args: argparse.Namespace) -> int:
     print(f"{'backend':<8}{'best ms':>10}{'Mpts/s':>9}", flush=True)
     for backend in backends:
         F.mean_value_coordinates(x[:1000], cage, backend=backend)  # warm up (and build the native kernel)
-        _, best, _ = best_of(lambda b=backend: F.mean_value_coordinates(x, cage, backend=b), args.repeat)
+        _, best, _ = best_of(functools.partial(F.mean_value_coordinates, x, cage, backend=backend), args.repeat)
         print(f"{backend:<8}{1000 * best:>10.1f}{args.points / best / 1e6:>9.2f}", flush=True)
     return 0
 

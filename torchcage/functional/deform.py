@@ -6,7 +6,8 @@ under autograd on each call (rest cage and points differentiable: the Neural Cag
 from __future__ import annotations
 
 import warnings
-from typing import Any, NamedTuple
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -130,7 +131,8 @@ def quad_green_deformation(
 OUTSIDE_TOLERANCE = 1e-6
 
 
-class Outside(NamedTuple):
+@dataclass(frozen=True)
+class Outside:
     """Points outside a cage (:func:`find_outside`).
 
     Attributes:
