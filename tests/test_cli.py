@@ -241,3 +241,27 @@ def test_up_axis_default_and_auto_rule(capsys):
             main([command, "--help"])
         text = " ".join(capsys.readouterr().out.split())
         assert "{auto,x,y,z}" in text and "auto (default)" in text and "else y (the OBJ convention" in text
+
+
+def test_view_resolves_up_auto(tmp_path, monkeypatch):
+    """`torchcage view` hands the editor the axis that --up auto chose (z for the standing bar, y
+    for a mesh longest along x); an explicit axis passes through."""
+    import torchcage.viewer as viewer_module
+
+    seen = []
+
+    def fake_view(mesh, cage, **options):
+        seen.append(options["up"])
+        raise ValueError("stop here")  # (the CLI turns it into exit code 2)
+
+    monkeypatch.setattr(viewer_module, "view", fake_view)
+    d = torchcage.data
+    bar = ["view", "--mesh", str(d.path("bar.obj")), "--cage", str(d.path("bar_cage.obj")), "--no-browser"]
+    assert main(bar) == 2 and seen[-1] == "z"
+    v, f = torchcage.load_mesh(d.path("bar.obj"))
+    torchcage.save_mesh(tmp_path / "lying.obj", v[:, [2, 0, 1]], f)  # the bar laid along x
+    cage = torchcage.load_cage(d.path("bar_cage.obj"))
+    torchcage.save_cage(tmp_path / "lying_cage.obj", cage, cage.vertices[:, [2, 0, 1]])
+    lying = ["view", "--mesh", str(tmp_path / "lying.obj"), "--cage", str(tmp_path / "lying_cage.obj"), "--no-browser"]
+    assert main(lying) == 2 and seen[-1] == "y"
+    assert main([*lying, "--up", "x"]) == 2 and seen[-1] == "x"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -232,3 +233,47 @@ def test_native_library_built_at_install_is_preferred(monkeypatch) -> None:
     assert _native._load_prebuilt() is not None
     monkeypatch.setattr(_native.build_spec, "source_digest", lambda folder: "0" * 16)
     assert _native._load_prebuilt() is None  # a digest mismatch: stale, refused
+
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def test_green_jacobian_example_names_the_extra_when_matplotlib_is_missing() -> None:
+    """Issue 43 item 9: no raw ModuleNotFoundError; the message names the extra (pyproject's
+    `examples` extra brings matplotlib)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, runpy; sys.modules['matplotlib'] = None; sys.argv = ['x', 'unused.png']; "
+        f"runpy.run_path({str(EXAMPLES / 'green_jacobian.py')!r}, run_name='__main__')"
+    )
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert run.returncode != 0
+    assert "pip install 'torchcage[examples]'" in run.stderr and "matplotlib" in run.stderr
+    assert "Traceback" not in run.stderr and "ModuleNotFoundError" not in run.stderr
+
+
+def test_coordinate_field_picture_has_a_title_and_a_colour_scale(tmp_path) -> None:
+    """Issue 43 item 9: the 2D field picture has a title strip and a colour scale whose colours
+    are render_field_2d's own: red at +1 (top), white at 0, blue at -1 (bottom)."""
+    import importlib.util
+
+    from PIL import Image
+
+    spec = importlib.util.spec_from_file_location("coordinate_field_2d", EXAMPLES / "coordinate_field_2d.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    out = tmp_path / "field.png"
+    example.main(str(out), size=120)
+    image = Image.open(out).convert("RGB")
+    assert image.size == (120 + example.SCALE_WIDTH, 120 + example.TITLE_HEIGHT)
+    title = [image.getpixel((x, y)) for x in range(image.size[0]) for y in range(example.TITLE_HEIGHT)]
+    assert sum(max(p) < 100 for p in title) > 50  # dark text on the white strip
+    x = 120 + 12 + example.BAR_WIDTH // 2
+    top, middle, bottom = (image.getpixel((x, example.TITLE_HEIGHT + y)) for y in (2, 60, 117))
+    assert top[0] > 200 and top[1] < 60 and top[2] < 60  # red: +1
+    assert min(middle) > 200  # white: 0
+    assert bottom[2] > 200 and bottom[0] < 60 and bottom[1] < 60  # blue: -1
+    labels = [image.getpixel((px, y)) for px in range(x + 14, image.size[0]) for y in range(40, 150)]
+    assert sum(max(p) < 100 for p in labels) > 30  # the scale's numbers
