@@ -132,3 +132,27 @@ def test_cli_warns_for_a_mesh_outside_and_not_for_one_inside(tmp_path, capsys, m
     args = _cli(tmp_path / "small", 0.5)
     assert main([*args, "--out", str(tmp_path / "i"), "--method", method, "--strict", "--no-picture"]) == 0
     assert "outside" not in capsys.readouterr().err
+
+
+def test_deform_checks_the_cage_before_the_outside_test_and_keeps_no_graph() -> None:
+    """A damaged predicted cage is refused by the coordinate function's own check (not by the
+    outside test); a rest cage that requires grad is tested without a graph and without torch's
+    'requires_grad to a scalar' warning, and its gradient is what it is without the test."""
+    tri = CUBE.triangulated()
+    bad = tri.vertices.clone()
+    bad[3] = float("nan")
+    with pytest.raises(torchcage.CageError):
+        torchcage.deform(_points(5, 0.5), tri.with_vertices(bad), tri.vertices)
+    rest = tri.vertices.clone().requires_grad_()
+    x = torch.cat([_points(30, 0.9, seed=4), torch.tensor([[3.0, 0.0, 0.0]], dtype=f64)])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        y = torchcage.deform(x, tri.with_vertices(rest), 2 * rest.detach())
+    assert [str(w.message).split(":")[0] for w in caught] == [
+        "1 of 31 points lie outside the cage, up to 0.577 of its size (bounding-box diagonal) away from it"
+    ]
+    (g,) = torch.autograd.grad(y.sum(), rest)
+    rest2 = tri.vertices.clone().requires_grad_()
+    y2 = torchcage.deform(x, tri.with_vertices(rest2), 2 * rest2.detach(), outside="ignore")
+    (g2,) = torch.autograd.grad(y2.sum(), rest2)
+    assert torch.equal(y, y2) and torch.equal(g, g2)

@@ -186,14 +186,15 @@ def find_outside(points: torch.Tensor, cage: Cage, tolerance: float = OUTSIDE_TO
     x = points.detach()
     B = cage.batch_shape
     x = x.expand(*B, *x.shape[-2:]) if B else x
-    cages = cage.unbind() if cage.is_batched else [cage]
+    still = cage.with_vertices(cage.vertices.detach())  # (a predicted cage: no graph, no grad)
+    cages = still.unbind() if still.is_batched else [still]
     flat = x.reshape(len(cages), *x.shape[-2:])
     dtype = torch.float64 if x.device.type != "mps" else torch.float32
     masks, count, worst = [], 0, 0.0
     for c, p in zip(cages, flat, strict=True):
         c = c.to(dtype=dtype, device=x.device)
         p = p.to(dtype)
-        v = c.vertices.detach()
+        v = c.vertices
         size = c.scale
         # the rounding of the coordinates as given (float32 points on the cage round to just outside it)
         rounding = 8 * torch.finfo(x.dtype).eps * float(v.abs().max()) if v.numel() else 0.0
@@ -306,8 +307,13 @@ def deform(
             f"(K, {', '.join(map(str, B))}, {cage.num_vertices}, {cage.dim}) for K poses of each), or with 1s that "
             "broadcast"
         )
-    if outside != "ignore":
+    out = _deform(points, cage, vertices, method, options)
+    if outside != "ignore":  # (after the coordinate function has checked the cage and the points)
         _check_outside(points, cage, method, outside)
+    return out
+
+
+def _deform(points: torch.Tensor, cage: Cage, vertices: torch.Tensor, method: str, options: dict) -> torch.Tensor:
     if method == "mvc":
         return torch.matmul(mean_value_coordinates(points, cage, **options).to(vertices.dtype), vertices)
     if method == "qmvc":
@@ -322,8 +328,7 @@ def deform(
 
 
 def _check_outside(points: Any, cage: Cage, method: str, outside: str) -> None:
-    """Warn about (or refuse) points outside the cage; malformed points are left to the coordinate
-    function's own checks (and messages)."""
+    """Warn about (or refuse) points outside the cage (``stacklevel``: the caller of :func:`deform`)."""
     if (
         not isinstance(points, torch.Tensor)
         or points.dim() < 2
