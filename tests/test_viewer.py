@@ -9,6 +9,7 @@ import sys
 import threading
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 
 import numpy as np
@@ -16,7 +17,8 @@ import pytest
 import torch
 
 import torchcage
-from torchcage.viewer import EditorSession, PoseError
+from torchcage.viewer import EditorSession, PoseError, fetch_token
+from torchcage.viewer.server import TOKEN_HEADER
 from torchcage.viewer import session as session_module
 
 D = torchcage.data
@@ -36,8 +38,13 @@ def viewer(bar, tmp_path):
 
 
 def call(url: str, body: bytes | dict | None = None, method: str | None = None, headers=None):
-    """(status, headers, parsed JSON or raw bytes) of one request; errors included."""
+    """(status, headers, parsed JSON or raw bytes) of one request; errors included. A body is sent
+    as a script in another process would: the token read from the page, JSON content type."""
     data = json.dumps(body).encode() if isinstance(body, dict) else body
+    if data is not None:
+        parts = urllib.parse.urlsplit(url)
+        token = fetch_token(f"{parts.scheme}://{parts.netloc}/")
+        headers = {TOKEN_HEADER: token, "Content-Type": "application/json", **(headers or {})}
     req = urllib.request.Request(url, data=data, method=method, headers=headers or {})
     try:
         with urllib.request.urlopen(req, timeout=60) as r:
@@ -124,7 +131,7 @@ def test_other_bad_requests(viewer):
     status, _, answer = call(viewer.url + "api/method", {"method": "nope"})
     assert status == 400 and "unknown method" in answer["error"]
     status, _, answer = call(viewer.url + "api/save", {"prefix": "../escape"})
-    assert status == 400 and "plain name" in answer["error"]
+    assert status == 400 and "plain file name" in answer["error"]
     status, _, answer = call(viewer.url + "api/pose", b"{}", headers={"Content-Length": str(10**9)})
     assert status == 413
     assert call(viewer.url + "api/status")[0] == 200
@@ -150,7 +157,7 @@ def test_save_writes_cage_with_quads_and_mesh_then_load_reads_the_pose_back(view
     assert torch.equal(mf, f) and torch.allclose(mv, viewer.deformed, atol=1e-9)
 
     viewer.set_pose(cage.vertices)
-    status, _, answer = call(viewer.url + "api/load", open(paths["cage"], "rb").read())
+    status, _, answer = call(viewer.url + "api/load", {"obj": open(paths["cage"]).read()})
     assert status == 200
     assert torch.allclose(viewer.pose, pose, atol=1e-12)
     assert torch.allclose(torch.tensor(answer["cage"], dtype=torch.float64), pose, atol=1e-12)
@@ -160,10 +167,12 @@ def test_save_writes_cage_with_quads_and_mesh_then_load_reads_the_pose_back(view
 def test_load_refuses_files_that_are_not_this_cage(viewer, tmp_path):
     cube = tmp_path / "cube.obj"
     torchcage.save_cage(cube, torchcage.load_cage(D.path("cube.obj")))
-    status, _, answer = call(viewer.url + "api/load", cube.read_bytes())
+    status, _, answer = call(viewer.url + "api/load", {"obj": cube.read_text()})
     assert status == 400 and "rest cage's faces" in answer["error"]
-    status, _, answer = call(viewer.url + "api/load", b"f 1 2 3 4 5\n")
+    status, _, answer = call(viewer.url + "api/load", {"obj": "f 1 2 3 4 5\n"})
     assert status == 400
+    status, _, answer = call(viewer.url + "api/load", {"text": "v 0 0 0\n"})
+    assert status == 400 and '{"obj"' in answer["error"]
 
 
 def test_method_switch_recomputes_with_quads_kept(viewer, bar):
@@ -244,7 +253,7 @@ def test_view_from_python_with_an_initial_pose_file_and_a_warning_off_loopback(b
     pose_file = tmp_path / "pose.obj"
     pose = cage.vertices * 0.5
     torchcage.save_cage(pose_file, cage, pose)
-    with pytest.warns(UserWarning, match="no authentication"):
+    with pytest.warns(UserWarning, match="session's token"):
         v = torchcage.view(D.path("bar.obj"), D.path("bar_cage.obj"), pose=pose_file, host="0.0.0.0", out=tmp_path)
     with v:
         assert torch.allclose(v.pose, pose)

@@ -4,6 +4,8 @@ A local HTTP server (standard library) serves one page (three.js, vendored) that
 its cage, lets the user drag, rotate and scale cage vertices, and shows the mesh deform live; the
 coordinates are computed once, server side, and each pose is one product. The same server answers
 a scripting API (:mod:`torchcage.viewer.server`), and :class:`Viewer` drives it from Python.
+Requests that change anything carry the session's secret (:attr:`Viewer.headers`): other web pages
+open in the same browser cannot drive the editor.
 
 Examples:
     >>> import torch, torchcage
@@ -18,6 +20,7 @@ Examples:
 
 from __future__ import annotations
 
+import errno
 import sys
 import warnings
 import webbrowser
@@ -27,11 +30,25 @@ from typing import Any
 import torch
 
 from ..cage import Cage
-from .server import EditorServer
+from .server import EditorServer, fetch_token
 from .session import CoordinatesError, EditorError, EditorSession, PoseError, Status
 
-__all__ = ["CoordinatesError", "EditorError", "EditorServer", "EditorSession", "PoseError", "Status", "Viewer", "view"]
+__all__ = [
+    "DEFAULT_PORT",
+    "CoordinatesError",
+    "EditorError",
+    "EditorServer",
+    "EditorSession",
+    "PoseError",
+    "Status",
+    "Viewer",
+    "fetch_token",
+    "view",
+]
 
+#: The editor's usual port (``torchcage view``); when it is taken, :func:`view` serves on a free
+#: one and says so.
+DEFAULT_PORT = 8765
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
 
@@ -43,6 +60,7 @@ class Viewer:
     Attributes:
         url: the page's address.
         session: the :class:`EditorSession` behind the page.
+        server: the :class:`EditorServer` (``server.token``: the secret each ``POST`` needs).
     """
 
     def __init__(self, session: EditorSession, server: EditorServer) -> None:
@@ -59,6 +77,16 @@ class Viewer:
     def deformed(self) -> torch.Tensor | None:
         """The mesh deformed by the current pose ``(N, 3)``, waiting for the coordinates."""
         return self.session.deform()
+
+    @property
+    def token(self) -> str:
+        """The session's secret, required in the ``X-Torchcage-Token`` header of every ``POST``."""
+        return self.server.token
+
+    @property
+    def headers(self) -> dict[str, str]:
+        """The headers a script's ``POST`` to :attr:`url` needs (the token, JSON content type)."""
+        return self.server.headers
 
     @property
     def method(self) -> str:
@@ -81,8 +109,16 @@ class Viewer:
         return self.session.save(prefix)
 
     def open(self) -> bool:
-        """Open the page in the default web browser (``False`` where there is none)."""
-        return webbrowser.open(self.url)
+        """Open the page in the default web browser; where none opens (``False``), print the
+        address to open by hand on stderr."""
+        why = ""
+        try:
+            opened = bool(webbrowser.open(self.url))
+        except Exception as err:  # webbrowser.Error, or a browser command that fails to start
+            opened, why = False, f" ({type(err).__name__}: {err})"
+        if not opened:
+            print(f"torchcage view: no web browser could be opened{why}; open {self.url} by hand", file=sys.stderr)
+        return opened
 
     def close(self) -> None:
         """Stop the server."""
@@ -126,6 +162,9 @@ def view(
     up: str = "z",
     open_browser: bool = False,
     verbose: bool = False,
+    fallback: bool | None = None,
+    timeout: float | None = None,
+    allowed_hosts: tuple[str, ...] | list[str] = (),
 ) -> Viewer:
     """Start the cage editor on ``mesh`` and ``cage``; return a :class:`Viewer` (the server runs
     in a background thread until :meth:`Viewer.close`).
@@ -136,20 +175,27 @@ def view(
         method: the coordinates (see :data:`torchcage.methods.METHODS`); computed in the
             background, with progress on the page.
         pose: an initial deformed cage: ``(V, 3)`` vertices or an OBJ file with the cage's faces.
-        host: the address to listen on; anything but loopback warns (the editor has no
-            authentication and writes files into ``out``).
+        host: the address to listen on; anything but loopback warns (anyone who can reach the
+            server can open the page, and with it the session's token, and write files into ``out``).
         port: the port (``0``: a free one).
         out: the folder that Save writes into.
         up: the mesh's up axis (``"x"``, ``"y"``, ``"z"``).
-        open_browser: open the page in the default browser.
-        verbose: log each request on stderr.
+        open_browser: open the page in the default browser (where none opens, the address to
+            open by hand is printed on stderr).
+        verbose: log each request, and each client that drops, on stderr.
+        fallback: when ``port`` is taken, serve on a free port instead and say so on stderr
+            (default: only for :data:`DEFAULT_PORT`; another taken port raises ``OSError``).
+        timeout: seconds a connection may stay silent before it is dropped (default
+            :data:`torchcage.viewer.server.DEFAULT_TIMEOUT`).
+        allowed_hosts: more ``host:port`` names the server answers to (e.g. ``"localhost:9000"``
+            behind a port forward to another local port); the page refuses any other.
 
     Returns:
         The running :class:`Viewer`; ``viewer.url`` is the page.
 
     Raises:
         ValueError: an unusable mesh, cage, pose or method (with the fix).
-        OSError: the port cannot be bound.
+        OSError: the port cannot be bound (or is taken, without ``fallback``).
     """
     from ..io import load_cage
 
@@ -163,12 +209,24 @@ def view(
         session.set_pose(pose, wait=False)
     if host not in _LOOPBACK:
         warnings.warn(
-            f"the editor listens on {host}: anyone who can reach it can read the mesh and write files into "
-            f"{Path(out).resolve()}; it has no authentication (use the default 127.0.0.1 and a port forward)",
+            f"the editor listens on {host}: anyone who can reach it can open the page (and with it the session's "
+            f"token), read the mesh and write files into {Path(out).resolve()}; it has no other authentication "
+            "(use the default 127.0.0.1 and a port forward)",
             UserWarning,
             stacklevel=2,
         )
-    viewer = Viewer(session, EditorServer(session, host, port, verbose=verbose).start())
-    if open_browser and not webbrowser.open(viewer.url):
-        print(f"torchcage view: no browser to open; visit {viewer.url}", file=sys.stderr)
+    options: dict[str, Any] = {"verbose": verbose, "allowed_hosts": allowed_hosts}
+    if timeout is not None:
+        options["timeout"] = timeout
+    try:
+        server = EditorServer(session, host, port, **options)
+    except OSError as err:
+        if not (fallback if fallback is not None else port == DEFAULT_PORT) or port == 0:
+            raise
+        server = EditorServer(session, host, 0, **options)
+        taken = "is in use" if err.errno == errno.EADDRINUSE else f"cannot be used ({err})"
+        print(f"torchcage view: port {port} {taken}; serving on {server.url}", file=sys.stderr, flush=True)
+    viewer = Viewer(session, server.start())
+    if open_browser:
+        viewer.open()
     return viewer

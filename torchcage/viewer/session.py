@@ -31,9 +31,19 @@ from ..cage import Cage
 from ..errors import CageError
 from ..methods import METHOD_NAMES, METHODS, build_module
 
-__all__ = ["CoordinatesError", "EditorError", "EditorSession", "PoseError", "Status"]
+__all__ = ["PREFIX_RULE", "CoordinatesError", "EditorError", "EditorSession", "PoseError", "Status", "check_prefix"]
 
-_PREFIX = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")
+#: A save prefix: a portable file name (letters, digits, ``.``, ``_``, ``-``; a letter or digit first).
+_PREFIX = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+#: Device names that Windows refuses as a file name's stem, with or without an extension.
+_RESERVED = frozenset(
+    ["con", "prn", "aux", "nul", *(f"com{i}" for i in range(1, 10)), *(f"lpt{i}" for i in range(1, 10))]
+)
+#: What :func:`check_prefix` allows, in words (its error says it).
+PREFIX_RULE = (
+    "1 to 64 characters: letters, digits, '.', '_' and '-', starting with a letter or digit, not ending "
+    "with '.', without '..', and not a Windows device name (CON, PRN, AUX, NUL, COM1-9, LPT1-9)"
+)
 
 
 class EditorError(ValueError):
@@ -49,6 +59,28 @@ class CoordinatesError(EditorError):
 class PoseError(EditorError):
     """A deformed cage that does not fit the rest cage: wrong vertex count, non-finite values,
     other faces."""
+
+
+def check_prefix(prefix: object) -> str:
+    """``prefix`` if it is a portable file-name prefix (see :data:`PREFIX_RULE`).
+
+    Raises:
+        EditorError: any other prefix (``-rf``, ``CON``, ``con.obj``, ``x..``, ``a/b``, ``''``), naming the rule.
+
+    Examples:
+        >>> check_prefix("pose_01")
+        'pose_01'
+    """
+    ok = (
+        isinstance(prefix, str)
+        and _PREFIX.match(prefix) is not None
+        and not prefix.endswith(".")
+        and ".." not in prefix
+        and prefix.split(".")[0].lower() not in _RESERVED
+    )
+    if not ok:
+        raise EditorError(f"a save prefix must be a plain file name, {PREFIX_RULE}; got {prefix!r}")
+    return str(prefix)
 
 
 @dataclass
@@ -368,12 +400,12 @@ class EditorSession:
             ``{"cage": path, "mesh": path}``.
 
         Raises:
-            EditorError: a prefix that is not a plain file name, or coordinates not ready.
+            EditorError: a prefix that is not a portable file name (see :func:`check_prefix`), or
+                coordinates not ready.
         """
         from ..io import save_cage, save_mesh
 
-        if not isinstance(prefix, str) or not _PREFIX.match(prefix):
-            raise EditorError(f"prefix must be a plain name (letters, digits, '_', '-', '.'), got {prefix!r}")
+        check_prefix(prefix)
         pose = self.pose
         deformed = self.deform(pose, wait=60.0)
         if deformed is None:  # pragma: no cover - deform waits or raises

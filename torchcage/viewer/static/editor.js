@@ -32,8 +32,14 @@ const state = {
 };
 
 // ------------------------------------------------------------------ server
+// The server serves this page with a per-session secret; every POST carries it (and a JSON body),
+// which another web page open in the same browser cannot read or forge.
+const TOKEN = document.querySelector('meta[name="torchcage-token"]').content;
+
 async function request(url, options = {}) {
-  const r = await fetch(url, options);
+  const headers = { 'X-Torchcage-Token': TOKEN, ...(options.headers || {}) };
+  if (options.body !== undefined) headers['Content-Type'] = 'application/json';
+  const r = await fetch(url, { ...options, headers });
   if (!r.ok) {
     let message = `${r.status} ${r.statusText}`;
     try { message = (await r.json()).error || message; } catch (e) { /* not JSON */ }
@@ -42,9 +48,7 @@ async function request(url, options = {}) {
   return r;
 }
 const getJSON = async (url) => (await request(url)).json();
-const postJSON = async (url, body) => (await request(url, {
-  method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body),
-})).json();
+const postJSON = async (url, body) => (await request(url, { method: 'POST', body: JSON.stringify(body) })).json();
 
 function note(text, isError = false) {
   $('message').textContent = text;
@@ -379,7 +383,7 @@ async function sendPose() {
   const t0 = performance.now();
   try {
     const r = await request('/api/pose?format=f32&wait=0', {
-      method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify({ vertices: poseRows() }),
+      method: 'POST', body: JSON.stringify({ vertices: poseRows() }),
     });
     if (r.status === 200) {
       state.version = Number(r.headers.get('X-Pose-Version'));
@@ -502,7 +506,7 @@ $('load').addEventListener('change', async (event) => {
   if (!file) return;
   await idle();
   try {
-    const r = await (await request('/api/load?wait=0', { method: 'POST', body: await file.text() })).json();
+    const r = await postJSON('/api/load?wait=0', { obj: await file.text() });
     state.version = r.version;
     setPose(r.cage.flat());
     pushHistory();
