@@ -380,6 +380,7 @@ class _Server(ThreadingHTTPServer):
 
     daemon_threads = True
     allow_reuse_address = True
+    request_queue_size = 128  # the listen backlog (the standard library's 5 drops bursts' SYNs: 1 s retries)
 
     def __init__(
         self,
