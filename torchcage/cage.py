@@ -660,9 +660,9 @@ class Cage:
             b = int(torch.nonzero(flat)[0])
             what = "volume" if self.dim == 3 else "area"
             raise DegenerateFaceError(
-                f"the cage{_batch_name(b, batch)} encloses no {what} (it is flat: {what} "
-                f"{float(size[b]):.2g} of its bounding box); a cage must enclose the points, so give it some "
-                "thickness"
+                f"the cage{_batch_name(b, batch)} encloses no {what} ({what} {float(size[b]):.2g} of its bounding "
+                "box): it is flat, or it folds back over itself (a self-intersection, such as a bow-tie, whose "
+                f"parts cancel); a cage must enclose the points: give it some thickness, or untangle it"
             )
 
     def _check_orientation(self, flip: bool) -> None:
