@@ -64,7 +64,9 @@ def main() -> None:
     for step in range(args.steps + 1):
         rest = rest0 + rest_offset
         cage = torchcage.Cage(rest, template.triangles, validate="topology")  # one topology, B cages
-        moved = torchcage.deform(src, cage, rest + deformed_offset, method="mvc")  # (B, N, 3)
+        # (mean value coordinates are defined outside the cage too: points a learnt cage leaves behind
+        # are not worth a warning every step)
+        moved = torchcage.deform(src, cage, rest + deformed_offset, method="mvc", outside="ignore")  # (B, N, 3)
         fit = (moved - tgt).square().sum(-1).mean()
         loss = fit + 1e-3 * rest_offset.square().sum(-1).mean()
         opt.zero_grad()
@@ -77,7 +79,9 @@ def main() -> None:
     with torch.no_grad():
         rest = rest0 + rest_offset
         final = rest + deformed_offset
-        moved = torchcage.deform(src, torchcage.Cage(rest, template.triangles), final)
+        # the learnt cages, checked as in training (topology; a learnt cage may touch itself)
+        learnt = torchcage.Cage(rest, template.triangles, validate="topology")
+        moved = torchcage.deform(src, learnt, final, outside="ignore")
     for b in range(B):
         top.append(Panel(src[b], faces, cage_vertices=rest[b], cage_edges=cage_edges, title=f"source {b}"))
         both = torch.cat([tgt[b], moved[b]])
