@@ -35,9 +35,17 @@ class BrowserError(RuntimeError):
 
 
 class Browser:
-    """One headless Chromium with one page (a context manager that ends the process)."""
+    """One headless Chromium with one page (a context manager that ends the process);
+    ``extra_args`` go on its command line (e.g. ``--host-resolver-rules=...``)."""
 
-    def __init__(self, executable: str, width: int = 1100, height: int = 720, timeout: float = 30.0) -> None:
+    def __init__(
+        self,
+        executable: str,
+        width: int = 1100,
+        height: int = 720,
+        timeout: float = 30.0,
+        extra_args: tuple[str, ...] = (),
+    ) -> None:
         import websocket
 
         self.profile = tempfile.mkdtemp(prefix="torchcage-chromium-")
@@ -58,6 +66,7 @@ class Browser:
                 "--remote-debugging-address=127.0.0.1",
                 "--remote-debugging-port=0",
                 f"--user-data-dir={self.profile}",
+                *extra_args,
                 "about:blank",
             ],
             stdout=subprocess.DEVNULL,

@@ -1,5 +1,6 @@
 """The cage editor in a real browser: headless Chromium loads the page, renders the mesh, and a
-drag through the page's own pointer handling changes the pose that the server reports.
+drag through the page's own pointer handling changes the pose that the server reports; a page from
+another local origin, and a DNS-rebinding name, can change and read nothing (issue 43, item 1).
 
 Skips, with the reason, where no Chromium can be had (``apt-get install chromium``; CI installs
 it). ``TORCHCAGE_EDITOR_SCREENSHOT=path.png`` keeps the screenshot (the docs' picture).
@@ -7,9 +8,11 @@ it). ``TORCHCAGE_EDITOR_SCREENSHOT=path.png`` keeps the screenshot (the docs' pi
 
 from __future__ import annotations
 
+import http.server
 import io
 import json
 import os
+import threading
 import time
 import urllib.request
 
@@ -26,6 +29,7 @@ CHROMIUM = find_chromium()
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium on PATH (apt-get install chromium)")
 D = torchcage.data
 READY = "window.torchcage && window.torchcage.ready"
+REBIND = "rebind.test"  # the browser resolves it to 127.0.0.1, as a DNS-rebinding attacker's name would
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +40,7 @@ def bar():
 @pytest.fixture(scope="module")
 def browser():
     try:
-        b = Browser(CHROMIUM)
+        b = Browser(CHROMIUM, extra_args=(f"--host-resolver-rules=MAP {REBIND} 127.0.0.1",))
     except BrowserError as err:  # pragma: no cover - a broken install
         pytest.skip(f"chromium does not start here: {err}")
     with b:
@@ -148,3 +152,122 @@ def test_switching_the_method_on_the_page(editor, browser):
     assert wait_for(lambda: editor.session.status().method == "qmvc")
     assert editor.wait(60).state == "ready"
     assert wait_for(lambda: "quad mean value" in browser.evaluate("document.getElementById('status').textContent"))
+
+
+HOSTILE = """<!doctype html><html><body><iframe name="sink" id="sink"></iframe><script>
+window.results = [];
+window.done = false;
+const target = %(target)s;
+const attempts = %(attempts)s;
+async function attack() {
+  for (const [path, body] of attempts) {
+    try {  // a "simple" request: the browser sends it without asking, and hides the answer
+      await fetch(target + path, { method: 'POST', mode: 'no-cors', headers: { 'Content-Type': 'text/plain' }, body });
+      results.push(`no-cors sent ${path}`);
+    } catch (err) { results.push(`no-cors failed ${path}: ${err}`); }
+    try {  // JSON and a guessed token: the browser must ask first (a preflight), which the server refuses
+      const r = await fetch(target + path, {
+        method: 'POST', headers: { 'Content-Type': 'application/json', 'X-Torchcage-Token': 'guess' }, body });
+      results.push(`cors answered ${path} ${r.status}`);
+    } catch (err) { results.push(`cors blocked ${path}`); }
+  }
+  try {  // read the page, and with it the token
+    const r = await fetch(target);
+    results.push(`read ${(await r.text()).length}`);
+  } catch (err) { results.push('read blocked'); }
+  await new Promise((resolve) => {  // a form whose text/plain body is shaped like JSON
+    const form = document.createElement('form');
+    Object.assign(form, { method: 'POST', action: target + 'api/save', enctype: 'text/plain', target: 'sink' });
+    const input = Object.assign(document.createElement('input'), { name: '{"prefix": "form", "x": "', value: '"}' });
+    form.appendChild(input);
+    document.body.appendChild(form);
+    document.getElementById('sink').onload = resolve;
+    setTimeout(resolve, 5000);
+    form.submit();
+  });
+  results.push('form sent');
+  window.done = true;
+}
+attack();
+</script></body></html>"""
+
+
+@pytest.fixture
+def hostile_origin():
+    """A second local origin (another port on 127.0.0.1) serving the page that ``page`` holds."""
+    page = {}
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            body = page["html"].encode()
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html; charset=utf-8")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args) -> None:
+            pass
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{httpd.server_address[1]}/", page
+    httpd.shutdown()
+    httpd.server_close()
+
+
+def test_a_page_from_another_local_origin_changes_and_reads_nothing(bar, browser, hostile_origin, tmp_path, capfd):
+    cage, mesh = bar
+    out = tmp_path / "out"
+    url, page = hostile_origin
+    with torchcage.view(mesh, cage, out=out, verbose=True) as viewer:
+        viewer.wait(60)
+        pose = json.dumps({"vertices": (cage.vertices * 2).tolist()})
+        obj = "".join(f"v {x} {y} {z}\n" for x, y, z in (cage.vertices * 2).tolist())
+        attempts = [
+            ["api/pose", pose],
+            ["api/method", json.dumps({"method": "gc"})],
+            ["api/save", json.dumps({"prefix": "pwned"})],
+            ["api/load", json.dumps({"obj": obj})],
+        ]
+        page["html"] = HOSTILE % {"target": json.dumps(viewer.url), "attempts": json.dumps(attempts)}
+        before = viewer.pose, viewer.session.version, viewer.method
+        capfd.readouterr()
+        browser.open(url, "window.done === true", timeout=60)
+        results = browser.evaluate("window.results")
+        time.sleep(0.3)  # (the server's log lines of the last requests)
+        log = capfd.readouterr().err
+        assert torch.equal(viewer.pose, before[0]) and viewer.session.version == before[1]
+        assert viewer.method == before[2] == "mvc"
+    assert not out.exists() or not any(out.iterdir()), "a file was written"
+    assert [r for r in results if r.startswith("no-cors")] == [f"no-cors sent {a[0]}" for a in attempts]
+    assert [r for r in results if r.startswith("cors")] == [f"cors blocked {a[0]}" for a in attempts]
+    assert "read blocked" in results and "form sent" in results
+    # the requests did reach the server, and were refused there (not merely unanswered)
+    refused = [line for line in log.splitlines() if '"POST /api/' in line and '" 403 ' in line]
+    assert len(refused) >= len(attempts) + 1, log  # the no-cors fetches and the form
+    assert not [line for line in log.splitlines() if '"POST /api/' in line and '" 20' in line], log
+
+
+def test_a_dns_rebinding_name_reads_nothing(bar, browser, tmp_path):
+    cage, mesh = bar
+    with torchcage.view(mesh, cage, out=tmp_path) as viewer:
+        rebound = f"http://{REBIND}:{viewer.server.port}/"
+        browser.open(
+            rebound, f"location.host === '{REBIND}:{viewer.server.port}' && document.readyState === 'complete'"
+        )
+        shown = browser.evaluate("document.body.innerText")
+        assert "does not name this server" in shown and viewer.token not in shown
+        answers = browser.evaluate(
+            "Promise.all(['api/scene', 'api/pose', 'static/editor.js'].map(p => fetch('/' + p).then(r => r.status)))"
+        )
+        assert answers == [403, 403, 403]
+        status = browser.evaluate(
+            "fetch('/api/pose', {method: 'POST', headers: {'Content-Type': 'application/json'},"
+            " body: JSON.stringify({vertices: []})}).then(r => r.status)"
+        )
+        assert status == 403
+        # the same browser, at the server's own address, gets the page
+        browser.open(viewer.url, READY)
+        assert browser.evaluate("document.querySelector('meta[name=\"torchcage-token\"]').content") == viewer.token
