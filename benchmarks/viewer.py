@@ -60,8 +60,8 @@ def refined(v: torch.Tensor, f: torch.Tensor, target: int) -> tuple[torch.Tensor
     return v, f
 
 
-def post(url: str, body: bytes) -> bytes:
-    with urllib.request.urlopen(urllib.request.Request(url, data=body), timeout=120) as r:
+def post(url: str, body: bytes, headers: dict[str, str]) -> bytes:
+    with urllib.request.urlopen(urllib.request.Request(url, data=body, headers=headers), timeout=120) as r:
         return r.read()
 
 
@@ -96,8 +96,9 @@ def measure(name, cage, v, f, repeat: int, browser) -> dict[str, str]:
     module = viewer.session._module
     _, product, _ = best_of(lambda: module(pose), repeat, warmup=1)
     body = json.dumps({"vertices": pose.tolist()}).encode()
-    _, rt_json, answer_json = best_of(lambda: post(viewer.url + "api/pose", body), repeat, warmup=1)
-    _, rt_f32, answer_f32 = best_of(lambda: post(viewer.url + "api/pose?format=f32", body), repeat, warmup=1)
+    head = viewer.headers  # the session's token and the JSON content type
+    _, rt_json, answer_json = best_of(lambda: post(viewer.url + "api/pose", body, head), repeat, warmup=1)
+    _, rt_f32, answer_f32 = best_of(lambda: post(viewer.url + "api/pose?format=f32", body, head), repeat, warmup=1)
     _, scene, answer_scene = best_of(lambda: get(viewer.url + "api/scene"), 2)
     row = {
         "mesh": name,
