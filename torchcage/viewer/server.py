@@ -152,8 +152,8 @@ class _Handler(BaseHTTPRequestHandler):
 
     # ------------------------------------------------------------------ plumbing
     def setup(self) -> None:
-        self.timeout = self.server.request_timeout  # every read and write; a silent client is dropped
         super().setup()
+        self.connection.settimeout(self.server.request_timeout)  # every read and write: a silent client is dropped
 
     def log_message(self, format: str, *args: Any) -> None:
         if self.server.verbose:
@@ -400,13 +400,13 @@ class _Server(ThreadingHTTPServer):
         self.max_body = max_body
         self.token = secrets.token_urlsafe(32)
         self._slots = threading.BoundedSemaphore(workers)
-        host, port = self.server_address[:2]
-        names, self._any_ip = _host_names(str(host))
+        host, port = str(self.server_address[0]), int(self.server_address[1])
+        names, self._any_ip = _host_names(host)
         if address[0]:
             names.add(address[0].lower())  # the name it was given ("localhost", the machine's name)
-        self._port = int(port)
+        self._port = port
         self._hosts = {f"{name}:{port}" for name in names} | {h.lower() for h in allowed_hosts}
-        shown = "127.0.0.1" if self._any_ip else (f"[{host}]" if ":" in str(host) else str(host))
+        shown = "127.0.0.1" if self._any_ip else (f"[{host}]" if ":" in host else host)
         self.url = f"http://{shown}:{port}/"
 
     def host_allowed(self, value: str) -> bool:

@@ -21,7 +21,7 @@ import re
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -276,7 +276,7 @@ class EditorSession:
     def status(self) -> Status:
         """A snapshot of the computation's state and the pose version."""
         with self._lock:
-            s = Status(**{k: (list(v) if isinstance(v, list) else v) for k, v in self._status.__dict__.items()})
+            s = replace(self._status, warnings=list(self._status.warnings))  # a copy that later progress leaves alone
             s.version = self._version
             if s.state == "computing":
                 s.seconds = time.perf_counter() - self._started
