@@ -271,3 +271,24 @@ def test_a_dns_rebinding_name_reads_nothing(bar, browser, tmp_path):
         # the same browser, at the server's own address, gets the page
         browser.open(viewer.url, READY)
         assert browser.evaluate("document.querySelector('meta[name=\"torchcage-token\"]').content") == viewer.token
+
+
+def test_save_and_load_on_the_page_pass_the_checks(editor, browser, bar, tmp_path):
+    """The page's own Save and Load (a file chosen in its input) send the token and JSON."""
+    cage, _ = bar
+    pose = cage.vertices * 1.25
+    editor.set_pose(pose)
+    assert wait_for(lambda: browser.evaluate("window.torchcage.version") == editor.session.version)
+    browser.evaluate("document.getElementById('save').click()")
+    saved = tmp_path / "deformed_cage.obj"
+    assert wait_for(lambda: (tmp_path / "deformed_mesh.obj").exists()), browser.evaluate("document.body.innerText")
+    assert torch.allclose(torchcage.load_cage(saved, check_intersections=False).vertices, pose, atol=1e-12)
+    editor.set_pose(cage.vertices)
+    assert wait_for(lambda: browser.evaluate("window.torchcage.version") == editor.session.version)
+    root = browser.send("DOM.getDocument")["root"]["nodeId"]
+    node = browser.send("DOM.querySelector", nodeId=root, selector="#load")["nodeId"]
+    browser.send("DOM.setFileInputFiles", files=[str(saved)], nodeId=node)
+    assert wait_for(lambda: torch.allclose(editor.pose, pose, atol=1e-12)), browser.evaluate("document.body.innerText")
+    assert wait_for(
+        lambda: "loaded deformed_cage.obj" in browser.evaluate("document.getElementById('message').textContent")
+    )
