@@ -538,7 +538,12 @@ class EditorServer:
 
     def start(self) -> EditorServer:
         """Serve in a daemon thread; return ``self``."""
-        self._thread = threading.Thread(target=self._httpd.serve_forever, name="torchcage-view", daemon=True)
+        self._thread = threading.Thread(
+            target=self._httpd.serve_forever,
+            kwargs={"poll_interval": 0.1},  # (close() returns within 0.1 s)
+            name="torchcage-view",
+            daemon=True,
+        )
         self._thread.start()
         return self
 
