@@ -301,6 +301,7 @@ def test_dropping_clients_give_one_line_each_and_no_traceback(cube, tmp_path, ca
         head = f"POST /api/pose HTTP/1.1\r\nHost: 127.0.0.1:{s.port}\r\nContent-Type: application/json\r\n"
         head += f"{TOKEN_HEADER}: {s.token}\r\nContent-Length: {len(pose)}\r\n\r\n"
         messages = [b"GET /api/sce", head.encode() + pose[:20], head.encode()[:30], b"GET /api/scene HTTP/1.1\r\n"]
+        messages.append(b"GET /\x1b[31mred HTTP/1.1\r\n\r\n")  # (a terminal escape: printed escaped)
         clients = 60
         for k in range(clients):
             drop(s.port, messages[k % len(messages)])
@@ -309,7 +310,7 @@ def test_dropping_clients_give_one_line_each_and_no_traceback(cube, tmp_path, ca
         err = capfd.readouterr().err
     finally:
         s.close()
-    assert "Traceback" not in err and "Exception" not in err
+    assert "Traceback" not in err and "Exception" not in err and "\x1b" not in err
     assert len([line for line in err.splitlines() if "dropped" in line]) <= clients
     if not verbose:
         assert err == ""

@@ -74,6 +74,7 @@ __all__ = [
     "TOKEN_HEADER",
     "EditorServer",
     "fetch_token",
+    "json_depth",
 ]
 
 #: The largest request body accepted (a pose of a million cage vertices fits).
@@ -94,10 +95,8 @@ _STATIC = {
     "vendor/three.module.min.js": "text/javascript; charset=utf-8",
 }
 _STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"')  # a JSON string literal (escapes included)
-_DROPPED = (ConnectionError, TimeoutError)
-_DISCARD = (
-    1 << 20
-)  # a refused request's body up to this size is read and dropped  # the client went away or went silent
+_DROPPED = (ConnectionError, TimeoutError)  # the client went away or went silent
+_DISCARD = 1 << 20  # a refused request's body up to this size is read and dropped
 
 
 class _RequestError(Exception):
@@ -112,7 +111,14 @@ def _static(name: str) -> bytes:
 
 def json_depth(raw: bytes, limit: int = MAX_DEPTH) -> int:
     """The nesting depth of the JSON text ``raw`` (brackets inside strings not counted), without
-    parsing it; stops counting once past ``limit``.
+    parsing it (so without recursion): what :data:`MAX_DEPTH` is checked against.
+
+    Args:
+        raw: the body, UTF-8 JSON text (need not be valid: the parser judges that next).
+        limit: counting stops once past it (in chunks of 1 MiB), the answer then being over it.
+
+    Returns:
+        The deepest nesting of ``[]`` and ``{}``: 0 for a number, 1 for ``[1]``.
 
     Examples:
         >>> json_depth(b'{"a": [[1, 2], "[[["]}')
@@ -156,8 +162,9 @@ class _Handler(BaseHTTPRequestHandler):
         self.connection.settimeout(self.server.request_timeout)  # every read and write: a silent client is dropped
 
     def log_message(self, format: str, *args: Any) -> None:
-        if self.server.verbose:
-            sys.stderr.write(f"torchcage view: {self.address_string()} {format % args}\n")
+        if self.server.verbose:  # (control characters of a request line escaped: no terminal escapes)
+            line = "".join(c if c.isprintable() else repr(c)[1:-1] for c in format % args)
+            sys.stderr.write(f"torchcage view: {self.address_string()} {line}\n")
 
     def _send(self, status: HTTPStatus, body: bytes, content_type: str, headers: dict[str, str] | None = None) -> None:
         self.send_response(status)
