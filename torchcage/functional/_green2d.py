@@ -64,35 +64,44 @@ def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor,
     v = cage.vertices.to(points.dtype)
     j, k = cage.edges[:, 0], cage.edges[:, 1]
     a = (v[k] - v[j])[None]  # (1, E, 2)
+    # Both ends relative to the point, formed once: every product below that vanishes as the point
+    # nears an end (or the edge's line near an end) is a product of these, so it keeps its relative
+    # accuracy there (b x a with b = v_j - x of the size's order cancelled to eps * size: a point
+    # 1e-14 of the size from the end v_k took the wrong side of the edge, phi off by 0.1).
     b = v[j][None] - points[:, None]  # (n, E, 2)
-    bp = v[k][None] - points[:, None]  # b + a, computed directly
+    bp = v[k][None] - points[:, None]  # b + a
     Q = (a * a).sum(-1)
     S = (b * b).sum(-1)
     Sp = (bp * bp).sum(-1)
-    R = 2 * (a * b).sum(-1)
-    cross = b[..., 0] * a[..., 1] - b[..., 1] * a[..., 0]  # b x a = c |a|, > 0 on the inner side
+    ab = (a * b).sum(-1)  # = -Q t, t the projection parameter of the point on the edge
+    abp = (a * bp).sum(-1)  # = Q (1 - t)
+    cross = b[..., 0] * bp[..., 1] - b[..., 1] * bp[..., 0]  # = b x a = c |a|, > 0 on the inner side
     norm_a = torch.sqrt(Q)
     tol = on_cage_tolerance(cage)
-    # Edges whose line holds the point contribute their principal value (no angle term).
+    # Edges that hold the point (within the tolerance) contribute their principal value (no angle
+    # term); off the segment, near its line, the angle is small and computed as it is.
+    t = -ab / Q  # projection parameter of the point on each edge
     on_line = cross.abs() <= tol * norm_a
-    theta = torch.atan2(2 * (b[..., 0] * bp[..., 1] - b[..., 1] * bp[..., 0]).abs(), 2 * (b * bp).sum(-1))
-    theta = torch.where(on_line, 0.0, theta)
+    on_edge = on_line & (t >= -tol / norm_a) & (t <= 1 + tol / norm_a)
+    theta = torch.atan2(cross.abs(), (b * bp).sum(-1))
+    theta = torch.where(on_edge, 0.0, theta)
     sigma = torch.where(cross >= 0, 1.0, -1.0).to(points.dtype)
     # log P at the ends, each multiplied by a factor that vanishes where P does (the point on a vertex).
     L0 = torch.log(torch.where(S > 0, S, 1.0))
     L1 = torch.log(torch.where(Sp > 0, Sp, 1.0))
-    int_log = (2 * Q + R) / (2 * Q) * L1 - R / (2 * Q) * L0 - 2 + 2 * cross.abs() * theta / Q
+    int_log = (abp * L1 - ab * L0) / Q - 2 + 2 * cross.abs() * theta / Q
     psi = -(norm_a / (4 * math.pi)) * int_log
-    # phi_k gets c|a|/(2 pi) * int t/P, phi_j gets c|a|/(2 pi) * int (1 - t)/P, with c|a| / |a x b| = sigma.
-    int_t = cross * (L1 - L0) / (2 * Q) - sigma * R * theta / (2 * Q)
+    # phi_k gets c|a|/(2 pi) * int t/P, phi_j gets c|a|/(2 pi) * int (1 - t)/P, with c|a| / |a x b| = sigma;
+    # int (1 - t)/P is written with a.(b + a) = Q (1 - t) (no difference of the two).
+    moment = cross * (L1 - L0) / (2 * Q)
     int_1 = sigma * theta
+    int_t = moment - int_1 * ab / Q
+    int_s = int_1 * abp / Q - moment
     phi = torch.zeros(points.shape[0], cage.num_vertices, dtype=points.dtype, device=points.device)
     phi.index_add_(1, k, int_t / (2 * math.pi))
-    phi.index_add_(1, j, (int_1 - int_t) / (2 * math.pi))
+    phi.index_add_(1, j, int_s / (2 * math.pi))
     # Points on the polygon: the hat values with the jump weight 1 - omega / (2 pi), omega the angle
     # the rest of the polygon subtends (pi on an edge, the interior angle at a vertex).
-    t = -R / (2 * Q)  # projection parameter of the point on each edge
-    on_edge = on_line & (t >= -tol / norm_a) & (t <= 1 + tol / norm_a)
     on_cage = on_edge.any(dim=1)
     if bool(on_cage.any()):
         rows = torch.nonzero(on_cage).squeeze(1)
