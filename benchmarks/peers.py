@@ -1,0 +1,343 @@
+"""torchcage against the papers' authors' code, side by side in one process, on one thread.
+
+The authors' code is not in this repository: each peer is built from a checkout whose path the
+user gives in an environment variable, through a small driver of ours (``benchmarks/peers/``)
+compiled with ``-O3 -march=native`` into a shared library that this script calls through ctypes
+with numpy arrays. A peer whose variable is unset, or whose build fails, is skipped with a
+message (the script still exits 0).
+
+=====================  ==========================================  ===========================
+variable               checkout of                                 methods
+=====================  ==========================================  ===========================
+TORCHCAGE_PEER_QMVC    https://github.com/superboubek/QMVC         MVC, GC, QMVC (n = 4)
+                       (Thiery, Memari, Boubekeur 2018; header-only
+                       C++; ``coordinates/`` is read)
+=====================  ==========================================  ===========================
+
+(CageModeler's QGC, ``TORCHCAGE_PEER_CAGEMODELER``, and the LBC authors' solver,
+``TORCHCAGE_PEER_LBC``, are not wired up yet: the script says so when those variables are set.)
+
+Timing: one thread for both (``torch.set_num_threads(1)``; the native kernels take their thread
+count from torch; ``OMP_NUM_THREADS=1`` is set before torch loads). For each model and method the
+authors' code and torchcage run alternately ``--repeat`` times after an untimed warm-up on a few
+points; the table gives the minimum CPU time (``time.process_time``) of each, the ratio of the
+minima, the ratio of the minimum wall times beside it, and the largest absolute difference between
+the two results (the same coordinates, computed twice). The machine's load average is printed
+before and after. Mesh vertices are the points; cages are triangulated along ``q0-q2`` for MVC and
+GC, triquad for QMVC. Green coordinates are compared as bare integrals (``exterior="none"``, what
+the authors' code computes at every point).
+
+Usage::
+
+    TORCHCAGE_PEER_QMVC=/path/to/QMVC python benchmarks/peers.py [--models FireHydrant Beast]
+        [--methods mvc gc qmvc] [--repeat 5] [--data ../shared/data]
+"""
+
+from __future__ import annotations
+
+import os
+
+if __name__ == "__main__":
+    os.environ["OMP_NUM_THREADS"] = "1"  # before torch and the native kernels load
+
+import argparse
+import ctypes
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from harness import add_data_argument, load_model, qmvc_root
+
+import torchcage
+from torchcage import _native
+from torchcage import functional as F
+
+HERE = Path(__file__).resolve().parent / "peers"
+FLAGS = ("-O3", "-march=native", "-shared", "-fPIC")
+
+#: The goal of the issue for each method (torchcage's speed-up over the authors' code).
+GOALS = {"mvc": ">= 8x", "gc": ">= 8x", "qmvc": ">= 5x"}
+LABELS = {"mvc": "MVC", "gc": "GC", "qmvc": "QMVC, n=4"}
+
+_d = ctypes.POINTER(ctypes.c_double)
+_l = ctypes.POINTER(ctypes.c_long)
+_n = ctypes.c_long
+
+
+class PeerUnavailableError(Exception):
+    """A peer cannot be used (variable unset, files missing, build failed); the text says why."""
+
+
+@dataclass
+class Peer:
+    """One authors' code base: where its checkout comes from and how our driver is built on it.
+
+    Attributes:
+        name: short name used in messages.
+        env: the environment variable that names the checkout.
+        url: the repository the checkout comes from.
+        methods: the methods its driver serves (keys of :data:`GOALS`).
+        driver: our driver source, under ``benchmarks/peers/``.
+        needs: files that must exist in the checkout (relative paths).
+        includes: include folders, relative to the checkout.
+    """
+
+    name: str
+    env: str
+    url: str
+    methods: tuple[str, ...]
+    driver: str = ""
+    needs: tuple[str, ...] = ()
+    includes: tuple[str, ...] = ()
+    extra_includes: tuple[Path, ...] = field(default_factory=tuple)
+
+
+PEERS = [
+    Peer(
+        "QMVC authors' C++",
+        "TORCHCAGE_PEER_QMVC",
+        "https://github.com/superboubek/QMVC",
+        ("mvc", "gc", "qmvc"),
+        driver="qmvc_driver.cpp",
+        needs=tuple(f"coordinates/{h}" for h in ("mvc/mvc.h", "gc/gc.h", "qmvc/qmvc.h", "shared/point3.h")),
+        includes=("coordinates", "coordinates/shared", "coordinates/qmvc"),
+        extra_includes=(HERE / "shim",),
+    ),
+]
+#: Peers named by the issue whose drivers are not written yet: a set variable gets a message.
+PENDING = {
+    "TORCHCAGE_PEER_CAGEMODELER": "CageModeler (QGC)",
+    "TORCHCAGE_PEER_LBC": "the LBC authors' solver",
+}
+
+
+def compile_library(sources: Sequence[Path], out: Path, includes: Sequence[Path] = (), cxx: str | None = None) -> Path:
+    """Compile ``sources`` into the shared library ``out`` with ``-O3 -march=native``.
+
+    Args:
+        sources: C or C++ files (the compiler is ``$CXX``, else ``c++``, unless ``cxx`` is given).
+        out: the library's path.
+        includes: include folders.
+        cxx: the compiler command.
+
+    Returns:
+        ``out``.
+
+    Raises:
+        PeerUnavailableError: no compiler, or the build failed (with the compiler's last lines).
+    """
+    cxx = cxx or os.environ.get("CXX", "c++")
+    if shutil.which(cxx) is None:
+        raise PeerUnavailableError(f"no C++ compiler {cxx!r} on PATH (set CXX)")
+    cmd = [cxx, *FLAGS, *(f"-I{p}" for p in includes), *map(str, sources), "-o", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        tail = "\n".join(proc.stderr.strip().splitlines()[-8:])
+        raise PeerUnavailableError(f"build failed ({' '.join(cmd)}):\n{tail}")
+    return out
+
+
+def build_peer(peer: Peer, build_dir: Path, environ: dict[str, str] | None = None) -> ctypes.CDLL:
+    """Build ``peer``'s driver on the checkout its variable names, and load it.
+
+    Raises:
+        PeerUnavailableError: the variable is unset, the checkout lacks a file, or the build failed.
+    """
+    environ = os.environ if environ is None else environ
+    root = environ.get(peer.env)
+    if not root:
+        raise PeerUnavailableError(f"{peer.env} is not set (a checkout of {peer.url})")
+    checkout = Path(root).expanduser()
+    missing = [n for n in peer.needs if not (checkout / n).is_file()]
+    if missing:
+        raise PeerUnavailableError(f"{peer.env}={checkout} lacks {', '.join(missing)} (a checkout of {peer.url}?)")
+    includes = [*peer.extra_includes, *(checkout / p for p in peer.includes)]
+    out = build_dir / f"lib{Path(peer.driver).stem}.so"
+    compile_library([HERE / peer.driver], out, includes)
+    return bind(ctypes.CDLL(str(out)))
+
+
+def bind(lib: ctypes.CDLL) -> ctypes.CDLL:
+    """Declare the driver ABI (``benchmarks/peers/qmvc_driver.cpp``) on the functions ``lib`` has."""
+    sig = {
+        "peer_mvc": [_d, _n, _l, _n, _d, _n, _d],
+        "peer_gc": [_d, _n, _l, _n, _d, _n, _d, _d],
+        "peer_qmvc": [_d, _n, _l, _n, _l, _n, _d, _n, _d],
+    }
+    for name, args in sig.items():
+        if hasattr(lib, name):
+            getattr(lib, name).argtypes = args
+            getattr(lib, name).restype = None
+    return lib
+
+
+def _ptr(a: np.ndarray, kind: type) -> ctypes._Pointer:  # type: ignore[type-arg]
+    return a.ctypes.data_as(ctypes.POINTER(kind))
+
+
+def _np(t: torch.Tensor, dtype: type) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=dtype)
+
+
+def peer_call(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchcage.Cage) -> Callable[[], np.ndarray]:
+    """A no-argument function that runs ``method`` of the peer library on ``points``.
+
+    The arrays are converted once, outside the timed call. ``mvc`` and ``gc`` take the cage
+    triangulated along ``q0-q2``; ``qmvc`` the triquad cage. The result is ``(N, V)``, or for
+    ``gc`` ``(N, V + T)`` (``phi`` then ``psi``).
+    """
+    x = _np(points, np.float64)
+    n = x.shape[0]
+    if method in ("mvc", "gc"):
+        tri = cage.triangulated()
+        v, t = _np(tri.vertices, np.float64), _np(tri.triangles, np.int64)
+        nv, nt = v.shape[0], t.shape[0]
+        if method == "mvc":
+            out = np.empty((n, nv))
+            return lambda: (lib.peer_mvc(_ptr(v, ctypes.c_double), nv, _ptr(t, ctypes.c_long), nt,
+                                         _ptr(x, ctypes.c_double), n, _ptr(out, ctypes.c_double)), out)[1]  # fmt: skip
+        phi, psi = np.empty((n, nv)), np.empty((n, nt))
+        return lambda: (lib.peer_gc(_ptr(v, ctypes.c_double), nv, _ptr(t, ctypes.c_long), nt,
+                                    _ptr(x, ctypes.c_double), n, _ptr(phi, ctypes.c_double),
+                                    _ptr(psi, ctypes.c_double)), np.concatenate([phi, psi], 1))[1]  # fmt: skip
+    if method == "qmvc":
+        v = _np(cage.vertices, np.float64)
+        t = _np(cage.triangles, np.int64).reshape(-1, 3)
+        q = _np(cage.quads, np.int64).reshape(-1, 4)
+        nv, nt, nq = v.shape[0], t.shape[0], q.shape[0]
+        out = np.empty((n, nv))
+        return lambda: (lib.peer_qmvc(_ptr(v, ctypes.c_double), nv, _ptr(t, ctypes.c_long), nt,
+                                      _ptr(q, ctypes.c_long), nq, _ptr(x, ctypes.c_double), n,
+                                      _ptr(out, ctypes.c_double)), out)[1]  # fmt: skip
+    raise ValueError(f"unknown method {method!r}; expected one of {sorted(GOALS)}")
+
+
+def torchcage_call(method: str, points: torch.Tensor, cage: torchcage.Cage) -> Callable[[], np.ndarray]:
+    """The same as :func:`peer_call`, computed by torchcage (default backend, float64)."""
+    if method == "mvc":
+        tri = cage.triangulated()
+        return lambda: F.mean_value_coordinates(points, tri).numpy()
+    if method == "gc":
+        tri = cage.triangulated()
+        return lambda: torch.cat(F.green_coordinates(points, tri, exterior="none"), 1).numpy()
+    if method == "qmvc":
+        return lambda: F.quad_mean_value_coordinates(points, cage, n=4).numpy()
+    raise ValueError(f"unknown method {method!r}; expected one of {sorted(GOALS)}")
+
+
+def alternate(
+    fns: Sequence[Callable[[], np.ndarray]], repeat: int
+) -> tuple[list[float], list[float], list[np.ndarray]]:
+    """Run ``fns`` in turn ``repeat`` times: the minimum CPU and wall seconds of each, and each
+    one's last result (a copy)."""
+    cpu, wall = [float("inf")] * len(fns), [float("inf")] * len(fns)
+    outs: list[np.ndarray] = [np.empty(0)] * len(fns)
+    for _ in range(repeat):
+        for i, fn in enumerate(fns):
+            c, w = time.process_time(), time.perf_counter()
+            out = fn()
+            w, c = time.perf_counter() - w, time.process_time() - c
+            cpu[i], wall[i] = min(cpu[i], c), min(wall[i], w)
+            outs[i] = np.array(out, copy=True)
+    return cpu, wall, outs
+
+
+def compare(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchcage.Cage, repeat: int) -> dict[str, float]:
+    """Time ``method`` of the peer and of torchcage alternately; the row's figures."""
+    warm = points[:16]
+    peer_call(lib, method, warm, cage)()
+    torchcage_call(method, warm, cage)()
+    fns = [peer_call(lib, method, points, cage), torchcage_call(method, points, cage)]
+    (pc, tc), (pw, tw), (po, to) = alternate(fns, repeat)
+    row = {"peer": pc, "torchcage": tc, "peer_wall": pw, "torchcage_wall": tw,
+           "diff": float(np.abs(po - to).max()) if po.size else 0.0}  # fmt: skip
+    if method == "qmvc":  # both are quadratures of the same integrals: their errors to the exact ones
+        exact = F.quad_mean_value_coordinates(points, cage, tol=1e-10).numpy()
+        row["peer_err"], row["torchcage_err"] = float(np.abs(po - exact).max()), float(np.abs(to - exact).max())
+    return row
+
+
+def _s(t: float) -> str:
+    return f"{t:.3f} s" if t < 10 else f"{t:.1f} s"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_data_argument(ap)
+    ap.add_argument("--models", nargs="+", default=["FireHydrant", "Beast"], help="models of the QMVC data set")
+    ap.add_argument("--methods", nargs="+", default=list(GOALS), choices=list(GOALS), help="methods to compare")
+    ap.add_argument("--repeat", type=int, default=5, help="alternated runs per method (minimum taken)")
+    args = ap.parse_args(argv)
+    if args.repeat < 1:
+        ap.error(f"--repeat must be at least 1, got {args.repeat}")
+
+    build_dir = Path(tempfile.mkdtemp(prefix="torchcage-peers-"))
+    libs: list[tuple[Peer, ctypes.CDLL]] = []
+    for peer in PEERS:
+        try:
+            libs.append((peer, build_peer(peer, build_dir)))
+            print(f"{peer.name}: built from {os.environ[peer.env]} ({peer.env})")
+        except PeerUnavailableError as e:
+            print(f"skipping {peer.name}: {e}")
+    for env, what in PENDING.items():
+        note = f" ({env} is set)" if os.environ.get(env) else ""
+        print(f"skipping {what}: no driver in benchmarks/peers.py yet{note}")
+    if not libs:
+        print("no peer available: nothing to compare")
+        return 0
+
+    root = qmvc_root(args.data)
+    torch.set_num_threads(1)  # the native kernels take their thread count from torch
+    kernel = _native.variant() or f"none ({_native.failure_reason()}): torch kernels"
+    omp = os.environ.get("OMP_NUM_THREADS", "unset")
+    print(f"torchcage {torchcage.__version__}, native library: {kernel}; torch threads {torch.get_num_threads()}; "
+          f"OMP_NUM_THREADS={omp}; load average {os.getloadavg()[0]:.2f}")  # fmt: skip
+    rows, notes = [], []
+    for model in args.models:
+        loaded = load_model(args.data, model)
+        if loaded is None:
+            print(f"skipping {model}: not in {root}")
+            continue
+        x, cage = loaded
+        tri = cage.triangulated()
+        for peer, lib in libs:
+            for method in (m for m in args.methods if m in peer.methods):
+                r = compare(lib, method, x, cage, args.repeat)
+                nq, nt = cage.quads.shape[0], cage.triangles.shape[0]
+                faces = f"{nq} quads + {nt} triangles" if method == "qmvc" else f"{tri.triangles.shape[0]} triangles"
+                ratio, wall = r["peer"] / r["torchcage"], r["peer_wall"] / r["torchcage_wall"]
+                times = (_s(r["peer"]), _s(r["torchcage"]), f"{ratio:.1f}x", f"{wall:.1f}x")
+                rows.append((f"{model} ({x.shape[0]:,} pts)", f"{LABELS[method]}, {faces}", *times, GOALS[method],
+                             f"{r['diff']:.1e}"))  # fmt: skip
+                if "peer_err" in r:
+                    notes.append(f"{model} {LABELS[method]}: largest error to the exact coordinates (tol=1e-10): "
+                                 f"authors' code {r['peer_err']:.1e}, torchcage {r['torchcage_err']:.1e}")  # fmt: skip
+                print(f"  {model} {method}: done (load average {os.getloadavg()[0]:.2f})", flush=True)
+    heads = ("model", "method", "authors' code", "torchcage", "ratio", "wall ratio", "goal", "max |diff|")
+    print()
+    print("| " + " | ".join(heads) + " |")
+    print("|" + "---|" * len(heads))
+    last = None
+    for row in rows:
+        print("| " + " | ".join((row[0] if row[0] != last else "", *row[1:])) + " |")
+        last = row[0]
+    for note in notes:
+        print(note)
+    print(f"\nminimum of {args.repeat} alternated runs, CPU time, one thread; load average at the end "
+          f"{os.getloadavg()[0]:.2f}")  # fmt: skip
+    shutil.rmtree(build_dir, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
