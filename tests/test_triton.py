@@ -394,14 +394,16 @@ def test_3d_derivatives_through_the_public_function_and_autograd(monkeypatch) ->
     ref = F.mean_value_derivatives(xs, sliver, backend=ref_backend)
     for a, b in zip(got, ref, strict=True):
         assert torch.allclose(a.cpu(), b, rtol=1e-9, atol=1e-11)
-    calls = _route_derivatives_to_triton(monkeypatch)
     pts = x.reshape(-1, 3)
+    # (the reference before the routing: routed, a CPU call would reach the Triton kernel, which on a
+    # GPU machine runs no CPU tensor)
+    _, G, H = F.mean_value_derivatives(pts, CAGES["cube"], backend=ref_backend)
+    calls = _route_derivatives_to_triton(monkeypatch)
     xg = pts.to(DEVICE).clone().requires_grad_()
     lam = F.mean_value_coordinates(xg, cage)
     w = torch.linspace(-1.0, 1.0, lam.shape[1], dtype=D64, device=DEVICE)
     (g,) = torch.autograd.grad((lam * w).sum(), xg, create_graph=True)  # backward
     (h,) = torch.autograd.grad(g[:, 2].sum(), xg)  # double backward
-    _, G, H = F.mean_value_derivatives(pts, CAGES["cube"], backend=ref_backend)
     assert torch.allclose(g.cpu(), torch.einsum("nvc,v->nc", G, w.cpu()), rtol=1e-10, atol=1e-12)
     assert torch.allclose(h.cpu(), torch.einsum("nvd,v->nd", H[:, :, 2, :], w.cpu()), rtol=1e-10, atol=1e-12)
     assert 1 in calls and 2 in calls  # gradients and Hessians both came from the Triton kernel
