@@ -116,8 +116,8 @@ def _corner_triangle(ax, ay, az, bx, by, bz, cx, cy, cz):
 @device_function
 def _node(k, t, n, zero):
     """Node ``k`` of the adaptive grid of ``2n + 1`` nodes with node ``n`` at ``t`` (``k / n`` of
-    the way to ``t``, then on to 1; ``k > 2n`` is the last node, 1)."""
-    s = tl.minimum((zero + k) / n, 2.0)
+    the way to ``t``, then on to 1; ``k > 2n`` is the last node, 1, and ``k < 0`` the first, 0)."""
+    s = tl.maximum(tl.minimum((zero + k) / n, 2.0), 0.0)
     return tl.where(s <= 1.0, s * t, t + (s - 1.0) * (1.0 - t))
 
 
@@ -425,11 +425,14 @@ def _qmvc3d_kernel(
         Sv = zero
         Suv = zero
         if tl.sum((act & (beta < 1.0)).to(tl.int32)) > 0:
-            un_prev = zero
-            un = zero
+            # (each node from its index: no loop carries a previous node. Compiled Triton picks a
+            # loop's carried variables by a dry run of its body, where `prev = cur` gives prev the
+            # live-in value of cur; both began as `zero`, one value, so prev looked unchanged, was
+            # not carried and stayed 0: every Riemann weight was wrong on a GPU (0.19 on the data
+            # set, 2026-12-04), while the interpreter, plain Python, was right)
             for a in range(K):
-                un_next = _node(a + 1, u, N, zero)
-                ua = 0.5 * (un_next - un_prev)
+                un = _node(a, u, N, zero)
+                ua = 0.5 * (_node(a + 1, u, N, zero) - _node(a - 1, u, N, zero))
                 Pux = p0x + un * bx
                 Puy = p0y + un * by
                 Puz = p0z + un * bz
@@ -441,11 +444,9 @@ def _qmvc3d_kernel(
                 Ruz = N0z + un * Nuz
                 acc0 = zero
                 acc1 = zero
-                vn_prev = zero
-                vn = zero
                 for b in range(K):
-                    vn_next = _node(b + 1, v, N, zero)
-                    va = 0.5 * (vn_next - vn_prev)
+                    vn = _node(b, v, N, zero)
+                    va = 0.5 * (_node(b + 1, v, N, zero) - _node(b - 1, v, N, zero))
                     fx = Pux + vn * Qux
                     fy = Puy + vn * Quy
                     fz = Puz + vn * Quz
@@ -454,16 +455,12 @@ def _qmvc3d_kernel(
                     fw = Nd * va / (r2 * r2)
                     acc0 += fw
                     acc1 += fw * vn
-                    vn_prev = vn
-                    vn = vn_next
                 acc0 = acc0 * ua
                 acc1 = acc1 * ua
                 S += acc0
                 Sv += acc1
                 Su += un * acc0
                 Suv += un * acc1
-                un_prev = un
-                un = un_next
         om0 = S - Su - Sv + Suv
         om1 = Su - Suv
         om2 = Suv
