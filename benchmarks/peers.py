@@ -2,8 +2,8 @@
 
 The authors' code is not in this repository: each peer is built from a checkout whose path the
 user gives in an environment variable, through a small driver of ours (``benchmarks/peers/``)
-compiled with ``-O3 -march=native`` into a shared library that this script calls through ctypes
-with numpy arrays. A peer whose variable is unset, or whose build fails, is skipped with a
+compiled with ``-O3 -march=native -DNDEBUG`` (a release build) into a shared library that this
+script calls through ctypes with numpy arrays. A peer whose variable is unset, or whose build fails, is skipped with a
 message (the script still exits 0).
 
 =====================  ==========================================  ===========================
@@ -12,10 +12,13 @@ variable               checkout of                                 methods
 TORCHCAGE_PEER_QMVC    https://github.com/superboubek/QMVC         MVC, GC, QMVC (n = 4)
                        (Thiery, Memari, Boubekeur 2018; header-only
                        C++; ``coordinates/`` is read)
+TORCHCAGE_PEER_        https://github.com/DanStroeter/CageModeler  QGC (n = 2, their fixed
+CAGEMODELER            (``cagedeformations/``; needs the Eigen 3    grid); goal: at most 2x
+                       headers: libeigen3-dev or                    torchcage's QMVC (n = 4),
+                       ``EIGEN3_INCLUDE_DIR``)                      timed in the same turns
 =====================  ==========================================  ===========================
 
-(CageModeler's QGC, ``TORCHCAGE_PEER_CAGEMODELER``, and the LBC authors' solver,
-``TORCHCAGE_PEER_LBC``, are not wired up yet: the script says so when those variables are set.)
+(The LBC authors' solver, ``TORCHCAGE_PEER_LBC``, is not wired up yet: the script says so.)
 
 Timing: one thread for both (``torch.set_num_threads(1)``; the native kernels take their thread
 count from torch; ``OMP_NUM_THREADS=1`` is set before torch loads). For each model and method the
@@ -24,13 +27,17 @@ points; the table gives the minimum CPU time (``time.process_time``) of each, th
 minima, the ratio of the minimum wall times beside it, and the largest absolute difference between
 the two results (the same coordinates, computed twice). The machine's load average is printed
 before and after. Mesh vertices are the points; cages are triangulated along ``q0-q2`` for MVC and
-GC, triquad for QMVC. Green coordinates are compared as bare integrals (``exterior="none"``, what
-the authors' code computes at every point).
+GC, triquad for QMVC and QGC. Both QMVC and QGC are quadratures of the same integrals, by
+different rules (the authors' n and torchcage's n are not the same points), so for them the script
+also prints each one's largest error to the exact coordinates (torchcage's ``tol=1e-10``). Green
+coordinates are compared as bare integrals (``exterior="none"``, what the authors' code computes at
+every point).
 
 Usage::
 
-    TORCHCAGE_PEER_QMVC=/path/to/QMVC python benchmarks/peers.py [--models FireHydrant Beast]
-        [--methods mvc gc qmvc] [--repeat 5] [--data ../shared/data]
+    export TORCHCAGE_PEER_QMVC=/path/to/QMVC TORCHCAGE_PEER_CAGEMODELER=/path/to/CageModeler
+    python benchmarks/peers.py [--models FireHydrant Beast] [--methods mvc gc qmvc qgc]
+        [--repeat 5] [--data ../shared/data]
 """
 
 from __future__ import annotations
@@ -63,11 +70,12 @@ from torchcage import _native
 from torchcage import functional as F
 
 HERE = Path(__file__).resolve().parent / "peers"
-FLAGS = ("-O3", "-march=native", "-shared", "-fPIC")
+#: ``-DNDEBUG`` as in a release build: the peers' ``assert`` (and Eigen's index checks) compiled out.
+FLAGS = ("-O3", "-march=native", "-DNDEBUG", "-shared", "-fPIC")
 
 #: The goal of the issue for each method (torchcage's speed-up over the authors' code).
-GOALS = {"mvc": ">= 8x", "gc": ">= 8x", "qmvc": ">= 5x"}
-LABELS = {"mvc": "MVC", "gc": "GC", "qmvc": "QMVC, n=4"}
+GOALS = {"mvc": ">= 8x", "gc": ">= 8x", "qmvc": ">= 5x", "qgc": "<= 2x our QMVC"}
+LABELS = {"mvc": "MVC", "gc": "GC", "qmvc": "QMVC, n=4", "qgc": "QGC, n=2"}
 
 _d = ctypes.POINTER(ctypes.c_double)
 _l = ctypes.POINTER(ctypes.c_long)
@@ -90,6 +98,9 @@ class Peer:
         driver: our driver source, under ``benchmarks/peers/``.
         needs: files that must exist in the checkout (relative paths).
         includes: include folders, relative to the checkout.
+        sources: the checkout's source files compiled with the driver.
+        extra_includes: include folders of ours (stand-in headers).
+        eigen: whether the Eigen 3 headers are needed.
     """
 
     name: str
@@ -99,7 +110,9 @@ class Peer:
     driver: str = ""
     needs: tuple[str, ...] = ()
     includes: tuple[str, ...] = ()
+    sources: tuple[str, ...] = ()
     extra_includes: tuple[Path, ...] = field(default_factory=tuple)
+    eigen: bool = False
 
 
 PEERS = [
@@ -113,12 +126,23 @@ PEERS = [
         includes=("coordinates", "coordinates/shared", "coordinates/qmvc"),
         extra_includes=(HERE / "shim",),
     ),
+    Peer(
+        "CageModeler",
+        "TORCHCAGE_PEER_CAGEMODELER",
+        "https://github.com/DanStroeter/CageModeler",
+        ("qgc",),
+        driver="cagemodeler_driver.cpp",
+        needs=(
+            "cagedeformations/include/cagedeformations/GreenCoordinates.h",
+            "cagedeformations/src/GreenCoordinates.cpp",
+        ),
+        includes=("cagedeformations/include",),
+        sources=("cagedeformations/src/GreenCoordinates.cpp",),
+        eigen=True,
+    ),
 ]
 #: Peers named by the issue whose drivers are not written yet: a set variable gets a message.
-PENDING = {
-    "TORCHCAGE_PEER_CAGEMODELER": "CageModeler (QGC)",
-    "TORCHCAGE_PEER_LBC": "the LBC authors' solver",
-}
+PENDING = {"TORCHCAGE_PEER_LBC": "the LBC authors' solver"}
 
 
 def compile_library(sources: Sequence[Path], out: Path, includes: Sequence[Path] = (), cxx: str | None = None) -> Path:
@@ -162,9 +186,24 @@ def build_peer(peer: Peer, build_dir: Path, environ: dict[str, str] | None = Non
     if missing:
         raise PeerUnavailableError(f"{peer.env}={checkout} lacks {', '.join(missing)} (a checkout of {peer.url}?)")
     includes = [*peer.extra_includes, *(checkout / p for p in peer.includes)]
+    if peer.eigen:
+        includes.append(eigen_include(environ))
     out = build_dir / f"lib{Path(peer.driver).stem}.so"
-    compile_library([HERE / peer.driver], out, includes)
+    compile_library([HERE / peer.driver, *(checkout / p for p in peer.sources)], out, includes)
     return bind(ctypes.CDLL(str(out)))
+
+
+def eigen_include(environ: dict[str, str] | os._Environ[str]) -> Path:
+    """The Eigen 3 include folder: ``$EIGEN3_INCLUDE_DIR``, else the usual system places.
+
+    Raises:
+        PeerUnavailableError: no ``Eigen/Dense`` found.
+    """
+    places = [environ.get("EIGEN3_INCLUDE_DIR", ""), "/usr/include/eigen3", "/usr/local/include/eigen3"]
+    for place in places:
+        if place and (Path(place) / "Eigen" / "Dense").is_file():
+            return Path(place)
+    raise PeerUnavailableError("the Eigen 3 headers are not found (install libeigen3-dev or set EIGEN3_INCLUDE_DIR)")
 
 
 def bind(lib: ctypes.CDLL) -> ctypes.CDLL:
@@ -173,6 +212,7 @@ def bind(lib: ctypes.CDLL) -> ctypes.CDLL:
         "peer_mvc": [_d, _n, _l, _n, _d, _n, _d],
         "peer_gc": [_d, _n, _l, _n, _d, _n, _d, _d],
         "peer_qmvc": [_d, _n, _l, _n, _l, _n, _d, _n, _d],
+        "peer_qgc": [_d, _n, _l, _n, _l, _n, _d, _n, _d, _d],
     }
     for name, args in sig.items():
         if hasattr(lib, name):
@@ -210,15 +250,21 @@ def peer_call(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchca
         return lambda: (lib.peer_gc(_ptr(v, ctypes.c_double), nv, _ptr(t, ctypes.c_long), nt,
                                     _ptr(x, ctypes.c_double), n, _ptr(phi, ctypes.c_double),
                                     _ptr(psi, ctypes.c_double)), np.concatenate([phi, psi], 1))[1]  # fmt: skip
+    v = _np(cage.vertices, np.float64)
+    t = _np(cage.triangles, np.int64).reshape(-1, 3)
+    q = _np(cage.quads, np.int64).reshape(-1, 4)
+    nv, nt, nq = v.shape[0], t.shape[0], q.shape[0]
     if method == "qmvc":
-        v = _np(cage.vertices, np.float64)
-        t = _np(cage.triangles, np.int64).reshape(-1, 3)
-        q = _np(cage.quads, np.int64).reshape(-1, 4)
-        nv, nt, nq = v.shape[0], t.shape[0], q.shape[0]
         out = np.empty((n, nv))
         return lambda: (lib.peer_qmvc(_ptr(v, ctypes.c_double), nv, _ptr(t, ctypes.c_long), nt,
                                       _ptr(q, ctypes.c_long), nq, _ptr(x, ctypes.c_double), n,
                                       _ptr(out, ctypes.c_double)), out)[1]  # fmt: skip
+    if method == "qgc":
+        phi, psi = np.empty((n, nv)), np.empty((n, nt + 4 * nq))
+        return lambda: (lib.peer_qgc(_ptr(v, ctypes.c_double), nv, _ptr(t, ctypes.c_long), nt,
+                                     _ptr(q, ctypes.c_long), nq, _ptr(x, ctypes.c_double), n,
+                                     _ptr(phi, ctypes.c_double), _ptr(psi, ctypes.c_double)),
+                        np.concatenate([phi, psi], 1))[1]  # fmt: skip
     raise ValueError(f"unknown method {method!r}; expected one of {sorted(GOALS)}")
 
 
@@ -232,6 +278,8 @@ def torchcage_call(method: str, points: torch.Tensor, cage: torchcage.Cage) -> C
         return lambda: torch.cat(F.green_coordinates(points, tri, exterior="none"), 1).numpy()
     if method == "qmvc":
         return lambda: F.quad_mean_value_coordinates(points, cage, n=4).numpy()
+    if method == "qgc":
+        return lambda: torch.cat(F.quad_green_coordinates(points, cage, n=2), 1).numpy()
     raise ValueError(f"unknown method {method!r}; expected one of {sorted(GOALS)}")
 
 
@@ -258,11 +306,20 @@ def compare(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchcage
     peer_call(lib, method, warm, cage)()
     torchcage_call(method, warm, cage)()
     fns = [peer_call(lib, method, points, cage), torchcage_call(method, points, cage)]
-    (pc, tc), (pw, tw), (po, to) = alternate(fns, repeat)
-    row = {"peer": pc, "torchcage": tc, "peer_wall": pw, "torchcage_wall": tw,
+    if method == "qgc":  # the goal of QGC is relative to torchcage's QMVC: timed in the same turns
+        torchcage_call("qmvc", warm, cage)()
+        fns.append(torchcage_call("qmvc", points, cage))
+    cpu, wall, outs = alternate(fns, repeat)
+    po, to = outs[0], outs[1]
+    row = {"peer": cpu[0], "torchcage": cpu[1], "peer_wall": wall[0], "torchcage_wall": wall[1],
            "diff": float(np.abs(po - to).max()) if po.size else 0.0}  # fmt: skip
-    if method == "qmvc":  # both are quadratures of the same integrals: their errors to the exact ones
-        exact = F.quad_mean_value_coordinates(points, cage, tol=1e-10).numpy()
+    if method == "qgc":
+        row["torchcage_qmvc"] = cpu[2]
+    if method in ("qmvc", "qgc"):  # both are quadratures of the same integrals: their errors to the exact ones
+        if method == "qmvc":
+            exact = F.quad_mean_value_coordinates(points, cage, tol=1e-10).numpy()
+        else:
+            exact = torch.cat(F.quad_green_coordinates(points, cage, tol=1e-10), 1).numpy()
         row["peer_err"], row["torchcage_err"] = float(np.abs(po - exact).max()), float(np.abs(to - exact).max())
     return row
 
@@ -314,10 +371,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             for method in (m for m in args.methods if m in peer.methods):
                 r = compare(lib, method, x, cage, args.repeat)
                 nq, nt = cage.quads.shape[0], cage.triangles.shape[0]
-                faces = f"{nq} quads + {nt} triangles" if method == "qmvc" else f"{tri.triangles.shape[0]} triangles"
+                quads = method in ("qmvc", "qgc")
+                faces = f"{nq} quads + {nt} triangles" if quads else f"{tri.triangles.shape[0]} triangles"
+                goal = GOALS[method]
+                if "torchcage_qmvc" in r:
+                    goal += f" (now {r['torchcage'] / r['torchcage_qmvc']:.1f}x)"
                 ratio, wall = r["peer"] / r["torchcage"], r["peer_wall"] / r["torchcage_wall"]
                 times = (_s(r["peer"]), _s(r["torchcage"]), f"{ratio:.1f}x", f"{wall:.1f}x")
-                rows.append((f"{model} ({x.shape[0]:,} pts)", f"{LABELS[method]}, {faces}", *times, GOALS[method],
+                rows.append((f"{model} ({x.shape[0]:,} pts)", f"{LABELS[method]}, {faces}", *times, goal,
                              f"{r['diff']:.1e}"))  # fmt: skip
                 if "peer_err" in r:
                     notes.append(f"{model} {LABELS[method]}: largest error to the exact coordinates (tol=1e-10): "
