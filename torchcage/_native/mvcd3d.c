@@ -249,6 +249,17 @@ static int face_near_plane(const double a[3][3], const double E[3][3], const dou
     return wind != 0.0 ? 2 : 0;
 }
 
+/* Whether the foot point of the point lies in the face (within tol): n.(a_j x a_k) >= -tol l_e for
+ * every edge. With |h| <= tol, the point is on the face: the near-plane form flags it. */
+static int in_face_prism(const double a[3][3], const double *n, const double *ell, double tol) {
+    for (int e = 0; e < 3; e++) {
+        double Ne[3];
+        cross3(a[(e + 1) % 3], a[(e + 2) % 3], Ne);
+        if (dot3(n, Ne) < -tol * ell[e]) return 0;
+    }
+    return 1;
+}
+
 /* acc[v] (value, gradient, Hessian of w_v) += jet a. */
 static inline void acc_add(double *ac, jet a) {
     ac[0] += a.v;
@@ -452,7 +463,8 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 }
                 const double *nt = nrm + 3 * t;
                 double h = dot3(nt, a[0]);
-                if (thin[t] && fabs(h) > tol && tc_thin_face((const double(*)[3])a, two_area[t])) {
+                if (thin[t] && tc_thin_face((const double(*)[3])a, two_area[t]) &&
+                    (fabs(h) > tol || !in_face_prism(a, nt, ell + 3 * t, tol))) {
                     tc_thin_mvc((const double(*)[3])a, nt, h, two_area[t], w, g, Hh);
                 } else if (longest[t] <= far_c * minR) {
                     face_far(x, nt, h, far_nodes + 3 * Q * t, far_coef + 3 * Q * t, (int)Q, w, g, Hh);

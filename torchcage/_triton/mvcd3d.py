@@ -542,7 +542,7 @@ def _mvcd3d_kernel(
         near = (tl.abs(h) < near_c * rmin) & ~far
         direct = ~far & ~near & ~at_vertex
         if tl.load(thin + f) != 0:
-            redo = redo | ((tl.abs(h) > tol) & _thin_pair(x[0], x[1], x[2], f, P, tri, two_area, thin_distance))
+            redo = redo | _thin_pair(x[0], x[1], x[2], f, P, tri, two_area, thin_distance)
         hs = tl.where(direct, h, 1.0)
         w0 = jconst(0.0, h)
         w1 = jconst(0.0, h)
