@@ -53,6 +53,8 @@ _ROLE_TEXT = re.compile(r":(?:py:)?(?:func|meth|class|attr|mod|data|exc|obj|cons
 _SKIPPED = re.compile(
     r"<(pre|code|script|style)\b[^>]*>.*?</\1>|<(span|div) class=\"arithmatex\">.*?</\2>", re.S | re.I
 )
+_BLOCKS = re.compile(r"<(pre|script|style)\b[^>]*>.*?</\1>", re.S | re.I)
+_CODE = re.compile(r"<code\b[^>]*>.*?</code>", re.S | re.I)
 _RAW_TEX = re.compile(r"\$\$|\\\[|\\\]|\\\(|\\\)|\.\. math::")
 
 
@@ -61,7 +63,8 @@ def on_page_content(html: str, page: Any, config: Any, files: Any) -> str:
     name = page.file.src_uri
     if 'class="arithmatex"' in html and not any("katex" in str(js).lower() for js in config.extra_javascript):
         log.warning("%s has maths but mkdocs.yml loads no KaTeX (extra_javascript): it would show raw TeX", name)
-    roles = _ROLE_TEXT.findall(html)
+    outside_code = _CODE.sub("<code></code>", _BLOCKS.sub(" ", html))  # a role shown in code is fine
+    roles = _ROLE_TEXT.findall(outside_code)
     if roles:
         log.warning("%s shows %d Sphinx role(s) as text, e.g. %r", name, len(roles), roles[0])
     text = _SKIPPED.sub(" ", html)
