@@ -260,10 +260,16 @@ def triangle_integrals(
     on_plane = h.abs() <= tol
     on_face = on_plane & (d >= -tol).all(dim=-1) & ok
     if records_graph(a):
-        # On the plane off the face, omega is 0 but the edge-sum form has no derivative where the
-        # point is also on an edge's line (atan2(0, 0) in both of that edge's terms): take the
-        # Van Oosterom-Strackee form there, whose denominator is positive off the face.
-        omega = torch.where(on_plane & ~on_face, _vos_solid_angle(a, R), omega)
+        # Exactly on the plane off the face, omega is 0 but the edge-sum form has no derivative
+        # where the point is also on an edge's line (atan2(0, 0) in both of that edge's terms):
+        # there the derivative comes from the Van Oosterom-Strackee form, whose denominator is
+        # positive off the face; the value stays the edge sum's. (Its value, taken over the whole
+        # on-plane band, was wrong by O(1) next to a sliver's edge, where its determinant had
+        # cancelled: d(sum phi)/dx of 1e13 / size outside a needle, issue 42 item 2.)
+        plane_off = (h == 0) & ~on_face
+        if bool(plane_off.any()):
+            vos = _vos_solid_angle(a, R)
+            omega = torch.where(plane_off, omega.detach() + (vos - vos.detach()), omega)
     omega = torch.where(on_face, 0.0, omega)
     ell = safe_norm(grad_bary) * two_area[..., None]  # |grad| * 2A = edge length
     alpha = d * ell / torch.where(two_area > 0, two_area, 1.0)[..., None]  # barycentric coords of the foot
