@@ -421,7 +421,14 @@ def mvc3d_triton(
     if n == 0:
         return W, flags
     grid = (triton.cdiv(n, block),)
+    # float32: no fused multiply-adds. The on-cage test needs the exact zero of a cross product of
+    # collinear vectors (a point on an edge shared by coplanar faces, as a triangulated quad's
+    # diagonal): fused, ``a b - c d`` with equal products leaves the rounding error of one (3e-9 on
+    # the cube), far above the float64-scaled tolerance (4e-14), both faces refuse the point and its
+    # row was 0.15 off on an H200 (2026-12-04). float64's residue (1e-17) is below it (passed there).
+    fusion = x.dtype != torch.float32
     _mvc3d_kernel[grid](
-        x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block, NORMALIZE=normalize, num_warps=warps(block)
-    )
+        x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block, NORMALIZE=normalize, num_warps=warps(block),
+        enable_fp_fusion=fusion,
+    )  # fmt: skip
     return W, flags

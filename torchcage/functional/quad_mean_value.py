@@ -136,7 +136,8 @@ def quad_mean_value_coordinates(
         backend: ``"auto"`` (default): the native C kernel for float64 CPU points when no autograd
             graph is needed, else the torch kernel (also on CUDA); ``"torch"``, ``"native"`` or
             ``"triton"`` to force one. ``"triton"`` (CUDA points, triton installed, no graph,
-            ``tol=None``) is experimental: it failed its first GPU check (2026-12-04, docs/gpu.md).
+            ``tol=None``) is experimental: ``"auto"`` takes it once it passes its GPU tests in full
+            (docs/gpu.md).
         allow_invalid: compute even if some quads are invalid (with a warning) instead of raising.
         tol: if given (in ``[1e-14, 0.1]``), the exact coordinates: the quads' defining integrals
             to this relative tolerance by an error-controlled Gauss quadrature (``n`` is then
@@ -193,8 +194,8 @@ def quad_mean_value_coordinates(
             "backend='triton' computes the paper's Riemann sum (tol=None); the exact integrals (tol=...) run on "
             "backend='torch' or 'native'"
         )
-    # (auto keeps the torch kernel on CUDA until the Triton kernel passes its GPU check: on an H200 on
-    # 2026-12-04 it was 1e-3..0.19 off, docs/gpu.md; backend="triton" runs it)
+    # (auto keeps the torch kernel on CUDA until the Triton kernel passes its GPU tests in full: on an
+    # H200 on 2026-12-04 it was 0.19 off, then after a fix 11 of 12 passed, docs/gpu.md)
     use_triton = quad_tol is None and backend == "triton" and _triton.serves(backend, x, records_graph(x, verts))
     lib = None if use_triton or backend == "triton" else _native.select(backend, x, cage.vertices)
     T, Q = cage.triangles.shape[0], cage.quads.shape[0]
