@@ -54,6 +54,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,14 +69,18 @@ from harness import add_data_argument, load_model, qmvc_root
 import torchcage
 from torchcage import _native
 from torchcage import functional as F
+from torchcage.solvers.domain import Domain, mesh_domain
+from torchcage.solvers.lbc import solve_lbc
 
 HERE = Path(__file__).resolve().parent / "peers"
 #: ``-DNDEBUG`` as in a release build: the peers' ``assert`` (and Eigen's index checks) compiled out.
 FLAGS = ("-O3", "-march=native", "-DNDEBUG", "-shared", "-fPIC")
 
 #: The goal of the issue for each method (torchcage's speed-up over the authors' code).
-GOALS = {"mvc": ">= 8x", "gc": ">= 8x", "qmvc": ">= 5x", "qgc": "<= 2x our QMVC"}
-LABELS = {"mvc": "MVC", "gc": "GC", "qmvc": "QMVC, n=4", "qgc": "QGC, n=2"}
+GOALS = {"mvc": ">= 8x", "gc": ">= 8x", "qmvc": ">= 5x", "qgc": "<= 2x our QMVC", "lbc": ">= 3x"}
+LABELS = {"mvc": "MVC", "gc": "GC", "qmvc": "QMVC, n=4", "qgc": "QGC, n=2", "lbc": "LBC"}
+#: The LBC comparison's models (``<data>/lbc2d/<name>-control-edgeset.obj``, the LBC authors' 2D cages).
+LBC_MODELS = ["cactus", "Gil_Gecko"]
 
 _d = ctypes.POINTER(ctypes.c_double)
 _l = ctypes.POINTER(ctypes.c_long)
@@ -101,6 +106,7 @@ class Peer:
         sources: the checkout's source files compiled with the driver.
         extra_includes: include folders of ours (stand-in headers).
         eigen: whether the Eigen 3 headers are needed.
+        flags: further compiler flags.
     """
 
     name: str
@@ -113,6 +119,7 @@ class Peer:
     sources: tuple[str, ...] = ()
     extra_includes: tuple[Path, ...] = field(default_factory=tuple)
     eigen: bool = False
+    flags: tuple[str, ...] = ()
 
 
 PEERS = [
@@ -140,12 +147,30 @@ PEERS = [
         sources=("cagedeformations/src/GreenCoordinates.cpp",),
         eigen=True,
     ),
+    Peer(
+        "LBC authors' solver",
+        "TORCHCAGE_PEER_LBC",
+        "https://github.com/bldeng/LBC",
+        ("lbc",),
+        driver="lbc_driver.cpp",
+        needs=("DataSetup.h", "DataSetup.cpp", "LBCSolver.h", "LBCSolver.cpp", "common.h"),
+        includes=(".",),
+        sources=("DataSetup.cpp", "LBCSolver.cpp"),
+        eigen=True,
+        flags=("-fopenmp",),  # their solver's parallel regions (one thread here)
+    ),
 ]
 #: Peers named by the issue whose drivers are not written yet: a set variable gets a message.
-PENDING = {"TORCHCAGE_PEER_LBC": "the LBC authors' solver"}
+PENDING: dict[str, str] = {}
 
 
-def compile_library(sources: Sequence[Path], out: Path, includes: Sequence[Path] = (), cxx: str | None = None) -> Path:
+def compile_library(
+    sources: Sequence[Path],
+    out: Path,
+    includes: Sequence[Path] = (),
+    cxx: str | None = None,
+    flags: Sequence[str] = (),
+) -> Path:
     """Compile ``sources`` into the shared library ``out`` with ``-O3 -march=native``.
 
     Args:
@@ -153,6 +178,7 @@ def compile_library(sources: Sequence[Path], out: Path, includes: Sequence[Path]
         out: the library's path.
         includes: include folders.
         cxx: the compiler command.
+        flags: further flags (after :data:`FLAGS`).
 
     Returns:
         ``out``.
@@ -163,7 +189,7 @@ def compile_library(sources: Sequence[Path], out: Path, includes: Sequence[Path]
     cxx = cxx or os.environ.get("CXX", "c++")
     if shutil.which(cxx) is None:
         raise PeerUnavailableError(f"no C++ compiler {cxx!r} on PATH (set CXX)")
-    cmd = [cxx, *FLAGS, *(f"-I{p}" for p in includes), *map(str, sources), "-o", str(out)]
+    cmd = [cxx, *FLAGS, *flags, *(f"-I{p}" for p in includes), *map(str, sources), "-o", str(out)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         tail = "\n".join(proc.stderr.strip().splitlines()[-8:])
@@ -189,7 +215,7 @@ def build_peer(peer: Peer, build_dir: Path, environ: dict[str, str] | None = Non
     if peer.eigen:
         includes.append(eigen_include(environ))
     out = build_dir / f"lib{Path(peer.driver).stem}.so"
-    compile_library([HERE / peer.driver, *(checkout / p for p in peer.sources)], out, includes)
+    compile_library([HERE / peer.driver, *(checkout / p for p in peer.sources)], out, includes, flags=peer.flags)
     return bind(ctypes.CDLL(str(out)))
 
 
@@ -213,11 +239,26 @@ def bind(lib: ctypes.CDLL) -> ctypes.CDLL:
         "peer_gc": [_d, _n, _l, _n, _d, _n, _d, _d],
         "peer_qmvc": [_d, _n, _l, _n, _l, _n, _d, _n, _d],
         "peer_qgc": [_d, _n, _l, _n, _l, _n, _d, _n, _d, _d],
+        "peer_lbc2d": [
+            _d,
+            _n,
+            _l,
+            _n,
+            _l,
+            _n,
+            _l,
+            _l,
+            ctypes.c_int,
+            ctypes.c_int,
+            ctypes.c_double,
+            ctypes.c_double,
+            _d,
+        ],
     }
     for name, args in sig.items():
         if hasattr(lib, name):
             getattr(lib, name).argtypes = args
-            getattr(lib, name).restype = None
+            getattr(lib, name).restype = ctypes.c_int if name == "peer_lbc2d" else None
     return lib
 
 
@@ -324,7 +365,74 @@ def compare(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchcage
     return row
 
 
+def load_polygon(data: str | Path, name: str) -> torchcage.Cage | None:
+    """The LBC authors' 2D cage ``<data>/lbc2d/<name>-control-edgeset.obj`` (``None`` if absent)."""
+    path = Path(data) / "lbc2d" / f"{name}-control-edgeset.obj"
+    if not path.is_file():
+        return None
+    with open(path) as fh:
+        v = [[float(t) for t in line.split()[1:3]] for line in fh if line.startswith("v ")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a clockwise polygon is flipped (both solvers get the same one)
+        return torchcage.Cage(torch.tensor(v, dtype=torch.float64))
+
+
+def lbc_calls(
+    lib: ctypes.CDLL, domain: Domain, cage: torchcage.Cage, mu: float = 10.0, alpha: float = 1.65
+) -> tuple[Callable[[int], np.ndarray], Callable[[int], np.ndarray]]:
+    """Two functions ``f(iterations) -> (Nv, V) coordinates``: the peer's and torchcage's LBC solve
+    on ``domain`` with the same settings (quadratic weights, fixed penalty ``mu``, relaxation
+    ``alpha``, all tolerances 0 so that exactly ``iterations`` ADMM iterations run)."""
+    nv = cage.vertices.shape[0]
+    x = _np(domain.vertices, np.float64)
+    cells = _np(domain.cells, np.int64)
+    vals = domain.boundary_values.numpy()
+    edges: list[list[int]] = [[] for _ in range(nv)]
+    for k, i in enumerate(domain.boundary.tolist()):  # boundary samples inside cage edge (a, a + 1)
+        if i < nv:
+            continue
+        a, b = sorted(np.nonzero(np.abs(vals[k]) > 1e-12)[0].tolist())
+        edges[a if (a + 1) % nv == b else b].append(i)
+    for a, inner in enumerate(edges):
+        inner.sort(key=lambda i: float(np.linalg.norm(x[i] - x[a])))
+    offsets = np.cumsum([0] + [len(e) for e in edges]).astype(np.int64)
+    points = np.array([i for e in edges for i in e], dtype=np.int64)
+    ctrl = np.arange(nv, dtype=np.int64)  # the mesh's first V vertices are the cage's
+    out = np.empty((x.shape[0], nv))
+
+    def peer(iterations: int) -> np.ndarray:
+        rc = lib.peer_lbc2d(_ptr(x, ctypes.c_double), x.shape[0], _ptr(cells, ctypes.c_long), cells.shape[0],
+                            _ptr(ctrl, ctypes.c_long), nv, _ptr(points, ctypes.c_long), _ptr(offsets, ctypes.c_long),
+                            2, iterations, alpha, mu, _ptr(out, ctypes.c_double))  # fmt: skip
+        if rc != 0:
+            raise RuntimeError(f"the LBC peer returned {rc}")
+        return out
+
+    def ours(iterations: int) -> np.ndarray:
+        r = solve_lbc(domain, cage.vertices, weighting="quadratic", mu=mu, alpha=alpha, eps_primal=0, eps_dual=0,
+                      max_iter=iterations, adaptive=False, report_every=10)  # fmt: skip
+        return r.weights.numpy()
+
+    return peer, ours
+
+
+def compare_lbc(lib: ctypes.CDLL, cage: torchcage.Cage, iterations: int, repeat: int) -> dict[str, float]:
+    """Seconds per ADMM iteration of both solvers on the same mesh: the minima over ``repeat``
+    alternated runs of ``iterations`` and of 10 iterations, differenced (setup cancels)."""
+    domain = mesh_domain(cage)
+    peer, ours = lbc_calls(lib, domain, cage)
+    k = 10
+    fns = [lambda: peer(k), lambda: ours(k), lambda: peer(iterations), lambda: ours(iterations)]
+    cpu, wall, outs = alternate(fns, repeat)
+    per = [(cpu[i + 2] - cpu[i]) / (iterations - k) for i in (0, 1)]
+    per_wall = [(wall[i + 2] - wall[i]) / (iterations - k) for i in (0, 1)]
+    return {"peer": per[0], "torchcage": per[1], "peer_wall": per_wall[0], "torchcage_wall": per_wall[1],
+            "diff": float(np.abs(outs[2] - outs[3]).max()), "mesh": domain.vertices.shape[0]}  # fmt: skip
+
+
 def _s(t: float) -> str:
+    if t < 0.1:
+        return f"{t * 1e3:.2f} ms"
     return f"{t:.3f} s" if t < 10 else f"{t:.1f} s"
 
 
@@ -334,9 +442,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--models", nargs="+", default=["FireHydrant", "Beast"], help="models of the QMVC data set")
     ap.add_argument("--methods", nargs="+", default=list(GOALS), choices=list(GOALS), help="methods to compare")
     ap.add_argument("--repeat", type=int, default=5, help="alternated runs per method (minimum taken)")
+    ap.add_argument("--lbc-models", nargs="+", default=LBC_MODELS, help="2D cages of <data>/lbc2d for LBC")
+    ap.add_argument("--lbc-iterations", type=int, default=1000, help="ADMM iterations per LBC run")
     args = ap.parse_args(argv)
     if args.repeat < 1:
         ap.error(f"--repeat must be at least 1, got {args.repeat}")
+    if args.lbc_iterations <= 10:
+        ap.error(f"--lbc-iterations must be above 10, got {args.lbc_iterations}")
 
     build_dir = Path(tempfile.mkdtemp(prefix="torchcage-peers-"))
     libs: list[tuple[Peer, ctypes.CDLL]] = []
@@ -353,14 +465,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("no peer available: nothing to compare")
         return 0
 
-    root = qmvc_root(args.data)
+    root = qmvc_root(args.data) if any(m != "lbc" for m in args.methods) else Path(args.data) / "qmvc"
     torch.set_num_threads(1)  # the native kernels take their thread count from torch
     kernel = _native.variant() or f"none ({_native.failure_reason()}): torch kernels"
     omp = os.environ.get("OMP_NUM_THREADS", "unset")
     print(f"torchcage {torchcage.__version__}, native library: {kernel}; torch threads {torch.get_num_threads()}; "
           f"OMP_NUM_THREADS={omp}; load average {os.getloadavg()[0]:.2f}")  # fmt: skip
     rows, notes = [], []
-    for model in args.models:
+    for model in args.models if any(m != "lbc" for m in args.methods) else []:
         loaded = load_model(args.data, model)
         if loaded is None:
             print(f"skipping {model}: not in {root}")
@@ -368,7 +480,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         x, cage = loaded
         tri = cage.triangulated()
         for peer, lib in libs:
-            for method in (m for m in args.methods if m in peer.methods):
+            for method in (m for m in args.methods if m in peer.methods and m != "lbc"):
                 r = compare(lib, method, x, cage, args.repeat)
                 nq, nt = cage.quads.shape[0], cage.triangles.shape[0]
                 quads = method in ("qmvc", "qgc")
@@ -384,6 +496,23 @@ def main(argv: Sequence[str] | None = None) -> int:
                     notes.append(f"{model} {LABELS[method]}: largest error to the exact coordinates (tol=1e-10): "
                                  f"authors' code {r['peer_err']:.1e}, torchcage {r['torchcage_err']:.1e}")  # fmt: skip
                 print(f"  {model} {method}: done (load average {os.getloadavg()[0]:.2f})", flush=True)
+    lbc_libs = [lib for peer, lib in libs if "lbc" in peer.methods and "lbc" in args.methods]
+    for model in args.lbc_models if lbc_libs else []:
+        polygon = load_polygon(args.data, model)
+        if polygon is None:
+            print(f"skipping LBC on {model}: not in {Path(args.data) / 'lbc2d'}")
+            continue
+        r = compare_lbc(lbc_libs[0], polygon, args.lbc_iterations, args.repeat)
+        ratio, wall = r["peer"] / r["torchcage"], r["peer_wall"] / r["torchcage_wall"]
+        rows.append((f"{model} (2D, {polygon.vertices.shape[0]} vertices)",
+                     f"LBC, per iteration, {r['mesh']:,} mesh vertices", _s(r["peer"]), _s(r["torchcage"]),
+                     f"{ratio:.1f}x", f"{wall:.1f}x", GOALS["lbc"], f"{r['diff']:.1e}"))  # fmt: skip
+        print(f"  {model} lbc: done (load average {os.getloadavg()[0]:.2f})", flush=True)
+    if lbc_libs:
+        notes.append(f"LBC: seconds per ADMM iteration, (time of {args.lbc_iterations} - time of 10 iterations) / "
+                     f"{args.lbc_iterations - 10}; same mesh, quadratic weights, penalty 10, relaxation 1.65, "
+                     "tolerances 0; neither solve has converged at that penalty, so the two results differ "
+                     "(max |diff|) by how far each is from the optimum")  # fmt: skip
     heads = ("model", "method", "authors' code", "torchcage", "ratio", "wall ratio", "goal", "max |diff|")
     print()
     print("| " + " | ".join(heads) + " |")
