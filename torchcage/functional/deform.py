@@ -323,7 +323,9 @@ def _deform(points: torch.Tensor, cage: Cage, vertices: torch.Tensor, method: st
         faces = cage.edges if cage.dim == 2 else cage.triangles
         return green_deformation(phi, psi, cage.vertices, vertices, faces)
     correction = options.pop("correction", "conformal")
-    phi, psi = quad_green_coordinates(points, cage, **options)
+    with warnings.catch_warnings():  # (outside points were reported above, as `outside` asks)
+        warnings.simplefilter("ignore", OutsideCageWarning)
+        phi, psi = quad_green_coordinates(points, cage, **options)
     return quad_green_deformation(phi, psi, cage.vertices, vertices, cage.triangles, cage.quads, correction)
 
 

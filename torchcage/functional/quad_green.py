@@ -9,6 +9,7 @@ import torch
 
 from .. import _native
 from ..cage import Cage
+from ..errors import warn_outside
 from ._batch import over_cage_batch
 from ._common import ON_CAGE_TOLERANCE, VERTEX_SNAP, as_inputs, chunks, snap_to_vertices, unit_sum
 from ._green3d import triangle_green_geometry, triangle_integrals
@@ -18,6 +19,29 @@ from ._qgc3d_native import native_quad_part, native_quad_tables, native_tri_part
 from .quad_mean_value import check_tol, prepare_quad_call
 
 __all__ = ["quad_green_coordinates"]
+
+#: Points given in a dtype coarser than float64 lie on the cage when they are within this many units
+#: of that dtype's rounding (``eps * (size + largest coordinate)``) of it: a float32 point placed on
+#: a face rounds to up to ``eps_32 |x|`` off it, half the time outside (where the bare integrals
+#: give 0, not the limit from inside).
+INPUT_ROUNDING = 8.0
+
+
+def input_rounding_tolerance(dtype: torch.dtype, cage: Cage) -> float:
+    """The distance ``INPUT_ROUNDING * eps(dtype) * (size + largest coordinate)`` within which points
+    given in ``dtype`` are taken on the cage; 0 for float64 (the kernels' own tolerance serves).
+
+    Examples:
+        >>> import torch, torchcage
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+        >>> input_rounding_tolerance(torch.float64, cube), input_rounding_tolerance(torch.float32, cube) > 1e-6
+        (0.0, True)
+    """
+    eps = torch.finfo(dtype).eps
+    if eps <= torch.finfo(torch.float64).eps:
+        return 0.0
+    v = cage.vertices.detach()
+    return INPUT_ROUNDING * eps * (cage.scale + float(v.abs().max()))
 
 
 def _quad_part_torch(
@@ -129,6 +153,11 @@ def quad_green_coordinates(
     Gradients: the torch kernel is differentiable with respect to the points and the cage
     vertices; ``"auto"`` picks it when either requires grad.
 
+    Points outside the cage (whose coordinates sum to 0, not 1) warn with their count
+    (``OutsideCageWarning``). Points within the rounding of their own dtype of the cage
+    (``INPUT_ROUNDING`` units: a float32 point placed on a face) get the values on the cage, the
+    limit from inside.
+
     Returns:
         ``(phi, psi)``: ``(*, V)`` and ``(*, T + 4Q)``; column ``T + 4q + k`` of ``psi`` belongs to
         corner ``k`` of quad ``q``.
@@ -165,7 +194,16 @@ def quad_green_coordinates(
         )
     quad_tol = check_tol(tol)
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid, "quad Green coordinates")
-    x = snap_to_vertices(x, verts, VERTEX_SNAP * ON_CAGE_TOLERANCE * cage.scale)  # (the limit at the vertex)
+    # Points of a coarser dtype within its rounding of the cage are on it (module INPUT_ROUNDING).
+    rounding = input_rounding_tolerance(points.dtype, cage)
+    tol = max(tol, rounding)
+    # The kernels work about the cage's centre (the coordinates do not change under translation;
+    # about the origin, a cage moved by 1e6 lost 1e6 eps to every difference of corners and point).
+    # The sum is made 1 about the origin, where the caller multiplies by the vertices (unit_sum).
+    x0, verts0 = x, verts
+    centre = (verts.detach().amax(dim=0) + verts.detach().amin(dim=0)) / 2
+    x, verts = x - centre, verts - centre
+    x = snap_to_vertices(x, verts, max(VERTEX_SNAP * ON_CAGE_TOLERANCE * cage.scale, rounding))  # (the limit there)
     T, Q, V = cage.triangles.shape[0], cage.quads.shape[0], cage.num_vertices
     tri_p = verts[cage.triangles]
     tri_geometry = triangle_green_geometry(tri_p)
@@ -194,7 +232,9 @@ def quad_green_coordinates(
         ph, ps = _chunk(x[sl], tri_part, quad_part, V)
         phis.append(ph)
         psis.append(ps)
-    phi = unit_sum(torch.cat(phis), x, verts) if phis else x.new_zeros((0, V))
+    phi = unit_sum(torch.cat(phis), x0, verts0) if phis else x.new_zeros((0, V))
+    if phis:  # (as QuadGreenCoordinates and deform: quad Green coordinates are defined inside the cage)
+        warn_outside(phi.detach().sum(dim=-1), "quad Green coordinates")
     psi = torch.cat(psis) if psis else x.new_zeros((0, T + 4 * Q))
     lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, V), psi.to(out_dtype).reshape(*lead, T + 4 * Q)

@@ -7,7 +7,6 @@ from collections.abc import Callable
 import torch
 
 from ..cage import Cage
-from ..errors import warn_outside
 from ..functional.deform import quad_corner_factors, quad_green_deformation
 from ..functional.quad_green import quad_green_coordinates
 from .base import CageModule, detached, module_points
@@ -86,7 +85,6 @@ class QuadGreenCoordinates(CageModule):
         super().__init__(cage, pts)
         self.correction = correction
         self.tol = tol
-        warn_outside(phi.sum(dim=-1).reshape(-1), "quad Green coordinates")
         self.register_buffer("phi", phi)
         self.register_buffer("psi", psi)
         self.register_buffer("triangles", cage.triangles.clone())
