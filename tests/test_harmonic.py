@@ -24,7 +24,13 @@ def _polygon() -> tc.Cage:
     return tc.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 1], [1, 1.5], [0.3, 0.6], [0, 1]], dtype=D64))
 
 
-_inside = sample_inside
+def _inside(cage: tc.Cage, n: int, seed: int = 0) -> torch.Tensor:
+    """Points inside the cage whose quads are bilinear patches (the surface the coordinates take
+    their boundary values on), not split along a diagonal as :func:`support.sample_inside` has it."""
+    from torchcage.solvers.domain import inside_bilinear_cage
+
+    x = sample_inside(cage, 2 * n, seed)
+    return x[inside_bilinear_cage(x, cage)][:n]
 
 
 def _independent_p1(vertices: np.ndarray, cells: np.ndarray, boundary: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -14,8 +14,7 @@ from support import box_cage, data_path, l_shape
 
 import torchcage
 from torchcage import functional as F
-from torchcage.geometry import inside_cage
-from torchcage.solvers.domain import mesh_domain
+from torchcage.solvers.domain import inside_bilinear_cage, mesh_domain
 from torchcage.solvers.lbc import solve_lbc
 
 pytest.importorskip("scipy")
@@ -44,7 +43,7 @@ def random_inside(cage: torchcage.Cage, n: int, seed: int = 0) -> torch.Tensor:
     gen = torch.Generator().manual_seed(seed)
     lo, hi = cage.vertices.min(0).values, cage.vertices.max(0).values
     x = lo + (hi - lo) * torch.rand((4 * n, cage.dim), dtype=torch.float64, generator=gen)
-    return x[inside_cage(x, cage)][:n]
+    return x[inside_bilinear_cage(x, cage)][:n]  # (quads: inside their bilinear patches)
 
 
 @pytest.mark.parametrize(

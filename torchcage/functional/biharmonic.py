@@ -16,7 +16,7 @@ from ..cage import Cage
 from ..solvers.biharmonic import BBWResult, solve_bbw
 from ..solvers.domain import Domain, domain_for
 from ._common import as_inputs, check_points
-from .harmonic import interpolate_on_mesh
+from .harmonic import check_mesh_solution, interpolate_on_mesh
 
 __all__ = ["bounded_biharmonic_weights", "solve_bounded_biharmonic_weights"]
 
@@ -77,7 +77,8 @@ def bounded_biharmonic_weights(
         points: ``(*, D)`` points inside the cage (points outside get the weights of the nearest
             point of the meshed interior, with a warning).
         cage: a closed 2D polygon or 3D triquad cage.
-        solution: a previous solve for the same cage.
+        solution: a previous solve for the same cage (checked: a solution of another cage, by
+            dimension, vertex count, faces or rest vertices, raises a ``CageError``).
         chunk_size: points per chunk.
         **options: passed to :func:`solve_bounded_biharmonic_weights` (``target_cells``,
             ``domain``, ``tol``, ...).
@@ -98,6 +99,8 @@ def bounded_biharmonic_weights(
     points, cage = as_inputs(points, cage)
     lead = points.shape[:-1]
     flat = check_points(points, cage)
+    if solution is not None:
+        check_mesh_solution(solution, cage, "bounded biharmonic weights")
     result = solution if solution is not None else solve_bounded_biharmonic_weights(cage, **options)
-    out = interpolate_on_mesh(flat, result.domain, result.weights, chunk_size)
+    out = interpolate_on_mesh(flat, result.domain, result.weights, chunk_size, cage)
     return out.to(dtype=flat.dtype, device=flat.device).reshape(*lead, out.shape[1])

@@ -14,12 +14,31 @@ from typing import Any
 import torch
 
 from ..cage import Cage
-from ..solvers.domain import Domain, domain_for
+from ..errors import CageError
+from ..solvers.domain import Domain, check_solution, domain_for
 from ..solvers.harmonic import HarmonicResult, solve_harmonic
+from ..solvers.locate import locate_points, outside_points
 from ._common import as_inputs, check_points
-from .local_barycentric import locate
 
-__all__ = ["harmonic_coordinates", "interpolate_on_mesh", "solve_harmonic_coordinates"]
+__all__ = ["check_mesh_solution", "harmonic_coordinates", "interpolate_on_mesh", "solve_harmonic_coordinates"]
+
+
+def check_mesh_solution(solution: Any, cage: Cage, what: str) -> None:
+    """Raise a :class:`~torchcage.errors.CageError` (or ``TypeError``) when ``solution`` (a
+    harmonic, biharmonic or LBC result: ``domain`` and ``weights (Nv, V)``) was not computed for
+    ``cage``: another dimension, number of vertices, faces, or rest vertices
+    (:func:`torchcage.solvers.domain.check_solution`)."""
+    domain, weights = getattr(solution, "domain", None), getattr(solution, "weights", None)
+    if not isinstance(domain, Domain) or not isinstance(weights, torch.Tensor):
+        raise TypeError(
+            f"solution must be the result of a {what} solve (with .domain and .weights), got {type(solution).__name__}"
+        )
+    if weights.ndim != 2 or weights.shape[0] != domain.vertices.shape[0]:
+        raise CageError(
+            f"the {what} solution's weights {tuple(weights.shape)} do not match its mesh of "
+            f"{domain.vertices.shape[0]} vertices; pass a solution returned by the solver, unchanged"
+        )
+    check_solution(domain, cage, what, columns=weights.shape[1])
 
 
 def solve_harmonic_coordinates(
@@ -69,7 +88,8 @@ def harmonic_coordinates(
         points: ``(*, D)`` points inside the cage (points outside get the coordinates of the
             nearest point of the meshed interior, with a warning).
         cage: a closed 2D polygon or 3D triquad cage.
-        solution: a previous solve for the same cage.
+        solution: a previous solve for the same cage (checked: a solution of another cage, by
+            dimension, vertex count, faces or rest vertices, raises a ``CageError``).
         chunk_size: points per chunk.
         **options: passed to :func:`solve_harmonic_coordinates` (``target_cells``, ``domain``,
             ``solver``, ...).
@@ -90,32 +110,44 @@ def harmonic_coordinates(
     points, cage = as_inputs(points, cage)
     lead = points.shape[:-1]
     flat = check_points(points, cage)
+    if solution is not None:
+        check_mesh_solution(solution, cage, "harmonic coordinates")
     result = solution if solution is not None else solve_harmonic_coordinates(cage, **options)
-    out = interpolate_on_mesh(flat, result.domain, result.weights, chunk_size)
+    out = interpolate_on_mesh(flat, result.domain, result.weights, chunk_size, cage)
     return out.to(dtype=flat.dtype, device=flat.device).reshape(*lead, out.shape[1])
 
 
-def interpolate_on_mesh(flat: torch.Tensor, domain: Domain, weights: torch.Tensor, chunk_size: int) -> torch.Tensor:
+def interpolate_on_mesh(
+    flat: torch.Tensor, domain: Domain, weights: torch.Tensor, chunk_size: int, cage: Cage | None = None
+) -> torch.Tensor:
     """Values ``weights (Nv, V)`` at the mesh vertices interpolated linearly at points ``flat (N, D)``
-    through their containing cell, ``(N, V)`` float64 on the points' device; differentiable with
-    respect to points that require grad. Points outside the mesh take the value of the nearest
-    mesh point, with a warning."""
+    through their containing cell (exact point location: :mod:`torchcage.solvers.locate`),
+    ``(N, V)`` float64 on the points' device; differentiable with respect to points that require
+    grad. Points outside the mesh take the value of the nearest mesh point, with a warning for
+    those outside the cage (``cage``; without it, for all of them) beyond the rounding of their
+    dtype."""
     x = flat.detach().to(torch.float64).cpu()
     V = weights.shape[1]
     grad = flat.requires_grad and torch.is_grad_enabled()
     parts = []
-    outside = 0
+    outside, farthest = 0, 0.0
     for s in range(0, x.shape[0], chunk_size):
-        cell, bary, inside = locate(x[s : s + chunk_size], domain)
-        outside += int((~inside).sum())
+        xs = x[s : s + chunk_size]
+        cell, bary, inside, distance = locate_points(xs, domain)
+        warn = outside_points(xs, inside, distance, domain, cage, flat.dtype)
+        if bool(warn.any()):
+            outside += int(warn.sum())
+            farthest = max(farthest, float(distance[warn].max()))
         corners = domain.cells[cell]  # (n, D + 1)
         if grad:  # the barycentric coordinates again, differentiable (linear in the point in its cell)
             bary = _differentiable_bary(flat[s : s + chunk_size], domain.vertices[corners], bary, inside)
         parts.append(torch.einsum("nk,nkv->nv", bary, weights[corners].to(bary)))
     if outside:
+        v = domain.vertices
+        size = float((v.amax(dim=0) - v.amin(dim=0)).norm())
         warnings.warn(
-            f"{outside} points lie outside the meshed interior of the cage; they got the coordinates of "
-            "the nearest point of the mesh",
+            f"{outside} points lie outside the meshed interior of the cage (up to {farthest:.3g} away, "
+            f"{farthest / size:.2g} of its size); they got the coordinates of the nearest point of the mesh",
             stacklevel=3,
         )
     return torch.cat(parts) if parts else torch.zeros(0, V, dtype=torch.float64)

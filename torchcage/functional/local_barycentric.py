@@ -9,7 +9,6 @@ unity and reproduction still hold: the result is a sparse ``(N, V)`` tensor.
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -20,7 +19,9 @@ from ..cage import Cage
 from ..errors import PointsError
 from ..solvers.domain import Domain, domain_for
 from ..solvers.lbc import LBCResult, make_feasible, solve_lbc
+from ..solvers.locate import locate_points, outside_points
 from ._common import as_inputs, check_points
+from .harmonic import check_mesh_solution
 
 __all__ = ["local_barycentric_coordinates", "locality_statistics", "locate", "solve_local_barycentric"]
 
@@ -55,69 +56,22 @@ def solve_local_barycentric(
     return solve_lbc(dom, cage.vertices, weighting=weighting, progress=progress, **solver)
 
 
-def locate(points: torch.Tensor, domain: Domain, k: int = 12) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def locate(points: torch.Tensor, domain: Domain) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Cells holding points and the points' barycentric coordinates in them.
 
-    Candidates are the ``k`` cells with the nearest centroids (a k-d tree), then more if none
-    holds the point; points in no cell get the nearest candidate's coordinates clamped to the
-    cell (the value at a nearby point of the mesh).
+    Exact (:class:`torchcage.solvers.locate.MeshLocator`: a grid of the cells' bounding boxes,
+    built once per domain): a point inside a cell is found, however long and thin the cell;
+    points in no cell get the cell and clamped coordinates of the nearest point of the mesh.
 
     Args:
         points: ``(N, D)`` float64.
         domain: the mesh.
-        k: candidate cells per point in the first round.
 
     Returns:
         ``cell (N,)``, ``bary (N, D + 1)`` and ``inside (N,)`` (False where clamped).
     """
-    from scipy.spatial import cKDTree
-
-    v, cells = domain.vertices, domain.cells
-    D = v.shape[1]
-    p = v[cells]  # (C, D+1, D)
-    inv = torch.linalg.inv((p[:, 1:] - p[:, :1]).transpose(1, 2))  # (C, D, D) maps x - p0 to (b1..bD)
-    tree = cKDTree(p.mean(dim=1).numpy())
-    N = points.shape[0]
-    best_cell = torch.zeros(N, dtype=torch.int64)
-    best_bary = torch.zeros((N, D + 1), dtype=torch.float64)
-    best_score = torch.full((N,), -math.inf, dtype=torch.float64)
-    todo = torch.arange(N)
-    kk = min(k, cells.shape[0])
-    while todo.numel():
-        _, cand = tree.query(points[todo].numpy(), k=kk)
-        cand = torch.from_numpy(cand.reshape(todo.shape[0], kk)).to(torch.int64)  # (n, kk)
-        rel = points[todo][:, None, :] - p[cand, 0]  # (n, kk, D)
-        b = torch.einsum("nkij,nkj->nki", inv[cand], rel)
-        bary = torch.cat([1 - b.sum(-1, keepdim=True), b], -1)  # (n, kk, D+1)
-        score, j = bary.amin(dim=-1).max(dim=1)
-        better = score > best_score[todo]
-        idx = todo[better]
-        best_score[idx] = score[better]
-        best_cell[idx] = cand[better, j[better]]
-        best_bary[idx] = bary[better, j[better]]
-        if kk >= min(cells.shape[0], 32 * k):
-            break
-        todo = todo[best_score[todo] < -1e-12]
-        kk = min(cells.shape[0], 4 * kk)
-    inside = best_score >= -1e-9
-    b = best_bary.clamp_min(0.0)
-    b = b / b.sum(dim=1, keepdim=True)
-    out = torch.nonzero(~inside).flatten()
-    if out.numel():
-        # Points in no cell (outside the mesh, or on its boundary beside a flat cell whose centroid
-        # is far): among the candidates, the clamped point nearest to the point (the clamped
-        # coordinates of the least-negative cell were up to a cell size away: 1e-2 on the cube).
-        _, cand = tree.query(points[out].numpy(), k=kk)
-        cand = torch.from_numpy(cand.reshape(out.shape[0], kk)).to(torch.int64)
-        rel = points[out][:, None, :] - p[cand, 0]
-        bb = torch.einsum("nkij,nkj->nki", inv[cand], rel)
-        bc = torch.cat([1 - bb.sum(-1, keepdim=True), bb], -1).clamp_min(0.0)
-        bc = bc / bc.sum(dim=-1, keepdim=True)
-        near = torch.einsum("nki,nkid->nkd", bc, p[cand])
-        j = (near - points[out][:, None, :]).square().sum(-1).argmin(dim=1)
-        rows = torch.arange(out.shape[0])
-        best_cell[out], b[out] = cand[rows, j], bc[rows, j]
-    return best_cell, b, inside
+    cell, bary, inside, _ = locate_points(points, domain)
+    return cell, bary, inside
 
 
 def local_barycentric_coordinates(
@@ -142,7 +96,8 @@ def local_barycentric_coordinates(
         cage: a closed 2D polygon or 3D triquad cage.
         threshold: entries below it are dropped and rows corrected to keep reproduction and
             partition of unity. Default ``1e-3 / V`` (the paper's); ``0`` keeps every entry.
-        solution: a previous solve for the same cage.
+        solution: a previous solve for the same cage (checked: a solution of another cage, by
+            dimension, vertex count, faces or rest vertices, raises a ``CageError``).
         chunk_size: points per chunk.
         **options: passed to :func:`solve_local_barycentric` (``target_cells``, ``domain``,
             ``weighting``, ``progress``, solver options).
@@ -162,6 +117,8 @@ def local_barycentric_coordinates(
     points, cage = as_inputs(points, cage)
     flat = check_points(points, cage)
     V = cage.num_vertices
+    if solution is not None:
+        check_mesh_solution(solution, cage, "local barycentric coordinates")
     result = solution if solution is not None else solve_local_barycentric(cage, **options)
     thr = 1e-3 / V if threshold is None else float(threshold)
     if thr < 0:
@@ -173,11 +130,14 @@ def local_barycentric_coordinates(
     centre, scale = P.mean(dim=0), max(cage.scale, 1e-300)
     K = torch.cat([(P - centre) / scale, torch.ones(V, 1, dtype=torch.float64)], 1)
     rows, cols, vals = [], [], []
-    outside = 0
+    outside, farthest = 0, 0.0
     for s in range(0, x.shape[0], chunk_size):
         xc = x[s : s + chunk_size]
-        cell, bary, inside = locate(xc, result.domain)
-        outside += int((~inside).sum())
+        cell, bary, inside, distance = locate_points(xc, result.domain)
+        warn = outside_points(xc, inside, distance, result.domain, cage, flat.dtype)
+        if bool(warn.any()):
+            outside += int(warn.sum())
+            farthest = max(farthest, float(distance[warn].max()))
         corners = result.domain.cells[cell]  # (n, D+1)
         w = torch.einsum("nk,nkv->nv", bary, result.weights[corners])
         if thr > 0:
@@ -198,8 +158,9 @@ def local_barycentric_coordinates(
         vals.append(w[r, c])
     if outside:
         warnings.warn(
-            f"{outside} points lie outside the meshed interior of the cage; they got the coordinates of "
-            "the nearest point of the mesh",
+            f"{outside} points lie outside the meshed interior of the cage (up to {farthest:.3g} away, "
+            f"{farthest / max(cage.scale, 1e-300):.2g} of its size); they got the coordinates of the nearest "
+            "point of the mesh",
             stacklevel=2,
         )
     idx = torch.stack([torch.cat(rows), torch.cat(cols)]) if rows else torch.zeros((2, 0), dtype=torch.int64)

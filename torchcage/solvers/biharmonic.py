@@ -204,7 +204,9 @@ def solve_bbw(
         check_every: iterations between gap checks (each costs one more solve).
         solver: ``"auto"`` (cholesky where cholespy is installed, else lu), ``"cholesky"`` or
             ``"lu"`` (scipy's sparse LU).
-        progress: ``True`` for a progress bar, or a callable ``progress(iteration, largest_gap)``.
+        progress: ``True`` for a progress bar (how far, on a log scale, the largest gap has come
+            towards ``tol``: :class:`~torchcage.solvers.progress.ToleranceProgress`), or a callable
+            ``progress(iteration, largest_gap)``.
 
     Returns:
         A :class:`BBWResult`.
@@ -315,9 +317,9 @@ def _admm(
     cols = torch.nonzero(active).squeeze(1)
     bar = None
     if progress is True:
-        from tqdm.auto import tqdm
+        from .progress import ToleranceProgress
 
-        bar = tqdm(total=max_iter, desc="BBW (ADMM)", leave=False)
+        bar = ToleranceProgress("BBW (ADMM)", max_iter, ("gap",), (tol,))
     it = 0
     for it in range(1, max_iter + 1):
         zc, uc = z[:, cols], u[:, cols]
@@ -336,8 +338,7 @@ def _admm(
             worst = float(gap.max())
             history.append((it, worst))
             if bar is not None:
-                bar.update(check_every)
-                bar.set_postfix(gap=f"{worst:.2g}")
+                bar.update(it, (worst,))
             elif callable(progress):
                 progress(it, worst)
             cols = cols[g > tol]

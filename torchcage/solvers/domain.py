@@ -20,17 +20,19 @@ vertices, which are mesh vertices.
 
 from __future__ import annotations
 
+import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
 
 from ..cage import Cage
 from ..errors import CageError
-from ..geometry import inside_cage
+from ..geometry import inside_polygon, winding_number
 
-__all__ = ["Domain", "domain_for", "mesh_domain", "user_domain"]
+__all__ = ["Domain", "check_solution", "domain_for", "inside_bilinear_cage", "mesh_domain", "user_domain"]
 
 
 @dataclass
@@ -43,6 +45,10 @@ class Domain:
         boundary: ``(Nb,)`` indices of the vertices on the cage.
         boundary_values: ``(Nb, V)`` float64 values of the cage's basis functions there.
         min_angle: smallest angle of a 2D triangle in degrees (``nan`` in 3D), a quality figure.
+        cage_vertices: ``(V, D)`` float64 the rest cage's vertices the mesh was made for (``None`` for
+            a domain built by hand): with ``cage_topology``, the fingerprint that
+            :func:`check_solution` compares a cage against.
+        cage_topology: a digest of the cage's faces (or 2D edges), ``None`` for a domain built by hand.
     """
 
     vertices: torch.Tensor
@@ -50,6 +56,9 @@ class Domain:
     boundary: torch.Tensor
     boundary_values: torch.Tensor
     min_angle: float = math.nan
+    cage_vertices: torch.Tensor | None = None
+    cage_topology: str | None = None
+    _locator: Any = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def interior(self) -> torch.Tensor:
@@ -68,6 +77,182 @@ class Domain:
 def _spacing(measure: float, target_cells: int, dim: int) -> float:
     # equilateral triangles: area 0.433 h^2; regular-ish tetrahedra of a jittered lattice: ~h^3 / 6
     return math.sqrt(measure / (0.433 * target_cells)) if dim == 2 else (10 * measure / target_cells) ** (1 / 3)
+
+
+def topology_digest(cage: Cage) -> str:
+    """A short digest of a cage's faces (triangles and quads) or 2D edges: the topology half of a
+    solution's fingerprint."""
+    h = hashlib.sha1(f"{cage.dim}:{cage.num_vertices}".encode())
+    for part in (cage.triangles, cage.quads, cage.edges):
+        t = part.detach().to("cpu", torch.int64).contiguous()
+        h.update(f"{tuple(t.shape)}".encode())
+        h.update(t.numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def check_solution(domain: Domain, cage: Cage, what: str, columns: int | None = None) -> None:
+    """Raise a :class:`~torchcage.errors.CageError` when a precomputed mesh or solution does not
+    belong to ``cage``: another dimension, another number of cage vertices (or of weight columns,
+    ``columns``), and, where the domain carries the fingerprint of its cage, other faces or rest
+    vertices (beyond the rounding of the cage's dtype).
+
+    Args:
+        domain: the solution's mesh (``solution.domain``).
+        cage: the cage it is used with.
+        what: the method's name, for the message.
+        columns: the solution's weight columns, if any.
+    """
+    fix = (
+        f"solve {what} for this cage (or pass solution= only with the rest cage it was computed for, "
+        "domain= only with a mesh of this cage's interior)"
+    )
+    D, V = cage.dim, cage.num_vertices
+    if domain.vertices.ndim != 2 or domain.vertices.shape[1] != D:
+        raise CageError(f"the {what} solution (or domain) is {domain.vertices.shape[-1]}D but the cage is {D}D; {fix}")
+    have = domain.boundary_values.shape[1] if columns is None else columns
+    if have != V:
+        raise CageError(f"the {what} solution (or domain) was computed for a cage of {have} vertices, "
+                        f"this cage has {V}; {fix}")  # fmt: skip
+    if domain.cage_topology is not None and domain.cage_topology != topology_digest(cage):
+        raise CageError(f"the {what} solution (or domain) was computed for a cage with other faces; {fix}")
+    if domain.cage_vertices is not None:
+        mine = cage.vertices.detach().to("cpu", torch.float64)
+        theirs = domain.cage_vertices.to(torch.float64)
+        eps = torch.finfo(cage.vertices.dtype).eps if cage.vertices.is_floating_point() else 0.0
+        tol = max(64 * eps, 1e-12) * max(float(theirs.abs().amax()), float(cage.scale), 1e-300)
+        off = (mine - theirs).abs().amax(dim=1)
+        if bool((off > tol).any()):
+            worst = int(off.argmax())
+            raise CageError(
+                f"the {what} solution (or domain) was computed for another rest cage: vertex {worst} differs by "
+                f"{float(off[worst]):.3g} (cage size {cage.scale:.3g}); {fix}"
+            )
+
+
+def _normalised(cage: Cage) -> tuple[Cage, torch.Tensor, float]:
+    """The float64 CPU cage translated to its bounding box's centre and scaled by its diagonal:
+    ``(cage, centre (D,), size)``; the mesher works there, so that scale and translation do not
+    change the mesh (up to rounding)."""
+    v = cage.vertices.detach().to("cpu", torch.float64)
+    lo, hi = v.amin(dim=0), v.amax(dim=0)
+    centre = 0.5 * (lo + hi)
+    size = float((hi - lo).norm())
+    if not (math.isfinite(size) and size > 0):
+        raise CageError(f"the cage has no extent (bounding-box diagonal {size}); it cannot be meshed")
+    c = Cage._trusted((v - centre) / size, cage.triangles.cpu(), cage.quads.cpu(), cage.edges.cpu())
+    return c, centre, size
+
+
+def _solid_angle(x: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """Signed solid angles ``(P,)`` of triangles ``a, b, c`` ``(P, 3)`` seen from ``x`` ``(P, 3)``
+    (Van Oosterom and Strackee, as :func:`torchcage.geometry.winding_number`)."""
+    a, b, c = a - x, b - x, c - x
+    la, lb, lc = a.norm(dim=-1), b.norm(dim=-1), c.norm(dim=-1)
+    det = (a * torch.linalg.cross(b, c, dim=-1)).sum(-1)
+    den = la * lb * lc + (a * b).sum(-1) * lc + (b * c).sum(-1) * la + (c * a).sum(-1) * lb
+    return 2 * torch.atan2(det, den)
+
+
+def _split_angle(x: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Solid angle ``(P,)`` of quads ``q`` ``(P, 4, 3)`` split along ``q0-q2`` (as
+    :meth:`torchcage.Cage.triangulated`) seen from ``x`` ``(P, 3)``."""
+    return _solid_angle(x, q[:, 0], q[:, 1], q[:, 2]) + _solid_angle(x, q[:, 0], q[:, 2], q[:, 3])
+
+
+def _near_patch(x: torch.Tensor, q: torch.Tensor, floor: float) -> torch.Tensor:
+    """Whether points ``x`` ``(P, 3)`` may lie between the bilinear patch of the corners ``q``
+    ``(P, 4, 3)`` and its split triangles: a superset of the corners' tetrahedron (their bounding
+    box, cut by the slab between the corners' heights above the quad's mean plane), grown by a
+    rounding margin. Extra points cost time only: their correction sums to zero. Patches whose
+    twist is below ``floor`` are taken as flat (patch and split triangles within ``floor`` of each
+    other): ``False``."""
+    size = (q.amax(dim=1) - q.amin(dim=1)).norm(dim=-1)
+    twist = (q[:, 0] - q[:, 1] + q[:, 2] - q[:, 3]).norm(dim=-1)
+    margin = (1e-12 * size)[:, None]
+    n = torch.linalg.cross(q[:, 2] - q[:, 0], q[:, 3] - q[:, 1], dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    centre = q.mean(dim=1)
+    h = ((q - centre[:, None]) * n[:, None]).sum(-1)  # (P, 4)
+    hx = ((x - centre) * n).sum(-1)
+    in_slab = (hx >= h.amin(dim=1) - margin[:, 0]) & (hx <= h.amax(dim=1) + margin[:, 0])
+    in_box = ((x >= q.amin(dim=1) - margin) & (x <= q.amax(dim=1) + margin)).all(dim=-1)
+    return in_slab & in_box & (twist > floor)
+
+
+def _bilinear_correction(points: torch.Tensor, corners: torch.Tensor, max_pairs: int = 1 << 20) -> torch.Tensor:
+    """Winding-number correction ``(N,)`` that turns the winding number of the quads split along
+    ``q0-q2`` into that of their bilinear patches, for points ``(N, 3)`` and quads ``(Q, 4, 3)``.
+
+    The patch and its two split triangles bound a region inside the tetrahedron of the quad's
+    corners, so points outside it need no correction (a superset of the tetrahedron is tested:
+    its barycentric coordinates are ill-conditioned for nearly flat quads). For the others, the patch is split at
+    ``u, v = 1/2`` into four bilinear sub-patches: the correction is the split sub-patches' solid
+    angle minus the split quad's, plus the sub-patches' own corrections, recursively, for the points
+    inside each sub-patch's tetrahedron. Each level divides the twist (and so the region's
+    thickness) by 4; sub-patches whose twist is below 1e-11 of the largest quad's size count as
+    flat, so the result is the winding number of the bilinear surface for every point farther than
+    that from it (about 18 levels at most).
+    """
+    corr = torch.zeros(points.shape[0], dtype=torch.float64)
+    if corners.shape[0] == 0 or points.shape[0] == 0:
+        return corr
+    lo, hi = corners.amin(dim=1), corners.amax(dim=1)
+    step = max(1, max_pairs // corners.shape[0])
+    pis, qs = [], []
+    for s in range(0, points.shape[0], step):
+        x = points[s : s + step]
+        hit = ((x[:, None] >= lo[None]) & (x[:, None] <= hi[None])).all(dim=-1)  # (n, Q)
+        pi, qi = torch.nonzero(hit, as_tuple=True)
+        pis.append(pi + s)
+        qs.append(corners[qi])
+    pi, q = torch.cat(pis), torch.cat(qs)
+    floor = 1e-11 * float((hi - lo).norm(dim=-1).max())
+    for _ in range(40):
+        keep = _near_patch(points[pi], q, floor)
+        pi, q = pi[keep], q[keep]
+        if pi.numel() == 0:
+            break
+        m01, m12, m23, m30 = (0.5 * (q[:, k] + q[:, (k + 1) % 4]) for k in range(4))
+        mid = 0.25 * q.sum(dim=1)
+        children = torch.stack(
+            [torch.stack([q[:, 0], m01, mid, m30], 1), torch.stack([m01, q[:, 1], m12, mid], 1),
+             torch.stack([mid, m12, q[:, 2], m23], 1), torch.stack([m30, mid, m23, q[:, 3]], 1)], 1,
+        )  # (P, 4, 4, 3), each child in the parent's (u, v) orientation  # fmt: skip
+        x = points[pi]
+        delta = sum(_split_angle(x, children[:, k]) for k in range(4)) - _split_angle(x, q)
+        corr.index_add_(0, pi, delta / (4 * math.pi))
+        pi = pi.repeat_interleave(4)
+        q = children.reshape(-1, 4, 3)
+    return corr
+
+
+def inside_bilinear_cage(points: torch.Tensor, cage: Cage) -> torch.Tensor:
+    """Whether points ``(N, D)`` lie inside a cage whose quads are **bilinear patches** (the surface
+    the mesher samples and the coordinates interpolate), ``(N,)`` bool; a polygon in 2D.
+
+    :func:`torchcage.geometry.inside_cage` splits each quad along ``q0-q2``: for a non-planar quad
+    the two surfaces differ, and a mesh classified by the split one keeps cells outside the curved
+    cage (2% of the volume on the data set's ManHead cage) and drops cells inside it.
+
+    Examples:
+        >>> import torch, torchcage
+        >>> v = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
+        ...                   [0, 0, 1], [1, 0, 1.6], [1, 1, 1], [0, 1, 1.6]], dtype=torch.float64)
+        >>> f = [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
+        >>> box = torchcage.Cage(v, f)
+        >>> x = torch.tensor([[0.5, 0.5, 1.25], [0.5, 0.5, 1.35]], dtype=torch.float64)  # the top patch: z = 1.3
+        >>> inside_bilinear_cage(x, box).tolist()
+        [True, False]
+    """
+    x = points.to(torch.float64)
+    v = cage.vertices.detach().to(x)
+    if cage.dim == 2:
+        return inside_polygon(x, v, cage.edges)
+    tri = cage.triangulated().triangles if cage.has_quads else cage.triangles
+    w = winding_number(x, v, tri)
+    if cage.has_quads:
+        w = w + _bilinear_correction(x, v[cage.quads])
+    return w > 0.5
 
 
 def _segments(a: torch.Tensor, b: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -94,7 +279,16 @@ def _delaunay(points: np.ndarray) -> np.ndarray:
         from scipy.spatial import Delaunay
     except ImportError as err:  # pragma: no cover
         raise ImportError("meshing a cage's interior needs scipy: pip install torchcage[lbc]") from err
-    return Delaunay(points).simplices.astype(np.int64)
+    from scipy.spatial import QhullError
+
+    try:
+        return Delaunay(points).simplices.astype(np.int64)
+    except QhullError as err:
+        raise CageError(
+            "the Delaunay triangulation of the cage's interior failed (Qhull: the samples are too flat or "
+            f"too few: {str(err).splitlines()[0]}); thicken the cage, or pass your own mesh with "
+            "domain=(vertices, cells)"
+        ) from err
 
 
 def _orient(v: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
@@ -110,15 +304,22 @@ def _orient(v: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
     return cells
 
 
+#: Cages thinner than this (area over the bounding-box diagonal squared, volume over its cube)
+#: are refused by the mesher: their cells would be flatter than it can tell from rounding.
+FLAT_LIMIT = 1e-10
+
+
 def _mesh_2d(cage: Cage, target_cells: int) -> Domain:
     v = cage.vertices.to(torch.float64)
     e = cage.edges
     V = v.shape[0]
     area = float(cage.signed_volume().abs())
-    h = _spacing(area, target_cells, 2)
+    length = (v[e[:, 1]] - v[e[:, 0]]).norm(dim=1)
+    # The spacing from the area, but no finer than the perimeter allows for about target_cells
+    # boundary samples: a thin polygon (1 x 2e-6) otherwise gets millions of them.
+    h = max(_spacing(area, target_cells, 2), float(length.sum()) / (0.7 * target_cells))
     # Boundary: every edge split into pieces of at most 0.7 h (denser than the interior, so that
     # boundary segments stay Delaunay edges); values linear along the edge.
-    length = (v[e[:, 1]] - v[e[:, 0]]).norm(dim=1)
     n = torch.ceil(length / (0.7 * h)).to(torch.int64).clamp_min(1)
     for _ in range(8):
         pts, seg, t = _segments(v[e[:, 0]], v[e[:, 1]], n)
@@ -142,14 +343,14 @@ def _mesh_2d(cage: Cage, target_cells: int) -> Domain:
         gx = gx + 0.5 * h * (torch.arange(ys.shape[0])[:, None] % 2)
         lattice = torch.stack([gx.reshape(-1), gy.reshape(-1)], 1)
         boundary_pts = torch.cat([v, pts])
-        lattice = lattice[inside_cage(lattice, cage)]
+        lattice = lattice[inside_bilinear_cage(lattice, cage)]
         if lattice.shape[0]:
             d = torch.cdist(lattice, boundary_pts).amin(dim=1)
             lattice = lattice[d >= 0.5 * h]
         allv = torch.cat([boundary_pts, lattice])
         cells = torch.from_numpy(_delaunay(allv.numpy()))
         cent = allv[cells].mean(dim=1)
-        cells = _orient(allv, cells[inside_cage(cent, cage)])
+        cells = _orient(allv, cells[inside_bilinear_cage(cent, cage)])
         edges = torch.cat([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]]).sort(dim=1).values
         have = set(map(tuple, edges.tolist()))
         missing = [k for k, s in enumerate(bsegs.sort(dim=1).values.tolist()) if tuple(s) not in have]
@@ -216,15 +417,22 @@ def _mesh_3d(cage: Cage, target_cells: int, seed: int) -> Domain:
     v = cage.vertices.to(torch.float64)
     V = v.shape[0]
     volume = float(cage.signed_volume().abs())
-    h = _spacing(volume, target_cells, 3)
+    tri = cage.triangulated().triangles if cage.has_quads else cage.triangles
+    p = v[tri]
+    area = float(torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1).sum() / 2)
+    # The spacing from the volume, but no finer than the surface allows for about target_cells
+    # boundary samples (about 2 area / h^2): a flat cage otherwise gets millions of them.
+    h = max(_spacing(volume, target_cells, 3), math.sqrt(2 * area / target_cells))
     bpts, bval = _face_samples(cage, h)
     boundary_pts = torch.cat([v, bpts])
     lo, hi = v.min(0).values, v.max(0).values
-    axes = [torch.arange(float(lo[d]) + 0.5 * h, float(hi[d]), h, dtype=torch.float64) for d in range(3)]
+    # lattice lines 0.5 h inside the box; one mid line where the box is thinner than h (a flat cage)
+    axes = [torch.arange(float(lo[d]) + 0.5 * h, float(hi[d]), h, dtype=torch.float64)
+            if float(hi[d] - lo[d]) > 0.5 * h else 0.5 * (lo[d:d + 1] + hi[d:d + 1]) for d in range(3)]  # fmt: skip
     lattice = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     gen = torch.Generator().manual_seed(seed)  # jitter: a regular lattice is cospherical (flat tets)
     lattice = lattice + 0.15 * h * (torch.rand(lattice.shape, generator=gen, dtype=torch.float64) - 0.5)
-    lattice = lattice[inside_cage(lattice, cage)]
+    lattice = lattice[inside_bilinear_cage(lattice, cage)]
     if lattice.shape[0]:
         d = torch.cdist(lattice, boundary_pts).amin(dim=1)
         lattice = lattice[d >= 0.5 * h]
@@ -233,7 +441,7 @@ def _mesh_3d(cage: Cage, target_cells: int, seed: int) -> Domain:
         allv = torch.cat([boundary_pts, lattice])
         cells = torch.from_numpy(_delaunay(allv.numpy()))
         cent = allv[cells].mean(dim=1)
-        cells = _orient(allv, cells[inside_cage(cent, cage)])
+        cells = _orient(allv, cells[inside_bilinear_cage(cent, cage)])
         faces = torch.cat([cells[:, [1, 2, 3]], cells[:, [0, 3, 2]], cells[:, [0, 1, 3]], cells[:, [0, 2, 1]]])
         f = faces.sort(dim=1).values
         n = allv.shape[0]
@@ -270,11 +478,20 @@ def mesh_domain(cage: Cage, target_cells: int = 4000, *, seed: int = 0) -> Domai
             volume; the boundary is sampled about 1.4 times more densely).
         seed: seed of the 3D lattice's jitter.
 
+    The cage is meshed translated to its centre and scaled by its size (the bounding-box
+    diagonal), so that its position and scale do not change the mesh (up to rounding); the mesh is
+    mapped back, with the cage's own vertices as its first ``V`` vertices. The spacing follows the
+    area or volume, but is never finer than the perimeter or surface allows for about
+    ``target_cells`` boundary samples, so a flat cage gets a mesh of that size too (its cells then
+    span its thickness).
+
     Returns:
-        A :class:`Domain` whose first ``V`` vertices are the cage's.
+        A :class:`Domain` whose first ``V`` vertices are the cage's, carrying the cage's
+        fingerprint (:func:`check_solution`).
 
     Raises:
-        CageError: the Delaunay mesh does not contain the cage's boundary.
+        CageError: the Delaunay mesh does not contain the cage's boundary, or the cage is too flat
+            to mesh (area or volume below ``FLAT_LIMIT`` of its bounding box's).
 
     Examples:
         >>> import torch, torchcage
@@ -283,9 +500,25 @@ def mesh_domain(cage: Cage, target_cells: int = 4000, *, seed: int = 0) -> Domai
         >>> round(float(d.cell_volumes().sum()), 9), bool(d.min_angle > 20)
         (1.0, True)
     """
-    if target_cells < 1:
-        raise ValueError(f"target_cells must be positive, got {target_cells}")
-    return _mesh_2d(cage, target_cells) if cage.dim == 2 else _mesh_3d(cage, target_cells, seed)
+    if isinstance(target_cells, bool) or not isinstance(target_cells, (int, np.integer)) or target_cells < 1:
+        raise ValueError(f"target_cells must be a positive integer, got {target_cells!r}")
+    if cage.is_batched:
+        raise CageError(f"mesh_domain meshes one cage, got a batch of shape {tuple(cage.batch_shape)}; mesh cage[b]")
+    unit, centre, size = _normalised(cage)
+    measure = float(unit.signed_volume().abs())
+    if not measure > FLAT_LIMIT:
+        what = "area" if cage.dim == 2 else "volume"
+        raise CageError(
+            f"the cage is too flat to mesh: its {what} is {measure:.3g} of its bounding box diagonal's "
+            f"{'square' if cage.dim == 2 else 'cube'} (the mesher needs more than {FLAT_LIMIT:g}); thicken it, "
+            "or pass your own mesh with domain=(vertices, cells)"
+        )
+    dom = _mesh_2d(unit, int(target_cells)) if cage.dim == 2 else _mesh_3d(unit, int(target_cells), seed)
+    rest = cage.vertices.detach().to("cpu", torch.float64)
+    vertices = dom.vertices * size + centre
+    vertices[: rest.shape[0]] = rest  # the cage's vertices exactly (the scaled copies differ by rounding)
+    return Domain(vertices, dom.cells, dom.boundary, dom.boundary_values, dom.min_angle, rest.clone(),
+                  topology_digest(cage))  # fmt: skip
 
 
 def domain_for(
@@ -297,7 +530,7 @@ def domain_for(
 
     Raises:
         PointsError: a cage on the meta device.
-        CageError: a batch of cages.
+        CageError: a batch of cages, or a :class:`Domain` made for another cage.
     """
     from ..errors import PointsError
 
@@ -312,6 +545,7 @@ def domain_for(
             f"{tuple(cage.batch_shape)}; solve per element (cage[b])"
         )
     if isinstance(domain, Domain):
+        check_solution(domain, cage, what)
         return domain
     if domain is not None:
         return user_domain(cage, domain[0], domain[1])
@@ -369,4 +603,5 @@ def user_domain(cage: Cage, vertices: torch.Tensor, cells: torch.Tensor, tol: fl
     order = torch.cat([nearest, torch.nonzero(rest).squeeze(1)])
     inv = torch.empty_like(order)
     inv[order] = torch.arange(order.shape[0])
-    return Domain(P[order], _orient(P[order], inv[C]), inv[boundary], values)
+    return Domain(P[order], _orient(P[order], inv[C]), inv[boundary], values,
+                  cage_vertices=cv.clone(), cage_topology=topology_digest(cage))  # fmt: skip

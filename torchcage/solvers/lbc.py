@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..errors import CageError
 from .domain import Domain
 
 __all__ = ["TAU", "LBCResult", "geodesic_distances", "gradient_operator", "make_feasible", "project_rows", "solve_lbc"]
@@ -259,7 +260,9 @@ def solve_lbc(
         alpha: over-relaxation in [1.5, 1.8] (the paper: 1.65).
         eps_primal: the primal tolerance per entry: stop when ``||r_p||_F <= eps_primal * N_p``
             and ``||r_d||_F <= eps_dual * N_d`` (the paper's rule and values, ``N`` the number of
-            entries of each residual).
+            entries of each residual). ``0`` (either tolerance) runs to ``max_iter`` (to compare
+            solvers per iteration): no warning then, and ``converged`` is ``False`` unless the
+            residuals reach exactly 0.
         eps_dual: the dual tolerance per entry.
         max_iter: iteration limit; stopping there warns and reports ``converged=False``.
         adaptive: residual balancing of ``mu`` (see the module docstring); ``False`` keeps ``mu``.
@@ -267,18 +270,46 @@ def solve_lbc(
         linear_solver: ``"lu"`` (scipy sparse LU, factored once; CPU), ``"cg"`` (warm-started
             preconditioned conjugate gradient in torch; any device) or ``"auto"`` (lu on the CPU).
         report_every: iterations between residual checks (and history entries).
-        progress: ``True`` for a progress bar with the residuals, or a callable
+        progress: ``True`` for a progress bar (:class:`~torchcage.solvers.progress.ToleranceProgress`:
+            how far, on a log scale, the residuals have come towards their tolerances, with their
+            ratios to them; iterations towards ``max_iter`` when a tolerance is 0), or a callable
             ``progress(iteration, primal, dual)``.
 
     Returns:
         An :class:`LBCResult`.
+
+    Raises:
+        ValueError: an unknown ``weighting`` or ``linear_solver``, a negative or non-finite
+            tolerance, or a non-positive ``max_iter``, ``balance_every``, ``report_every`` or
+            ``balance_step``.
     """
     if weighting not in TAU:
         raise ValueError(f"weighting must be one of {tuple(TAU)}, got {weighting!r}")
     if linear_solver not in ("auto", "lu", "cg"):
         raise ValueError(f"linear_solver must be 'auto', 'lu' or 'cg', got {linear_solver!r}")
+    for name, value in (("eps_primal", eps_primal), ("eps_dual", eps_dual)):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be a finite number >= 0 (0: run to max_iter), got {value!r}")
+    for name, count in (("max_iter", max_iter), ("balance_every", balance_every), ("report_every", report_every)):
+        if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+            raise ValueError(f"{name} must be a positive integer, got {count!r}")
+    if not (isinstance(balance_step, (int, float)) and math.isfinite(balance_step) and balance_step > 1):
+        raise ValueError(f"balance_step must be a finite number above 1, got {balance_step!r}")
     dt = torch.float64
-    cv = cage_vertices.to(dt).cpu()
+    cv = torch.as_tensor(cage_vertices).detach().to(dt).cpu()
+    want = (domain.boundary_values.shape[1], domain.vertices.shape[1])
+    if cv.ndim != 2 or tuple(cv.shape) != want:
+        raise CageError(
+            f"cage_vertices must have shape {want} for this domain (its boundary values are for {want[0]} cage "
+            f"vertices in {want[1]}D), got {tuple(cv.shape)}; pass the vertices of the cage the domain was made for"
+        )
+    if domain.cage_vertices is not None:
+        ref = domain.cage_vertices.to(dt)
+        if bool(((cv - ref).abs() > 1e-9 * max(float(ref.abs().amax()), 1e-300)).any()):
+            raise CageError(
+                "cage_vertices differ from the rest cage this domain was meshed for; pass that cage's vertices, "
+                "or mesh this cage (mesh_domain)"
+            )
     V, D = cv.shape
     lo, hi = domain.vertices.min(0).values, domain.vertices.max(0).values
     scale = float((hi - lo).norm())
@@ -287,6 +318,19 @@ def solve_lbc(
     boundary, interior = domain.boundary, domain.interior
     m = interior.shape[0]
     Gfull, vol = gradient_operator(verts, domain.cells)
+    if m == 0:
+        # every mesh vertex is on the cage (a flat cage's mesh spans its thickness): the boundary
+        # values are the whole answer, nothing to optimise
+        weights = torch.zeros((verts.shape[0], V), dtype=dt)
+        weights[boundary] = domain.boundary_values.to(dt)
+        dist = geodesic_distances(domain, torch.arange(V))
+        used = torch.zeros(dist.shape[1], dtype=torch.bool)
+        used[domain.cells.reshape(-1)] = True
+        dist = dist / dist[:, used].amax(dim=1, keepdim=True).clamp_min(1e-300)
+        at_cells = dist.T[domain.cells].mean(dim=1)
+        grads = torch.sqrt((Gfull @ weights).reshape(D, -1, V).square().sum(dim=0))
+        objective = float((TAU[weighting](at_cells) * vol[:, None] * grads).sum()) * scale ** (D - 1)
+        return LBCResult(domain, weights, 0, 0.0, 0.0, 0.0, 0.0, True, objective, math.nan if mu is None else mu)
     Gfull_coo = Gfull.to_sparse_coo().coalesce()
     idx, val = Gfull_coo.indices(), Gfull_coo.values()
     col_map = torch.full((verts.shape[0],), -1, dtype=torch.int64)
@@ -328,6 +372,8 @@ def solve_lbc(
     # than the gradient constraint (G's entries are ~1 / cell size), and the non-negativity of W
     # then converges slowly; s^2 = the mean diagonal of G^T G balances the two (same solution).
     ws = math.sqrt(float(G.values().square().sum()) / m) * w_scale if w_scale > 0 else 1.0
+    if not (math.isfinite(ws) and ws > 0):  # (interior vertices in no cell only: no gradient rows)
+        ws = 1.0
     if linear_solver == "cg":
         solve: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = _ConjugateGradient(G, ws * ws)
     else:
@@ -353,9 +399,14 @@ def solve_lbc(
     history: list[tuple[int, float, float, float]] = []
     bar = None
     if progress is True:
-        from tqdm.auto import tqdm
+        from .progress import ToleranceProgress
 
-        bar = tqdm(total=max_iter, desc="LBC (ADMM)", leave=False)
+        bar = ToleranceProgress("LBC (ADMM)", max_iter, ("primal", "dual"), (tol_p, tol_d))
+    # Residual balancing compares each residual with its tolerance; a zero tolerance (run to
+    # max_iter) is replaced there by the default's, so that the comparison stays defined
+    bal_p = tol_p if tol_p > 0 else 3e-7 * Np
+    bal_d = tol_d if tol_d > 0 else 1e-5 * Nd
+    mu_lo, mu_hi = mu * 1e-12, mu * 1e12  # (balancing never drives the penalty to 0 or inf)
     rp = rd = math.inf
     it = 0
     # Every operation on the large (D C, V) block writes into a preallocated buffer: on a small CPU
@@ -392,23 +443,23 @@ def solve_lbc(
                 if it % report_every == 0 or it == max_iter:
                     history.append((it, rp, rd, mu))
                     if bar is not None:
-                        bar.update(report_every)
-                        bar.set_postfix(primal=f"{rp / tol_p:.2g}", dual=f"{rd / tol_d:.2g}", mu=f"{mu:.3g}")
+                        bar.update(it, (rp, rd))
                     elif callable(progress):
                         progress(it, rp, rd)
                 if rp <= tol_p and rd <= tol_d:
                     break
                 if adaptive and it % balance_every == 0 and it >= balance_after:
                     # Gentle balancing against the tolerances: raise the penalty only while the dual
-                    # residual is far inside its tolerance and the primal one is not.
-                    if rd / tol_d < balance_ratio * rp / tol_p and rp > tol_p:
+                    # residual is far inside its tolerance and the primal one is not (products, not
+                    # ratios: residuals and tolerances may be exactly 0).
+                    if rd * bal_p < balance_ratio * rp * bal_d and rp > tol_p and mu * balance_step <= mu_hi:
                         mu, u1, u2 = mu * balance_step, u1 / balance_step, u2 / balance_step
-                    elif rp / tol_p < balance_ratio * rd / tol_d and rd > tol_d:
+                    elif rp * bal_d < balance_ratio * rd * bal_p and rd > tol_d and mu / balance_step >= mu_lo:
                         mu, u1, u2 = mu / balance_step, u1 * balance_step, u2 * balance_step
     if bar is not None:
         bar.close()
     converged = rp <= tol_p and rd <= tol_d
-    if not converged:
+    if not converged and tol_p > 0 and tol_d > 0:  # (a zero tolerance asked to run to max_iter)
         warnings.warn(
             f"LBC's ADMM stopped after {it} iterations without converging (primal residual {rp:.3g}, tolerance "
             f"{tol_p:.3g}; dual {rd:.3g}, tolerance {tol_d:.3g}); raise max_iter, keep adaptive=True, or use "
