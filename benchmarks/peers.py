@@ -512,8 +512,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         notes.append(f"LBC: seconds per ADMM iteration, (time of {args.lbc_iterations} - time of 10 iterations) / "
                      f"{args.lbc_iterations - 10}; same mesh, quadratic weights, penalty 10, relaxation 1.65, "
                      "tolerances 0; neither solve has converged at that penalty, so the two results differ "
-                     "(max |diff|) by how far each is from the optimum")  # fmt: skip
-    heads = ("model", "method", "authors' code", "torchcage", "ratio", "wall ratio", "goal", "max |diff|")
+                     "(max abs. diff) by how far each is from the optimum")  # fmt: skip
+    heads = ("model", "method", "authors' code", "torchcage", "ratio", "wall ratio", "goal", "max abs. diff")
     print()
     print("| " + " | ".join(heads) + " |")
     print("|" + "---|" * len(heads))
