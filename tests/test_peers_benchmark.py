@@ -137,3 +137,46 @@ def test_table_from_a_fake_peer_on_a_small_data_set(monkeypatch, capsys, tmp_pat
     assert cells[1] == "MVC, 4 triangles" and cells[6] == ">= 8x"
     assert float(cells[7]) < 1e-12  # the largest difference between the two results
     assert cells[4].endswith("x") and cells[5].endswith("x")  # ratios (the fake takes microseconds)
+
+
+# Checks what benchmarks/peers.py hands the LBC driver: each cage vertex is its own mesh vertex, and
+# each edge's inner boundary points lie on that edge, ordered from its first end; returns the
+# number of violations and writes the mesh vertex index into out[:, 0] (so the caller can tell
+# rows apart).
+FAKE_LBC = r"""
+#include <cmath>
+extern "C" int peer_lbc2d(const double *x, long n, const long *cells, long nc, const long *ctrl, long nv,
+                          const long *ep, const long *off, int scheme, int iters, double alpha, double mu,
+                          double *out) {
+    int bad = 0;
+    for (long v = 0; v < nv; ++v) {
+        long a = ctrl[v], b = ctrl[(v + 1) % nv];
+        double ex = x[2 * b] - x[2 * a], ey = x[2 * b + 1] - x[2 * a + 1], len = std::hypot(ex, ey), last = 0;
+        for (long k = off[v]; k < off[v + 1]; ++k) {
+            double px = x[2 * ep[k]] - x[2 * a], py = x[2 * ep[k] + 1] - x[2 * a + 1];
+            double along = (px * ex + py * ey) / len, across = (px * ey - py * ex) / len;
+            if (std::fabs(across) > 1e-9 * len || along <= last || along >= len) ++bad;
+            last = along;
+        }
+    }
+    for (long i = 0; i < n; ++i)
+        for (long v = 0; v < nv; ++v) out[i * nv + v] = v == 0 ? (double)i : 0.0;
+    return bad;
+}
+"""
+
+
+@needs_cxx
+def test_lbc_driver_gets_each_edges_boundary_points_in_order(tmp_path):
+    from torchcage.solvers.domain import mesh_domain
+
+    peer = _fake_peer(tmp_path, FAKE_LBC, "fake_lbc")
+    lib = peers.build_peer(peer, tmp_path, {peer.env: str(tmp_path / "checkout")})
+    square = torch.tensor([[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [1.0, 1.5], [0.0, 1.0]], dtype=torch.float64)
+    cage = torchcage.Cage(square)
+    domain = mesh_domain(cage, 200)
+    assert domain.boundary.numel() > 2 * cage.vertices.shape[0]  # edges hold inner boundary points
+    call = peers.lbc_calls(lib, domain, cage)[0]
+    out = call(5)  # raises RuntimeError when the driver counts a violation
+    assert out.shape == (domain.vertices.shape[0], 5)
+    assert (out[:, 0] == range(domain.vertices.shape[0])).all()
