@@ -3,8 +3,8 @@
 The authors' code is not in this repository: each peer is built from a checkout whose path the
 user gives in an environment variable, through a small driver of ours (``benchmarks/peers/``)
 compiled with ``-O3 -march=native -DNDEBUG`` (a release build) into a shared library that this
-script calls through ctypes with numpy arrays. A peer whose variable is unset, or whose build fails, is skipped with a
-message (the script still exits 0).
+script calls through ctypes with numpy arrays. A peer whose variable is unset, or whose build
+fails, is skipped with a message (the script still exits 0).
 
 =====================  ==========================================  ===========================
 variable               checkout of                                 methods
@@ -16,9 +16,15 @@ TORCHCAGE_PEER_        https://github.com/DanStroeter/CageModeler  QGC (n = 2, t
 CAGEMODELER            (``cagedeformations/``; needs the Eigen 3    grid); goal: at most 2x
                        headers: libeigen3-dev or                    torchcage's QMVC (n = 4),
                        ``EIGEN3_INCLUDE_DIR``)                      timed in the same turns
+TORCHCAGE_PEER_LBC     https://github.com/bldeng/LBC (the LBC       LBC, seconds per ADMM
+                       authors' solver; Eigen 3 and OpenMP)         iteration (2D cages of
+                                                                    ``<data>/lbc2d``)
 =====================  ==========================================  ===========================
 
-(The LBC authors' solver, ``TORCHCAGE_PEER_LBC``, is not wired up yet: the script says so.)
+LBC runs both solvers on torchcage's mesh of each 2D cage with the same settings (quadratic
+weights, penalty 10, relaxation 1.65, tolerances 0), for ``--lbc-iterations`` and for 10
+iterations; the difference of the times over the difference of the counts is the time per
+iteration (the setup cancels).
 
 Timing: one thread for both (``torch.set_num_threads(1)``; the native kernels take their thread
 count from torch; ``OMP_NUM_THREADS=1`` is set before torch loads). For each model and method the
@@ -36,8 +42,9 @@ every point).
 Usage::
 
     export TORCHCAGE_PEER_QMVC=/path/to/QMVC TORCHCAGE_PEER_CAGEMODELER=/path/to/CageModeler
-    python benchmarks/peers.py [--models FireHydrant Beast] [--methods mvc gc qmvc qgc]
-        [--repeat 5] [--data ../shared/data]
+    export TORCHCAGE_PEER_LBC=/path/to/LBC
+    python benchmarks/peers.py [--models FireHydrant Beast] [--methods mvc gc qmvc qgc lbc]
+        [--repeat 5] [--lbc-models cactus Gil_Gecko] [--lbc-iterations 1000] [--data ../shared/data]
 """
 
 from __future__ import annotations
@@ -160,8 +167,6 @@ PEERS = [
         flags=("-fopenmp",),  # their solver's parallel regions (one thread here)
     ),
 ]
-#: Peers named by the issue whose drivers are not written yet: a set variable gets a message.
-PENDING: dict[str, str] = {}
 
 
 def compile_library(
@@ -458,9 +463,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{peer.name}: built from {os.environ[peer.env]} ({peer.env})")
         except PeerUnavailableError as e:
             print(f"skipping {peer.name}: {e}")
-    for env, what in PENDING.items():
-        note = f" ({env} is set)" if os.environ.get(env) else ""
-        print(f"skipping {what}: no driver in benchmarks/peers.py yet{note}")
     if not libs:
         print("no peer available: nothing to compare")
         return 0
