@@ -18,7 +18,7 @@ from ..errors import CageError
 from ..geometry import inside_cage
 from ._common import as_inputs, check_points, result_dtype
 from ._green_derivatives_flat import autograd_rows, check_backend, closed_form
-from .green import green_coordinates
+from .green import centred, green_coordinates
 
 __all__ = ["green_derivatives"]
 
@@ -97,8 +97,9 @@ def green_derivatives(
     hpsi = torch.zeros(hshape[0], T, D, D, dtype=compute, device=x.device) if hshape else x.new_empty((0,))
     exact = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
     if x.shape[0]:
-        inside = inside_cage(x, cage.to(compute)) if exterior == "extend" else torch.ones_like(exact)
-        gphi, gpsi, hphi, hpsi, exact = closed_form(x, cage.to(compute), order, chunk_size, backend)
+        xc, cage_c = centred(x, cage, compute)  # (about the cage's centre, as green_coordinates)
+        inside = inside_cage(xc, cage_c) if exterior == "extend" else torch.ones_like(exact)
+        gphi, gpsi, hphi, hpsi, exact = closed_form(xc, cage_c, order, chunk_size, backend)
         exact &= inside
         # (inside, the coordinates are divided by their sum, 1 to rounding, whose derivatives are 0)
         s = phi.sum(dim=1)
