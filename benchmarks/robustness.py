@@ -506,6 +506,102 @@ def print_invalid(result: dict) -> None:
     print(f"unit triangle normals at scales 1e-6..1e6, moved by up to 1e6: worst | |n| - 1 | = {result['normals']:.1e}")
 
 
+# ----------------------------------------------------------------------------- rounding-decided classes
+def _star_polygon(n: int, g: torch.Generator) -> torch.Tensor:
+    ang = torch.sort(torch.rand(n, generator=g, dtype=torch.float64) * 2 * math.pi).values
+    r = 0.5 + torch.rand(n, generator=g, dtype=torch.float64)
+    return torch.stack([r * ang.cos(), r * ang.sin()], 1)
+
+
+def _turn(g: torch.Generator) -> torch.Tensor:
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
+    return q * torch.linalg.det(q)
+
+
+def sweep_green_precision(trials: int, seed: int = 0) -> dict[str, float]:
+    """Worst errors of the classes of issue 42 items 1, 2, 4 (QGC) and 13, on random cages at
+    random scales (1e-6..1e6): ``gc2d_vertex``: |sum phi - 1| and linear precision (about the
+    centre, relative to the size) 1e-15..1e-6 of the size from polygon vertices, inside and
+    outside, on polygons at the origin and moved by 1e6 sizes; ``needle_grad``: |d(sum phi)/dx|
+    relative to max |grad phi_i| 1e-14..1e-7 of the size outside needles' edges (green_derivatives
+    and autograd); ``qgc_f32``: |sum phi - 1| of float32 points placed on a turned quad cube's
+    faces; ``jacobian_moved``: |J - I| (about the centre) on polygons moved by 1e6 sizes, 1e-9..1e-3
+    of the size from vertices, in units of the input's rounding plus eps size / r."""
+    g = torch.Generator().manual_seed(seed)
+    eps = torch.finfo(torch.float64).eps
+    out = {"gc2d_vertex_pu": 0.0, "gc2d_vertex_lp": 0.0, "needle_grad": 0.0, "qgc_f32": 0.0, "jacobian_moved": 0.0}
+    for t in range(trials):
+        V = _star_polygon(5 + t % 4, g) * 10 ** (float(torch.rand(1, generator=g)) * 12 - 6)
+        try:
+            rest = torchcage.Cage(V)
+        except torchcage.errors.CageError:
+            continue
+        size = rest.scale
+        for moved in (False, True):
+            d = torch.randn(2, generator=g, dtype=torch.float64)
+            cage = rest._like(rest.vertices + (d / d.norm() * 1e6 * size if moved else 0.0))
+            P = cage.vertices
+            c = (P.amax(0) + P.amin(0)) / 2
+            u = torch.randn(P.shape[0], 20, 2, generator=g, dtype=torch.float64)
+            lo, hi = (-9, -3) if moved else (-15, -6)
+            r = 10 ** (lo + (hi - lo) * torch.rand(P.shape[0], 20, 1, generator=g, dtype=torch.float64))
+            x = (P[:, None] + r * size * u / u.norm(dim=-1, keepdim=True)).reshape(-1, 2)
+            phi, psi, gphi, gpsi = F.green_derivatives(x, cage)
+            n = cage.edge_normals()
+            rec = phi @ (P - c) + psi @ n
+            out["gc2d_vertex_pu"] = max(out["gc2d_vertex_pu"], float((phi.sum(1) - 1).abs().max()))
+            out["gc2d_vertex_lp"] = max(out["gc2d_vertex_lp"], float((rec - (x - c)).norm(dim=1).max()) / size)
+            if moved:
+                J = torch.einsum("nvi,vj->nji", gphi, P - c) + torch.einsum("nti,tj->nji", gpsi, n)
+                rr = (x[:, None] - P[None]).norm(dim=-1).amin(dim=1)
+                unit = 1e6 * eps + eps * size / rr
+                err = (J - torch.eye(2, dtype=torch.float64)).abs().amax(dim=(1, 2)) / unit
+                out["jacobian_moved"] = max(out["jacobian_moved"], float(err.max()))
+        # a needle (a tetrahedron of aspect 1e3..1e5 with two cap slivers) and points outside its edges
+        w = 10 ** (-3 - 2 * float(torch.rand(1, generator=g)))
+        Vn = torch.tensor([[-0.5, 0, 0], [0.5, 0, 0], [0.1, w, 0], [0.2, -0.3 * w, w]], dtype=torch.float64)
+        Vn = Vn @ _turn(g).T * 10 ** (float(torch.rand(1, generator=g)) * 12 - 6)
+        needle = torchcage.Cage(Vn, torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+        nn_ = needle.triangle_normals()
+        faces_of: dict = {}
+        for fi, tri in enumerate(needle.triangles.tolist()):
+            for k in range(3):
+                faces_of.setdefault(tuple(sorted((tri[k], tri[(k + 1) % 3]))), []).append(fi)
+        pts = []
+        for (a, b), (f1, f2) in faces_of.items():
+            for _ in range(3):
+                dist = 10 ** (-14 + 7 * float(torch.rand(1, generator=g))) * needle.scale
+                s = 0.1 + 0.8 * float(torch.rand(1, generator=g))
+                m = nn_[f1] + nn_[f2]
+                pts.append(Vn[a] * (1 - s) + Vn[b] * s + dist * m / m.norm())
+        x = torch.stack(pts)
+        _, _, gphi, _ = F.green_derivatives(x, needle)
+        xr = x.clone().requires_grad_(True)
+        (gx,) = torch.autograd.grad(F.green_coordinates(xr, needle)[0].sum(), xr)
+        mag = gphi.norm(dim=-1).amax(dim=1)
+        worst = max(float((gphi.sum(1).norm(dim=1) / mag).max()), float((gx.norm(dim=1) / mag).max()))
+        out["needle_grad"] = max(out["needle_grad"], worst)
+        # float32 points on a turned quad cube's faces
+        cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+        Vc = (cube.vertices.to(torch.float64) @ _turn(g).T * 10 ** (float(torch.rand(1, generator=g)) * 12 - 6)).float()
+        qc = torchcage.Cage(Vc, cube.quads)
+        f = torch.randint(0, 6, (50,), generator=g)
+        uu, vv = torch.rand(2, 50, 1, generator=g, dtype=torch.float64)
+        Q = Vc.double()[cube.quads[f]]
+        xq = (1 - uu) * (1 - vv) * Q[:, 0] + uu * (1 - vv) * Q[:, 1] + uu * vv * Q[:, 2] + (1 - uu) * vv * Q[:, 3]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            phi_q, _ = F.quad_green_coordinates(xq.float(), qc)
+        out["qgc_f32"] = max(out["qgc_f32"], float((phi_q.double().sum(1) - 1).abs().max()))
+    return out
+
+
+def print_green_precision(result: dict[str, float]) -> None:
+    print("\nGreen coordinates where rounding decided (issue 42 items 1, 2, 4, 13): worst errors")
+    for k, v in result.items():
+        print(f"  {k:16s} {v:.3g}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -532,6 +628,12 @@ def main(argv: list[str] | None = None) -> int:
         help="damaged cages (coincident, pinched, flat, NaN/inf vertices) per kind and path, to every closed-form "
         "family: each must be refused with a CageError (0 skips the table)",
     )
+    ap.add_argument(
+        "--green-precision-trials",
+        type=int,
+        default=4,
+        help="random polygons, needles and float32 quad cubes for the Green classes of issue 42 (0 skips the table)",
+    )
     args = ap.parse_args(argv)
     global DEFORMED_CATEGORIES, GRAD_ONLY, SEED
     GRAD_ONLY = args.grad_only
@@ -544,6 +646,8 @@ def main(argv: list[str] | None = None) -> int:
     print_table(results)
     if args.invalid_trials > 0:
         print_invalid(sweep_invalid(args.invalid_trials, seed=args.seed))
+    if args.green_precision_trials > 0:
+        print_green_precision(sweep_green_precision(args.green_precision_trials, seed=args.seed))
     return 0
 
 
