@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..cage import Cage
+from ..cage import DEGENERATE_TOLERANCE, Cage
 from ..errors import CageError
 from ..geometry import inside_polygon, winding_number
 
@@ -305,8 +305,10 @@ def _orient(v: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
 
 
 #: Cages thinner than this (area over the bounding-box diagonal squared, volume over its cube)
-#: are refused by the mesher: their cells would be flatter than it can tell from rounding.
-FLAT_LIMIT = 1e-10
+#: are refused by the mesher, as :class:`~torchcage.Cage` refuses them (a cage built with
+#: ``validate=False`` reaches the mesher unchecked); down to it, flat cages mesh (measured: a
+#: bipyramid of half-height 1e-10 of its width, a rectangle of 1 x 1e-11).
+FLAT_LIMIT = DEGENERATE_TOLERANCE
 
 
 def _mesh_2d(cage: Cage, target_cells: int) -> Domain:

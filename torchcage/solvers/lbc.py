@@ -126,7 +126,10 @@ def geodesic_distances(domain: Domain, sources: torch.Tensor) -> torch.Tensor:
 
     c = domain.cells
     k = c.shape[1]
-    pairs = torch.cat([c[:, [a, b]] for a in range(k) for b in range(a + 1, k)]).numpy()
+    # each edge once (it belongs to several cells; a COO matrix would sum its copies into a longer
+    # edge, by how the cells happen to list it: the distances then depended on the cells' order)
+    pairs = torch.unique(torch.cat([c[:, [a, b]] for a in range(k) for b in range(a + 1, k)]).sort(dim=1).values, dim=0)
+    pairs = pairs.numpy()
     v = domain.vertices.numpy()
     w = np.linalg.norm(v[pairs[:, 0]] - v[pairs[:, 1]], axis=1)
     n = v.shape[0]
