@@ -207,13 +207,14 @@ def test_green_translated_cages_linear_precision_and_jacobian(dim):
     identity (sum P_i grad phi_i^T + sum n_t grad psi_t^T = I) about the cage's centre within a few
     units of the input's rounding (1e6 eps) relative to the size, for points inside, outside and
     1e-9..1e-3 of the size from vertices (there the rounding of the edges' angle gradients,
-    eps size / r at r from the vertex, sets the bound). About the origin, the on-cage band (2 eps 1e6 sizes) gave those points the
-    interpolant's derivatives: Jacobians off by 0.4."""
+    eps size / r at r from the vertex, sets the bound). About the origin, the on-cage band
+    (2 eps 1e6 sizes) gave those points the interpolant's derivatives: Jacobians off by 0.4."""
     g = torch.Generator().manual_seed(8 + dim)
     if dim == 2:
         cages = random_polygon_cases(13, 3, translate=False)
     else:
-        cages = [needle_cage(1, g), torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated().to(torch.float64)]
+        cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated().to(torch.float64)
+        cages = [needle_cage(1, g), cube]
     floor = 1e6 * EPS
     for rest in cages:
         cage = _moved(rest, g)
@@ -231,3 +232,34 @@ def test_green_translated_cages_linear_precision_and_jacobian(dim):
         r = (x[:, None] - V[None]).norm(dim=-1).amin(dim=1)  # (each edge's angle has a gradient ~ 1 / r)
         bound = 8 * floor + 16 * EPS * size / r
         assert bool(((J - torch.eye(dim, dtype=torch.float64)).abs().amax(dim=(1, 2)) < bound).all())
+
+
+@pytest.mark.slow
+@mp.workdps(60)
+def test_green_gradients_outside_needle_edges_agree_with_mpmath():
+    """Autograd of the bare integrals (exterior='none') at 1e-12..1e-7 of the size outside needles'
+    edges against 60-digit central differences of :func:`reference.green3d_reference`, relative
+    to the point's largest coordinate gradient (an apex's entry there, ~1e-5 of it, is a difference
+    of the near faces' terms and carries their rounding). Measured 3e-6 at worst."""
+    from reference import gradient_reference, green3d_reference
+
+    g = torch.Generator().manual_seed(21)
+    worst = 0.0
+    for kind in (2, 2, 0, 1):
+        cage = needle_cage(kind, g)
+        x = outside_edges(cage, 1e-12, 1e-7, 1, g)
+        V, size, tri = cage.vertices, cage.scale, cage.triangles
+        xr = x.clone().requires_grad_(True)
+        phi, _ = F.green_coordinates(xr, cage, exterior="none")
+
+        def entry(y, i, V=V, tri=tri):
+            return green3d_reference(y, V, tri)[0][i]
+
+        for p in range(x.shape[0]):
+            got = torch.stack([torch.autograd.grad(phi[p, i], xr, retain_graph=True)[0][p] for i in range(V.shape[0])])
+            ref = torch.tensor(
+                [gradient_reference(lambda y, i=i: entry(y, i), x[p].tolist(), size) for i in range(V.shape[0])],
+                dtype=torch.float64,
+            )
+            worst = max(worst, float((got - ref).norm(dim=1).max() / ref.norm(dim=1).max()))
+    assert worst < 1e-5, worst
