@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from support import box_cage, data_path, l_shape, p1_stiffness, sample_inside, triquad
+from support import box_cage, data_path, l_shape, p1_stiffness, triquad
+from support import sample_inside as _split_inside
 
 import torchcage as tc
 from torchcage import functional as F
@@ -17,6 +18,15 @@ from torchcage.solvers.domain import mesh_domain
 pytest.importorskip("scipy")
 
 D64 = torch.float64
+
+
+def sample_inside(cage, n: int, seed: int = 0) -> torch.Tensor:
+    """Points inside the cage whose quads are bilinear patches (the surface the weights take their
+    boundary values on), not split along a diagonal as :func:`support.sample_inside` has it."""
+    from torchcage.solvers.domain import inside_bilinear_cage
+
+    x = _split_inside(cage, 2 * n, seed)
+    return x[inside_bilinear_cage(x, cage)][:n]
 
 
 def _polygon() -> tc.Cage:

@@ -12,6 +12,7 @@ bar counts iterations towards the limit.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Sequence
 from typing import Any
 
@@ -79,7 +80,7 @@ class ToleranceProgress:
                 for f, r, t in zip(self.first, residuals, self.tolerances, strict=True)
             )
             self.bar.n = int(100 * frac)
-        self.bar.set_postfix(it=iteration, **ratios, refresh=False)
+        self.bar.set_postfix(OrderedDict([("it", iteration), *ratios.items()]), refresh=False)
         self.bar.refresh()
 
     def close(self) -> None:
