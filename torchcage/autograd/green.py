@@ -42,6 +42,8 @@ def _derivatives(points: Tensor, vertices: Tensor, faces: Tensor, order: int) ->
     compute, _ = result_dtype(points, cage, None)
     out = bare_derivatives(points.detach().to(compute), cage.to(compute), order)
     d_phi, d_psi = (out[0], out[1]) if order == 1 else (out[2], out[3])
+    # (sum phi is constant: its derivatives vanish exactly, as in green_derivatives)
+    d_phi = d_phi - d_phi.mean(dim=1, keepdim=True)
     return d_phi.to(points.dtype), d_psi.to(points.dtype)
 
 

@@ -58,7 +58,8 @@ def green_derivatives(
         also ``hess_phi (*, V, D, D)`` and ``hess_psi (*, T, D, D)``. With a deformed cage ``P``
         and the stretched normals ``s_t n_t`` of :class:`~torchcage.GreenCoordinates`, the
         deformation's Jacobian at a point is ``sum_i P_i grad_phi_i^T + sum_t s_t n_t grad_psi_t^T``
-        (:meth:`~torchcage.GreenCoordinates.jacobian`).
+        (:meth:`~torchcage.GreenCoordinates.jacobian`). ``grad_phi`` and ``hess_phi`` sum to
+        zero over the vertices (``sum(phi)`` is constant), exactly.
 
     Raises:
         CageError: a quad cage (use :func:`quad_green_coordinates` under autograd).
@@ -113,6 +114,14 @@ def green_derivatives(
         gphi[rest], gpsi[rest] = gp.to(compute), gs.to(compute)
         if order == 2:
             hphi[rest], hpsi[rest] = hp.to(compute), hs.to(compute)
+    # sum(phi) is constant off the cage (the winding number, or 1 with the extension) and 1 on it,
+    # so its derivatives vanish: they are made to, exactly. Next to an edge each near face's terms
+    # are ~1 / distance and their rounding left eps / distance in the sum (outside a needle's edge,
+    # 1e-4 of the largest gradient at 1e-14 of the size), which a cage far from the origin
+    # multiplies by its distance in the Jacobian sum_i P_i grad phi_i^T.
+    gphi = gphi - gphi.mean(dim=1, keepdim=True)
+    if order == 2:
+        hphi = hphi - hphi.mean(dim=1, keepdim=True)
     result = (
         phi.to(out).reshape(*lead, V),
         psi.to(out).reshape(*lead, T),
