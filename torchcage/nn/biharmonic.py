@@ -33,7 +33,8 @@ class BoundedBiharmonicWeights(DenseWeightsModule):
     Args:
         cage: a closed 2D polygon or 3D triquad cage.
         points: ``(N, D)`` points inside the cage.
-        solution: reuse a solve of the same cage.
+        solution: reuse a solve of the same cage (checked against it: another cage raises a
+            ``CageError``).
         dtype: dtype of the stored weights (float64 by default).
         displacements: deform by the cage vertices' displacements (the default; keeps the rest pose
             exact), or by their positions (``weights @ V'``).

@@ -27,7 +27,8 @@ class HarmonicCoordinates(DenseWeightsModule):
     Args:
         cage: a closed 2D polygon or 3D triquad cage.
         points: ``(N, D)`` points inside the cage.
-        solution: reuse a solve of the same cage.
+        solution: reuse a solve of the same cage (checked against it: another cage raises a
+            ``CageError``).
         dtype: dtype of the stored weights (float64 by default).
         **options: passed to :func:`torchcage.functional.solve_harmonic_coordinates`
             (``target_cells``, ``domain``, ``solver``).

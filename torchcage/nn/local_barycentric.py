@@ -31,7 +31,8 @@ class LocalBarycentricCoordinates(CageModule):
         cage: a closed 2D polygon or 3D triquad cage.
         points: ``(N, D)`` points inside the cage.
         threshold: entries below it are dropped (default ``1e-3 / V``), rows corrected.
-        solution: reuse a solve of the same cage.
+        solution: reuse a solve of the same cage (checked against it: another cage raises a
+            ``CageError``).
         **options: passed to :func:`torchcage.functional.solve_local_barycentric`
             (``target_cells``, ``domain``, ``weighting``, ``progress``, solver options).
 

@@ -247,11 +247,11 @@ def inside_bilinear_cage(points: torch.Tensor, cage: Cage) -> torch.Tensor:
     x = points.to(torch.float64)
     v = cage.vertices.detach().to(x)
     if cage.dim == 2:
-        return inside_polygon(x, v, cage.edges)
+        return inside_polygon(x, v, cage.edges.to(x.device))
     tri = cage.triangulated().triangles if cage.has_quads else cage.triangles
-    w = winding_number(x, v, tri)
+    w = winding_number(x, v, tri.to(x.device))
     if cage.has_quads:
-        w = w + _bilinear_correction(x, v[cage.quads])
+        w = w + _bilinear_correction(x.cpu(), v.cpu()[cage.quads.cpu()]).to(x.device)
     return w > 0.5
 
 
