@@ -524,9 +524,10 @@ def sweep_green_precision(trials: int, seed: int = 0) -> dict[str, float]:
     centre, relative to the size) 1e-15..1e-6 of the size from polygon vertices, inside and
     outside, on polygons at the origin and moved by 1e6 sizes; ``needle_grad``: |d(sum phi)/dx|
     relative to max |grad phi_i| 1e-14..1e-7 of the size outside needles' edges (green_derivatives
-    and autograd); ``qgc_f32``: |sum phi - 1| of float32 points placed on a turned quad cube's
-    faces; ``jacobian_moved``: |J - I| (about the centre) on polygons moved by 1e6 sizes, 1e-9..1e-3
-    of the size from vertices, in units of the input's rounding plus eps size / r."""
+    and the torch kernel's autograd, the cage differentiated too); ``qgc_f32``: |sum phi - 1| of
+    float32 points placed on a turned quad cube's faces; ``jacobian_moved``: |J - I| (about the
+    centre) on polygons moved by 1e6 sizes, 1e-9..1e-3 of the size from vertices, in units of the
+    input's rounding plus eps size / r."""
     g = torch.Generator().manual_seed(seed)
     eps = torch.finfo(torch.float64).eps
     out = {"gc2d_vertex_pu": 0.0, "gc2d_vertex_lp": 0.0, "needle_grad": 0.0, "qgc_f32": 0.0, "jacobian_moved": 0.0}
@@ -577,7 +578,8 @@ def sweep_green_precision(trials: int, seed: int = 0) -> dict[str, float]:
         x = torch.stack(pts)
         _, _, gphi, _ = F.green_derivatives(x, needle)
         xr = x.clone().requires_grad_(True)
-        (gx,) = torch.autograd.grad(F.green_coordinates(xr, needle)[0].sum(), xr)
+        moving = needle._like(needle.vertices.clone().requires_grad_(True))  # (the torch kernel's autograd)
+        (gx,) = torch.autograd.grad(F.green_coordinates(xr, moving)[0].sum(), xr)
         mag = gphi.norm(dim=-1).amax(dim=1)
         worst = max(float((gphi.sum(1).norm(dim=1) / mag).max()), float((gx.norm(dim=1) / mag).max()))
         out["needle_grad"] = max(out["needle_grad"], worst)
