@@ -27,7 +27,7 @@ from ._exterior import extend_outside
 from ._green3d import triangle_green_data
 from ._green_dispatch import green_flat
 
-__all__ = ["centred", "green_coordinates"]
+__all__ = ["green_coordinates"]
 
 
 def centred(x: torch.Tensor, cage: Cage, dtype: torch.dtype) -> tuple[torch.Tensor, Cage]:
