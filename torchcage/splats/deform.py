@@ -81,7 +81,7 @@ class DeformGaussians(nn.Module):
     Shape:
         ``forward(pose)``: pose ``(*P, V, 3)`` -> :class:`DeformedGaussians` with ``(*P, N, ...)``.
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage.splats import DeformGaussians, GaussianScene
         >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj"))

@@ -183,7 +183,7 @@ def rest_points(
         :class:`RestPoints`; its ``points`` are differentiable with respect to ``deformed_points`` and
         ``pose`` (implicit function theorem).
 
-    Example:
+    Examples:
         >>> import torch, torchcage
         >>> from torchcage.splats import rest_points
         >>> cage = torchcage.load_cage(torchcage.data.path("cube.obj")).to(torch.float64)

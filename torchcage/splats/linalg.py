@@ -61,7 +61,7 @@ def svd3(M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``U, S, V`` (not ``V^T``) of ``M`` ``(..., 3, 3)``, singular values descending, with a
     backward that is finite for repeated singular values.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torchcage.splats.linalg import svd3
         >>> U, S, V = svd3(2 * torch.eye(3, dtype=torch.float64))
@@ -103,7 +103,7 @@ def closest_rotation(J: torch.Tensor) -> torch.Tensor:
     factor ``U V^T`` of a proper ``J``, with the reflection removed otherwise. Differentiable, with a
     finite gradient wherever it is defined and a bounded one where ``J`` loses rank.
 
-    Example:
+    Examples:
         >>> import math, torch
         >>> from torchcage.splats.linalg import closest_rotation
         >>> c, s = math.cos(0.4), math.sin(0.4)

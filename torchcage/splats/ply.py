@@ -106,7 +106,7 @@ def read_ply(path: str | os.PathLike) -> GaussianScene:
     Raises:
         PlyError: not a binary PLY, no ``vertex`` element, or a missing Gaussian field (named).
 
-    Example:
+    Examples:
         >>> import tempfile, pathlib
         >>> from torchcage.splats import GaussianScene, read_ply, write_ply
         >>> f = pathlib.Path(tempfile.mkdtemp()) / "scene.ply"

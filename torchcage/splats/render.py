@@ -24,7 +24,7 @@ class Camera:
     """A pinhole camera looking from ``eye`` at ``target`` (``up`` roughly up), ``fov`` degrees
     vertically, ``width x height`` pixels.
 
-    Example:
+    Examples:
         >>> from torchcage.splats.render import Camera
         >>> cam = Camera(eye=(0, 0, 5), target=(0, 0, 0), width=64, height=48)
         >>> cam.focal > 0
@@ -73,7 +73,7 @@ def render(
     """An image ``(H, W, 3)`` in [0, 1] of Gaussians ``means (N, 3)``, ``covariances (N, 3, 3)``,
     ``sh (N, K, 3)``, ``opacity_logits (N,)``.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torchcage.splats import GaussianScene
         >>> from torchcage.splats.render import Camera, render

@@ -36,7 +36,7 @@ C3 = (
 def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     """The basis ``Y_k(d)``, ``(..., (degree + 1)^2)``, at unit directions ``dirs`` ``(..., 3)``.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torchcage.splats.sh import sh_basis
         >>> sh_basis(torch.tensor([[0.0, 0.0, 1.0]]), 1)
@@ -116,7 +116,7 @@ def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     Returns:
         ``(..., N, K, C)``; the degree-0 term is unchanged. Differentiable in ``sh`` and ``R``.
 
-    Example:
+    Examples:
         >>> import math, torch
         >>> from torchcage.splats.sh import eval_sh, rotate_sh
         >>> sh = torch.randn(1, 16, 3, dtype=torch.float64)
