@@ -108,3 +108,24 @@ def thin_faces(cage: tc.Cage, aspect: float = 100.0) -> torch.Tensor:
     two_area = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=1)
     L2 = (p - p.roll(1, dims=1)).square().sum(-1).amax(-1)
     return torch.nonzero(L2 > aspect * two_area).flatten()
+
+
+def triquad_cage(g: torch.Generator, n: int = 2, noise: float = 0.15, split: float = 0.3) -> tc.Cage:
+    """A box of ``n^3`` cells, side 2, with its vertices moved at random by up to ``noise`` cells
+    (bilinear, non-planar quads) and about ``split`` of its quads split into two triangles; every
+    remaining quad valid (:meth:`~torchcage.Cage.invalid_quads`: the noise is halved until so)."""
+    from support import box_cage
+
+    box = box_cage(n, n, n)
+    quads = box.quads.tolist()
+    pick = torch.rand(len(quads), generator=g) < split
+    faces = []
+    for q, s in zip(quads, pick.tolist(), strict=True):
+        faces += [[q[0], q[1], q[2]], [q[0], q[2], q[3]]] if s else [q]
+    step = torch.rand(box.vertices.shape, dtype=D64, generator=g) * 2 - 1
+    for _ in range(20):
+        cage = tc.Cage(box.vertices + step * noise * 2 / n, faces)
+        if cage.invalid_quads().numel() == 0:
+            return cage
+        noise /= 2
+    return tc.Cage(box.vertices, faces)

@@ -336,8 +336,8 @@ class MeanValueGradFunction(torch.autograd.Function):
         gx = gP = None
         if ctx.needs_input_grad[0]:
             gx = torch.einsum("nvc,nvcd->nd", G, MeanValueHessFunction.apply(x, P, ctx.faces))
-        if ctx.needs_input_grad[1]:
-            gP = _vertex_grad_vjp(x, P, ctx.faces, G)
+        if ctx.needs_input_grad[1]:  # (sum_v grad_v = 0 whatever x and P: see MeanValueFunction)
+            gP = _vertex_grad_vjp(x, P, ctx.faces, G - G.mean(dim=1, keepdim=True))
         return gx, gP, None
 
     @staticmethod
@@ -363,11 +363,16 @@ class MeanValueFunction(torch.autograd.Function):
     def backward(ctx, g: Tensor):
         x, P = ctx.saved_tensors
         need_x, need_P = ctx.needs_input_grad[:2]
+        # The coordinates sum to 1 whatever the points and vertices: the mean of g over the vertices
+        # contributes nothing but the kernels' rounding, which a translated cage's identities
+        # multiplied by its distance from the origin (the analytic point gradients have their
+        # mean taken out already: derivatives_flat).
+        g0 = g - g.mean(dim=-1, keepdim=True)
         if need_P and x.shape[-1] == 3 and not torch.is_grad_enabled():
             # first order (no double backward) with respect to the rest cage: one fused pass
-            return *_joint_vjp(x, P, ctx.faces, g, need_x), None, None, None
-        gx = _point_grad(x, P, ctx.faces, g) if need_x else None
-        gP = _vertex_vjp(x, P, ctx.faces, g) if need_P else None
+            return *_joint_vjp(x, P, ctx.faces, g0, need_x), None, None, None
+        gx = _point_grad(x, P, ctx.faces, g if _analytic(x) else g0) if need_x else None
+        gP = _vertex_vjp(x, P, ctx.faces, g0) if need_P else None
         return gx, gP, None, None, None
 
     @staticmethod

@@ -12,6 +12,7 @@ from torch._C._functorch import is_functorch_wrapped_tensor
 
 from ..cage import Cage
 from ..errors import CageError, PointsError
+from ._centre import rounding_extent
 
 #: Points closer to the cage than this fraction of its bounding-box diagonal are treated as lying
 #: on it and get the interpolating values (the exact limit, up to rounding).
@@ -24,7 +25,7 @@ def on_cage_tolerance(cage: Cage) -> float:
     largest coordinate (a point on a face of a cage far from the origin carries a rounding error of
     about ``eps * |x|``, which is larger than ``eps * size`` there)."""
     v = cage.vertices.detach()
-    extent = float(v.abs().max()) if v.numel() else 0.0
+    extent = max(float(v.abs().max()) if v.numel() else 0.0, rounding_extent())  # (centred copies: _centre)
     return ON_CAGE_TOLERANCE * cage.scale + EXTENT_TOLERANCE * extent
 
 

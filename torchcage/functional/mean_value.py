@@ -14,6 +14,7 @@ import torch
 from ..autograd.mean_value import mean_value_function
 from ..cage import Cage
 from ._batch import over_cage_batch
+from ._centre import centred
 from ._common import as_inputs, check_points, far_unity, records_graph, result_dtype
 from ._mvc3d import triangle_cage_data
 from ._mvc_dispatch import coordinates_flat
@@ -94,11 +95,13 @@ def mean_value_coordinates(
         )
     flat = check_points(points, cage)
     compute, out_dtype = result_dtype(flat, cage, dtype, backend)
+    # relative to the cage's centre (exact; the coordinates are translation invariant): module _centre
+    x, rel = centred(flat, cage, compute)
     if records_graph(flat, cage.vertices):
         if cage.dim == 3:  # the same checks as the plain path (a triangle cage)
             triangle_cage_data(cage, compute)
-        lam = mean_value_function(flat, cage, chunk_size, backend)
+        lam = mean_value_function(x, rel, chunk_size, backend)
     else:
-        lam = coordinates_flat(flat.to(compute), cage, chunk_size, progress, backend)
-    (lam,) = far_unity(lam, flat, cage.vertices.to(lam.dtype))
+        lam = coordinates_flat(x, rel, chunk_size, progress, backend)
+    (lam,) = far_unity(lam, x, rel.vertices.to(lam.dtype))
     return lam.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)

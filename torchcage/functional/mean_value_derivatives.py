@@ -43,6 +43,7 @@ from ..cage import Cage
 from ..errors import PointsError
 from . import _mvcd_native
 from ._batch import over_cage_batch
+from ._centre import centred, extent_of, keep_extent
 from ._common import as_inputs, check_points, chunks, far_unity, triangle_geometry
 from ._mvcd_torch import torch_derivatives
 
@@ -79,9 +80,30 @@ def derivatives_flat(
     native kernel (CPU) or, where it cannot serve, autograd of the torch kernel
     (:mod:`._mvcd_torch`, on the points' device).
 
+    The derivatives of every row sum to zero over the vertices (the coordinates sum to 1): their
+    mean over the vertices, the kernels' rounding, is taken out. Left in, it multiplied the
+    cage's distance from the origin in ``sum_v grad_v V_v^T = I`` (a translated cage) and the
+    centred identity is unchanged by it (``sum_v (V_v - m) = 0`` for the vertices' mean ``m``).
+
     Raises:
         PointsError: points where the coordinates are undefined (the total weight vanishes).
     """
+    lam, grad, hess, on = _derivatives_flat(x, cage, order, chunk_size, progress, backend)
+    grad = grad - grad.mean(dim=1, keepdim=True)
+    if order == 2:
+        hess = hess - hess.mean(dim=1, keepdim=True)
+    return lam, grad, hess, on
+
+
+def _derivatives_flat(
+    x: torch.Tensor,
+    cage: Cage,
+    order: int,
+    chunk_size: int | None,
+    progress: bool | Callable[[int, int], None],
+    backend: str,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`derivatives_flat` before the derivatives' mean over the vertices is taken out."""
     lib = _library(backend, x)
     if lib is None and _triton_serves(backend, x, cage):
         return _triton_derivatives(x, cage, order, chunk_size, progress)
@@ -204,13 +226,15 @@ def mean_value_derivatives(
     flat = check_points(points, cage)
     if cage.dim == 3:
         triangle_geometry(cage, torch.float64, "use cage.triangulated() to split quads")
-    lam, grad, hess, on = derivatives_flat(flat, cage, order, chunk_size, progress, backend)
+    x, rel = centred(flat.detach(), cage, torch.float64)  # (relative to the cage's centre: translation invariant)
+    with keep_extent(extent_of(cage.vertices)):
+        lam, grad, hess, on = derivatives_flat(x, rel, order, chunk_size, progress, backend)
     idx = torch.nonzero(on).flatten()[:10].tolist()
     if idx:
         raise PointsError(
             f"points {idx} lie on the cage, where mean value coordinates are not differentiable; move them off the cage"
         )
-    lam, grad, hess = far_unity(lam, flat.to(lam), cage.vertices.to(lam), grad, hess if order == 2 else None)
+    lam, grad, hess = far_unity(lam, x.to(lam), rel.vertices.to(lam), grad, hess if order == 2 else None)
     dt = flat.dtype
     lead, D, V = points.shape[:-1], cage.dim, cage.num_vertices
     out_l = lam.to(flat.device, dt).reshape(*lead, V)

@@ -13,6 +13,7 @@ from .. import _native, _triton
 from ..cage import Cage
 from ..errors import CageError, PointsError
 from ._batch import over_cage_batch
+from ._centre import centre_of
 from ._common import (
     as_inputs,
     check_points,
@@ -187,6 +188,10 @@ def quad_mean_value_coordinates(
         )
     quad_tol = check_tol(tol)
     x, out_dtype, verts, tol = prepare_quad_call(points, cage, n, dtype, allow_invalid)
+    # relative to the cage's centre (exact; the coordinates are translation invariant, module _centre;
+    # the on-cage tolerance stays the uncentred cage's: points within their rounding of a quad are on it)
+    c = centre_of(verts, verts.dtype)
+    x, verts = x - c, verts - c
     if backend not in ("auto", "torch", "native", "triton"):
         raise ValueError(f"backend must be 'auto', 'torch', 'native' or 'triton', got {backend!r}")
     if backend == "triton" and quad_tol is not None:
