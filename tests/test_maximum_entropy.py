@@ -9,7 +9,9 @@ from support import bent_box, box_cage, l_shape, notched, sample_inside, triquad
 
 import torchcage as tc
 from torchcage import functional as F
+from torchcage.functional import maximum_entropy_coordinates
 from torchcage.geometry import inside_cage
+from torchcage.testing import adversarial_points, assert_partition_of_unity
 
 D64 = torch.float64
 
@@ -171,3 +173,57 @@ def test_module() -> None:
     assert out.shape == (2, 60, 3)
     assert torch.allclose(out[1], x @ R.T + 1.0, atol=1e-10)  # rigid motions are reproduced
     assert "prior=None" in repr(m)
+
+
+def _sheet_samples(cage, k: int, seed: int):
+    """Random points on the bilinear quads of ``cage``, their quads, parameters and unit outward
+    sheet normals."""
+    g = torch.Generator().manual_seed(seed)
+    q = cage.vertices[cage.quads]
+    qi = torch.randint(0, q.shape[0], (k,), generator=g)
+    u, v = (torch.rand(k, 1, dtype=torch.float64, generator=g) for _ in range(2))
+    Q = q[qi]
+    x = (1 - u) * (1 - v) * Q[:, 0] + u * (1 - v) * Q[:, 1] + u * v * Q[:, 2] + (1 - u) * v * Q[:, 3]
+    xu = (1 - v) * (Q[:, 1] - Q[:, 0]) + v * (Q[:, 2] - Q[:, 3])
+    xv = (1 - u) * (Q[:, 3] - Q[:, 0]) + u * (Q[:, 2] - Q[:, 1])
+    n = torch.nn.functional.normalize(torch.linalg.cross(xu, xv, dim=-1), dim=1)
+    return x, qi, u, v, n, g
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_points_on_and_just_inside_bilinear_quads_are_accepted(seed: int) -> None:
+    """Issue 42 item 10: points on the bilinear (non-planar) quads of a random triquad cage, and
+    1e-10..1e-6 of the size inside them, were refused as outside (the inside test and the on-cage
+    test used the quads' split triangles, up to 0.1 of the size away from the sheets here). On the
+    sheet: the bilinear weights; inside: nonnegative coordinates reproducing the point."""
+    from random_cages import triquad_cage
+
+    cage = triquad_cage(torch.Generator().manual_seed(seed))
+    x, qi, u, v, n, g = _sheet_samples(cage, 30, seed)
+    w = maximum_entropy_coordinates(x, cage)
+    b = torch.cat([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=1)
+    ref = torch.zeros(x.shape[0], cage.num_vertices, dtype=torch.float64).scatter_add(1, cage.quads[qi], b)
+    assert float((w - ref).abs().max()) < 1e-12
+    inside = x - n * cage.scale * 10 ** (-10 + 4 * torch.rand(x.shape[0], 1, dtype=torch.float64, generator=g))
+    res = maximum_entropy_coordinates(inside, cage, return_info=True)
+    assert bool(res.converged.all()) and float(res.weights.min()) >= 0
+    assert float((res.weights @ cage.vertices - inside).norm(dim=1).max()) < 1e-12 * cage.scale
+    assert_partition_of_unity(res.weights)
+
+
+def test_float32_points_on_the_cage_are_on_it() -> None:
+    """Issue 42 item 4: float32 points on a cage's faces and quads round to just outside it (by
+    about eps32 |x|) and were refused; within the rounding of their dtype they are on the cage and
+    get its interpolant."""
+    from random_cages import triquad_cage
+
+    cage = triquad_cage(torch.Generator().manual_seed(5))
+    x, *_ = _sheet_samples(cage, 30, 5)
+    tri = adversarial_points(cage, 30, seed=5)["face"]
+    for pts in (x.float(), tri.float()):
+        w = maximum_entropy_coordinates(pts, cage)
+        assert w.dtype == torch.float64 and float(w.min()) >= 0
+        assert float((w @ cage.vertices - pts.double()).norm(dim=1).max()) < 1e-6 * cage.scale
+    cube = adversarial_points(cage.to(torch.float32), 30, seed=6)["face"]
+    w = maximum_entropy_coordinates(cube, cage.to(torch.float32))
+    assert w.dtype == torch.float32 and bool(torch.isfinite(w).all())

@@ -60,6 +60,88 @@ def _interpolant(x: torch.Tensor, cage: Cage, n: int) -> torch.Tensor:
     return mean_value_coordinates(x, cage, dtype=x.dtype)
 
 
+def _sheet_points(x: torch.Tensor, q: torch.Tensor, steps: int = 8) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The nearest points of bilinear sheets to points: ``x`` ``(k, 3)``, the sheets' corners ``q``
+    ``(k, 4, 3)`` (``q0 q1 q2 q3`` around). A 7x7 grid picks a start, Gauss-Newton refines it within
+    ``[0, 1]^2``. Returns ``(u, v, offset)``: the parameters ``(k,)`` and ``x - xi(u, v)`` ``(k, 3)``."""
+    t = torch.linspace(0.0, 1.0, 7, dtype=x.dtype, device=x.device)
+    gu, gv = torch.meshgrid(t, t, indexing="ij")
+    gu, gv = gu.reshape(-1), gv.reshape(-1)
+
+    def sheet(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        u, v = u[..., None], v[..., None]
+        return (1 - u) * (1 - v) * q[:, 0] + u * (1 - v) * q[:, 1] + u * v * q[:, 2] + (1 - u) * v * q[:, 3]
+
+    grid = sheet(gu[None].expand(x.shape[0], -1).T, gv[None].expand(x.shape[0], -1).T)  # (49, k, 3)
+    best = (grid - x[None]).square().sum(-1).argmin(dim=0)
+    u, v = gu[best], gv[best]
+    for _ in range(steps):
+        r = x - sheet(u, v)
+        xu = (1 - v)[:, None] * (q[:, 1] - q[:, 0]) + v[:, None] * (q[:, 2] - q[:, 3])
+        xv = (1 - u)[:, None] * (q[:, 3] - q[:, 0]) + u[:, None] * (q[:, 2] - q[:, 1])
+        a, b, d = (xu * xu).sum(-1), (xu * xv).sum(-1), (xv * xv).sum(-1)
+        ru, rv = (xu * r).sum(-1), (xv * r).sum(-1)
+        det = a * d - b * b
+        ok = det > 0
+        det = torch.where(ok, det, 1.0)
+        u = (u + torch.where(ok, (d * ru - b * rv) / det, 0.0)).clamp(0.0, 1.0)
+        v = (v + torch.where(ok, (a * rv - b * ru) / det, 0.0)).clamp(0.0, 1.0)
+    return u, v, x - sheet(u, v)
+
+
+def _quad_contacts(
+    x: torch.Tensor, cage: Cage, tol: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Points ``x`` ``(N, 3)`` against the cage's bilinear quads (not their split triangles).
+
+    Returns:
+        ``(on, inner, quad, uv)``: ``on`` ``(N,)`` the points within ``tol`` of a quad's sheet,
+        ``inner`` ``(N,)`` those on a sheet's inner side within its bend (the gap between the sheet
+        and its split triangles, where the split triangles' winding number says "outside"), and for
+        the ``on`` points the quad ``(N,)`` and its parameters ``uv`` ``(N, 2)`` (the bilinear
+        weights' arguments).
+    """
+    N = x.shape[0]
+    on = torch.zeros(N, dtype=torch.bool, device=x.device)
+    inner = torch.zeros_like(on)
+    quad = torch.zeros(N, dtype=torch.long, device=x.device)
+    uv = x.new_zeros(N, 2)
+    if cage.dim != 3 or not cage.has_quads or N == 0:
+        return on, inner, quad, uv
+    q = cage.vertices.to(x.dtype)[cage.quads]  # (Q, 4, 3)
+    bend = ((q[:, 0] - q[:, 1] + q[:, 2] - q[:, 3]).norm(dim=-1) / 4)[:, None]  # sheet-to-split gap bound
+    reach = bend + tol
+    lo, hi = q.amin(dim=1) - reach, q.amax(dim=1) + reach
+    best = torch.full((N,), float("inf"), dtype=x.dtype, device=x.device)
+    rows = max(1, (1 << 20) // max(1, q.shape[0]))
+    for s in range(0, N, rows):
+        xs = x[s : s + rows]
+        pi, qi = torch.nonzero(((xs[:, None] >= lo[None]) & (xs[:, None] <= hi[None])).all(-1), as_tuple=True)
+        if pi.numel() == 0:
+            continue
+        u, v, off = _sheet_points(xs[pi], q[qi])
+        dist = off.norm(dim=-1)
+        pi = pi + s
+        # nearest sheet per point
+        order = torch.argsort(dist, descending=True)  # (the last write wins: the nearest)
+        pi_o, qi_o, d_o = pi[order], qi[order], dist[order]
+        hit = d_o <= tol
+        upd = hit & (d_o < best[pi_o])
+        best[pi_o[upd]] = d_o[upd]
+        on[pi_o[hit]] = True
+        quad[pi_o[upd]] = qi_o[upd]
+        uv[pi_o[upd]] = torch.stack([u[order][upd], v[order][upd]], dim=1)
+        # inner side of the sheet (outward normal xu x xv), parameters interior, within the bend
+        uu, vv = u[order], v[order]
+        qq = q[qi_o]
+        xu = (1 - vv)[:, None] * (qq[:, 1] - qq[:, 0]) + vv[:, None] * (qq[:, 2] - qq[:, 3])
+        xv = (1 - uu)[:, None] * (qq[:, 3] - qq[:, 0]) + uu[:, None] * (qq[:, 2] - qq[:, 1])
+        side = (off[order] * torch.linalg.cross(xu, xv, dim=-1)).sum(-1)
+        interior = (uu > 0) & (uu < 1) & (vv > 0) & (vv < 1)
+        inner[pi_o[interior & (side < 0) & (d_o <= bend[qi_o, 0] + tol)]] = True
+    return on, inner, quad, uv
+
+
 def maximum_entropy_coordinates(
     points: torch.Tensor,
     cage: Cage,
@@ -96,8 +178,10 @@ def maximum_entropy_coordinates(
     Returns:
         ``(*, V)`` coordinates: nonnegative, summing to 1, reproducing the points to ``tol`` of the
         cage size; or a :class:`MaximumEntropyResult`. Points on the cage (within the on-cage
-        tolerance) get the cage's interpolant (barycentric on triangles, bilinear on quads), the
-        limit of the coordinates there. The result carries no gradient (a constant of the rest
+        tolerance, or the rounding of the inputs' dtype: ``8 eps (|x|_max + size)``; quads are
+        their bilinear sheets, not their split triangles) get the cage's interpolant (barycentric
+        on triangles, bilinear on quads), the limit of the coordinates there. Points between a
+        quad's sheet and its split triangles on the sheet's inner side are inside. The result carries no gradient (a constant of the rest
         cage, as in the coordinate modules).
 
     Raises:
@@ -143,9 +227,15 @@ def maximum_entropy_coordinates(
     elif prior not in ("mvc", "qmvc", "uniform"):
         raise ValueError(f"prior must be 'mvc', 'qmvc', 'uniform' or a tensor of masses (N, V), got {prior!r}")
 
-    tol_on = on_cage_tolerance(cage_c)
+    # on the cage within the rounding of the inputs' dtype (a float32 point on a face rounds off it)
+    eps_in = max(torch.finfo(flat.dtype).eps, torch.finfo(cage.dtype).eps)
+    extent = max(float(cage_c.vertices.abs().max()), float(x.abs().max()) if x.numel() else 0.0)
+    tol_on = max(on_cage_tolerance(cage_c), 8 * eps_in * (extent + cage_c.scale))
+    on_quad, inner, quad, uv = _quad_contacts(x, cage_c, tol_on)  # (the bilinear sheets themselves)
     on = near_cage(x, cage_c, tol_on)
-    inside = inside_cage(x, cage_c) | on
+    if cage_c.has_quads:  # near a split triangle of a quad is not near its sheet
+        on = near_cage(x, Cage._from_faces(cage_c.vertices, cage_c.triangles), tol_on) | on_quad
+    inside = inside_cage(x, cage_c) | on | inner
     if not bool(inside.all()):
         bad = torch.nonzero(~inside).flatten()
         raise PointsError(
@@ -169,7 +259,18 @@ def maximum_entropy_coordinates(
         w, it, r = sol.weights, sol.iterations, sol.residual
         if bool(onc.any()):
             rows = torch.nonzero(onc).flatten()
-            w = w.index_copy(0, rows, _interpolant(xc[rows], cage_c, n).to(compute))
+            wi = _interpolant(xc[rows], cage_c, n).to(compute)
+            # (points within the inputs' rounding of a face, off it: the interpolant's limit, whose
+            # entries beyond the face are of the order of that rounding; kept nonnegative)
+            wi = wi.clamp_min(0.0)
+            w = w.index_copy(0, rows, wi / wi.sum(dim=1, keepdim=True))
+            qr = torch.nonzero(on_quad[sl]).flatten()
+            if qr.numel():  # on a bilinear quad: its bilinear weights
+                u, v = uv[sl][qr, 0:1], uv[sl][qr, 1:2]
+                b = torch.cat([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=1)
+                wq = torch.zeros(qr.numel(), V, dtype=compute, device=x.device)
+                wq = wq.scatter_add(1, cage_c.quads[quad[sl][qr]], b)
+                w = w.index_copy(0, qr, wq)
             it = it.index_fill(0, rows, 0)
             r = r.index_fill(0, rows, 0.0)
         W[sl], iters[sl], res[sl] = w, it, r
