@@ -227,3 +227,32 @@ def test_float32_points_on_the_cage_are_on_it() -> None:
     cube = adversarial_points(cage.to(torch.float32), 30, seed=6)["face"]
     w = maximum_entropy_coordinates(cube, cage.to(torch.float32))
     assert w.dtype == torch.float32 and bool(torch.isfinite(w).all())
+
+
+@pytest.mark.slow
+def test_bilinear_quads_and_rounding_sweep() -> None:
+    """Random triquad cages, scaled by 1e-3..1e3 and moved by up to 1e6: points on their sheets
+    (float64 and float32) and 1e-10..1e-6 of the size inside them, all accepted, nonnegative,
+    reproducing the points (to the inputs' rounding), bilinear on the sheets."""
+    from random_cages import moved, triquad_cage
+
+    for seed in range(8):
+        g = torch.Generator().manual_seed(50 + seed)
+        scale = 10 ** (6 * float(torch.rand(1, generator=g)) - 3)
+        cage = moved(
+            triquad_cage(g, n=2 + seed % 2), g, scale=scale, shift=10 ** (6 * float(torch.rand(1, generator=g)))
+        )
+        x, qi, u, v, n, g2 = _sheet_samples(cage, 40, seed)
+        w = maximum_entropy_coordinates(x, cage)
+        b = torch.cat([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=1)
+        ref = torch.zeros(x.shape[0], cage.num_vertices, dtype=torch.float64).scatter_add(1, cage.quads[qi], b)
+        rounding = torch.finfo(torch.float64).eps * float(cage.vertices.abs().max()) / cage.scale
+        assert float((w - ref).abs().max()) < 1e-9 + 1e3 * rounding, seed
+        inside = x - n * cage.scale * 10 ** (-10 + 4 * torch.rand(x.shape[0], 1, dtype=torch.float64, generator=g2))
+        res = maximum_entropy_coordinates(inside, cage, return_info=True)
+        assert float(res.weights.min()) >= 0 and bool(res.converged.all()), seed
+        assert float((res.weights @ cage.vertices - inside).norm(dim=1).max()) < (1e-12 + 8 * rounding) * cage.scale
+        w32 = maximum_entropy_coordinates(x.float(), cage)
+        assert float(w32.min()) >= 0
+        rounding32 = 8 * torch.finfo(torch.float32).eps * (float(cage.vertices.abs().max()) + cage.scale)
+        assert float((w32 @ cage.vertices - x.float().double()).norm(dim=1).max()) < rounding32

@@ -128,3 +128,18 @@ def test_points_on_a_translated_cage_are_refused_by_the_derivatives() -> None:
     x = adversarial_points(cage, 8, seed=0)["face"]
     with pytest.raises(tc.errors.PointsError, match="on the cage"):
         F.mean_value_derivatives(x, cage, order=1)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["convex", "star", "slab", "cube"])
+def test_translated_cages_sweep(kind: str) -> None:
+    """More seeds, shifts 1e6..1e9 in random directions, both backends."""
+    for seed in range(10, 16):
+        g = torch.Generator().manual_seed(seed)
+        cage = _cage(kind, seed, shift=10 ** (6 + 3 * float(torch.rand(1, generator=g, dtype=D64))))
+        X = _points(cage, seed)
+        Xo = X[distance_to_triangles(X, cage.vertices, cage.triangles) > 1e-3 * cage.scale]
+        for backend in ("native", "torch") if tc._native.available() else ("torch",):
+            assert _lp_units(F.mean_value_coordinates(X, cage, backend=backend), cage.vertices, X) < K, seed
+            _, G, _ = F.mean_value_derivatives(Xo, cage, order=1, backend=backend)
+            assert _identity_units(G, cage.vertices) < K, seed
