@@ -18,8 +18,8 @@ import torch
 
 import torchcage
 from torchcage.viewer import EditorSession, PoseError, fetch_token
-from torchcage.viewer.server import TOKEN_HEADER
 from torchcage.viewer import session as session_module
+from torchcage.viewer.server import TOKEN_HEADER
 
 D = torchcage.data
 

@@ -181,8 +181,8 @@ def maximum_entropy_coordinates(
         tolerance, or the rounding of the inputs' dtype: ``8 eps (|x|_max + size)``; quads are
         their bilinear sheets, not their split triangles) get the cage's interpolant (barycentric
         on triangles, bilinear on quads), the limit of the coordinates there. Points between a
-        quad's sheet and its split triangles on the sheet's inner side are inside. The result carries no gradient (a constant of the rest
-        cage, as in the coordinate modules).
+        quad's sheet and its split triangles on the sheet's inner side are inside. The result
+        carries no gradient (a constant of the rest cage, as in the coordinate modules).
 
     Raises:
         PointsError: points outside the cage (the coordinates exist only inside the convex hull of
