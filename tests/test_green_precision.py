@@ -187,9 +187,7 @@ def test_green_gradients_outside_needle_edges_sum_to_zero():
     for kind in range(3):
         for _ in range(2):
             cage = needle_cage(kind, g)
-            # (from 1e-12: closer to a needle's edge the winding number that tells the extension's
-            # points from the interior's is unreliable in both backends, docs/accuracy.md "Not met yet")
-            x = outside_edges(cage, 1e-12, 1e-7, 3, g)
+            x = outside_edges(cage, 1e-14, 1e-7, 3, g)
             _, _, gphi, _ = F.green_derivatives(x, cage)
             mag = gphi.norm(dim=-1).amax(dim=1)
             worst_sum = max(worst_sum, float((gphi.sum(1).norm(dim=1) / mag).max()))

@@ -15,7 +15,6 @@ import torch
 
 from ..cage import Cage
 from ..errors import CageError
-from ..geometry import inside_cage
 from ._common import as_inputs, check_points, result_dtype
 from ._green_derivatives_flat import autograd_rows, check_backend, closed_form
 from .green import centred, green_coordinates
@@ -99,7 +98,13 @@ def green_derivatives(
     exact = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
     if x.shape[0]:
         xc, cage_c = centred(x, cage, compute)  # (about the cage's centre, as green_coordinates)
-        inside = inside_cage(xc, cage_c) if exterior == "extend" else torch.ones_like(exact)
+        # inside where the bare coordinates sum to 1/2 or more: the rule the values' extension uses
+        # (functional/_exterior.py), so values and derivatives agree on which points are extended
+        # (a separate winding number flipped points within 1e-13 of the size outside a needle's edge)
+        if exterior == "extend":
+            inside = green_coordinates(x, cage, exterior="none")[0].sum(dim=1) >= 0.5
+        else:
+            inside = torch.ones_like(exact)
         gphi, gpsi, hphi, hpsi, exact = closed_form(xc, cage_c, order, chunk_size, backend)
         exact &= inside
         # (inside, the coordinates are divided by their sum, 1 to rounding, whose derivatives are 0)
