@@ -88,7 +88,16 @@ def green_derivatives(
     flat = check_points(points, cage)
     compute, out = result_dtype(flat, cage, dtype)
     x = flat.detach().to(compute)
-    phi, psi = green_coordinates(x, cage, exterior=exterior)
+    # the bare coordinates once; inside is where they sum to 1/2 or more, the rule the values'
+    # extension uses (functional/_exterior.py), so values and derivatives agree on which points are
+    # extended (a separate winding number flipped points within 1e-13 of the size outside a needle's
+    # edge); only the points outside are computed again, extended (inside, both are the same)
+    phi, psi = green_coordinates(x, cage, exterior="none")
+    inside = phi.sum(dim=1) >= 0.5 if exterior == "extend" else torch.ones(x.shape[0], dtype=torch.bool)
+    inside = inside.to(x.device)
+    out_rows = torch.nonzero(~inside).flatten()
+    if out_rows.numel():
+        phi[out_rows], psi[out_rows] = green_coordinates(x.index_select(0, out_rows), cage, exterior="extend")
     V, T, D = phi.shape[1], psi.shape[1], cage.dim
     gphi = torch.zeros(x.shape[0], V, D, dtype=compute, device=x.device)
     gpsi = torch.zeros(x.shape[0], T, D, dtype=compute, device=x.device)
@@ -98,13 +107,6 @@ def green_derivatives(
     exact = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
     if x.shape[0]:
         xc, cage_c = centred(x, cage, compute)  # (about the cage's centre, as green_coordinates)
-        # inside where the bare coordinates sum to 1/2 or more: the rule the values' extension uses
-        # (functional/_exterior.py), so values and derivatives agree on which points are extended
-        # (a separate winding number flipped points within 1e-13 of the size outside a needle's edge)
-        if exterior == "extend":
-            inside = green_coordinates(x, cage, exterior="none")[0].sum(dim=1) >= 0.5
-        else:
-            inside = torch.ones_like(exact)
         gphi, gpsi, hphi, hpsi, exact = closed_form(xc, cage_c, order, chunk_size, backend)
         exact &= inside
         # (inside, the coordinates are divided by their sum, 1 to rounding, whose derivatives are 0)
