@@ -224,3 +224,38 @@ def test_the_splats_example_runs(tmp_path) -> None:
     finally:
         sys.argv = argv
     assert stop.value.code == 0 and (tmp_path / "splats.png").exists()
+
+
+def test_inverse_points_are_the_same_with_and_without_a_graph() -> None:
+    """The implicit-function step adds derivatives only: unconverged points (max_iter=1) are returned
+    unchanged when the queries require grad."""
+    cage = _cube()
+    pose = cage.vertices * torch.tensor([1.6, 1.0, 1.0], dtype=D64)
+    pose[0] += 0.3
+    y = 0.5 * (torch.rand(40, 3, generator=torch.Generator().manual_seed(1), dtype=D64) - 0.5)
+    plain = rest_points(y, cage, pose, max_iter=1, warn=False)
+    graph = rest_points(y.clone().requires_grad_(), cage, pose, max_iter=1, warn=False)
+    assert not bool(plain.converged.all())
+    assert torch.equal(graph.points.detach(), plain.points)
+
+
+def test_bad_inputs_are_refused() -> None:
+    cage, scene = _cube(), _scene(10)
+    from torchcage import MeanValueCoordinates
+
+    other = MeanValueCoordinates(cage.triangulated(), scene.means[:7], store_derivatives=1)
+    with pytest.raises(ValueError, match="embeds 7 points"):
+        DeformGaussians(cage, scene, module=other)
+    with pytest.raises(ValueError, match="1, 4, 9 or 16"):
+        eval_sh(torch.zeros(5, 3, 3, dtype=D64), torch.zeros(5, 3, dtype=D64))
+    with pytest.raises(ValueError, match="method must be"):
+        DeformGaussians(cage, scene, method="lbc")
+
+
+def test_float32_poses_are_computed_in_float64() -> None:
+    cage, scene = _cube(), _scene(30)
+    deform = DeformGaussians(cage, scene)
+    pose = (cage.vertices * 1.3).float()
+    out32, out64 = deform(pose), deform(pose.double())
+    assert out32.covariances.dtype == torch.float32
+    assert torch.equal(out32.covariances, out64.covariances.float())

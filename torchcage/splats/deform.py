@@ -118,6 +118,12 @@ class DeformGaussians(nn.Module):
         )
         if not hasattr(self.coordinates, "jacobian"):
             raise TypeError(f"{type(self.coordinates).__name__} has no jacobian(); use mean value or Green coordinates")
+        embedded = getattr(self.coordinates, "num_points", scene.num_gaussians)
+        if embedded != scene.num_gaussians:
+            raise ValueError(
+                f"the module embeds {embedded} points but the scene has {scene.num_gaussians} Gaussians; "
+                "build it over scene.means"
+            )
         self.chunk_size, self.min_scale = chunk_size, min_scale
         self.register_buffer("log_scales", scene.log_scales.to(dtype).clone())
         self.register_buffer("rest_rotations", quaternion_to_matrix(scene.rotations.to(dtype)))
@@ -131,7 +137,15 @@ class DeformGaussians(nn.Module):
         return int(self.log_scales.shape[0])
 
     def forward(self, pose: torch.Tensor) -> DeformedGaussians:
-        pose = pose.to(torch.float64) if not pose.is_floating_point() else pose
+        # computed in the buffers' float64 (no float32 copies of the (N, V) buffers per call, and the
+        # decompositions in full precision), returned in the pose's floating dtype
+        out_dtype = pose.dtype if pose.is_floating_point() else torch.float64
+        out = self._forward(pose.to(self.log_scales.dtype))
+        if out_dtype == out.means.dtype:
+            return out
+        return DeformedGaussians(*(getattr(out, f).to(out_dtype) for f in DeformedGaussians.__dataclass_fields__))
+
+    def _forward(self, pose: torch.Tensor) -> DeformedGaussians:
         means = self.coordinates(pose)
         J = self.coordinates.jacobian(pose)  # (*P, N, 3, 3)
         parts = [self._chunk(J[..., a : a + self.chunk_size, :, :], a) for a in range(0, J.shape[-3], self.chunk_size)]

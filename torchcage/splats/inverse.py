@@ -13,8 +13,8 @@ solves ``f(x) = y`` by Newton's method with the closed-form Jacobian ``J(x)``:
 3. stop at ``|f(x) - y| <= tol * size``; points that do not get there are reported, not hidden.
 
 Derivatives (implicit function theorem): at the solution ``dx/dy = J^{-1}`` and ``dx/dV' = -J^{-1}
-df/dV'``. They are attached by one Newton step taken with autograd on, whose value is the solution
-(its change is below the residual tolerance) and whose first derivatives are exactly these.
+df/dV'``. They are attached by one Newton step taken with autograd on, of which only the derivatives
+are kept (``x - (d - d.detach())``): the returned points are the same with and without a graph.
 """
 
 from __future__ import annotations
@@ -196,8 +196,13 @@ def rest_points(
         raise ValueError(f"method must be 'mvc' or 'gc', got {method!r}")
     if cage.dim != 3 or cage.is_batched:
         raise ValueError("rest_points takes one 3D rest cage (its poses may be batched)")
-    rest = cage.triangulated().to(torch.float64)
     y_all = torch.as_tensor(deformed_points)
+    if pose.device != cage.device or y_all.device != cage.device:
+        raise ValueError(
+            f"cage ({cage.device}), pose ({pose.device}) and deformed_points ({y_all.device}) must be on one device; "
+            "move them with .to(device)"
+        )
+    rest = cage.triangulated().to(torch.float64)
     if pose.shape[-2:] != rest.vertices.shape:
         raise ValueError(f"pose must have shape (*P, {rest.num_vertices}, 3), got {tuple(pose.shape)}")
     if y_all.ndim < 2 or y_all.shape[-1] != 3:
@@ -215,7 +220,8 @@ def rest_points(
             # one Newton step with autograd on: the value stays (to the residual), the derivatives are
             # the implicit function theorem's
             fx, J = _map(x, rest, P64, method)
-            x = x - _solve(J.detach(), fx - y64)
+            d = _solve(J.detach(), fx - y64)
+            x = x - (d - d.detach())  # the derivatives of that step, its value kept (unconverged points too)
         out["points"].append(x.to(y.dtype) if y.is_floating_point() else x)
         out["converged"].append(res <= tol)
         out["residual"].append(res)
