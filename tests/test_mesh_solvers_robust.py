@@ -370,3 +370,14 @@ def test_solutions_of_other_cages_are_refused() -> None:
         F.solve_harmonic_coordinates(moved, domain=sol.domain)  # a Domain of another cage
     with pytest.raises(TypeError, match="solution must be the result"):
         F.harmonic_coordinates(x, cube, solution=sol.weights)
+
+
+def test_closest_point_on_a_zero_area_face_is_on_its_edges():
+    """A collinear boundary face does not swallow far points (its zero normal passed every side test)."""
+    from torchcage.solvers.locate import _closest_on_triangles
+
+    p = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]], dtype=torch.float64)
+    x = torch.tensor([[5.0, 5, 5], [0.2, 0.2, 3.0]], dtype=torch.float64)
+    got = _closest_on_triangles(x, p)
+    assert torch.allclose(got[0], torch.tensor([2.0, 0, 0], dtype=torch.float64))
+    assert torch.allclose(got[1], torch.tensor([0.2, 0.2, 0.0], dtype=torch.float64))

@@ -54,7 +54,9 @@ def _closest_on_triangles(x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     n = torch.linalg.cross(b - a, c - a, dim=-1)
     nn = (n * n).sum(-1).clamp_min(1e-300)
     foot = x - (((x - a) * n).sum(-1) / nn)[:, None] * n
-    inside = torch.ones(x.shape[0], dtype=torch.bool)
+    # a zero-area face has no plane: only its edges' closest points count (its zero normal made the
+    # side tests pass for any point, which then came back as its own closest point)
+    inside = (n * n).sum(-1) > 0
     for u, v in ((a, b), (b, c), (c, a)):
         inside &= (torch.linalg.cross(v - u, foot - u, dim=-1) * n).sum(-1) >= 0
     cands = torch.stack([_closest_on_segments(x, u, v) for u, v in ((a, b), (b, c), (c, a))], 1)  # (n, 3, 3)
