@@ -162,6 +162,7 @@ def test_checked_cages_are_checked_once() -> None:
     for c in (cube, cube.triangulated(), batch[1], batch.unbind()[0], cube.to(D64)):
         assert c._geometry_checked
     assert not cube.to(torch.float32)._geometry_checked
+    assert not cube._like(cube.vertices.float())._geometry_checked
     loose = cube.with_vertices(cube.vertices * 2)
     assert not loose._geometry_checked
     assert loose.check_geometry()._geometry_checked

@@ -227,8 +227,10 @@ class Cage:
     def with_vertices(self, vertices: torch.Tensor, *, validate: bool = False) -> Cage:
         """The same topology around other vertex positions ``(*B, V, D)`` (a network's output each
         step): no topology check, and by default no geometric check either, so no host
-        synchronisation on a GPU. With ``validate=True`` the geometry is checked as in the
-        constructor (orientation included: this cage's faces are not flipped again). Unlike the
+        synchronisation on a GPU here. With ``validate=True`` the geometry is checked as in the
+        constructor (orientation included: this cage's faces are not flipped again). The functions
+        that compute coordinates check an unchecked cage once (:meth:`check_geometry`: one pass over
+        the faces and a host synchronisation); a module's ``forward`` does not. Unlike the
         constructor, which copies, the new cage holds ``vertices`` itself (no copy in a hot loop).
 
         Examples:
@@ -288,7 +290,8 @@ class Cage:
         """This cage's topology around ``v`` (a part or a view of its vertices): the geometry check
         carries over."""
         c = Cage._trusted(v, self.triangles if tri is None else tri, self.quads if quads is None else quads, self.edges)
-        c._geometry_checked = getattr(self, "_geometry_checked", False)
+        # (as in .to(): a lower precision can round vertices together or overflow: checked again then)
+        c._geometry_checked = getattr(self, "_geometry_checked", False) and v.dtype == self.vertices.dtype
         return c
 
     # ------------------------------------------------------------------ basic properties
