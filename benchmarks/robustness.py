@@ -463,7 +463,8 @@ def _damaged(v: torch.Tensor, edges: torch.Tensor, damage: str, g: torch.Generat
 def sweep_invalid(trials: int, seed: int = 0) -> dict:
     """Damaged cages (random star cages with quads, scaled by 1e-6..1e6 and moved by up to 1e6 of
     their size) given through each path that builds a cage, to each closed-form family: how many
-    answers came back (silent: the defect this guards against) against clear CageErrors; and the
+    answers came back (silent: the defect this guards against) against clear CageErrors (the
+    constructor's column counts cages it refused; the others count function calls); and the
     largest ``| |n| - 1 |`` of the unit triangle normals at those scales."""
     from torchcage.errors import CageError
 
@@ -481,14 +482,20 @@ def sweep_invalid(trials: int, seed: int = 0) -> dict:
         for damage in DAMAGES:
             bad = _damaged(cage.vertices, cage.unique_edges(), damage, g)
             for path in PATHS:
+                # one cage per path (the constructor's refusal counts once, not once per function);
+                # a cage built, each function's answer or refusal counts
+                try:
+                    if path == "constructor":
+                        c = torchcage.Cage(bad, cage.faces)
+                    elif path == "with_vertices":
+                        c = cage.with_vertices(bad)
+                    else:
+                        c = torchcage.Cage(torch.stack([cage.vertices, bad]), cage.faces, validate="topology")
+                except CageError:
+                    counts[damage, path][0] += 1
+                    continue
                 for fn in INVALID_FUNCTIONS.values():
                     try:
-                        if path == "constructor":
-                            c = torchcage.Cage(bad, cage.faces)
-                        elif path == "with_vertices":
-                            c = cage.with_vertices(bad)
-                        else:
-                            c = torchcage.Cage(torch.stack([cage.vertices, bad]), cage.faces, validate="topology")
                         with warnings.catch_warnings():
                             warnings.simplefilter("ignore")
                             fn(x, c)
