@@ -417,3 +417,17 @@ def test_no_browser_prints_the_address(cube, tmp_path, capsys, monkeypatch):
         assert f"no web browser could be opened (Error: could not locate runnable browser); open {v.url} by hand" in err
         monkeypatch.setattr(webbrowser, "open", lambda url, *a, **k: True)
         assert v.open() is True and capsys.readouterr().err == ""
+
+
+def test_other_sites_cannot_frame_the_editor(server):
+    """Clickjacking: every answer says which ancestors may frame it (this machine's pages only)."""
+    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
+    try:
+        conn.request("GET", "/", headers={"Host": f"127.0.0.1:{server.port}"})
+        answer = conn.getresponse()
+        answer.read()
+    finally:
+        conn.close()
+    policy = answer.getheader("Content-Security-Policy", "")
+    assert answer.status == 200 and policy.startswith("frame-ancestors 'self'")
+    assert "*" not in policy.replace(":*", "")  # no wildcard host: remote sites are not ancestors

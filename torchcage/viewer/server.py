@@ -87,6 +87,8 @@ DEFAULT_TIMEOUT = 20.0
 DEFAULT_WORKERS = 64
 #: The request header that carries the session's secret.
 TOKEN_HEADER = "X-Torchcage-Token"
+#: Who may frame the editor's pages: the page itself and pages served from this machine (a notebook).
+FRAME_ANCESTORS = "frame-ancestors 'self' http://localhost:* http://127.0.0.1:* http://[::1]:* https://localhost:*"
 _TOKEN_META = re.compile(r'<meta name="torchcage-token" content="([A-Za-z0-9_-]+)">')
 _STATIC = {
     "index.html": "text/html; charset=utf-8",
@@ -172,6 +174,9 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Content-Length", str(len(body)))
         self.send_header("Cache-Control", "no-store")
         self.send_header("X-Content-Type-Options", "nosniff")
+        # no framing by other sites (clickjacking: the framed page holds the token); a notebook on
+        # this machine may still show it (Viewer._repr_html_'s iframe)
+        self.send_header("Content-Security-Policy", FRAME_ANCESTORS)
         if self.close_connection:
             self.send_header("Connection", "close")
         for k, v in (headers or {}).items():
