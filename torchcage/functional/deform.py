@@ -319,11 +319,13 @@ def _deform(points: torch.Tensor, cage: Cage, vertices: torch.Tensor, method: st
     if method == "qmvc":
         return torch.matmul(quad_mean_value_coordinates(points, cage, **options).to(vertices.dtype), vertices)
     if method == "gc":
-        phi, psi = green_coordinates(points, cage, **options)
+        with warnings.catch_warnings():  # (outside points are reported once, by `outside`)
+            warnings.simplefilter("ignore", OutsideCageWarning)
+            phi, psi = green_coordinates(points, cage, **options)
         faces = cage.edges if cage.dim == 2 else cage.triangles
         return green_deformation(phi, psi, cage.vertices, vertices, faces)
     correction = options.pop("correction", "conformal")
-    with warnings.catch_warnings():  # (outside points were reported above, as `outside` asks)
+    with warnings.catch_warnings():  # (outside points are reported once, by `outside`)
         warnings.simplefilter("ignore", OutsideCageWarning)
         phi, psi = quad_green_coordinates(points, cage, **options)
     return quad_green_deformation(phi, psi, cage.vertices, vertices, cage.triangles, cage.quads, correction)

@@ -154,7 +154,6 @@ class MeshLocator:
         self.grids: list[_Grid] = []
         if C:
             step = float(size.min()) / 2
-            level = torch.zeros(C, dtype=torch.int64)
             level = torch.ceil(torch.log(size / (2 * step)) / math.log(4)).clamp_min(0).to(torch.int64)
             for ell in torch.unique(level).tolist():
                 ids = torch.nonzero(level == ell).flatten()
