@@ -431,3 +431,13 @@ def test_other_sites_cannot_frame_the_editor(server):
     policy = answer.getheader("Content-Security-Policy", "")
     assert answer.status == 200 and policy.startswith("frame-ancestors 'self'")
     assert "*" not in policy.replace(":*", "")  # no wildcard host: remote sites are not ancestors
+
+
+def test_fetch_token_reads_http_only(tmp_path):
+    from torchcage.viewer import fetch_token
+
+    secret = tmp_path / "secret.html"
+    secret.write_text('<meta name="torchcage-token" content="x">')
+    for url in (secret.as_uri(), "ftp://127.0.0.1/", "page.html"):
+        with pytest.raises(ValueError, match="served over http"):
+            fetch_token(url)

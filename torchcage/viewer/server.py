@@ -55,6 +55,7 @@ import secrets
 import socket
 import sys
 import threading
+import urllib.parse
 import urllib.request
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -576,8 +577,11 @@ def fetch_token(url: str, timeout: float = 10.0) -> str:
     process than the one that started the editor (e.g. ``torchcage view``).
 
     Raises:
-        ValueError: the page at ``url`` is not the editor's.
+        ValueError: ``url`` is not an http(s) address, or the page there is not the editor's.
     """
+    scheme = urllib.parse.urlsplit(url).scheme
+    if scheme not in ("http", "https"):
+        raise ValueError(f"the editor is served over http; got a {scheme or 'relative'} address {url!r}")
     with urllib.request.urlopen(url, timeout=timeout) as answer:
         found = _TOKEN_META.search(answer.read().decode("utf-8", "replace"))
     if found is None:
