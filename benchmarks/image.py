@@ -36,7 +36,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--methods", nargs="*", default=["mvc", "green", "lbc"])
+    ap.add_argument("--methods", nargs="*", default=["mvc", "gc", "lbc"])
     args = ap.parse_args()
     from kornia.geometry.transform import remap
 

@@ -314,7 +314,7 @@ def sweep_image(cage2d: torchcage.Cage, name: str, stats: Stats, dtype) -> None:
     except ValueError:
         return
     img = torch.rand(1, 1, 26, 26, dtype=torch.float64)
-    for method in ("mvc", "green"):
+    for method in ("mvc", "gc"):
         D = Pint[None].to(torch.float64).clone().requires_grad_()
         try:
             with warnings.catch_warnings():

@@ -42,7 +42,7 @@ def run_one(data: str, model: str, backend: str, repeat: int) -> dict:
 
         def fn() -> torch.Tensor:
             return naive_mean_value_coordinates(x, cage.vertices, cage.triangles)
-    elif backend == "green":
+    elif backend == "gc":
 
         def fn() -> tuple[torch.Tensor, torch.Tensor]:
             return F.green_coordinates(x, cage)
@@ -54,7 +54,7 @@ def run_one(data: str, model: str, backend: str, repeat: int) -> dict:
     base = rss_mb()
     first, _, w = best_of(fn, 1)
     peak = peak_mb() - base
-    if backend == "green":  # Green coordinates hold inside only: measure there (sum of phi = 1)
+    if backend == "gc":  # Green coordinates hold inside only: measure there (sum of phi = 1)
         phi, psi = w
         inside = (phi.sum(1) - 1).abs() < 1e-6
         fit = phi[inside] @ cage.vertices + psi[inside] @ cage.triangle_normals()
@@ -105,7 +105,7 @@ def main() -> None:
             print(f"{model:<12}  (absent from {args.data}/qmvc: skipped)")
             continue
         backends = (["native"] if native else []) + ["torch"] + ([] if args.no_baseline else ["naive"])
-        backends += [] if args.no_green else ["green"]
+        backends += [] if args.no_green else ["gc"]
         for name in backends:
             r = measure(args.data, model, name, args.repeat if name != "naive" else 1)
             rate = r["points"] / r["best"] / 1e6

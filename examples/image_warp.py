@@ -141,7 +141,7 @@ def fit(out_dir: Path, schedule: tuple[tuple[float, int], ...] = ((8.0, 40), (4.
 def main(out_dir: str = ".") -> None:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    warps(out, [("mvc", "mean value"), ("lbc", "local barycentric"), ("green", "Green")])
+    warps(out, [("mvc", "mean value"), ("lbc", "local barycentric"), ("gc", "Green")])
     fit(out)
 
 

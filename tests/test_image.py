@@ -40,7 +40,7 @@ def psnr(a: torch.Tensor, b: torch.Tensor, peak: float = 2.0) -> float:
     return math.inf if mse == 0 else 10 * math.log10(peak**2 / mse)
 
 
-CASES = [("mvc", "forward"), ("mvc", "backward"), ("green", "forward"), ("green", "backward"), ("lbc", "forward")]
+CASES = [("mvc", "forward"), ("mvc", "backward"), ("gc", "forward"), ("gc", "backward"), ("lbc", "forward")]
 
 
 @pytest.mark.parametrize(("method", "mapping"), CASES)
@@ -92,7 +92,7 @@ def test_affine_and_similarity_motions(method, mapping):
     """MVC has linear precision: any affine cage motion gives the affine warp; Green coordinates
     reproduce similarities."""
     cage = star_cage()
-    moved, A, t = affine_pose(cage, similarity=method == "green")  # MVC and LBC: any affine map
+    moved, A, t = affine_pose(cage, similarity=method == "gc")  # MVC and LBC: any affine map
     grid, inside = CageWarp(cage, H, W, method=method, mapping=mapping).sampling_grid(moved)
     y = pixel_centres(H, W).reshape(H, W, 2)
     expected = (y - t) @ torch.linalg.inv(A).T
@@ -112,7 +112,7 @@ def bent_pose(cage: torch.Tensor) -> torch.Tensor:
     return c + rot * torch.tensor([1.1, 0.9], dtype=cage.dtype)
 
 
-@pytest.mark.parametrize("method", ["mvc", "green"])
+@pytest.mark.parametrize("method", ["mvc", "gc"])
 def test_forward_mapping_inverts_the_point_deformation(method):
     """For a non-affine pose, the source point x of each output pixel y satisfies f(x) = y with f
     the deformation the coordinate modules apply to points, up to the pixel mesh's linear
@@ -212,8 +212,8 @@ def test_gradients_flow_and_fit_a_pose():
 
 def test_state_dict_round_trip():
     cage = star_cage()
-    a = CageWarp(cage, H, W, method="green")
-    b = CageWarp(cage + 0.0, H, W, method="green")
+    a = CageWarp(cage, H, W, method="gc")
+    b = CageWarp(cage + 0.0, H, W, method="gc")
     b.load_state_dict(a.state_dict())
     moved = bent_pose(cage)
     assert torch.equal(a(test_image(), moved), b(test_image(), moved))

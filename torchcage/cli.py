@@ -22,6 +22,7 @@ from typing import Literal
 import torch
 
 from .cage import Cage
+from .families import family
 from .functional.deform import OUTSIDE_TOLERANCE
 from .methods import METHOD_EXTRAS, METHOD_HELP, METHOD_NAMES, METHODS, OUTSIDE_EFFECT, build_module
 
@@ -133,13 +134,12 @@ def deform_files(
         ValueError: an unknown method, format or up axis; ``tol`` with a method other than
             ``qmvc`` and ``qgc``; with ``strict``, points outside the cage.
     """
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    method = family(method).short
     if mesh_format not in FORMATS:
         raise ValueError(f"unknown mesh format {mesh_format!r}; choose from {', '.join(FORMATS)}")
     if up not in UP_CHOICES:
         raise ValueError(f"up must be one of {', '.join(UP_CHOICES)}, got {up!r}")
-    if tol is not None and method not in ("qmvc", "qgc"):
+    if tol is not None and not family(method).tol:
         raise ValueError(
             f"--tol is an option of --method qmvc and qgc (the quad integrals to a tolerance), not {method}"
         )

@@ -48,6 +48,7 @@ from torch import nn
 from ._raster import rasterize_triangles
 from .cage import Cage
 from .errors import CageError
+from .families import family
 from .functional._stretch import stretched_normals
 from .functional.green import green_coordinates
 from .functional.mean_value import mean_value_coordinates
@@ -55,7 +56,8 @@ from .geometry import inside_polygon
 
 __all__ = ["CageWarp", "inside_polygon", "pixel_centres", "warp_image"]
 
-METHODS = ("mvc", "green", "lbc")
+#: The families that warp images (``"green"`` is a deprecated alias of ``"gc"``).
+METHODS = ("mvc", "gc", "lbc")
 MAPPINGS = ("forward", "backward")
 OUTSIDE = ("keep", "zero", "mask")
 MODES = ("bilinear", "nearest")
@@ -115,7 +117,7 @@ def _coordinates(points: torch.Tensor, cage: Cage, method: str, options: dict[st
     deformed positions."""
     if method == "mvc":
         return mean_value_coordinates(points, cage, **options)
-    if method == "green":
+    if method == "gc":
         phi, psi = green_coordinates(points, cage, **options)
         return torch.cat([phi, psi], dim=1)
     from .functional.local_barycentric import local_barycentric_coordinates
@@ -125,14 +127,15 @@ def _coordinates(points: torch.Tensor, cage: Cage, method: str, options: dict[st
 
 def _basis(method: str, rest: torch.Tensor, vertices: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     """``(*, K, 2)``: the deformed vertices, and for Green the stretched deformed normals."""
-    if method == "green":
+    if method == "gc":
         return torch.cat([vertices, stretched_normals(rest, vertices, edges)], dim=-2)
     return vertices
 
 
-def _check_options(method: str, mapping: str, mode: str, outside: str) -> None:
-    for name, value, allowed in (("method", method, METHODS), ("mapping", mapping, MAPPINGS),
-                                 ("mode", mode, MODES), ("outside", outside, OUTSIDE)):  # fmt: skip
+def _check_options(method: str, mapping: str, mode: str, outside: str) -> str:
+    """The method's short name (an alias warns), once every option is checked."""
+    method = family(method, METHODS, stacklevel=3).short
+    for name, value, allowed in (("mapping", mapping, MAPPINGS), ("mode", mode, MODES), ("outside", outside, OUTSIDE)):
         if value not in allowed:
             raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
     if method == "lbc" and mapping == "backward":
@@ -140,6 +143,7 @@ def _check_options(method: str, mapping: str, mode: str, outside: str) -> None:
             "method='lbc' supports only mapping='forward' (local barycentric coordinates come from an "
             "iterative solve on the rest cage, too costly to repeat for every deformed cage)"
         )
+    return method
 
 
 def _forward_mesh(
@@ -208,7 +212,8 @@ class CageWarp(nn.Module):
         cage: a 2D :class:`torchcage.Cage` or a ``(V, 2)`` polygon, in pixel coordinates.
         height: image rows ``H``.
         width: image columns ``W``.
-        method: ``"mvc"`` (mean value), ``"green"`` (conformal) or ``"lbc"`` (local barycentric,
+        method: ``"mvc"`` (mean value), ``"gc"`` (Green, conformal; ``"green"`` is a deprecated
+            alias) or ``"lbc"`` (local barycentric,
             forward mapping only; ``lbc_options`` are passed to
             :func:`torchcage.functional.local_barycentric_coordinates`).
         mapping: ``"forward"`` (default here) or ``"backward"``. The defaults differ on purpose:
@@ -260,7 +265,7 @@ class CageWarp(nn.Module):
         lbc_options: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
-        _check_options(method, mapping, mode, outside)
+        method = _check_options(method, mapping, mode, outside)
         if height < 2 or width < 2:
             raise ValueError(f"images must be at least 2x2 pixels, got {height}x{width}")
         cage = _as_cage(cage)
@@ -417,7 +422,8 @@ def warp_image(
         cage: the rest cage, a 2D :class:`torchcage.Cage` or a ``(V, 2)`` polygon, in pixel
             coordinates ``(x, y) = (col, row)``.
         vertices: ``(B, V, 2)`` or ``(V, 2)`` deformed cage vertices.
-        method: ``"mvc"``, ``"green"`` or ``"lbc"`` (forward mapping only).
+        method: ``"mvc"``, ``"gc"`` (``"green"``: a deprecated alias) or ``"lbc"`` (forward
+            mapping only).
         mapping: ``"backward"`` (default here) or ``"forward"``. The defaults differ on purpose:
             one call warps one pose, where the backward mapping (coordinates of the output pixels
             in the deformed cage, computed per pose) costs the same as the forward one and is

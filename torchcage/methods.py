@@ -1,5 +1,6 @@
-"""The coordinate families by short name (``mvc``, ``gc``, ...): one place that the CLI and the
-editor share to build a coordinate module for a cage and a point set.
+"""The coordinate families by short name (``mvc``, ``gc``, ...), as the CLI and the editor name
+them, and :func:`build_module`: a family's module for a cage and a point set. The names and their
+descriptions come from the registry, :mod:`torchcage.families`.
 
 Examples:
     >>> import torch, torchcage
@@ -18,40 +19,26 @@ import torch
 from torch import nn
 
 from .cage import Cage
+from .families import FAMILIES, Family, family, names
 from .functional.deform import OUTSIDE_EFFECT
 
 __all__ = ["METHODS", "METHOD_EXTRAS", "METHOD_HELP", "METHOD_NAMES", "OUTSIDE_EFFECT", "build_module"]
 
-METHODS = ("mvc", "gc", "qmvc", "qgc", "lbc", "hc", "bbw", "mec")
+#: The families' short names, in the registry's order (:data:`torchcage.families.FAMILIES`).
+METHODS = names()
 #: The optional extra (``pip install 'torchcage[<extra>]'``) that a method needs: the methods
 #: solved on a mesh of the cage's interior need scipy (the mesher, the sparse solvers); the others
 #: need nothing beyond torch.
-METHOD_EXTRAS = {"lbc": "lbc", "hc": "lbc", "bbw": "lbc"}
+METHOD_EXTRAS = {f.short: f.extra for f in FAMILIES if f.extra}
 
 
-def _needs(method: str) -> str:
-    extra = METHOD_EXTRAS.get(method)
-    return f"; needs torchcage[{extra}]" if extra else ""
+def _help(f: Family) -> str:
+    return f"{f.short} ({f.help}{'; needs torchcage[' + f.extra + ']' if f.extra else ''})"
 
 
-METHOD_HELP = (
-    "coordinates: mvc (mean value, any closed cage, quads split), gc (Green, quasi-conformal, quads split), "
-    "qmvc (quad mean value, quads kept), qgc (quad Green, quads kept), lbc (local barycentric, solved on a mesh "
-    f"of the cage interior; slower, with progress{_needs('lbc')}), hc (harmonic, solved on a mesh of the cage "
-    f"interior{_needs('hc')}), bbw (bounded biharmonic weights, solved on that mesh; no linear precision"
-    f"{_needs('bbw')}), mec (maximum entropy: positive, with the mvc or qmvc prior; points must be inside the "
-    "cage); default mvc"
-)
-METHOD_NAMES = {
-    "mvc": "mean value coordinates (mvc)",
-    "gc": "Green coordinates (gc)",
-    "qmvc": "quad mean value coordinates (qmvc)",
-    "qgc": "quad Green coordinates (qgc)",
-    "lbc": "local barycentric coordinates (lbc)",
-    "hc": "harmonic coordinates (hc)",
-    "bbw": "bounded biharmonic weights (bbw)",
-    "mec": "maximum entropy coordinates (mec)",
-}
+METHOD_HELP = "coordinates: " + ", ".join(_help(f) for f in FAMILIES) + f"; default {FAMILIES[0].short}"
+#: ``"mean value coordinates (mvc)"`` by short name.
+METHOD_NAMES = {f.short: f.name for f in FAMILIES}
 
 #: A progress report: ``progress(done, total, message)``; ``total`` is ``None`` where the work has
 #: no known length (the iterative LBC solve reports its iteration and residuals in ``message``).
@@ -81,39 +68,32 @@ def build_module(
         ValueError: an unknown method, or ``tol`` with a method other than ``qmvc`` and ``qgc``
             (and every error of the module itself).
     """
-    import torchcage
-
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    if tol is not None and method not in ("qmvc", "qgc"):
-        raise ValueError(f"tol is an option of qmvc and qgc (the quad integrals to a tolerance), not of {method}")
-    by_points = _by_points(progress)
-    if method == "mvc":
-        return torchcage.MeanValueCoordinates(cage.triangulated(), points, progress=by_points)
-    if method == "gc":
-        return torchcage.GreenCoordinates(cage.triangulated(), points, progress=by_points)
-    if method == "qmvc":
-        return torchcage.QuadMeanValueCoordinates(cage, points, progress=by_points, tol=tol)
-    if method == "qgc":
-        return torchcage.QuadGreenCoordinates(cage, points, progress=by_points, tol=tol)
-    if method == "mec":
-        return torchcage.MaximumEntropyCoordinates(cage, points, progress=by_points)
+    fam = family(method)
+    method = fam.short
+    if tol is not None and not fam.tol:
+        raise ValueError(
+            f"tol is an option of {' and '.join(names(lambda f: f.tol))} (the quad integrals to a tolerance), "
+            f"not of {method}"
+        )
+    module = fam.module()
+    if fam.faces == "triangles":
+        cage = cage.triangulated()
+    if not fam.solved:  # closed-form families: a progress bar over chunks of points
+        return module(cage, points, progress=_by_points(progress), **({"tol": tol} if fam.tol else {}))
     if method == "hc":
         if callable(progress):
             progress(0, None, "meshing the cage interior and solving")
-        return torchcage.HarmonicCoordinates(cage, points)
+        return module(cage, points)
     if method == "bbw":  # an iterative solve: it reports its iteration and certified gap
         if not callable(progress):
-            return torchcage.BoundedBiharmonicWeights(cage, points, progress=bool(progress))
+            return module(cage, points, progress=bool(progress))
         report = progress
         report(0, None, "meshing the cage interior")
-        return torchcage.BoundedBiharmonicWeights(
-            cage, points, progress=lambda it, gap: report(it, None, f"iteration {it}, gap {gap:.2g}")
-        )
+        return module(cage, points, progress=lambda it, gap: report(it, None, f"iteration {it}, gap {gap:.2g}"))
     # lbc: an iterative solve of unknown length; it reports its iteration and residuals
     if callable(progress):
         progress(0, None, "meshing the cage interior")
-    return torchcage.LocalBarycentricCoordinates(cage, points, progress=_by_iteration(progress))
+    return module(cage, points, progress=_by_iteration(progress))
 
 
 def _by_points(progress: bool | Progress) -> bool | Callable[[int, int], None]:

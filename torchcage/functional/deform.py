@@ -13,6 +13,7 @@ import torch
 
 from ..cage import Cage
 from ..errors import OutsideCageWarning
+from ..families import FAMILIES, family, names
 from ._common import safe_norm
 from ._qgc3d import corner_normals
 from ._stretch import conformal_stretch, stretched_normals, stretched_triangle_normals
@@ -213,27 +214,11 @@ def find_outside(points: torch.Tensor, cage: Cage, tolerance: float = OUTSIDE_TO
     return Outside(count, int(mask.numel()), worst, mask)
 
 
-#: What each family does with points outside the cage (the end of the outside warning).
-OUTSIDE_EFFECT = {
-    "mvc": "mean value coordinates extrapolate there (defined, but the farther out a point lies the less it "
-    "follows the cage); enlarge the cage around them",
-    "qmvc": "quad mean value coordinates extrapolate there (defined, but the farther out a point lies the less it "
-    "follows the cage); enlarge the cage around them",
-    "gc": "Green coordinates continue them through the nearest faces, exact at rest but extrapolating those "
-    "faces' motion; enlarge the cage around them",
-    "qgc": "quad Green coordinates are defined inside the cage only and map these points to (nearly) the "
-    "origin; enlarge the cage around them or use mean value coordinates",
-    "lbc": "they take the coordinates of the nearest point of the meshed interior (they move with it, not with "
-    "the cage); enlarge the cage around them",
-    "hc": "they take the coordinates of the nearest point of the meshed interior (they move with it, not with "
-    "the cage); enlarge the cage around them",
-    "bbw": "they take the coordinates of the nearest point of the meshed interior (they move with it, not with "
-    "the cage); enlarge the cage around them",
-    "mec": "maximum entropy coordinates exist only inside the cage; enlarge the cage around them or use mean "
-    "value coordinates",
-}
+#: What each family does with points outside the cage (the end of the outside warning; from the
+#: registry, :mod:`torchcage.families`).
+OUTSIDE_EFFECT = {f.short: f.outside for f in FAMILIES}
 
-_METHODS = ("mvc", "qmvc", "gc", "qgc")
+_METHODS = names(lambda f: f.deform)
 _OUTSIDE = ("warn", "error", "ignore")
 
 
@@ -289,8 +274,7 @@ def deform(
         >>> y.sum().backward(); rest.grad.shape
         torch.Size([2, 8, 3])
     """
-    if method not in _METHODS:
-        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+    method = family(method, _METHODS).short
     if not isinstance(vertices, torch.Tensor) or tuple(vertices.shape[-2:]) != (cage.num_vertices, cage.dim):
         shape = tuple(vertices.shape) if isinstance(vertices, torch.Tensor) else type(vertices).__name__
         raise ValueError(f"vertices must have shape (*, {cage.num_vertices}, {cage.dim}), got {shape}")

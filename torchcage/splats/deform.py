@@ -30,13 +30,15 @@ import torch
 from torch import nn
 
 from ..cage import Cage
+from ..families import family, names
 from .linalg import closest_rotation, matrix_to_quaternion, svd3
 from .scene import GaussianScene, quaternion_to_matrix
 from .sh import rotate_sh
 
 __all__ = ["DeformGaussians", "DeformedGaussians"]
 
-METHODS = ("mvc", "gc")
+#: The families with a closed-form Jacobian (the registry's ``jacobian``).
+METHODS = names(lambda f: f.jacobian)
 
 
 @dataclass
@@ -54,13 +56,11 @@ class DeformedGaussians:
 
 
 def _coordinates_module(cage: Cage, points: torch.Tensor, method: str, **kwargs) -> nn.Module:
-    from ..nn import GreenCoordinates, MeanValueCoordinates
-
-    if method == "mvc":
-        return MeanValueCoordinates(cage.triangulated(), points, store_derivatives=1, **kwargs)
-    if method == "gc":
-        return GreenCoordinates(cage.triangulated(), points, store_derivatives=1, **kwargs)
-    raise ValueError(f"method must be one of {METHODS} (a family with a closed-form Jacobian), got {method!r}")
+    try:
+        fam = family(method, METHODS, stacklevel=4)
+    except ValueError as err:
+        raise ValueError(f"{err} (a family with a closed-form Jacobian)") from None
+    return fam.module()(cage.triangulated(), points, store_derivatives=1, **kwargs)
 
 
 class DeformGaussians(nn.Module):

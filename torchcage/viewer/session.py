@@ -29,6 +29,7 @@ import torch
 
 from ..cage import Cage
 from ..errors import CageError
+from ..families import family
 from ..methods import METHOD_NAMES, METHODS, build_module
 
 __all__ = ["PREFIX_RULE", "CoordinatesError", "EditorError", "EditorSession", "PoseError", "Status", "check_prefix"]
@@ -202,8 +203,7 @@ class EditorSession:
             ValueError: an unknown method.
             CoordinatesError: with ``wait``, the computation failed.
         """
-        if method not in METHODS:
-            raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+        method = family(method).short
         with self._lock:
             self._token += 1
             token = self._token
