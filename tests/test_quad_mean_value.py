@@ -233,7 +233,7 @@ def test_errors_and_inputs_untouched():
     assert torch.equal(x, before)
     with pytest.raises(ValueError, match="positive integer"):
         F.quad_mean_value_coordinates(x, cage, n=0)
-    with pytest.raises(ValueError, match="'auto', 'torch', 'native' or 'triton'"):
+    with pytest.raises(ValueError, match="backend must be one of 'auto', 'native', 'torch', 'triton'"):
         F.quad_mean_value_coordinates(x, cage, backend="cuda")
     with pytest.raises(torchcage.PointsError, match="NaN"):
         F.quad_mean_value_coordinates(torch.tensor([[float("nan"), 0.0, 0.0]], dtype=torch.float64), cage)

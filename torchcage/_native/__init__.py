@@ -30,7 +30,7 @@ import torch
 from . import _buildspec as build_spec
 from . import abi
 
-__all__ = ["available", "call", "failure_reason", "library", "select", "variant"]
+__all__ = ["available", "call", "failure_reason", "library", "variant"]
 
 _SOURCES = build_spec.SOURCES
 _HEADERS = build_spec.HEADERS
@@ -171,41 +171,6 @@ def failure_reason() -> str:
 def available() -> bool:
     """True when the native kernels can be used."""
     return library() is not None
-
-
-def select(
-    backend: str, points: torch.Tensor, cage_vertices: torch.Tensor, dims: tuple[int, ...] = (3,)
-) -> ctypes.CDLL | None:
-    """The native library when it should serve a call, else ``None`` (use the torch kernel).
-
-    ``"auto"`` takes it for float64 CPU points of a dimension in ``dims`` when no autograd graph is
-    needed (neither the points nor the cage vertices require grad); ``"native"`` insists and raises
-    where it cannot serve; ``"torch"`` never takes it.
-
-    Raises:
-        ValueError: an unknown backend.
-        RuntimeError: ``"native"`` where the native kernel cannot serve (the message says why).
-    """
-    if backend not in ("auto", "native", "torch"):
-        hint = " ('triton' serves mean value, 3D Green and quad mean value coordinates)" if backend == "triton" else ""
-        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}{hint}")
-    if backend == "torch" or points.shape[-1] not in dims:
-        return None
-    if torch.is_grad_enabled() and (points.requires_grad or cage_vertices.requires_grad):
-        if backend == "native":
-            raise RuntimeError(
-                "the native kernel records no autograd graph; use backend='torch' (or 'auto') to "
-                "differentiate with respect to the points or the cage vertices"
-            )
-        return None
-    ok = points.device.type == "cpu" and points.dtype == torch.float64
-    lib = library() if ok else None
-    if backend == "native" and lib is None:
-        raise RuntimeError(
-            "the native kernel needs float64 points on the CPU and a C compiler; use backend='torch' "
-            "(or 'auto', which falls back to it)"
-        )
-    return lib
 
 
 def call(lib: ctypes.CDLL, name: str, **arguments: object) -> None:

@@ -16,7 +16,7 @@ import os
 
 import torch
 
-__all__ = ["available", "device_function", "interpreted", "reason", "serves", "warps"]
+__all__ = ["available", "device_function", "interpreted", "reason", "warps"]
 
 
 def interpreted() -> bool:
@@ -64,26 +64,3 @@ def reason(t: torch.Tensor | None = None) -> str | None:
 def available(t: torch.Tensor | None = None) -> bool:
     """Whether the Triton kernels can serve tensor ``t``."""
     return reason(t) is None
-
-
-def serves(backend: str, x: torch.Tensor, graph: bool) -> bool:
-    """Whether a Triton kernel computes these coordinates of points ``x``: ``"triton"`` insists
-    (and raises where it cannot serve), ``"auto"`` takes it for CUDA tensors when triton is
-    installed and no autograd graph is needed.
-
-    Raises:
-        RuntimeError: ``backend="triton"`` with an autograd graph to record, or where Triton cannot
-            run (the message says why).
-    """
-    if backend == "triton":
-        if graph:
-            raise RuntimeError(
-                "the Triton kernel records no autograd graph; use backend='auto' to differentiate (values then come "
-                "from the Triton kernel inside the autograd Function, derivatives from the closed forms or autograd "
-                "of the torch kernel)"
-            )
-        why = reason(x)
-        if why is not None:
-            raise RuntimeError(f"backend='triton' cannot serve: {why}")
-        return True
-    return backend == "auto" and x.device.type == "cuda" and not graph and available(x)

@@ -9,7 +9,7 @@ import ctypes
 
 import torch
 
-from .. import _native
+from ..backends import Op, check, select
 from ..cage import Cage
 from . import _green3d_derivatives_native
 from ._common import chunks, default_chunk, jacobian_rows
@@ -21,10 +21,13 @@ from ._green_dispatch import green_flat
 __all__ = ["autograd_rows", "bare_derivatives", "check_backend", "closed_form", "library"]
 
 
+#: The kernels of Green derivatives: native C for 3D float64 CPU points, else torch.
+GC_DERIVATIVES = Op("Green derivatives")
+
+
 def check_backend(backend: str) -> None:
     """Raise ``ValueError`` for a backend name the derivatives do not know."""
-    if backend not in ("auto", "native", "torch"):
-        raise ValueError(f"backend must be 'auto', 'native' or 'torch', got {backend!r}")
+    check(GC_DERIVATIVES, backend)
 
 
 def library(backend: str, x: torch.Tensor) -> ctypes.CDLL | None:
@@ -35,21 +38,7 @@ def library(backend: str, x: torch.Tensor) -> ctypes.CDLL | None:
         RuntimeError: ``"native"`` for points it cannot take (not float64 on the CPU) or without a
             loadable library.
     """
-    check_backend(backend)
-    if backend == "native" and (x.device.type != "cpu" or x.dtype != torch.float64):
-        raise RuntimeError(
-            f"the native kernel of Green derivatives takes float64 CPU points, got {x.dtype} on {x.device.type}; "
-            "use backend='auto' (the torch kernel on other devices)"
-        )
-    if backend == "torch" or x.device.type != "cpu" or x.dtype != torch.float64:
-        return None
-    lib = _native.library()
-    if lib is None and backend == "native":
-        raise RuntimeError(
-            "the native kernel of Green derivatives is unavailable "
-            f"({_native.failure_reason()}); use backend='torch' (or 'auto', which falls back to it)"
-        )
-    return lib
+    return select(GC_DERIVATIVES, backend, x, graph=False).lib  # (the kernels record no graph)
 
 
 def closed_form(
@@ -60,7 +49,7 @@ def closed_form(
     empty ``(0,)`` for ``order=1``); rows where ``exact`` is False are zero (see
     :func:`._green3d_derivatives.green3d_derivatives`, :func:`._green2d.green2d_derivatives`)."""
     if cage.dim == 2:  # (torch only: polygons have few edges)
-        library(backend, x)
+        check_backend(backend)
         parts = [green2d_derivatives(x[sl], cage, order) for sl in chunks(x.shape[0], chunk_size or 4096)]
         return tuple(torch.cat(col) for col in zip(*parts, strict=True))
     n, V = x.shape[0], cage.num_vertices

@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import torch
 
-from .. import _native, _triton
+from ..backends import Op, select
 from ..cage import Cage
 from ._common import chunks, default_chunk, records_graph
 from ._green2d import green2d_coordinates
@@ -16,6 +16,10 @@ from ._green3d import TriangleGreenData, green3d_coordinates, triangle_green_dat
 from ._green3d_native import native_chunk, native_tables
 
 __all__ = ["green_flat"]
+
+
+#: The kernels of Green coordinates (:func:`torchcage.backends.select` chooses).
+GC = Op("Green coordinates", triton=True)
 
 
 def green_flat(
@@ -29,10 +33,8 @@ def green_flat(
     (the torch kernel records autograd when its inputs require grad; the native one never does)."""
     compute = x.dtype
     graph = records_graph(x, cage.vertices)
-    if backend == "triton" and cage.dim != 3:
-        raise ValueError("backend='triton' serves 3D Green coordinates (triangle cages); use 'auto' for polygons")
-    use_triton = cage.dim == 3 and _triton.serves(backend, x, graph)
-    lib = None if use_triton else _native.select(backend, x, cage.vertices)
+    choice = select(GC, backend, x, cage.vertices, graph=graph)
+    use_triton, lib = choice.kind == "triton", choice.lib
     if cage.dim == 3:
         data = triangle_green_data(cage, compute)
         T = data.tri.shape[0]

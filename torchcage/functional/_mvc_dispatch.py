@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import torch
 
-from .. import _native, _triton
+from ..backends import Op, select
 from ..cage import Cage
 from ..errors import PointsError
 from . import _mvc2d_native, _mvc3d_native
@@ -17,7 +17,10 @@ from ._common import chunks, default_chunk, normalise_weights, records_graph
 from ._mvc2d import mvc2d_chunk, polygon_data
 from ._mvc3d import mvc3d_chunk, triangle_cage_data
 
-__all__ = ["coordinates_flat"]
+__all__ = ["MVC", "coordinates_flat"]
+
+#: The kernels of mean value coordinates (:func:`torchcage.backends.select` chooses).
+MVC = Op("mean value coordinates", native_dims=(2, 3), triton=True, triton_dims=(2, 3))
 
 
 def coordinates_flat(
@@ -34,8 +37,8 @@ def coordinates_flat(
         PointsError: points where the coordinates are undefined (the total weight vanishes).
     """
     graph = records_graph(x, cage.vertices)
-    use_triton = _triton.serves(backend, x, graph)
-    lib = None if use_triton or backend == "triton" else _native.select(backend, x, cage.vertices, dims=(2, 3))
+    choice = select(MVC, backend, x, cage.vertices, graph=graph)
+    use_triton, lib = choice.kind == "triton", choice.lib
     verts = cage.vertices.to(x.dtype)
     if cage.dim == 3:
         data = triangle_cage_data(cage, x.dtype)

@@ -38,7 +38,7 @@ from collections.abc import Callable
 
 import torch
 
-from .. import _native
+from ..backends import Op, select
 from ..cage import Cage
 from ..errors import PointsError
 from . import _mvcd_native
@@ -50,20 +50,11 @@ from ._mvcd_torch import torch_derivatives
 __all__ = ["derivatives_flat", "mean_value_derivatives", "mean_value_gradients", "mean_value_hessians"]
 
 
-def _library(backend: str, x: torch.Tensor) -> object | None:
-    """The native library when it serves this call (``"auto"``: CPU points and a loadable
-    library), else ``None`` (the torch path)."""
-    if backend not in ("auto", "native", "torch", "triton"):
-        raise ValueError(f"backend must be 'auto', 'native', 'torch' or 'triton', got {backend!r}")
-    if backend in ("torch", "triton") or (backend == "auto" and x.device.type != "cpu"):
-        return None
-    lib = _native.library()
-    if lib is None and backend == "native":
-        raise RuntimeError(
-            "the native kernel of mean value derivatives is unavailable "
-            f"({_native.failure_reason()}); use backend='torch' (or 'auto', which falls back to it)"
-        )
-    return lib
+#: The kernels of the analytic mean value derivatives: the native one takes CPU points of any
+#: dtype (cast to float64) and serves calls inside autograd Functions (it computes derivatives).
+MVC_DERIVATIVES = Op(
+    "mean value derivatives", native_dims=(2, 3), native_float64_only=False, triton=True, triton_dims=(2, 3)
+)
 
 
 def derivatives_flat(
@@ -104,11 +95,12 @@ def _derivatives_flat(
     backend: str,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`derivatives_flat` before the derivatives' mean over the vertices is taken out."""
-    lib = _library(backend, x)
-    if lib is None and _triton_serves(backend, x, cage):
+    choice = select(MVC_DERIVATIVES, backend, x, graph=False)  # (the kernels record no graph)
+    if choice.kind == "triton":
         return _triton_derivatives(x, cage, order, chunk_size, progress)
-    if lib is None:
+    if choice.lib is None:
         return torch_derivatives(x, cage, order, chunk_size, progress)
+    lib = choice.lib
     D, V = cage.dim, cage.num_vertices
     x = x.detach().to("cpu", torch.float64)
     n = x.shape[0]
@@ -127,14 +119,6 @@ def _derivatives_flat(
             f"mean value coordinates are undefined at points {bad} (the total weight vanishes there); move these points"
         )
     return lam, grad, hess, flags == 1
-
-
-def _triton_serves(backend: str, x: torch.Tensor, cage: Cage) -> bool:
-    """Whether the Triton kernel computes these derivatives: ``"triton"`` insists (where Triton
-    runs), ``"auto"`` takes it for points on CUDA."""
-    from .. import _triton
-
-    return _triton.serves(backend, x, False)
 
 
 def _triton_derivatives(

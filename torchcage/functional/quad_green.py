@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import torch
 
-from .. import _native
+from ..backends import Op, select
 from ..cage import Cage
 from ..errors import warn_outside
 from ._batch import over_cage_batch
@@ -25,6 +25,9 @@ __all__ = ["quad_green_coordinates"]
 #: a face rounds to up to ``eps_32 |x|`` off it, half the time outside (where the bare integrals
 #: give 0, not the limit from inside).
 INPUT_ROUNDING = 8.0
+
+#: The kernels of quad Green coordinates: native C (float64 CPU points) or torch.
+QGC = Op("quad Green coordinates")
 
 
 def input_rounding_tolerance(dtype: torch.dtype, cage: Cage) -> float:
@@ -208,7 +211,7 @@ def quad_green_coordinates(
     tri_p = verts[cage.triangles]
     tri_geometry = triangle_green_geometry(tri_p)
     qdata = quad_green_data(verts, cage.quads, tol, n) if Q else None
-    lib = _native.select(backend, x, cage.vertices)
+    lib = select(QGC, backend, x, cage.vertices).lib
     tri_part = quad_part = None
     if T and lib is not None:
         tables = native_subset_tables(verts, cage.triangles, tol)

@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import torch
 
-from .. import _native, _triton
+from ..backends import Op, check, select
 from ..cage import Cage
 from ..errors import CageError, PointsError
 from ._batch import over_cage_batch
@@ -98,6 +98,12 @@ def prepare_quad_call(
     check_quads(cage, allow_invalid, what)
     compute, out_dtype = result_dtype(flat, cage, dtype)
     return flat.to(compute), out_dtype, cage.vertices.to(compute), on_cage_tolerance(cage)
+
+
+#: The kernels of quad mean value coordinates: ``"auto"`` keeps the torch kernel on CUDA until the
+#: Triton kernel passes its GPU tests in full (on an H200 on 2026-12-04 it was 0.19 off, then after
+#: a fix 11 of 12 passed, docs/gpu.md); ``backend="triton"`` takes it.
+QMVC = Op("quad mean value coordinates", triton=True, triton_auto=False)
 
 
 def quad_mean_value_coordinates(
@@ -192,17 +198,14 @@ def quad_mean_value_coordinates(
     # the on-cage tolerance stays the uncentred cage's: points within their rounding of a quad are on it)
     c = centre_of(verts, verts.dtype)
     x, verts = x - c, verts - c
-    if backend not in ("auto", "torch", "native", "triton"):
-        raise ValueError(f"backend must be 'auto', 'torch', 'native' or 'triton', got {backend!r}")
+    check(QMVC, backend)
     if backend == "triton" and quad_tol is not None:
         raise ValueError(
             "backend='triton' computes the paper's Riemann sum (tol=None); the exact integrals (tol=...) run on "
             "backend='torch' or 'native'"
         )
-    # (auto keeps the torch kernel on CUDA until the Triton kernel passes its GPU tests in full: on an
-    # H200 on 2026-12-04 it was 0.19 off, then after a fix 11 of 12 passed, docs/gpu.md)
-    use_triton = quad_tol is None and backend == "triton" and _triton.serves(backend, x, records_graph(x, verts))
-    lib = None if use_triton or backend == "triton" else _native.select(backend, x, cage.vertices)
+    choice = select(QMVC, backend, x, cage.vertices)
+    use_triton, lib = choice.kind == "triton", choice.lib
     T, Q = cage.triangles.shape[0], cage.quads.shape[0]
     tdata = triangle_data(verts, cage.triangles, tol) if T else None
     qdata = quad_data(verts, cage.quads, tol) if Q else None
