@@ -14,7 +14,7 @@ from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 HERE = Path(__file__).parent
-_spec = importlib.util.spec_from_file_location("_tc_build", HERE / "torchcage" / "_native" / "_buildspec.py")
+_spec = importlib.util.spec_from_file_location("_tc_build", HERE / "torchcage" / "backends" / "native" / "_buildspec.py")
 _build = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_build)
 
@@ -42,13 +42,13 @@ class BuildNative(build_ext):
 
 extensions = [
     Extension(
-        f"torchcage._native.{name}",
-        sources=[f"torchcage/_native/{s}" for s in _build.SOURCES],
-        depends=[f"torchcage/_native/{h}" for h in _build.HEADERS],
+        f"torchcage.backends.native.{name}",
+        sources=[f"torchcage/backends/native/{s}" for s in _build.SOURCES],
+        depends=[f"torchcage/backends/native/{h}" for h in _build.HEADERS],
         extra_compile_args=[*_build.BASE_FLAGS, *flags],
         extra_link_args=["-fopenmp"],
         libraries=[*libs, "m"],
-        define_macros=[("TC_SOURCE_DIGEST", f'"{_build.source_digest(HERE / "torchcage" / "_native")}"')],
+        define_macros=[("TC_SOURCE_DIGEST", f'"{_build.source_digest(HERE / "torchcage" / "backends" / "native")}"')],
         optional=True,
     )
     for name, (flags, libs) in _build.prebuilt_variants().items()

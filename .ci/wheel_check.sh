@@ -27,7 +27,7 @@ import time
 import torch
 
 import torchcage
-from torchcage import _native
+from torchcage.backends import native as _native
 from torchcage import functional as F
 
 assert shutil.which("cc") is None and shutil.which("gcc") is None and _native._compiler() is None, "a compiler is visible"

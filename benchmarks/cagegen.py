@@ -62,7 +62,7 @@ def _distance_kernels(root: Path) -> None:
     cage's measured surfaces (the q0-q2 split, then the patch grids)."""
     import torch
 
-    from torchcage import _native
+    from torchcage.backends import native as _native
     from torchcage.cagegen.checks import measured_surfaces
     from torchcage.geometry import nearest_triangle
 

@@ -30,8 +30,8 @@ from harness import add_data_argument, load_model
 
 import torchcage
 from torchcage import functional as F
-from torchcage.functional._green_dispatch import green_flat
-from torchcage.functional._mvc_dispatch import coordinates_flat
+from torchcage.families.green.dispatch import green_flat
+from torchcage.families.mean_value.dispatch import coordinates_flat
 
 
 def _sync(device: str) -> None:

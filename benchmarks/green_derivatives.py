@@ -25,8 +25,8 @@ from harness import add_data_argument, qmvc_root
 
 import torchcage
 from torchcage import functional as F
-from torchcage.functional._green_derivatives_flat import autograd_rows
-from torchcage.functional._green_dispatch import green_flat
+from torchcage.families.green.derivatives_flat import autograd_rows
+from torchcage.families.green.dispatch import green_flat
 from torchcage.geometry import inside_cage
 
 

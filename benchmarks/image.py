@@ -40,7 +40,7 @@ def main() -> None:
     args = ap.parse_args()
     from kornia.geometry.transform import remap
 
-    from torchcage import _native
+    from torchcage.backends import native as _native
     from torchcage.image import CageWarp, pixel_centres
 
     S, B = args.size, args.batch

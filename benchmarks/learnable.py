@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from baseline import dense_batched_mean_value_coordinates
 from harness import best_of, peak_since, reset_peak, run_in_child
 
-from torchcage.functional._green_dispatch import green_flat
+from torchcage.families.green.dispatch import green_flat
 
 
 def problem(B: int, N: int, dtype: torch.dtype, device: str):

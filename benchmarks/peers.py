@@ -74,8 +74,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from harness import add_data_argument, load_model, qmvc_root
 
 import torchcage
-from torchcage import _native
 from torchcage import functional as F
+from torchcage.backends import native as _native
 from torchcage.solvers.domain import Domain, mesh_domain
 from torchcage.solvers.lbc import solve_lbc
 

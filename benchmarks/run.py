@@ -90,7 +90,7 @@ def main() -> None:
         print(json.dumps(run_large(int(args.large_one[0]), args.large_one[1], args.large_one[2])))
         return
 
-    from torchcage import _native
+    from torchcage.backends import native as _native
 
     t = time.perf_counter()
     native = _native.available()

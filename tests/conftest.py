@@ -19,7 +19,7 @@ BACKENDS = ["native", "torch"]
 @pytest.fixture(params=BACKENDS)
 def backend(request) -> str:
     if request.param == "native":
-        from torchcage import _native
+        from torchcage.backends import native as _native
 
         if not _native.available():
             pytest.skip("no C compiler: native kernel unavailable")
@@ -41,7 +41,7 @@ def dtype(request) -> torch.dtype:
 
 def pytest_collection_modifyitems(config, items) -> None:
     """Tests marked ``native`` test the native kernels by name: skip them where none loads."""
-    from torchcage import _native
+    from torchcage.backends import native as _native
 
     if _native.available():
         return

@@ -122,7 +122,7 @@ def test_bench_prints_as_it_goes_and_names_the_kernel_library(capsys, monkeypatc
     import pytest
 
     import torchcage._timing
-    from torchcage import _native
+    from torchcage.backends import native as _native
     from torchcage.cli import kernel_library
 
     seen = []

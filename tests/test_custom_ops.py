@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import torchcage
-from torchcage import _native
 from torchcage import functional as F
+from torchcage.backends import native as _native
 
 needs_native = pytest.mark.skipif(not _native.available(), reason="needs the native kernel (the derivatives op)")
 

@@ -222,7 +222,7 @@ def test_data_set_deformed_pose_that_folds() -> None:
 def test_native_library_built_at_install_is_preferred(monkeypatch) -> None:
     """Item 1: where an install built the kernels (pip install -e . in CI), they load without any
     compilation; a build from other sources (stale) is never loaded."""
-    from torchcage import _native
+    from torchcage.backends import native as _native
 
     if not _native.available():
         pytest.skip(f"no native library: {_native.failure_reason()}")

@@ -43,7 +43,7 @@ def test_near_cage_agrees_with_the_distances() -> None:
 
 
 def test_native_winding_number_matches_torch() -> None:
-    if not tc._native.available():
+    if not tc.backends.native.available():
         pytest.skip("no C compiler")
     for cage in (l_shape(), triquad()):
         x = _probe(cage)
@@ -72,7 +72,7 @@ def test_nearest_triangle_native_torch_and_reference_agree() -> None:
     segment = (x - v[n] - t[:, None] * ab).norm(dim=1)
     per_face = torch.cat([per_face, segment[:, None], (x - v[n]).norm(dim=1)[:, None]], dim=1)
     ref = (per_face - slack).min(dim=1)
-    backends = ("torch", "native") if tc._native.available() else ("torch",)
+    backends = ("torch", "native") if tc.backends.native.available() else ("torch",)
     for backend in backends:
         d, i = nearest_triangle(x, v, tri, slack=slack, backend=backend)
         assert torch.allclose(d, ref.values, atol=1e-14, rtol=0)
@@ -92,7 +92,7 @@ def test_nearest_triangle_gives_nan_for_nan_input_on_both_backends() -> None:
     x = torch.tensor([[0.2, 0.2, 1.0], [float("nan"), 0, 0]], dtype=D64)
     bad = v.clone()
     bad[4, 0] = float("nan")
-    backends = ("torch", "native") if tc._native.available() else ("torch",)
+    backends = ("torch", "native") if tc.backends.native.available() else ("torch",)
     for backend in backends:
         d, _ = nearest_triangle(x, v, t, backend=backend)
         assert d[0] == 1.0 and torch.isnan(d[1])

@@ -167,7 +167,7 @@ def test_green_coordinates_of_thin_faces_match_the_reference(backend: str, apex:
     60-digit closed forms: the float64 closed forms left the sliver's corners' coordinates off by
     ``eps distance / width`` (9e-8 at a width of 1e-9; the sums cancel it, the deformations do
     not)."""
-    if backend == "native" and not tc._native.available():
+    if backend == "native" and not tc.backends.native.available():
         pytest.skip("no C compiler")
     base = sliver_cube(gap)
     v = base.vertices.clone()
@@ -201,7 +201,7 @@ def test_mean_value_coordinates_of_thin_faces_match_the_reference(backend: str, 
     """Every mean value coordinate of the sliver cube (width 1e-9) against the 60-digit half-angle
     form: the native kernel's were off by 3.4e-8 before the swept form (the torch kernel's too,
     through its derivatives)."""
-    if backend == "native" and not tc._native.available():
+    if backend == "native" and not tc.backends.native.available():
         pytest.skip("no C compiler")
     base = sliver_cube(1e-9)
     v = base.vertices.clone()
@@ -223,7 +223,7 @@ def test_mean_value_derivatives_torch_path_on_an_edge_line(order: int) -> None:
     the cube's edges outside them, the diagonals between coplanar faces included: plain autograd of
     the split form was off by up to 6.9 (gradients) and 144 (Hessians) there; now the mean beside
     the line, as in the autograd fallbacks. Against the native analytic derivatives."""
-    if not tc._native.available():
+    if not tc.backends.native.available():
         pytest.skip("no C compiler")
     cage = _cube()
     x = torch.tensor([[-2.031840618539382, 1.0, -1.0], [-2.031840618539382, 1.0, 2.031840618539382]], dtype=D64)
@@ -303,7 +303,7 @@ def test_segment_moments_of_the_fourth_inverse_power_match_the_closed_forms() ->
     closed forms in 60 digits, over segments near, far, beside and along the point's line: within
     a few ulps times the conditioning ``max |p| / distance`` (the float distance to the line
     carries ``eps max |p|``)."""
-    from torchcage.functional._thin_triangle import segment_moments4
+    from torchcage._core.thin_triangle import segment_moments4
 
     g = torch.Generator().manual_seed(0)
 
@@ -356,7 +356,7 @@ def _plane_check(cage: tc.Cage, X: torch.Tensor, seed: int, backends: tuple[str,
 
 
 def _backends() -> tuple[str, ...]:
-    return ("native", "torch") if tc._native.available() else ("torch",)
+    return ("native", "torch") if tc.backends.native.available() else ("torch",)
 
 
 @pytest.mark.parametrize("kind", ["needle", "slab"])

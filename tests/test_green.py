@@ -10,7 +10,7 @@ from support import HANDMADE, QMVC_MODELS, data_path
 
 import torchcage
 from torchcage import functional as F
-from torchcage.functional._common import collapsed_gauss
+from torchcage._core.common import collapsed_gauss
 
 
 def winding_number(x: torch.Tensor, cage: torchcage.Cage) -> torch.Tensor:
@@ -146,7 +146,7 @@ def test_inside_points_on_the_planes_of_other_faces():
 
 
 def test_native_and_torch_kernels_agree():
-    from torchcage import _native
+    from torchcage.backends import native as _native
 
     if not _native.available():
         pytest.skip("native kernel unavailable")

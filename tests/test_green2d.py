@@ -8,7 +8,7 @@ import mpmath as mp
 import torch
 
 import torchcage
-from torchcage.functional._green2d import green2d_coordinates
+from torchcage.families.green.kernel2d import green2d_coordinates
 
 
 def inside_polygon(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

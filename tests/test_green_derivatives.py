@@ -14,9 +14,9 @@ from test_gradient_references import _sample
 
 import torchcage as tc
 from torchcage import functional as F
-from torchcage.functional._green_derivatives_flat import autograd_rows
-from torchcage.functional._green_dispatch import green_flat
-from torchcage.functional.green_derivatives import _autograd_rows
+from torchcage.families.green.derivatives import _autograd_rows
+from torchcage.families.green.derivatives_flat import autograd_rows
+from torchcage.families.green.dispatch import green_flat
 from torchcage.geometry import inside_cage
 from torchcage.testing import sliver_cube
 
@@ -115,7 +115,7 @@ def test_hessians_match_high_precision_differences(name: str) -> None:
     cage = _cube() if name == "cube" else l_shape().triangulated()
     X, cats = _sample(cage, 2, seed=1, far=False)
     nat = F.green_derivatives(
-        X, cage, order=2, exterior="none", backend="native" if tc._native.available() else "torch"
+        X, cage, order=2, exterior="none", backend="native" if tc.backends.native.available() else "torch"
     )
     tor = F.green_derivatives(X, cage, order=2, exterior="none", backend="torch")
     for a, b in zip(nat[2:], tor[2:], strict=True):
@@ -135,7 +135,7 @@ def test_far_field_matches_high_precision(name: str) -> None:
     60-digit closed forms and their differences, at points where some faces take the far-field rule
     (nearest corner ``FAR_RATIO`` longest edges away) and others the closed forms, and 1e2 to 1e6
     sizes away, where the closed forms alone lost up to 3e-7 (values)."""
-    from torchcage.functional._far_triangle import FAR_RATIO
+    from torchcage.families.green.far_triangle import FAR_RATIO
 
     cage = _cube() if name == "cube" else l_shape().triangulated()
     v = cage.vertices
@@ -149,7 +149,7 @@ def test_far_field_matches_high_precision(name: str) -> None:
     dist = torch.tensor([switch * (1 - 1e-9), switch * (1 + 1e-9), R + switch, 1e2, 1e4, 1e6], dtype=D64)
     dist[3:] *= cage.scale
     X = centre + dist[:, None] * d
-    backends = ["native", "torch"] if tc._native.available() else ["torch"]
+    backends = ["native", "torch"] if tc.backends.native.available() else ["torch"]
     outs = {}
     for b in backends:  # (the values from each backend's own kernel)
         derivatives = F.green_derivatives(X, cage, order=2, exterior="none", backend=b)
@@ -248,7 +248,7 @@ def test_autograd_through_the_closed_form() -> None:
     gradients (double backward: the Hessians): gradcheck and gradgradcheck inside and outside (the
     extension), the same gradient as the torch kernel's autograd, and the cage's vertices still
     differentiable alongside."""
-    from torchcage.autograd.green import GreenGradFunction
+    from torchcage.families.green.ops import GreenGradFunction
 
     cage = _cube()
     g = torch.Generator().manual_seed(7)

@@ -12,7 +12,7 @@ import torch
 
 import torchcage
 from torchcage import functional as F
-from torchcage.functional._green2d import green2d_coordinates
+from torchcage.families.green.kernel2d import green2d_coordinates
 
 EPS = torch.finfo(torch.float64).eps
 

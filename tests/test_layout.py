@@ -73,12 +73,71 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 def test_the_import_graph_has_no_cycle() -> None:
     graph = import_graph()
-    assert "torchcage.autograd.mean_value" in graph["torchcage.functional.mean_value"]  # the reader works
+    assert "torchcage.families.mean_value.ops" in graph["torchcage.families.mean_value.api"]  # the reader works
     # A package's __init__ re-exports its submodules; what must not happen is a submodule that
     # imports, directly or through others, a module that imports it back.
     inner = {u: {v for v in vs if not (graph.get(v) is not None and u.startswith(v + "."))} for u, vs in graph.items()}
     cycle = _cycle(inner)
     assert cycle is None, " -> ".join(cycle)
+
+
+#: The layers, lowest first: a module may import its own layer and those below it, never above.
+#: Facades re-export; families hold each family's code; _core and backends import no family.
+LAYERS = (
+    {"errors", "_timing", "_intersections", "_raster", "cage", "geometry", "data", "backends"},
+    {"_core", "io", "testing"},
+    {"families", "solvers"},
+    {"functional", "nn", "autograd"},
+)
+
+
+def _package(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+def _layer(package: str) -> int | None:
+    return next((k for k, names in enumerate(LAYERS) if package in names), None)
+
+
+def test_packages_import_downwards_only() -> None:
+    """No package-level cycle among the layered packages: ``_core`` and ``backends`` import no
+    family and no facade, families import no facade (``functional``, ``nn``, ``autograd``)."""
+    bad = []
+    for u, vs in import_graph().items():
+        lu = _layer(_package(u))
+        for v in vs:
+            lv = _layer(_package(v))
+            if lu is not None and lv is not None and lv > lu:
+                bad.append(f"{u} -> {v}")
+    assert not bad, "imports against the layering:\n" + "\n".join(sorted(bad))
+
+
+def test_a_family_imports_no_other_family_but_the_ones_it_builds_on() -> None:
+    """A family's code lives in its folder; the only cross-family imports are the quad families'
+    use of the triangle kernels (and quad Green's of quad mean value's argument checks), and the
+    Triton kernel of Green coordinates' use of mean value's thin-face routine."""
+    allowed = {
+        ("quad_mean_value", "mean_value"),
+        ("quad_green", "green"),
+        ("quad_green", "quad_mean_value"),
+        ("quad_green", "mean_value"),
+        ("maximum_entropy", "mean_value"),
+        ("maximum_entropy", "quad_mean_value"),
+        ("local_barycentric", "harmonic"),
+        ("biharmonic", "harmonic"),
+        ("green", "mean_value"),
+    }
+    found = set()
+    for u, vs in import_graph().items():
+        pu = u.split(".")
+        if len(pu) < 4 or pu[1] != "families":
+            continue
+        for v in vs:
+            pv = v.split(".")
+            if len(pv) >= 3 and pv[1] == "families" and len(pv) > 2 and pv[2] != pu[2] and len(pv) >= 4:
+                found.add((pu[2], pv[2]))
+    assert found <= allowed, sorted(found - allowed)
 
 
 def test_custom_ops_are_registered_at_import() -> None:

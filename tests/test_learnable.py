@@ -9,8 +9,8 @@ from support import cube, extruded_polygon
 
 import torchcage
 from torchcage import functional as F
-from torchcage.autograd.mean_value import _torch_coordinates
-from torchcage.functional._mvc3d_vjp import direct_vjp
+from torchcage.families.mean_value.ops import _torch_coordinates
+from torchcage.families.mean_value.vjp3d import direct_vjp
 from torchcage.testing import icosphere, twisted_bar
 
 D64 = torch.float64
@@ -173,8 +173,8 @@ def test_rest_cage_gradients_match_autograd(make):
 
 
 def test_torch_and_native_direct_vjp_agree():
-    from torchcage import _native
-    from torchcage.functional._mvc3d_vjp_native import native_vjp
+    from torchcage.backends import native as _native
+    from torchcage.families.mean_value.vjp3d_native import native_vjp
 
     lib = _native.library()
     if lib is None:
@@ -218,7 +218,7 @@ def test_green_backward_is_chunked_and_exact():
     phi, psi = F.green_coordinates(xr, torchcage.Cage(Pr, cage.triangles, validate=False))
     gx, gP = torch.autograd.grad((phi * g1).sum() + (psi * g2).sum(), [xr, Pr])
     # reference: autograd through the torch kernel of each point separately (independent chunking)
-    from torchcage.functional._green_dispatch import green_flat
+    from torchcage.families.green.dispatch import green_flat
 
     xs, Ps = x[::300].clone().requires_grad_(), cage.vertices.clone().requires_grad_()
     a, b = green_flat(xs, torchcage.Cage(Ps, cage.triangles, validate=False), None, False, "torch")

@@ -265,7 +265,7 @@ def test_harmonic_coordinates_inside_long_thin_cells_do_not_warn() -> None:
     g = np.random.default_rng(3)
     q = g.random((3000, 3)) * [80.0, 1.2, 1.2] - [40.0, 0.1, 0.1]
     q = torch.from_numpy(q[Delaunay(d.vertices.numpy()).find_simplex(q) >= 0])
-    from torchcage.functional.harmonic import interpolate_on_mesh
+    from torchcage.families.harmonic.api import interpolate_on_mesh
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -1,4 +1,4 @@
-"""The native calling interface: the Python tables in ``torchcage/_native/abi.py`` agree with the
+"""The native calling interface: the Python tables in ``torchcage/backends/native/abi.py`` agree with the
 C prototypes (names and types, in order), and calls are checked before any pointer is taken."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchcage._native import abi
+from torchcage.backends.native import abi
 
 NATIVE = Path(abi.__file__).parent
 

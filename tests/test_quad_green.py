@@ -19,7 +19,7 @@ from support import (
 
 import torchcage
 from torchcage import functional as F
-from torchcage.functional._stretch import triangle_frames
+from torchcage.families.green.stretch import triangle_frames
 
 
 def normals(cage: torchcage.Cage) -> torch.Tensor:
@@ -215,7 +215,7 @@ def test_collapsed_deformed_quad_stays_finite():
 # ----------------------------------------------------------------------------- backends, gradients, API
 @pytest.mark.filterwarnings("ignore::torchcage.OutsideCageWarning")  # (far points, on purpose)
 def test_backends_agree():
-    from torchcage import _native
+    from torchcage.backends import native as _native
 
     if not _native.available():
         pytest.skip("no C compiler")

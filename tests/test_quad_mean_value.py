@@ -181,7 +181,7 @@ def test_invariance_under_similarity(scale, backend):
 
 
 def test_backends_agree():
-    from torchcage import _native
+    from torchcage.backends import native as _native
 
     if not _native.available():
         pytest.skip("no C compiler")

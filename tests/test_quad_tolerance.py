@@ -14,8 +14,8 @@ from support import QMVC_MODELS, box_points, data_path, model_points, quad_adver
 
 import torchcage
 from torchcage import functional as F
-from torchcage._native import available as native_available
-from torchcage.functional import _quad_quadrature as QQ
+from torchcage._core import quad_quadrature as QQ
+from torchcage.backends.native import available as native_available
 
 needs_native = pytest.mark.skipif(not native_available(), reason="the native kernels are not built")
 

@@ -121,7 +121,7 @@ def test_green_module_on_a_sliver_cage() -> None:
 
 
 def test_conformal_stretch_is_exact_on_slivers_and_zero_when_collapsed() -> None:
-    from torchcage.functional._stretch import conformal_stretch
+    from torchcage.families.green.stretch import conformal_stretch
 
     u0 = torch.tensor([1.0, 0.0, 0.0], dtype=D64)
     v0 = torch.tensor([0.5, 1e-9, 0.0], dtype=D64)
@@ -269,7 +269,7 @@ def test_qgc_within_a_few_tolerances_of_twisted_quad_edges(backend: str) -> None
     sides of the sheet (PU off by 0.44, LP 0.7). Such points are now on the quad (a band of 4
     tolerances): partition of unity is exact; linear precision keeps about 4e-5 (open: the
     neighbouring quad's fan has a sliver over the shared edge, seen from 2.5 tolerances)."""
-    from torchcage.functional._common import on_cage_tolerance
+    from torchcage._core.common import on_cage_tolerance
 
     bar = twisted_bar()
     tol = on_cage_tolerance(bar)

@@ -9,10 +9,10 @@ import torch
 from support import HANDMADE
 
 import torchcage
-from torchcage import _native
 from torchcage import functional as F
-from torchcage.autograd import mean_value as autograd_mvc
-from torchcage.functional.mean_value_derivatives import derivatives_flat
+from torchcage.backends import native as _native
+from torchcage.families.mean_value import ops as autograd_mvc
+from torchcage.families.mean_value.derivatives import derivatives_flat
 
 f64 = torch.float64
 

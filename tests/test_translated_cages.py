@@ -1,5 +1,5 @@
 """Mean value coordinates on cages far from the origin (issue 42, item 13): computed relative to the
-cage's centre (``functional/_centre.py``), linear precision and the derivative identity hold to the
+cage's centre (``_core/centre.py``), linear precision and the derivative identity hold to the
 rounding of the results themselves, whatever the translation.
 
 The bounds are in units of that rounding: ``|W V - x| <= k eps (sum_v |w_v| |V_v| + |x|)`` and
@@ -139,7 +139,7 @@ def test_translated_cages_sweep(kind: str) -> None:
         cage = _cage(kind, seed, shift=10 ** (6 + 3 * float(torch.rand(1, generator=g, dtype=D64))))
         X = _points(cage, seed)
         Xo = X[distance_to_triangles(X, cage.vertices, cage.triangles) > 1e-3 * cage.scale]
-        for backend in ("native", "torch") if tc._native.available() else ("torch",):
+        for backend in ("native", "torch") if tc.backends.native.available() else ("torch",):
             assert _lp_units(F.mean_value_coordinates(X, cage, backend=backend), cage.vertices, X) < K, seed
             _, G, _ = F.mean_value_derivatives(Xo, cage, order=1, backend=backend)
             assert _identity_units(G, cage.vertices) < K, seed

@@ -65,7 +65,7 @@ def test_float64_matches_the_native_kernel(name: str) -> None:
     cage = CAGES[name]
     x, cats = _points(cage)
     far = torch.tensor([c == "far" for c in cats])
-    ref = F.mean_value_coordinates(x, cage, backend="native" if tc._native.available() else "torch")
+    ref = F.mean_value_coordinates(x, cage, backend="native" if tc.backends.native.available() else "torch")
     got = F.mean_value_coordinates(x.to(DEVICE), cage.to(DEVICE), backend="triton").cpu()
     assert got.dtype == D64
     err = _rel(got, ref)
@@ -91,7 +91,7 @@ def test_float32_matches_the_native_kernel_on_the_same_inputs(name: str) -> None
     c32 = cage.to(torch.float32)
     rounded = tc.Cage(c32.vertices.double(), cage.triangles)
     xr = x.float().double()
-    ref = F.mean_value_coordinates(xr, rounded, backend="native" if tc._native.available() else "torch")
+    ref = F.mean_value_coordinates(xr, rounded, backend="native" if tc.backends.native.available() else "torch")
     got = F.mean_value_coordinates(x.float().to(DEVICE), c32.to(DEVICE), backend="triton", dtype=torch.float32).cpu()
     assert got.dtype == torch.float32 and bool(torch.isfinite(got).all())
     err = _rel(got, ref)
@@ -121,12 +121,12 @@ def test_thin_faces_are_redone_by_the_torch_kernel() -> None:
     kernel and take the torch kernel's swept form, so the result matches the native kernel's."""
     cage = sliver_cube()
     x, _ = _points(cage, per=12)
-    from torchcage._triton.mvc3d import mvc3d_triton, triton_tables
-    from torchcage.functional._mvc3d import triangle_cage_data
+    from torchcage.families.mean_value.kernel3d import triangle_cage_data
+    from torchcage.families.mean_value.triton.mvc3d import mvc3d_triton, triton_tables
 
     _, flags = mvc3d_triton(x.to(DEVICE), triton_tables(triangle_cage_data(cage.to(DEVICE), D64)))
     assert int((flags.cpu() == 2).sum()) > 0
-    ref = F.mean_value_coordinates(x, cage, backend="native" if tc._native.available() else "torch")
+    ref = F.mean_value_coordinates(x, cage, backend="native" if tc.backends.native.available() else "torch")
     got = F.mean_value_coordinates(x.to(DEVICE), cage.to(DEVICE), backend="triton").cpu()
     assert float(_rel(got, ref).max()) < 1e-12
 
@@ -157,7 +157,7 @@ def test_the_backend_says_what_it_cannot_do() -> None:
     poly = tc.load_cage(tc.data.path("blob2d.obj")).to(D64)
     with pytest.raises(ValueError, match="triton"):
         F.green_coordinates(torch.zeros(1, 2, dtype=D64), poly, backend="triton")
-    from torchcage.functional._green_dispatch import green_flat
+    from torchcage.families.green.dispatch import green_flat
 
     x = torch.zeros(1, 3, dtype=D64, device=DEVICE, requires_grad=True)
     with pytest.raises(RuntimeError, match="autograd"):
@@ -194,7 +194,7 @@ def test_2d_matches_the_native_kernel(name: str, dtype: torch.dtype) -> None:
     far = torch.tensor([c == "far" for c in cats])
     rounded = tc.Cage(cage.vertices.to(dtype).double()) if dtype != D64 else cage
     xr = x.to(dtype).double()
-    ref = F.mean_value_coordinates(xr, rounded, backend="native" if tc._native.available() else "torch")
+    ref = F.mean_value_coordinates(xr, rounded, backend="native" if tc.backends.native.available() else "torch")
     got = F.mean_value_coordinates(x.to(dtype).to(DEVICE), cage.to(DEVICE).to(dtype), backend="triton", dtype=dtype)
     got = got.cpu()
     assert got.dtype == dtype and bool(torch.isfinite(got).all())
@@ -242,11 +242,11 @@ def test_2d_derivatives_match_the_native_kernel(name: str) -> None:
       quotient and every backend's derivatives lose accuracy (the native kernel's Hessians break
       linear precision by 1e10 at 1e-13 distances, the Triton kernel's alike): finite only.
     """
-    from torchcage.functional.mean_value_derivatives import derivatives_flat
+    from torchcage.families.mean_value.derivatives import derivatives_flat
 
     cage = POLYGONS[name]
     x, cats = _points(cage, per=16)
-    ref_backend = "native" if tc._native.available() else "torch"
+    ref_backend = "native" if tc.backends.native.available() else "torch"
     L, G, H, on = derivatives_flat(x, cage, 2, backend=ref_backend)
     lam, g, h, on_t = derivatives_flat(x.to(DEVICE), cage.to(DEVICE), 2, backend="triton")
     lam, g, h, on_t = lam.cpu(), g.cpu(), h.cpu(), on_t.cpu()
@@ -271,7 +271,7 @@ def _route_derivatives_to_triton(monkeypatch) -> list[int]:
     kernel was called with."""
     import importlib
 
-    mvd = importlib.import_module("torchcage.functional.mean_value_derivatives")  # (the module, not the function)
+    mvd = importlib.import_module("torchcage.families.mean_value.derivatives")  # (the module, not the function)
     calls: list[int] = []
     original = mvd._triton_derivatives
 
@@ -283,7 +283,7 @@ def _route_derivatives_to_triton(monkeypatch) -> list[int]:
     monkeypatch.setattr(mvd, "_triton_serves", lambda backend, x, cage: True)
     monkeypatch.setattr(mvd, "_triton_derivatives", spy)
     if DEVICE == "cpu":  # (the autograd Functions take the analytic path for CPU points and the library)
-        import torchcage.autograd.mean_value as amv
+        import torchcage.families.mean_value.ops as amv
 
         monkeypatch.setattr(amv, "_analytic", lambda points: True)
     return calls
@@ -297,7 +297,7 @@ def test_2d_derivatives_through_the_public_function_and_autograd(monkeypatch) ->
     cage = POLYGONS["blob"].to(DEVICE)
     x = torch.tensor([[0.1, 0.2], [-0.3, 0.25], [0.4, -0.1]], dtype=D64, device=DEVICE)
     got = F.mean_value_derivatives(x, cage, backend="triton")
-    ref = F.mean_value_derivatives(x.cpu(), POLYGONS["blob"], backend="native" if tc._native.available() else "torch")
+    ref = F.mean_value_derivatives(x.cpu(), POLYGONS["blob"], backend="native" if tc.backends.native.available() else "torch")
     for a, b in zip(got, ref, strict=True):
         assert torch.allclose(a.cpu(), b, rtol=1e-10, atol=1e-12)
     calls = _route_derivatives_to_triton(monkeypatch)
@@ -347,11 +347,11 @@ def test_3d_derivatives_match_the_native_kernel(name: str) -> None:
       parts that cancel in the quotient, and every backend's derivatives lose accuracy (Hessians
       off by up to 1e-1 relative at 1e-14 of the size, torch against native alike): finite only.
     """
-    from torchcage.functional.mean_value_derivatives import derivatives_flat
+    from torchcage.families.mean_value.derivatives import derivatives_flat
 
     cage = CAGES[name]
     x, cats = _points(cage, per=6)
-    ref_backend = "native" if tc._native.available() else "torch"
+    ref_backend = "native" if tc.backends.native.available() else "torch"
     L, G, H, on = derivatives_flat(x, cage, 2, backend=ref_backend)
     lam, g, h, on_t = derivatives_flat(x.to(DEVICE), cage.to(DEVICE), 2, backend="triton")
     lam, g, h, on_t = lam.cpu(), g.cpu(), h.cpu(), on_t.cpu()
@@ -383,7 +383,7 @@ def test_3d_derivatives_through_the_public_function_and_autograd(monkeypatch) ->
     redone by the torch kernel's derivatives."""
     cage = CAGES["cube"].to(DEVICE)
     x = torch.tensor([[[0.1, 0.2, -0.3], [0.5, -0.45, 0.9]], [[-0.99, 0.0, 0.2], [2.0, 1.0, -3.0]]], dtype=D64)
-    ref_backend = "native" if tc._native.available() else "torch"
+    ref_backend = "native" if tc.backends.native.available() else "torch"
     got = F.mean_value_derivatives(x.to(DEVICE), cage, backend="triton")
     ref = F.mean_value_derivatives(x, CAGES["cube"], backend=ref_backend)
     for a, b in zip(got, ref, strict=True):
@@ -423,12 +423,12 @@ def test_green_float64_matches_the_native_kernel(name: str) -> None:
     """Adversarial points (on and 1e-15..1e-3 of the size from vertices, edges and faces, support
     planes, edge lines) within 1e-12 of the native kernel (relative to ``max(1, |ref|)``), the
     identity ``phi V + psi n = x`` inside; far points (1e2..1e9 sizes, where both kernels take the
-    far-field Gauss rule of :mod:`torchcage.functional._far_triangle`) within 1e-13 of the row's
+    far-field Gauss rule of :mod:`torchcage.families.green.far_triangle`) within 1e-13 of the row's
     norm (measured: 1e-16 on the cube and FireHydrant)."""
     cage = CAGES[name]
     x, cats = _points(cage, per=16)
     far = torch.tensor([c == "far" for c in cats])
-    ref = _green(x, cage, "native" if tc._native.available() else "torch")
+    ref = _green(x, cage, "native" if tc.backends.native.available() else "torch")
     got = _green(x.to(DEVICE), cage.to(DEVICE), "triton").cpu()
     assert got.dtype == D64 and bool(torch.isfinite(got).all())
     err = _rel(got, ref)
@@ -452,7 +452,7 @@ def test_green_float32_matches_the_native_kernel_on_the_same_inputs(name: str) -
     far = torch.tensor([c == "far" for c in cats])
     c32 = cage.to(torch.float32)
     rounded = tc.Cage(c32.vertices.double(), cage.triangles)
-    ref = _green(x.float().double(), rounded, "native" if tc._native.available() else "torch")
+    ref = _green(x.float().double(), rounded, "native" if tc.backends.native.available() else "torch")
     got = _green(x.float().to(DEVICE), c32.to(DEVICE), "triton", dtype=torch.float32).cpu()
     assert got.dtype == torch.float32 and bool(torch.isfinite(got[~far]).all())
     assert float(_rel(got[~far], ref[~far]).max()) < 1e-5, name
@@ -461,8 +461,8 @@ def test_green_float32_matches_the_native_kernel_on_the_same_inputs(name: str) -
 def test_green_thin_faces_are_redone_by_the_torch_kernel() -> None:
     """The sliver cube: points that see the sliver from a few widths are flagged and take the torch
     kernel's swept form, matching the native kernel."""
-    from torchcage._triton.gc3d import gc3d_triton, triton_tables
-    from torchcage.functional._green3d import triangle_green_data
+    from torchcage.families.green.kernel3d import triangle_green_data
+    from torchcage.families.green.triton.gc3d import gc3d_triton, triton_tables
 
     cage = sliver_cube()
     x, cats = _points(cage, per=12)
@@ -470,5 +470,5 @@ def test_green_thin_faces_are_redone_by_the_torch_kernel() -> None:
     tables = triton_tables(triangle_green_data(cage.to(DEVICE), D64), cage.vertices.to(DEVICE))
     _, _, flags = gc3d_triton(x.to(DEVICE), tables)
     assert int((flags.cpu() == 2).sum()) > 0 and int((flags.cpu() == 1).sum()) > 0
-    ref = _green(x, cage, "native" if tc._native.available() else "torch")
+    ref = _green(x, cage, "native" if tc.backends.native.available() else "torch")
     assert float(_rel(_green(x.to(DEVICE), cage.to(DEVICE), "triton").cpu(), ref).max()) < 1e-12

@@ -34,7 +34,7 @@ if not torch.cuda.is_available() and os.environ.get("TRITON_INTERPRET", "0") in 
 
 DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
 D64 = torch.float64
-REF = "native" if tc._native.available() else "torch"
+REF = "native" if tc.backends.native.available() else "torch"
 
 
 def _cages() -> dict[str, tc.Cage]:

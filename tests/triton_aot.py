@@ -65,10 +65,12 @@ def _recorded(module: object, name: str, call) -> tuple[object, dict[str, object
 
 def _kernels() -> list[tuple[str, object, dict[str, object]]]:
     import torchcage as tc
-    from torchcage._triton import gc3d, mvc2d, mvc3d, mvcd2d, mvcd3d, qmvc3d
-    from torchcage.functional._green3d import triangle_green_data
-    from torchcage.functional._mvc3d import triangle_cage_data
-    from torchcage.functional._qmvc3d import quad_data
+    from torchcage.families.green.kernel3d import triangle_green_data
+    from torchcage.families.green.triton import gc3d
+    from torchcage.families.mean_value.kernel3d import triangle_cage_data
+    from torchcage.families.mean_value.triton import mvc2d, mvc3d, mvcd2d, mvcd3d
+    from torchcage.families.quad_mean_value.kernel import quad_data
+    from torchcage.families.quad_mean_value.triton import qmvc3d
 
     D = torch.float64
     cube = tc.load_cage(tc.data.path("cube.obj")).to(D).triangulated()

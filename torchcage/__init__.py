@@ -10,10 +10,10 @@ Examples:
     True
 """
 
-from . import data, distributed, functional, variational
-from .cage import Cage
-from .cagegen import make_cage
-from .errors import (
+from torchcage import data, distributed, functional, variational
+from torchcage.cage import Cage
+from torchcage.cagegen import make_cage
+from torchcage.errors import (
     CageError,
     CageOrientationError,
     CageTopologyError,
@@ -21,9 +21,9 @@ from .errors import (
     OutsideCageWarning,
     PointsError,
 )
-from .functional.deform import deform
-from .io import load_cage, load_mesh, save_cage, save_mesh
-from .nn import (
+from torchcage.functional.deform import deform
+from torchcage.io import load_cage, load_mesh, save_cage, save_mesh
+from torchcage.nn import (
     BoundedBiharmonicWeights,
     GreenCoordinates,
     HarmonicCoordinates,
@@ -33,7 +33,7 @@ from .nn import (
     QuadGreenCoordinates,
     QuadMeanValueCoordinates,
 )
-from .viewer import view
+from torchcage.viewer import view
 
 __version__ = "0.1.0"
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from . import _native
+from torchcage.backends import native as _native
 
 __all__ = ["rasterize_triangles"]
 

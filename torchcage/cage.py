@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from .errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError
+from torchcage.errors import CageError, CageOrientationError, CageTopologyError, DegenerateFaceError
 
 __all__ = ["Cage"]
 
@@ -549,7 +549,7 @@ class Cage:
     def _check_intersections(self) -> None:
         """No batch element intersects itself: no edge of a face passes through another face (3D),
         no two polygon edges cross (2D)."""
-        from ._intersections import edge_edge_crossings, edge_triangle_crossings
+        from torchcage._intersections import edge_edge_crossings, edge_triangle_crossings
 
         batch = self.batch_shape
         flat = self.vertices.detach().reshape(-1, self.num_vertices, self.dim)

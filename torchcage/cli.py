@@ -21,10 +21,10 @@ from typing import Literal
 
 import torch
 
-from .cage import Cage
-from .families import family
-from .functional.deform import OUTSIDE_TOLERANCE
-from .methods import METHOD_EXTRAS, METHOD_HELP, METHOD_NAMES, METHODS, OUTSIDE_EFFECT, build_module
+from torchcage.cage import Cage
+from torchcage.families import family
+from torchcage.functional.deform import OUTSIDE_TOLERANCE
+from torchcage.methods import METHOD_EXTRAS, METHOD_HELP, METHOD_NAMES, METHODS, OUTSIDE_EFFECT, build_module
 
 __all__ = ["main"]
 
@@ -427,7 +427,7 @@ def _positive_int(text: str) -> int:
 
 def kernel_library() -> str:
     """Which library serves the CPU kernels: the native variant, or torch and why."""
-    from torchcage import _native
+    from torchcage.backends import native as _native
 
     if _native.available():
         return f"native ({_native.variant()})"
@@ -441,9 +441,9 @@ def _bench(args: argparse.Namespace) -> int:
     Prints a header at once, then each row as it is measured (the first native call may build the
     kernels)."""
     import torchcage
-    from torchcage import _native
     from torchcage import functional as F
     from torchcage._timing import best_of
+    from torchcage.backends import native as _native
 
     cage = torchcage.load_cage(torchcage.data.path("bar_cage.obj")).triangulated()
     print(f"mean value coordinates: {args.points:,} points inside the bundled bar cage "
@@ -480,7 +480,7 @@ def _epilog() -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchcage`` command."""
-    from . import __version__
+    from torchcage import __version__
 
     parser = argparse.ArgumentParser(
         prog="torchcage", description="Cage coordinates for deformation.", epilog=_epilog()

@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from .cage import Cage
+from torchcage.cage import Cage
 
 __all__ = ["shard_coordinates", "shard_slice"]
 

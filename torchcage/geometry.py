@@ -76,10 +76,10 @@ def winding_number(
     p = vertices[triangles]  # (T, 3, 3)
     out = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
     if backend != "torch":
-        from . import _native
-        from .backends import Op, select
+        from torchcage.backends import Op, select
+        from torchcage.backends import native as _native
 
-        op = Op("winding numbers", native_float64_only=False)
+        op = Op("winding numbers")
         lib = select(op, backend, points, p).lib if p.dtype == points.dtype or backend == "native" else None
         if lib is not None:  # (the same sums)
             _native.call(lib, "tc_winding3d", P=p.contiguous(), T=p.shape[0], X=points.contiguous(),
@@ -186,10 +186,10 @@ def nearest_triangle(
             )
         slack = slack.to(points.dtype)
     if backend != "torch" and triangles.shape[0] and points.shape[0]:
-        from . import _native
-        from .backends import Op, select
+        from torchcage.backends import Op, select
+        from torchcage.backends import native as _native
 
-        lib = select(Op("distances to triangles", native_float64_only=False), backend, points, p).lib
+        lib = select(Op("distances to triangles"), backend, points, p).lib
         if lib is not None:
             dist = torch.empty(points.shape[0], dtype=points.dtype)
             index = torch.empty(points.shape[0], dtype=torch.int32)

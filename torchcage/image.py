@@ -45,14 +45,14 @@ from typing import Any
 import torch
 from torch import nn
 
-from ._raster import rasterize_triangles
-from .cage import Cage
-from .errors import CageError
-from .families import family
-from .functional._stretch import stretched_normals
-from .functional.green import green_coordinates
-from .functional.mean_value import mean_value_coordinates
-from .geometry import inside_polygon
+from torchcage._raster import rasterize_triangles
+from torchcage.cage import Cage
+from torchcage.errors import CageError
+from torchcage.families import family
+from torchcage.families.green.api import green_coordinates
+from torchcage.families.green.stretch import stretched_normals
+from torchcage.families.mean_value.api import mean_value_coordinates
+from torchcage.geometry import inside_polygon
 
 __all__ = ["CageWarp", "inside_polygon", "pixel_centres", "warp_image"]
 
@@ -120,7 +120,7 @@ def _coordinates(points: torch.Tensor, cage: Cage, method: str, options: dict[st
     if method == "gc":
         phi, psi = green_coordinates(points, cage, **options)
         return torch.cat([phi, psi], dim=1)
-    from .functional.local_barycentric import local_barycentric_coordinates
+    from torchcage.families.local_barycentric.api import local_barycentric_coordinates
 
     return local_barycentric_coordinates(points, cage, **options).to_dense()
 

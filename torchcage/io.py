@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .cage import Cage
-from .errors import CageError
+from torchcage.cage import Cage
+from torchcage.errors import CageError
 
 __all__ = ["load_cage", "load_mesh", "read_obj", "save_cage", "save_mesh"]
 

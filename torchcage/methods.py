@@ -18,9 +18,9 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from .cage import Cage
-from .families import FAMILIES, Family, family, names
-from .functional.deform import OUTSIDE_EFFECT
+from torchcage.cage import Cage
+from torchcage.families import FAMILIES, Family, family, names
+from torchcage.functional.deform import OUTSIDE_EFFECT
 
 __all__ = ["METHODS", "METHOD_EXTRAS", "METHOD_HELP", "METHOD_NAMES", "OUTSIDE_EFFECT", "build_module"]
 

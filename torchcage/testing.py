@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import torch
 
 if TYPE_CHECKING:
-    from .cage import Cage
+    from torchcage.cage import Cage
 
 __all__ = [
     "QMVC_MODELS",
@@ -88,7 +88,7 @@ def sliver_cube(gap: float = 1e-9, dtype: torch.dtype = torch.float64) -> Cage:
         >>> sliver_cube().triangles.shape
         torch.Size([14, 3])
     """
-    from .cage import Cage
+    from torchcage.cage import Cage
 
     v = torch.tensor([*_CUBE, [0.0, -1.0 + gap, -1.0]], dtype=dtype)
     faces = []
@@ -113,7 +113,7 @@ def twisted_bar(levels: int = 4, twist: float = 90.0, quads: bool = True, dtype:
         >>> bar.num_vertices, bar.quads.shape[0]
         (20, 18)
     """
-    from .cage import Cage
+    from torchcage.cage import Cage
 
     verts = []
     for k in range(levels + 1):
@@ -140,7 +140,7 @@ def icosphere(subdivisions: int = 1, radius: float = 1.0, dtype: torch.dtype = t
         >>> ico.num_vertices, ico.triangles.shape[0]
         (42, 80)
     """
-    from .cage import Cage
+    from torchcage.cage import Cage
 
     t = (1 + 5**0.5) / 2
     verts = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t]]
@@ -178,11 +178,11 @@ def hard_cages(dtype: torch.dtype = torch.float64) -> dict[str, Cage]:
         >>> len(hard_cages()), hard_cages()["sliver_cube"].num_vertices
         (6, 9)
     """
-    from . import data
-    from .io import load_cage
+    from torchcage import data
+    from torchcage.io import load_cage
 
     cube = load_cage(data.path("cube.obj")).triangulated().to(dtype)
-    from .cage import Cage
+    from torchcage.cage import Cage
 
     def moved(s: float, t: float = 0.0):
         return Cage(cube.vertices * s + t, cube.triangles)

@@ -34,10 +34,10 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .cage import Cage
-from .errors import PointsError
-from .functional.mean_value import mean_value_coordinates
-from .functional.mean_value_derivatives import mean_value_derivatives
+from torchcage.cage import Cage
+from torchcage.errors import PointsError
+from torchcage.families.mean_value.api import mean_value_coordinates
+from torchcage.families.mean_value.derivatives import mean_value_derivatives
 
 __all__ = ["ScalarFieldResult", "VariationalMVC", "VariationalResult", "cotangent_laplacian", "design_scalar_field"]
 

@@ -6,6 +6,11 @@ them directly: ``MeanValueFunction.apply(points (N, D), vertices (V, D), faces, 
 Their ``torch.library`` custom ops (``torch.ops.torchcage.*``) register at ``import torchcage``.
 """
 
-from .mean_value import MeanValueFunction, MeanValueGradFunction, MeanValueHessFunction, mean_value_function
+from torchcage.families.mean_value.ops import (
+    MeanValueFunction,
+    MeanValueGradFunction,
+    MeanValueHessFunction,
+    mean_value_function,
+)
 
 __all__ = ["MeanValueFunction", "MeanValueGradFunction", "MeanValueHessFunction", "mean_value_function"]

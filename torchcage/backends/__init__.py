@@ -34,7 +34,8 @@ from typing import Literal
 import torch
 from torch._C._functorch import is_functorch_wrapped_tensor
 
-from .. import _native, _triton
+from torchcage.backends import native as _native
+from torchcage.backends import triton as _triton
 
 __all__ = ["BACKENDS", "Backend", "Choice", "Op", "check", "select"]
 

@@ -21,8 +21,8 @@ import math
 
 import torch
 
-from .._intersections import edge_triangle_crossings
-from ..geometry import nearest_triangle, winding_number
+from torchcage._intersections import edge_triangle_crossings
+from torchcage.geometry import nearest_triangle, winding_number
 
 __all__ = [
     "both_triangulations",

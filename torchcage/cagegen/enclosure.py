@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import torch
 
-from ..errors import CageMakerError
-from .checks import both_triangulations, self_intersections, signed_clearance
+from torchcage.cagegen.checks import both_triangulations, self_intersections, signed_clearance
+from torchcage.errors import CageMakerError
 
 #: Deficits are over-corrected by this factor, so that rounds do not crawl.
 OVERSHOOT = 1.25

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._deps import require
-from .inputs import MeshInput
+from torchcage.cagegen._deps import require
+from torchcage.cagegen.inputs import MeshInput
 
 #: The grid never holds more voxels than this (memory: a few float64 fields of this size).
 MAX_VOXELS = 300**3

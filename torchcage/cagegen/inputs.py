@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import MeshError
+from torchcage.errors import MeshError
 
 #: A face whose area is below this fraction of ``diagonal^2`` counts as degenerate.
 DEGENERATE_AREA = 1e-14

@@ -28,15 +28,15 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from ..cage import Cage
-from ..errors import CageError, CageMakerError
-from .checks import self_intersections
-from .enclosure import push_outward
-from .envelope import envelope, point_spacing
-from .inputs import MeshInput, check_input
-from .quads import MIN_COSINE, corner_cosines, pair_triangles
-from .simplify import decimate
-from .tighten import tighten
+from torchcage.cage import Cage
+from torchcage.cagegen.checks import self_intersections
+from torchcage.cagegen.enclosure import push_outward
+from torchcage.cagegen.envelope import envelope, point_spacing
+from torchcage.cagegen.inputs import MeshInput, check_input
+from torchcage.cagegen.quads import MIN_COSINE, corner_cosines, pair_triangles
+from torchcage.cagegen.simplify import decimate
+from torchcage.cagegen.tighten import tighten
+from torchcage.errors import CageError, CageMakerError
 
 __all__ = ["DEFAULT_MARGIN", "DEFAULT_SEAL", "make_cage"]
 

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import torch
 
-from .._intersections import edge_triangle_crossings
-from ._deps import require
-from .checks import crossing_quads, unique_edges
+from torchcage._intersections import edge_triangle_crossings
+from torchcage.cagegen._deps import require
+from torchcage.cagegen.checks import crossing_quads, unique_edges
 
 #: Candidate quads need all pairwise corner-normal cosines at least this (strictly valid, not bent).
 MIN_COSINE = 0.1

@@ -8,9 +8,9 @@ from typing import Any
 
 import torch
 
-from ..cage import Cage
-from .checks import self_intersections, signed_clearance, tightness
-from .inputs import check_input
+from torchcage.cage import Cage
+from torchcage.cagegen.checks import self_intersections, signed_clearance, tightness
+from torchcage.cagegen.inputs import check_input
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._deps import require
+from torchcage.cagegen._deps import require
 
 
 def _clean(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import torch
 
-from ..geometry import nearest_triangle, winding_number
-from .checks import both_triangulations, measured_surfaces, self_intersections, tightness
-from .enclosure import vertex_normals
-from .quads import MIN_COSINE, corner_cosines
+from torchcage.cagegen.checks import both_triangulations, measured_surfaces, self_intersections, tightness
+from torchcage.cagegen.enclosure import vertex_normals
+from torchcage.cagegen.quads import MIN_COSINE, corner_cosines
+from torchcage.geometry import nearest_triangle, winding_number
 
 __all__ = ["tighten"]
 

@@ -1,26 +1,27 @@
-"""Deformation by cage coordinates: the maps from coordinates and a deformed cage to deformed
-points (used by the modules' ``forward``), and :func:`deform`, which recomputes the coordinates
-under autograd on each call (rest cage and points differentiable: the Neural Cages pattern).
+"""Deformation by cage coordinates across the families: :func:`deform`, which recomputes the
+coordinates under autograd on each call (rest cage and points differentiable: the Neural Cages
+pattern). The per-family maps from coordinates and a deformed cage to deformed points live with
+their families and are re-exported here (``green_deformation``, ``quad_green_deformation``), as
+are the outside checks of :mod:`torchcage._core.outside`.
 """
 
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
 from typing import Any
 
 import torch
 
-from ..cage import Cage
-from ..errors import OutsideCageWarning
-from ..families import FAMILIES, family, names
-from ._common import safe_norm
-from ._qgc3d import corner_normals
-from ._stretch import conformal_stretch, stretched_normals, stretched_triangle_normals
-from .green import green_coordinates
-from .mean_value import mean_value_coordinates
-from .quad_green import quad_green_coordinates
-from .quad_mean_value import quad_mean_value_coordinates
+from torchcage._core.outside import OUTSIDE_TOLERANCE, Outside, find_outside
+from torchcage.cage import Cage
+from torchcage.errors import OutsideCageWarning
+from torchcage.families import FAMILIES, family, names
+from torchcage.families.green.api import green_coordinates
+from torchcage.families.green.deformation import green_deformation
+from torchcage.families.mean_value.api import mean_value_coordinates
+from torchcage.families.quad_green.api import quad_green_coordinates
+from torchcage.families.quad_green.deformation import quad_corner_factors, quad_green_deformation
+from torchcage.families.quad_mean_value.api import quad_mean_value_coordinates
 
 __all__ = [
     "OUTSIDE_TOLERANCE",
@@ -31,188 +32,6 @@ __all__ = [
     "quad_corner_factors",
     "quad_green_deformation",
 ]
-
-_PATTERN = (torch.arange(5, dtype=torch.float64) + 0.5) / 5
-
-
-def quad_corner_factors(rest: torch.Tensor, deformed: torch.Tensor) -> torch.Tensor:
-    """Per-corner correction factors of quads (Thiery and Boubekeur 2022, Eq. 22):
-    ``sigma_k = sum_s b_k(s) sigma_L(s) |N(s)| / sum_s b_k(s) |N'(s)|`` over a 5 x 5 pattern of the
-    (u, v) square, ``sigma_L`` Lipman's stretch of the sheet's tangent map and ``N`` (``N'``) the
-    rest (deformed) sheet normal. For a similarity of scale ``s`` every factor is ``1 / s``, so that
-    ``sigma_k N'_k`` is ``s R N_k``. A quad collapsed to zero area gets factors 0 (its corner
-    normals are zero anyway).
-
-    Args:
-        rest: ``(Q, 4, 3)`` rest quad corners.
-        deformed: ``(*, Q, 4, 3)`` deformed quad corners.
-
-    Returns:
-        ``(*, Q, 4)``.
-    """
-    t = _PATTERN.to(deformed)
-    u, v = (g.reshape(-1) for g in torch.meshgrid(t, t, indexing="ij"))  # (S,)
-    b = torch.stack([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=-1)  # (S, 4)
-
-    def tangents(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        q0, q1, q2, q3 = (q[..., None, i, :] for i in range(4))  # (*, Q, 1, 3)
-        du = (1 - v)[:, None] * (q1 - q0) + v[:, None] * (q2 - q3)
-        dv = (1 - u)[:, None] * (q3 - q0) + u[:, None] * (q2 - q1)
-        return du, dv  # (*, Q, S, 3)
-
-    du0, dv0 = tangents(rest.to(deformed.dtype))
-    du1, dv1 = tangents(deformed)
-    area0 = safe_norm(torch.linalg.cross(du0, dv0, dim=-1))
-    area1 = safe_norm(torch.linalg.cross(du1, dv1, dim=-1))
-    num = torch.einsum("...s,sk->...k", conformal_stretch(du0, dv0, du1, dv1) * area0, b)
-    den = torch.einsum("...s,sk->...k", area1, b)
-    return torch.where(den > 0, num / torch.where(den > 0, den, 1.0), 0.0)
-
-
-def green_deformation(
-    phi: torch.Tensor, psi: torch.Tensor, rest: torch.Tensor, deformed: torch.Tensor, faces: torch.Tensor
-) -> torch.Tensor:
-    """``phi @ V' + psi @ (s n')``: Green deformation with Lipman's stretch factors (3D; the edge
-    stretch ``|a'| / |a|`` in 2D), differentiable with respect to everything.
-
-    Args:
-        phi: ``(*B, N, V)``; psi: ``(*B, N, T)`` (``T`` triangles, or edges in 2D).
-        rest: ``(*B, V, D)`` rest vertices; deformed: ``(*, *B, V, D)``.
-        faces: ``(T, 3)`` triangles, or ``(E, 2)`` edges in 2D.
-
-    Returns:
-        ``(*, *B, N, D)`` deformed points.
-    """
-    dt = deformed.dtype
-    if deformed.shape[-1] == 2:
-        sn = stretched_normals(rest, deformed, faces)
-    else:
-        sn = stretched_triangle_normals(rest, deformed, faces)
-    return torch.matmul(phi.to(dt), deformed) + torch.matmul(psi.to(dt), sn)
-
-
-def quad_green_deformation(
-    phi: torch.Tensor,
-    psi: torch.Tensor,
-    rest: torch.Tensor,
-    deformed: torch.Tensor,
-    triangles: torch.Tensor,
-    quads: torch.Tensor,
-    correction: str = "conformal",
-) -> torch.Tensor:
-    """Quad Green deformation: ``phi @ V' + psi[:T] @ (s_t n'_t) + sum psi[T+4q+k] sigma_qk N'_qk``.
-
-    Args:
-        phi: ``(*B, N, V)``; psi: ``(*B, N, T + 4Q)``.
-        rest: ``(*B, V, 3)``; deformed: ``(*, *B, V, 3)``.
-        triangles: ``(T, 3)``; quads: ``(Q, 4)``.
-        correction: ``"conformal"`` (corner factors, Eq. 22) or ``"area"`` (factors 1).
-
-    Returns:
-        ``(*, *B, N, 3)`` deformed points.
-    """
-    dt = deformed.dtype
-    T = triangles.shape[0]
-    out = torch.matmul(phi.to(dt), deformed)
-    if T:
-        sn = stretched_triangle_normals(rest, deformed, triangles)
-        out = out + torch.matmul(psi[..., :T].to(dt), sn)
-    if quads.shape[0]:
-        q1 = deformed[..., quads, :]  # (*, Q, 4, 3)
-        N1 = corner_normals(q1)
-        if correction == "conformal":
-            N1 = quad_corner_factors(rest[..., quads, :], q1)[..., None] * N1
-        out = out + torch.matmul(psi[..., T:].to(dt), N1.flatten(-3, -2))
-    return out
-
-
-#: Points farther outside the cage than this fraction of its size (bounding-box diagonal), beyond
-#: the rounding of their coordinates, are reported by :func:`find_outside` (and warn in
-#: :func:`deform` and ``torchcage deform``, for every family).
-OUTSIDE_TOLERANCE = 1e-6
-
-
-@dataclass(frozen=True)
-class Outside:
-    """Points outside a cage (:func:`find_outside`).
-
-    Attributes:
-        count: how many points lie outside (over the batch, for a batched cage).
-        total: how many points were checked (over the batch).
-        max_distance: the largest distance outside, relative to the cage's size (its bounding-box
-            diagonal; per batch element); 0 when none lies outside.
-        mask: ``(*B, N)`` bool, True for the points outside.
-    """
-
-    count: int
-    total: int
-    max_distance: float
-    mask: torch.Tensor
-
-    def message(self, effect: str = "") -> str:
-        """One line: the count, how far, and ``effect`` (what the coordinates do with them)."""
-        text = (
-            f"{self.count:,} of {self.total:,} points lie outside the cage, up to {self.max_distance:.3g} of its "
-            "size (bounding-box diagonal) away from it"
-        )
-        return f"{text}: {effect}" if effect else text
-
-
-def find_outside(points: torch.Tensor, cage: Cage, tolerance: float = OUTSIDE_TOLERANCE) -> Outside:
-    """The points that lie outside a cage by more than ``tolerance`` times its size (plus the
-    rounding of the coordinates), and how far: the winding number (3D; quads split along
-    ``q0-q2``) or the crossing rule (2D) picks the candidates, their distance to the boundary
-    decides. Vectorised and chunked over points (:func:`torchcage.geometry.winding_number`,
-    :func:`torchcage.geometry.distance_to_cage`); no graph.
-
-    Args:
-        points: ``(N, D)``, or ``(*B, N, D)`` with a batched cage (``(N, D)`` is shared).
-        cage: the cage, ``(V, D)`` or batched ``(*B, V, D)``.
-        tolerance: the distance outside, relative to the cage's size, that still counts as on it.
-
-    Returns:
-        :class:`Outside`: the count, the total, the largest distance relative to the size and
-        the ``(*B, N)`` mask.
-
-    Examples:
-        >>> import torch, torchcage
-        >>> from torchcage.functional.deform import find_outside
-        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj"))  # [-1, 1]^3, size 2 sqrt(3)
-        >>> r = find_outside(torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0]]), cube)
-        >>> r.count, r.total, round(r.max_distance * 12**0.5, 6), r.mask.tolist()
-        (1, 3, 2.0, [False, False, True])
-    """
-    from ..geometry import distance_to_cage, inside_cage
-
-    x = points.detach()
-    B = cage.batch_shape
-    x = x.expand(*B, *x.shape[-2:]) if B else x
-    still = cage.with_vertices(cage.vertices.detach())  # (a predicted cage: no graph, no grad)
-    cages = still.unbind() if still.is_batched else [still]
-    flat = x.reshape(len(cages), *x.shape[-2:])
-    dtype = torch.float64 if x.device.type != "mps" else torch.float32
-    masks, count, worst = [], 0, 0.0
-    for c, p in zip(cages, flat, strict=True):
-        c = c.to(dtype=dtype, device=x.device)
-        p = p.to(dtype)
-        v = c.vertices
-        size = c.scale
-        # the rounding of the coordinates as given (float32 points on the cage round to just outside it)
-        rounding = 8 * torch.finfo(x.dtype).eps * float(v.abs().max()) if v.numel() else 0.0
-        mask = torch.zeros(p.shape[0], dtype=torch.bool, device=x.device)
-        if p.shape[0] and size > 0:
-            candidates = torch.nonzero(~inside_cage(p, c)).flatten()
-            if candidates.numel():
-                d = distance_to_cage(p[candidates], c)
-                far = d > tolerance * size + rounding
-                mask[candidates[far]] = True
-                if bool(far.any()):
-                    worst = max(worst, float(d[far].max()) / size)
-        count += int(mask.sum())
-        masks.append(mask)
-    mask = torch.stack(masks).reshape(*x.shape[:-1]) if masks else torch.zeros(x.shape[:-1], dtype=torch.bool)
-    return Outside(count, int(mask.numel()), worst, mask)
-
 
 #: What each family does with points outside the cage (the end of the outside warning; from the
 #: registry, :mod:`torchcage.families`).
@@ -337,7 +156,7 @@ def _check_outside(points: Any, cage: Cage, method: str, outside: str) -> None:
         return
     message = found.message(OUTSIDE_EFFECT[method])
     if outside == "error":
-        from ..errors import PointsError
+        from torchcage.errors import PointsError
 
         raise PointsError(message + ' (outside="error")')
     warnings.warn(message, OutsideCageWarning, stacklevel=3)

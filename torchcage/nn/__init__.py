@@ -1,14 +1,14 @@
 """The coordinate modules: thin ``nn.Module`` wrappers around precomputed weights."""
 
-from .base import CageModule
-from .biharmonic import BoundedBiharmonicWeights
-from .green import GreenCoordinates
-from .harmonic import HarmonicCoordinates
-from .local_barycentric import LocalBarycentricCoordinates
-from .maximum_entropy import MaximumEntropyCoordinates
-from .mean_value import MeanValueCoordinates
-from .quad_green import QuadGreenCoordinates
-from .quad_mean_value import QuadMeanValueCoordinates
+from torchcage._core.module import CageModule
+from torchcage.families.biharmonic.module import BoundedBiharmonicWeights
+from torchcage.families.green.module import GreenCoordinates
+from torchcage.families.harmonic.module import HarmonicCoordinates
+from torchcage.families.local_barycentric.module import LocalBarycentricCoordinates
+from torchcage.families.maximum_entropy.module import MaximumEntropyCoordinates
+from torchcage.families.mean_value.module import MeanValueCoordinates
+from torchcage.families.quad_green.module import QuadGreenCoordinates
+from torchcage.families.quad_mean_value.module import QuadMeanValueCoordinates
 
 __all__ = [
     "BoundedBiharmonicWeights",

@@ -55,8 +55,8 @@ import torch
 if TYPE_CHECKING:
     from scipy.sparse import csr_matrix
 
-from .domain import Domain
-from .harmonic import _has_cholespy, _stiffness_scipy
+from torchcage.solvers.domain import Domain
+from torchcage.solvers.harmonic import _has_cholespy, _stiffness_scipy
 
 __all__ = ["BBWResult", "biharmonic_matrix", "solve_bbw"]
 
@@ -317,7 +317,7 @@ def _admm(
     cols = torch.nonzero(active).squeeze(1)
     bar = None
     if progress is True:
-        from .progress import ToleranceProgress
+        from torchcage.solvers.progress import ToleranceProgress
 
         bar = ToleranceProgress("BBW (ADMM)", max_iter, ("gap",), (tol,))
     it = 0

@@ -28,9 +28,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..cage import DEGENERATE_TOLERANCE, Cage
-from ..errors import CageError
-from ..geometry import inside_polygon, winding_number
+from torchcage.cage import DEGENERATE_TOLERANCE, Cage
+from torchcage.errors import CageError
+from torchcage.geometry import inside_polygon, winding_number
 
 __all__ = ["Domain", "check_solution", "domain_for", "inside_bilinear_cage", "mesh_domain", "user_domain"]
 
@@ -534,7 +534,7 @@ def domain_for(
         PointsError: a cage on the meta device.
         CageError: a batch of cages, or a :class:`Domain` made for another cage.
     """
-    from ..errors import PointsError
+    from torchcage.errors import PointsError
 
     if cage.device.type == "meta":
         raise PointsError(

@@ -32,8 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .domain import Domain
-from .lbc import _single_threaded_blas
+from torchcage.solvers.domain import Domain
+from torchcage.solvers.lbc import _single_threaded_blas
 
 __all__ = ["HarmonicResult", "solve_harmonic", "stiffness_matrix"]
 

@@ -39,8 +39,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..errors import CageError
-from .domain import Domain
+from torchcage.errors import CageError
+from torchcage.solvers.domain import Domain
 
 __all__ = ["TAU", "LBCResult", "geodesic_distances", "gradient_operator", "make_feasible", "project_rows", "solve_lbc"]
 
@@ -402,7 +402,7 @@ def solve_lbc(
     history: list[tuple[int, float, float, float]] = []
     bar = None
     if progress is True:
-        from .progress import ToleranceProgress
+        from torchcage.solvers.progress import ToleranceProgress
 
         bar = ToleranceProgress("LBC (ADMM)", max_iter, ("primal", "dual"), (tol_p, tol_d))
     # Residual balancing compares each residual with its tolerance; a zero tolerance (run to

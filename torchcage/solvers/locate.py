@@ -306,7 +306,7 @@ def outside_points(
     eps = torch.finfo(dtype if dtype is not None and dtype.is_floating_point else torch.float64).eps
     out &= distance > 64 * eps * size
     if cage is not None and bool(out.any()):
-        from .domain import inside_bilinear_cage
+        from torchcage.solvers.domain import inside_bilinear_cage
 
         idx = torch.nonzero(out).flatten()
         out[idx[inside_bilinear_cage(points.detach().to("cpu", torch.float64)[idx], cage)]] = False

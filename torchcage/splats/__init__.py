@@ -8,11 +8,11 @@
 
 from __future__ import annotations
 
-from .deform import DeformedGaussians, DeformGaussians
-from .inverse import RestPoints, rest_points
-from .ply import PlyError, PlyLayout, read_ply, write_ply
-from .scene import GaussianScene, quaternion_to_matrix
-from .sh import eval_sh, rotate_sh, sh_basis
+from torchcage.splats.deform import DeformedGaussians, DeformGaussians
+from torchcage.splats.inverse import RestPoints, rest_points
+from torchcage.splats.ply import PlyError, PlyLayout, read_ply, write_ply
+from torchcage.splats.scene import GaussianScene, quaternion_to_matrix
+from torchcage.splats.sh import eval_sh, rotate_sh, sh_basis
 
 __all__ = [
     "DeformGaussians",

@@ -29,11 +29,11 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..cage import Cage
-from ..families import family, names
-from .linalg import closest_rotation, matrix_to_quaternion, svd3
-from .scene import GaussianScene, quaternion_to_matrix
-from .sh import rotate_sh
+from torchcage.cage import Cage
+from torchcage.families import family, names
+from torchcage.splats.linalg import closest_rotation, matrix_to_quaternion, svd3
+from torchcage.splats.scene import GaussianScene, quaternion_to_matrix
+from torchcage.splats.sh import rotate_sh
 
 __all__ = ["DeformGaussians", "DeformedGaussians"]
 

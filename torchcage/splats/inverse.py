@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..cage import Cage
-from ..geometry import inside_cage
+from torchcage.cage import Cage
+from torchcage.geometry import inside_cage
 
 __all__ = ["RestPoints", "rest_points"]
 
@@ -53,15 +53,17 @@ class RestPoints:
 def _map(x: torch.Tensor, rest: Cage, pose: torch.Tensor, method: str, jacobian: bool = True):
     """``f(x)`` ``(M, 3)`` and (``jacobian``) ``J(x)`` ``(M, 3, 3)``; the coordinates are detached,
     ``f`` stays differentiable in ``pose``."""
-    from ..functional import green_derivatives, mean_value_coordinates, mean_value_derivatives
-    from ..functional.green import green_coordinates
+    from torchcage.families.green.api import green_coordinates
+    from torchcage.families.green.derivatives import green_derivatives
+    from torchcage.families.mean_value.api import mean_value_coordinates
+    from torchcage.families.mean_value.derivatives import mean_value_derivatives
 
     if method == "mvc":
         if not jacobian:
             return mean_value_coordinates(x, rest) @ pose, None
         lam, grad, _ = mean_value_derivatives(x, rest, order=1)
         return lam @ pose, torch.einsum("mvc,va->mac", grad, pose)
-    from ..functional._stretch import stretched_triangle_normals
+    from torchcage.families.green.stretch import stretched_triangle_normals
 
     sn = stretched_triangle_normals(rest.vertices, pose, rest.triangles)
     if not jacobian:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .scene import GaussianScene
+from torchcage.splats.scene import GaussianScene
 
 __all__ = ["PlyLayout", "read_ply", "write_ply"]
 

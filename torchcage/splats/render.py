@@ -15,7 +15,7 @@ import math
 
 import torch
 
-from .sh import eval_sh
+from torchcage.splats.sh import eval_sh
 
 __all__ = ["Camera", "render"]
 

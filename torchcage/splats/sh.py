@@ -67,7 +67,7 @@ def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
 def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     """The colour function ``sum_k sh_k Y_k(d)``: ``sh`` ``(..., K, C)``, ``dirs`` ``(..., 3)`` unit
     -> ``(..., C)`` (without the renderer's ``+ 0.5`` offset and clamp)."""
-    from .scene import sh_degree
+    from torchcage.splats.scene import sh_degree
 
     degree = sh_degree(sh.shape[-2])  # (raises on a count that is not (l + 1)^2)
     return (sh_basis(dirs, degree)[..., :, None] * sh).sum(dim=-2)

@@ -29,9 +29,9 @@ from typing import Any
 
 import torch
 
-from ..cage import Cage
-from .server import EditorServer, fetch_token
-from .session import CoordinatesError, EditorError, EditorSession, PoseError, Status
+from torchcage.cage import Cage
+from torchcage.viewer.server import EditorServer, fetch_token
+from torchcage.viewer.session import CoordinatesError, EditorError, EditorSession, PoseError, Status
 
 __all__ = [
     "DEFAULT_PORT",
@@ -139,7 +139,7 @@ class Viewer:
 
 
 def _load_mesh(mesh: Any) -> tuple[torch.Tensor, torch.Tensor]:
-    from ..io import load_mesh
+    from torchcage.io import load_mesh
 
     if isinstance(mesh, (str, Path)):
         return load_mesh(mesh)
@@ -197,7 +197,7 @@ def view(
         ValueError: an unusable mesh, cage, pose or method (with the fix).
         OSError: the port cannot be bound (or is taken, without ``fallback``).
     """
-    from ..io import load_cage
+    from torchcage.io import load_cage
 
     if not isinstance(cage, Cage):
         cage = load_cage(cage)

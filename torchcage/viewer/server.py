@@ -65,7 +65,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
-from .session import CoordinatesError, EditorError, EditorSession
+from torchcage.viewer.session import CoordinatesError, EditorError, EditorSession
 
 __all__ = [
     "DEFAULT_TIMEOUT",

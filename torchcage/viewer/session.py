@@ -27,10 +27,10 @@ from typing import Any
 
 import torch
 
-from ..cage import Cage
-from ..errors import CageError
-from ..families import family
-from ..methods import METHOD_NAMES, METHODS, build_module
+from torchcage.cage import Cage
+from torchcage.errors import CageError
+from torchcage.families import family
+from torchcage.methods import METHOD_NAMES, METHODS, build_module
 
 __all__ = ["PREFIX_RULE", "CoordinatesError", "EditorError", "EditorSession", "PoseError", "Status", "check_prefix"]
 
@@ -262,7 +262,7 @@ class EditorSession:
 
     def _outside_note(self) -> list[str]:
         """A line for the page when mesh vertices lie outside the rest cage (winding numbers)."""
-        from ..geometry import inside_cage
+        from torchcage.geometry import inside_cage
 
         if self._outside is None:  # (once; outside the lock: requests go on meanwhile)
             self._outside = int((~inside_cage(self.mesh_vertices, self.cage)).sum())
@@ -378,7 +378,7 @@ class EditorSession:
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "pose.obj"
             path.write_text(text)
-            from ..io import load_cage
+            from torchcage.io import load_cage
 
             try:
                 other = load_cage(path, dim=3, check_intersections=False)  # a pose may fold through itself
@@ -403,7 +403,7 @@ class EditorSession:
             EditorError: a prefix that is not a portable file name (see :func:`check_prefix`), or
                 coordinates not ready.
         """
-        from ..io import save_cage, save_mesh
+        from torchcage.io import save_cage, save_mesh
 
         check_prefix(prefix)
         pose = self.pose

@@ -1,0 +1,66 @@
+"""Batched rest cages in the functional API: one call per batch element, results stacked.
+
+A batched cage ``(*B, V, D)`` takes points ``(*Bp, N, D)`` whose batch shape broadcasts with
+``B`` (``(N, D)``: one point set shared by every cage) and gives ``(*B', N, ...)`` with ``B'`` the
+broadcast shape. The work inside each element is vectorised and chunked over points as for one
+cage; the loop runs over batch elements only (a Python loop per cage, never per point).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from torchcage.cage import Cage
+from torchcage.errors import PointsError
+
+__all__ = ["over_cage_batch"]
+
+
+def over_cage_batch(fn: Callable[..., Any], points: torch.Tensor, cage: Cage, **kwargs: Any) -> Any:
+    """``fn(points_b, cage_b, **kwargs)`` for every element ``b`` of the broadcast batch, stacked.
+
+    Args:
+        fn: an unbatched functional (points ``(N, D)``, one cage) returning a tensor or a tuple of
+            tensors (``None`` entries stay ``None``), each with the points on its first axis.
+        points: ``(N, D)`` or ``(*Bp, N, D)``.
+        cage: a batched cage, batch shape ``B``.
+
+    Returns:
+        ``fn``'s outputs with the broadcast batch shape in front: ``(*B', N, ...)``.
+
+    Raises:
+        PointsError: points without a point axis, or a batch shape that does not broadcast.
+    """
+    if not isinstance(points, torch.Tensor):
+        points = torch.as_tensor(points, dtype=torch.float64)
+    if points.ndim < 2 or points.shape[-1] != cage.dim:
+        raise PointsError(
+            f"with a batch of cages (batch shape {tuple(cage.batch_shape)}) points must have shape "
+            f"(*B, N, {cage.dim}) or (N, {cage.dim}), got {tuple(points.shape)}"
+        )
+    try:
+        batch = torch.broadcast_shapes(points.shape[:-2], cage.batch_shape)
+    except RuntimeError as err:
+        raise PointsError(
+            f"points of batch shape {tuple(points.shape[:-2])} do not broadcast with the cages' batch shape "
+            f"{tuple(cage.batch_shape)}; give one point set per cage (*B, N, {cage.dim}) or one shared (N, {cage.dim})"
+        ) from err
+    if batch.numel() == 0:
+        raise PointsError(f"the batch of cages and points is empty (batch shape {tuple(batch)})")
+    N, V, D = points.shape[-2], cage.num_vertices, cage.dim
+    pts = points.expand(*batch, N, D).reshape(-1, N, D)
+    verts = cage.vertices.expand(*batch, V, D).reshape(-1, V, D)
+    results = [fn(pts[b], cage._like(verts[b]), **kwargs) for b in range(verts.shape[0])]
+    if isinstance(results[0], tuple):
+        return tuple(_stack([r[k] for r in results], batch) for k in range(len(results[0])))
+    return _stack(results, batch)
+
+
+def _stack(parts: list[torch.Tensor | None], batch: torch.Size) -> torch.Tensor | None:
+    if parts[0] is None:
+        return None
+    out = torch.stack(parts)
+    return out.reshape(*batch, *out.shape[1:])

@@ -1,0 +1,272 @@
+/*
+ * Native CPU kernel of torchcage's 3D mean value weights (float64).
+ *
+ * The same formulas as torchcage/families/mean_value/kernel3d.py (see its module docstring): the direct
+ * vector form away from a face's support plane, the stable split form near it, and the
+ * interpolating values for points on the cage. One point per iteration, OpenMP over points.
+ * The tests check this kernel against the torch kernel and an mpmath reference.
+ */
+#define _GNU_SOURCE
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "native.h"
+
+/* Faces seen from more than this many times their longest edge always take the far-field rule. */
+#define FAR_ALWAYS_RATIO 1e3
+
+#define TWO_PI 6.283185307179586476925286766559
+
+#ifdef TC_LIBMVEC
+/* Let the compiler call glibc's vector atan (libmvec, max error 4 ulp) in the edge loop. */
+__attribute__((simd("notinbranch"))) double atan(double);
+#endif
+
+/* atan2(y, x) for y >= 0, through atan, which is cheaper than atan2 in glibc. */
+static inline double angle_of(double y, double x) {
+    if (x > 0) return atan(y / x);
+    if (y > 0) return M_PI / 2 - atan(x / y);
+    return x < 0 ? M_PI : 0.0;
+}
+
+/* Stable split form of one face's weights (see _stable_face_weights in families/mean_value/kernel3d.py). The angle
+ * theta = theta0 + delta is rebuilt here from the planar angle theta0 and the small delta rather
+ * than taken from the edge pass: the terms delta / h^2 and theta * eps / h^2 cancel where x nears
+ * an edge's line, and only a theta consistent with delta keeps that cancellation exact. */
+void tc_stable_face(double h, const double *s, const double *dots, const double *R, const double *ell,
+                    const double *gram, double two_area, double *w) {
+    double h2 = h * h, wind_angle = 0.0, S_rest = 0.0, tN[3];
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        double s_abs = fabs(s[e]);
+        double sigma = s[e] >= 0 ? 1.0 : -1.0;
+        double qq = dots[e] - h2;
+        double N = sqrt(s[e] * s[e] + h2 * ell[e] * ell[e]);
+        double Nps = N + s_abs;
+        double safe_Nps = Nps > 0 ? Nps : 1.0;
+        double X = qq * ell[e] * ell[e] / safe_Nps - s_abs;
+        double Y = dots[e] * qq + N * s_abs;
+        double delta = Y > 0 ? atan(h2 * X / Y) : atan2(h2 * X, Y);
+        double delta_h2 = h2 > 0 ? delta / h2 : X / Y;
+        double theta0 = angle_of(s_abs, qq);
+        double theta = theta0 + delta;
+        wind_angle += sigma * theta0;
+        double safe_N = N > 0 ? N : 1.0;
+        tN[e] = N > 0 ? theta / safe_N : 1.0 / (R[j] * R[k]);
+        double eps_h2 = ell[e] * ell[e] / (safe_N * safe_Nps);
+        S_rest += sigma * (delta_h2 - theta * eps_h2);
+    }
+    double wind = nearbyint(wind_angle / TWO_PI);
+    double inv4A = 1.0 / (2.0 * two_area);
+    for (int i = 0; i < 3; ++i) {
+        double B = s[i] * S_rest + tN[0] * gram[3 * i] + tN[1] * gram[3 * i + 1] + tN[2] * gram[3 * i + 2];
+        double wi = h * B * inv4A;
+        if (wind != 0) wi += s[i] * TWO_PI * wind / (h != 0 ? h : 1.0) * inv4A;
+        else if (h == 0) wi = 0.0;
+        w[i] = wi;
+    }
+}
+
+/*
+ * inc_ptr (V + 1) and inc_idx (3T) list, for each vertex, its face corners as indices c * T + f
+ * (CSR). Indices are int32. Layouts are structure-of-arrays so that the passes over vertices, edges and faces vectorise:
+ * P: (3, V) vertices; tri: (3, T) corners; edges: (2, E) unique edges; fe: (3, T) index of the
+ * edge opposite each corner, stored as (t[i+1], t[i+2]) when fs = +1 and reversed when -1;
+ * nrm: (3, T) unit normals; two_area: (T,); ell: (T, 3) length of the edge opposite each corner;
+ * gram: (T, 3, 3) E_i . E_e; far_nodes (T, Q, 3) and far_coef (T, Q, 3): the far-field rule, used
+ * for points whose face weights sum in absolute value to more than cancel_c times their total, on
+ * faces whose longest edge (longest: (T,)) is below far_c times the distance; X: (n, 3) points.
+ * Output W: (n, V) coordinates, normalised when normalize != 0, else the raw weights (on[p] = 1
+ * marks points on the cage, whose rows hold their interpolating values either way).
+ */
+void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,
+              const int *inc_ptr, const int *inc_idx,
+              const double *fs, const double *nrm, const double *two_area, const double *ell, const double *gram,
+              const double *far_nodes, const double *far_coef, const double *longest, long Q, double far_c,
+              double cancel_c, const double *X, long n, double tol, double near_c, int nthreads, double *W,
+              unsigned char *on, int normalize) {
+    const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
+    const int *e0 = edges, *e1 = edges + E;
+    const int *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
+    const double *s0 = fs, *s1 = fs + T, *s2 = fs + 2 * T;
+    const double *nx = nrm, *ny = nrm + T, *nz = nrm + 2 * T;
+    double centre[3];
+    const double far2 = tc_far_centre(P, V, 1, V, 3, centre);
+    /* Thin faces (tc_thin_face): their pairs seen from a few widths take the swept form. */
+    long *thin = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1)), nthin = 0;
+    for (long f = 0; f < T; ++f)
+        if (two_area[f] > 0 && longest[f] * longest[f] > TC_THIN_ASPECT * two_area[f]) thin[nthin++] = f;
+#pragma omp parallel num_threads(nthreads)
+    {
+        /* Per-thread scratch: vertex (4V), edge (8E) and face (4T) arrays. */
+        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + 8 * (size_t)E + 5 * (size_t)T));
+        double *Ax = buf, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V;
+        double *Nx = RA + V, *Ny = Nx + E, *Nz = Ny + E, *Nn = Nz + E, *D = Nn + E, *Gx = D + E, *Gy = Gx + E,
+               *Gz = Gy + E;
+        double *W0 = Gz + E, *W1 = W0 + T, *W2 = W1 + T, *H = W2 + T, *RM = H + T;
+#pragma omp for schedule(dynamic, 64)
+        for (long p = 0; p < n; ++p) {
+            const double x0 = X[3 * p], x1 = X[3 * p + 1], x2 = X[3 * p + 2];
+            double *w = W + p * V;
+            on[p] = 0;
+#pragma omp simd
+            for (long v = 0; v < V; ++v) {
+                double ax = P[v] - x0, ay = P[V + v] - x1, az = P[2 * V + v] - x2;
+                Ax[v] = ax;
+                Ay[v] = ay;
+                Az[v] = az;
+                RA[v] = sqrt(ax * ax + ay * ay + az * az);
+                w[v] = 0.0;
+            }
+            /* Edges: N = a_j x a_k, |N|, a_j . a_k, and the half-angle tangent argument. */
+#pragma omp simd
+            for (long q = 0; q < E; ++q) {
+                int j = e0[q], k = e1[q];
+                double ajx = Ax[j], ajy = Ay[j], ajz = Az[j], akx = Ax[k], aky = Ay[k], akz = Az[k];
+                double cx = ajy * akz - ajz * aky, cy = ajz * akx - ajx * akz, cz = ajx * aky - ajy * akx;
+                double nn = sqrt(cx * cx + cy * cy + cz * cz), d = ajx * akx + ajy * aky + ajz * akz;
+                double rr = RA[j] * RA[k];
+                Nx[q] = cx;
+                Ny[q] = cy;
+                Nz[q] = cz;
+                Nn[q] = nn;
+                D[q] = d;
+                Gx[q] = nn / (rr + fabs(d)); /* tan of the half angle, or of its complement */
+            }
+#pragma omp simd
+            for (long q = 0; q < E; ++q) Gx[q] = atan(Gx[q]);
+            /* g N with g = theta / (2 |N|), theta = 2 atan(.) or pi - 2 atan(.). */
+#pragma omp simd
+            for (long q = 0; q < E; ++q) {
+                double obtuse = D[q] < 0 ? 1.0 : 0.0; /* branch-free, so that the loop vectorises */
+                double th = obtuse * M_PI + (1.0 - 2.0 * obtuse) * 2.0 * Gx[q];
+                double g = 0.5 * th / (Nn[q] > 1e-300 ? Nn[q] : 1e-300); /* any finite g will do where N = 0 */
+                Gx[q] = g * Nx[q];
+                Gy[q] = g * Ny[q];
+                Gz[q] = g * Nz[q];
+            }
+            /* Faces, direct vector form for all; pairs near a support plane are redone below. */
+#pragma omp simd
+            for (long f = 0; f < T; ++f) {
+                int a = f0[f], b = f1[f], c = f2[f], i0 = t0[f];
+                double sa = s0[f], sb = s1[f], sc = s2[f];
+                double h = nx[f] * Ax[i0] + ny[f] * Ay[i0] + nz[f] * Az[i0];
+                double mx = sa * Gx[a] + sb * Gx[b] + sc * Gx[c];
+                double my = sa * Gy[a] + sb * Gy[b] + sc * Gy[c];
+                double mz = sa * Gz[a] + sb * Gz[b] + sc * Gz[c];
+                double inv = 1.0 / (two_area[f] * h);
+                W0[f] = sa * (Nx[a] * mx + Ny[a] * my + Nz[a] * mz) * inv;
+                W1[f] = sb * (Nx[b] * mx + Ny[b] * my + Nz[b] * mz) * inv;
+                W2[f] = sc * (Nx[c] * mx + Ny[c] * my + Nz[c] * mz) * inv;
+                H[f] = h;
+                double r0 = RA[i0], r1 = RA[t1[f]], r2 = RA[t2[f]]; /* no fmin: it blocks vectorisation */
+                double r01 = r0 < r1 ? r0 : r1;
+                RM[f] = r01 < r2 ? r01 : r2;
+            }
+            long best = -1; /* the largest face holding the point (its barycentric values are the best conditioned) */
+            double best_bc[3] = {0, 0, 0};
+            for (long f = 0; f < T; ++f) {
+                double h = H[f], rmin = RM[f];
+                if (!(fabs(h) >= near_c * rmin && rmin > tol)) {
+                    const int t[3] = {t0[f], t1[f], t2[f]};
+                    const int fq[3] = {f0[f], f1[f], f2[f]};
+                    const double sg[3] = {s0[f], s1[f], s2[f]};
+                    double R[3] = {RA[t[0]], RA[t[1]], RA[t[2]]}, s[3], dots[3];
+                    for (int e = 0; e < 3; ++e) {
+                        int q = fq[e];
+                        s[e] = sg[e] * (Nx[q] * nx[f] + Ny[q] * ny[f] + Nz[q] * nz[f]);
+                        dots[e] = D[q];
+                    }
+                    const double *lf = ell + 3 * f;
+                    if ((fabs(h) <= tol && s[0] >= -tol * lf[0] && s[1] >= -tol * lf[1] && s[2] >= -tol * lf[2]) ||
+                        rmin <= tol) {
+                        /* On the face (or a vertex): barycentric (Lagrange) values, nothing else counts. */
+                        double bc[3];
+                        for (int i = 0; i < 3; ++i)
+                            bc[i] = rmin <= tol ? (R[i] <= tol ? 1.0 : 0.0) : (s[i] > 0 ? s[i] : 0.0);
+                        if (rmin <= tol || best < 0 || two_area[f] > two_area[best]) {
+                            best = f;
+                            for (int i = 0; i < 3; ++i) best_bc[i] = bc[i];
+                        }
+                        if (rmin <= tol) break; /* a vertex: its Lagrange values whichever face */
+                        continue;
+                    }
+                    double wf[3];
+                    tc_stable_face(h, s, dots, R, lf, gram + 9 * f, two_area[f], wf);
+                    W0[f] = wf[0];
+                    W1[f] = wf[1];
+                    W2[f] = wf[2];
+                }
+            }
+            if (best >= 0) {
+                double sum = best_bc[0] + best_bc[1] + best_bc[2];
+                memset(w, 0, sizeof(double) * (size_t)V);
+                w[t0[best]] += best_bc[0] / sum;
+                w[t1[best]] += best_bc[1] / sum;
+                w[t2[best]] += best_bc[2] / sum;
+                on[p] = 1;
+                continue;
+            }
+            for (long q = 0; q < nthin; ++q) { /* thin faces seen from a few widths: the swept form */
+                long f = thin[q];
+                const int t[3] = {t0[f], t1[f], t2[f]};
+                double a[3][3], wf[3], gf[3][3], Hf[3][6];
+                for (int i = 0; i < 3; ++i) a[i][0] = Ax[t[i]], a[i][1] = Ay[t[i]], a[i][2] = Az[t[i]];
+                if (!tc_thin_face((const double(*)[3])a, two_area[f])) continue;
+                const double nf[3] = {nx[f], ny[f], nz[f]};
+                tc_thin_mvc((const double(*)[3])a, nf, H[f], two_area[f], wf, gf, Hf);
+                W0[f] = wf[0];
+                W1[f] = wf[1];
+                W2[f] = wf[2];
+            }
+            /* Gather the face-corner weights (W0, W1, W2 are contiguous) into the vertices. */
+            double total = 0.0, abs_sum = 0.0;
+            for (long v = 0; v < V; ++v) {
+                double acc = 0.0;
+                for (int k = inc_ptr[v]; k < inc_ptr[v + 1]; ++k) acc += W0[inc_idx[k]];
+                w[v] = acc;
+                total += acc;
+            }
+            int seen_tiny = 0; /* some face seen below 1e-3 of its distance: its vector form cancels */
+#pragma omp simd reduction(+ : abs_sum) reduction(| : seen_tiny)
+            for (long f = 0; f < T; ++f) {
+                abs_sum += fabs(W0[f] + W1[f] + W2[f]);
+                seen_tiny |= longest[f] * FAR_ALWAYS_RATIO < RM[f];
+            }
+            if (abs_sum > cancel_c * fabs(total) || seen_tiny) {
+                /* The face weights cancel (far outside), or faces are seen so small that the vector
+                 * form's error eps (r / edge)^3 would hide the cancellation: redo faces seen small
+                 * by quadrature, w_i = h * sum_q c_qi / |p_q - x|^4, and gather again. */
+                for (long f = 0; f < T; ++f) {
+                    if (!(longest[f] < far_c * RM[f])) continue;
+                    const double *nq = far_nodes + 3 * Q * f, *cq = far_coef + 3 * Q * f;
+                    double acc0 = 0.0, acc1 = 0.0, acc2 = 0.0;
+#pragma omp simd reduction(+ : acc0, acc1, acc2)
+                    for (long k = 0; k < Q; ++k) {
+                        double d0 = nq[3 * k] - x0, d1 = nq[3 * k + 1] - x1, d2 = nq[3 * k + 2] - x2;
+                        double r2 = d0 * d0 + d1 * d1 + d2 * d2, inv = 1.0 / (r2 * r2);
+                        acc0 += cq[3 * k] * inv;
+                        acc1 += cq[3 * k + 1] * inv;
+                        acc2 += cq[3 * k + 2] * inv;
+                    }
+                    double h = H[f];
+                    W0[f] = h * acc0;
+                    W1[f] = h * acc1;
+                    W2[f] = h * acc2;
+                }
+                for (long v = 0; v < V; ++v) {
+                    double acc = 0.0;
+                    for (int k = inc_ptr[v]; k < inc_ptr[v + 1]; ++k) acc += W0[inc_idx[k]];
+                    w[v] = acc;
+                }
+            }
+            if (!normalize) continue;
+            const double xp[3] = {x0, x1, x2};
+            double inv = 1.0 / tc_mv_total(w, V, P, 1, V, 3, xp, centre, far2);
+            for (long v = 0; v < V; ++v) w[v] *= inv;
+        }
+        free(buf);
+    }
+    free(thin);
+}

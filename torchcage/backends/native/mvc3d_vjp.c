@@ -1,0 +1,141 @@
+/*
+ * Vector-Jacobian products of 3D mean value coordinates with respect to the query points and the
+ * rest cage's vertices at once (float64): the hand-derived reverse mode of the direct vector form,
+ * the same formulas and the same "regular point" test as torchcage/families/mean_value/vjp3d.py (its
+ * docstring gives the derivation). One point per iteration, OpenMP over points; each thread sums
+ * its vertex gradients in its own buffer, added up at the end.
+ *
+ * P (V, 3) vertices; tri (T, 3) int32 corners; X (n, 3) points; G (n, V) the cotangent dL/dlam.
+ * Outputs: GX (n, 3) dL/dx (zero rows for points that are not regular), GP (V, 3) dL/dP summed
+ * over the regular points, reg (n,) 1 where the point is regular. A point is regular when, for
+ * every face, |h| >= near_c * min_i |a_i| (h the distance to the face's plane), min_i |a_i| > tol,
+ * the face is not seen below 1/far_always of its longest edge, no thin face is seen from a few
+ * widths (tc_thin_face: the direct form cancels there), and the face weights do not cancel
+ * (sum_T |sum_i w_i| <= cancel_c |W|). The caller treats the other points with the torch kernel.
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "native.h"
+
+/* Per-face scratch of the forward pass, reused by the reverse pass. */
+enum { S_A = 0, S_N = 9, S_NN = 18, S_D = 21, S_TH = 24, S_G = 27, S_M = 30, S_DET = 33, S_W = 34, S_SIZE = 37 };
+
+void tc_mvc3d_vjp(const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
+                  double tol, double near_c, double cancel_c, double far_always, int nthreads, double *GX,
+                  double *GP, unsigned char *reg) {
+    double *two_area = (double *)malloc(sizeof(double) * 2 * (size_t)T), *longest = two_area + T;
+    int any_thin = 0;
+    for (long f = 0; f < T; ++f) {
+        const double *p0 = P + 3 * tri[3 * f], *p1 = P + 3 * tri[3 * f + 1], *p2 = P + 3 * tri[3 * f + 2];
+        double e1[3], e2[3], e3[3], c[3];
+        for (int k = 0; k < 3; ++k) e1[k] = p1[k] - p0[k], e2[k] = p2[k] - p0[k], e3[k] = p2[k] - p1[k];
+        cross3(e1, e2, c);
+        two_area[f] = sqrt(dot3(c, c));
+        double l = fmax(fmax(dot3(e1, e1), dot3(e2, e2)), dot3(e3, e3));
+        longest[f] = sqrt(l);
+        any_thin |= two_area[f] > 0 && l > TC_THIN_ASPECT * two_area[f];
+    }
+    memset(GP, 0, sizeof(double) * 3 * (size_t)V);
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *S = (double *)malloc(sizeof(double) * ((size_t)S_SIZE * (size_t)T + 5 * (size_t)V));
+        double *Wv = S + (size_t)S_SIZE * T, *wbar = Wv + V, *gp = wbar + V;
+        memset(gp, 0, sizeof(double) * 3 * (size_t)V);
+#pragma omp for schedule(dynamic, 32)
+        for (long p = 0; p < n; ++p) {
+            const double *x = X + 3 * p;
+            const double *g = G + p * V;
+            double *gx = GX + 3 * p;
+            gx[0] = gx[1] = gx[2] = 0.0;
+            reg[p] = 0;
+            memset(Wv, 0, sizeof(double) * (size_t)V);
+            int ok = 1;
+            double abs_sum = 0.0;
+            for (long f = 0; f < T && ok; ++f) {
+                double *s = S + (size_t)S_SIZE * f, *a = s + S_A, *N = s + S_N, *m = s + S_M, *w = s + S_W;
+                double rmin = INFINITY;
+                for (int i = 0; i < 3; ++i) {
+                    const double *pi = P + 3 * tri[3 * f + i];
+                    for (int k = 0; k < 3; ++k) a[3 * i + k] = pi[k] - x[k];
+                    rmin = fmin(rmin, sqrt(dot3(a + 3 * i, a + 3 * i)));
+                }
+                m[0] = m[1] = m[2] = 0.0;
+                for (int e = 0; e < 3; ++e) {
+                    int j = (e + 1) % 3, k = (e + 2) % 3;
+                    cross3(a + 3 * j, a + 3 * k, N + 3 * e);
+                    double nn = sqrt(dot3(N + 3 * e, N + 3 * e)), d = dot3(a + 3 * j, a + 3 * k);
+                    double th = atan2(nn, d), ge = th / (2.0 * (nn > 0 ? nn : 1.0));
+                    s[S_NN + e] = nn, s[S_D + e] = d, s[S_TH + e] = th, s[S_G + e] = ge;
+                    for (int c = 0; c < 3; ++c) m[c] += ge * N[3 * e + c];
+                }
+                double det = dot3(a, N);
+                s[S_DET] = det;
+                if (!(fabs(det) >= near_c * rmin * two_area[f] && rmin > tol && longest[f] * far_always >= rmin) ||
+                    (any_thin && longest[f] * longest[f] > TC_THIN_ASPECT * two_area[f] &&
+                     tc_thin_face((const double(*)[3])a, two_area[f]))) {
+                    ok = 0;
+                    break;
+                }
+                double fsum = 0.0;
+                for (int i = 0; i < 3; ++i) {
+                    w[i] = dot3(N + 3 * i, m) / det;
+                    Wv[tri[3 * f + i]] += w[i];
+                    fsum += w[i];
+                }
+                abs_sum += fabs(fsum);
+            }
+            if (!ok) continue;
+            double total = 0.0;
+            for (long v = 0; v < V; ++v) total += Wv[v];
+            if (!(abs_sum <= cancel_c * fabs(total)) || total == 0.0) continue;
+            reg[p] = 1;
+            double sg = 0.0;
+            for (long v = 0; v < V; ++v) sg += g[v] * Wv[v];
+            sg /= total;
+            for (long v = 0; v < V; ++v) wbar[v] = (g[v] - sg) / total;
+            for (long f = 0; f < T; ++f) {
+                const double *s = S + (size_t)S_SIZE * f, *a = s + S_A, *N = s + S_N, *m = s + S_M, *w = s + S_W;
+                const double inv_det = 1.0 / s[S_DET];
+                double wb[3], mbar[3] = {0, 0, 0}, Nbar[9], abar[9], det_bar = 0.0;
+                for (int i = 0; i < 3; ++i) {
+                    wb[i] = wbar[tri[3 * f + i]] * inv_det;
+                    det_bar -= wb[i] * w[i];
+                    for (int c = 0; c < 3; ++c) {
+                        mbar[c] += wb[i] * N[3 * i + c];
+                        Nbar[3 * i + c] = wb[i] * m[c];
+                    }
+                }
+                for (int i = 0; i < 3; ++i)
+                    for (int c = 0; c < 3; ++c) abar[3 * i + c] = det_bar * N[3 * i + c];
+                for (int e = 0; e < 3; ++e) {
+                    int j = (e + 1) % 3, k = (e + 2) % 3;
+                    double nn = s[S_NN + e], d = s[S_D + e], safe_nn = nn > 0 ? nn : 1.0;
+                    double gbar = dot3(N + 3 * e, mbar), th_bar = gbar / (2.0 * safe_nn);
+                    double r2 = nn * nn + d * d, safe_r2 = r2 > 0 ? r2 : 1.0;
+                    double n_bar = -gbar * s[S_TH + e] / (2.0 * safe_nn * safe_nn) + th_bar * d / safe_r2;
+                    double d_bar = -th_bar * nn / safe_r2, coef = n_bar / safe_nn, *Nb = Nbar + 3 * e, cj[3], ck[3];
+                    for (int c = 0; c < 3; ++c) Nb[c] += s[S_G + e] * mbar[c] + coef * N[3 * e + c];
+                    cross3(a + 3 * k, Nb, cj);
+                    cross3(Nb, a + 3 * j, ck);
+                    for (int c = 0; c < 3; ++c) {
+                        abar[3 * j + c] += d_bar * a[3 * k + c] + cj[c];
+                        abar[3 * k + c] += d_bar * a[3 * j + c] + ck[c];
+                    }
+                }
+                for (int i = 0; i < 3; ++i) {
+                    double *dst = gp + 3 * tri[3 * f + i];
+                    for (int c = 0; c < 3; ++c) {
+                        dst[c] += abar[3 * i + c];
+                        gx[c] -= abar[3 * i + c];
+                    }
+                }
+            }
+        }
+#pragma omp critical
+        for (long k = 0; k < 3 * V; ++k) GP[k] += gp[k];
+        free(S);
+    }
+    free(two_area);
+}

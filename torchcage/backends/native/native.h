@@ -1,0 +1,156 @@
+/* Shared helpers of torchcage's native kernels (header-only, included by the .c files). */
+#ifndef TORCHCAGE_NATIVE_H
+#define TORCHCAGE_NATIVE_H
+
+#include <stddef.h>
+
+static inline void cross3(const double *a, const double *b, double *c) {
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+/* The argument of the log in int_e dl / r = log(arg) along an edge from p_j to p_k: l_j, l_k the
+ * endpoints' positions along the edge's direction from the point's foot, R_j, R_k their distances,
+ * c2 the squared distance from the point to the edge's line. Three forms, each free of cancellation
+ * where it is used; all are computed, then one selected, so that loops over edges vectorise. */
+static inline double tc_edge_log_arg(double l_j, double l_k, double R_j, double R_k, double c2) {
+    double pk = R_k + l_k, mj = R_j - l_j, pj = R_j + l_j, mk = R_k - l_k, both = pk * mj;
+    double num = l_j >= 0 ? pk : (l_k <= 0 ? mj : both);
+    double den = l_j >= 0 ? pj : (l_k <= 0 ? mk : c2);
+    /* On the edge (num = 0 at an end, den = 0 inside it) I is infinite and every use multiplies it
+     * by 0: keep the log finite (log(1) = 0 for num = 0; at most log(1e300)) so that the product is
+     * 0 and not NaN. */
+    double r = num / (den > 1e-300 ? den : 1e-300);
+    return num > 0 ? (r < 1e300 ? r : 1e300) : 1.0; /* (the clamp: no inf from a large num over a 0 den) */
+}
+
+/* Beyond TC_FAR_MOMENT times the cage's radius from its centre, mean value weights are normalised by
+ * their first moment (tc_mv_total): there the sum has lost more than eps * TC_FAR_MOMENT to
+ * cancellation, and the moment's own error (a partition of unity off by eps * distance / size, which
+ * moves a cage far from the origin) is no larger. */
+#define TC_FAR_MOMENT 1e3
+
+/* The centre (bounding-box middle) c (D,) of vertices P (component k of vertex v at P[v * sv + k * sc])
+ * and the square of TC_FAR_MOMENT times their largest distance from it. */
+static inline double tc_far_centre(const double *P, long V, long sv, long sc, int D, double *c) {
+    double r2 = 0.0;
+    for (int k = 0; k < D; ++k) {
+        double lo = P[k * sc], hi = lo;
+        for (long v = 1; v < V; ++v) {
+            double t = P[v * sv + k * sc];
+            lo = t < lo ? t : lo;
+            hi = t > hi ? t : hi;
+        }
+        c[k] = 0.5 * (lo + hi);
+    }
+    for (long v = 0; v < V; ++v) {
+        double d2 = 0.0;
+        for (int k = 0; k < D; ++k) d2 += (P[v * sv + k * sc] - c[k]) * (P[v * sv + k * sc] - c[k]);
+        r2 = d2 > r2 ? d2 : r2;
+    }
+    return TC_FAR_MOMENT * TC_FAR_MOMENT * r2;
+}
+
+/* The normaliser of mean value weights w (V,) at x: their sum, or far from the cage (|x - c|^2 >
+ * far2) the first moment (sum_v w_v (P_v - c)) . (x - c) / |x - c|^2, equal to it by linear
+ * precision: the sum cancels to (size / distance) of its terms there, the moment does not (torch:
+ * _core/common.py, normalise_weights). */
+static inline double tc_mv_total(const double *w, long V, const double *P, long sv, long sc, int D, const double *x,
+                                 const double *c, double far2) {
+    double y[3] = {0, 0, 0}, y2 = 0.0;
+    for (int k = 0; k < D; ++k) {
+        y[k] = x[k] - c[k];
+        y2 += y[k] * y[k];
+    }
+    double total = 0.0;
+    if (!(y2 > far2)) {
+        for (long v = 0; v < V; ++v) total += w[v];
+        return total;
+    }
+    for (long v = 0; v < V; ++v) {
+        double m = 0.0;
+        for (int k = 0; k < D; ++k) m += (P[v * sv + k * sc] - c[k]) * y[k];
+        total += w[v] * m;
+    }
+    return total / y2;
+}
+
+/* Stable split form of one triangle's mean value weights near its support plane (mvc3d.c). */
+void tc_stable_face(double h, const double *s, const double *dots, const double *R, const double *ell,
+                    const double *gram, double two_area, double *w);
+
+/* Green integrals of one triangle, and its per-face constants (gc3d.c). */
+int tc_tri_green(const double a[3][3], const double *nf, double two_area, const double *ell, const double *edir,
+                 const double *eout, const double *gbary, double tol, double *phi, double *psi, double *omega,
+                 double *alpha);
+double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir, double *eout, double *gbary);
+
+/* A set of triangles for tc_gc_point (gc3d.c; layouts as tc_gc3d's arguments); fc: per-face
+ * constants that tc_gc_prepare folds (tc_gc_free releases them). */
+typedef struct {
+    const double *Pv;
+    long V;
+    const int *tri;
+    long T;
+    const int *edges;
+    long E;
+    const double *eu;
+    const int *fe;
+    const double *nrm, *two_area, *ell, *edir, *eout, *gbary;
+    double *fc;
+    long *thin; /* the faces tc_thin_face flags, nthin of them (tc_gc_prepare) */
+    long nthin;
+    /* The far-field rule (torchcage/families/green/far_triangle.py; Q = 0: none): the faces' longest
+     * edges (T,), the Q nodes of each face (T, Q, 3), their weights with the area (T, Q) and
+     * barycentric coordinates (Q, 3); a pair takes it when its nearest corner is far_c longest
+     * edges away or more. */
+    const double *longest, *far_nodes, *far_w, *far_bary;
+    long Q;
+    double far_c;
+} gc_tables;
+/* Whether face f of g is seen from far by a point whose distances to the face's corners are R (3,). */
+int tc_far_pair(const gc_tables *g, long f, const double *R);
+/* Face f's integrals by the far-field rule, seen from x with signed distance h: phi (3,) (with
+ * 1 / 4 pi, may be NULL), psi, omega, K (3,) (may be NULL) and, when gom is not NULL, the gradients
+ * gom (3,) of omega and gK (3, 3) of K (gK[3 a + b] = d K_a / d x_b). */
+void tc_far_face(const gc_tables *g, long f, const double *x, double h, double *phi, double *psi, double *omega,
+                 double *K, double *gom, double *gK);
+/* Thin faces (torchcage/_core/thin_triangle.py): THIN_ASPECT times longer than wide, seen from
+ * THIN_DISTANCE widths or more from their longest edge, take the swept forms. */
+#define TC_THIN_ASPECT 100.0
+#define TC_THIN_DISTANCE 9.0
+int tc_thin_face(const double a[3][3], double two_area);
+/* Mean value weights (w) of a thin face with their gradients (g) and Hessians (H, upper triangle) in
+ * the point, by the swept form (mvcd3d.c). Returns 1. */
+int tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],
+                 double H[3][6]);
+int tc_thin_green(const double a[3][3], double h, double two_area, double *phi, double *psi, double *omega);
+void tc_gc_prepare(gc_tables *g);
+void tc_gc_free(gc_tables *g);
+size_t tc_gc_workspace(const gc_tables *g);
+long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, double *psi, double *P, double *OM,
+                 double *on_alpha);
+
+/* Per point-quad quantities of quad mean value and quad Green coordinates (qmvc3d.c). */
+typedef struct {
+    double p[4][3], R[4], m[3], k[4], rows[4][3], b[3], cc[3], dd[3], N0[3], Nu[3], Nv[3];
+    double D, kabs, u, v;
+    int flat, inside, vertex, on;
+} quad_pair;
+void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, int project,
+                  quad_pair *qp);
+
+/* The four corner integrals of a bilinear quad (xi - x = p0 + u b + v cc + u v dd) to the relative
+ * tolerance tol (quadrature.c), or with green the eight of quad Green coordinates (without 1 / 4 pi);
+ * the first split at (us, vs); on: the point is at xi(us, vs) (principal values); gl: Gauss-Legendre
+ * nodes and weights on [0, 1], (TC_QMAX_ORDER + 1, 2, TC_QMAX_ORDER). */
+#define TC_QMAX_ORDER 16 /* MAX_ORDER in _quad_quadrature.py */
+void tc_quad_integrals(const double *p0, const double *b, const double *cc, const double *dd, double us, double vs,
+                       int on, double tol, const double *gl, int green, double *om);
+/* 1 if tc_quad_integrals takes the quad qi of P (seen from x) as one panel, without splitting it. */
+int tc_quad_whole(const double *P, const int *qi, const double *x, double tol);
+
+#endif

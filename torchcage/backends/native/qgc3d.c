@@ -1,0 +1,374 @@
+/*
+ * Native CPU kernel of the quad part of torchcage's Green coordinates for triquad cages (float64).
+ *
+ * The same steps as torchcage/families/quad_green/kernel.py (see its docstring): per point and quad, the
+ * smooth projection (tc_quad_pair, shared with QMVC), the invariants from exact triangle Green
+ * integrals (outside the quad's tetrahedron on its split triangles, computed for all quads at once
+ * per point by tc_gc_point; inside it on the fan of four triangles from the projection to the
+ * edges, tc_tri_green), the least-norm solution through the precomputed pseudo-inverse of A_q, and
+ * the null-space part from the adaptive Riemann sum of Algorithm 1 (edge integrals once per unique
+ * pattern edge, then one vectorised loop over the sub-triangles). On the Riemann sub-triangles the
+ * solid angle is taken in Van Oosterom and Strackee's one-atan2 form (the estimate needs no more);
+ * the tests check this kernel against the torch kernel. One point per iteration, OpenMP over points.
+ */
+#define _GNU_SOURCE
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "native.h"
+
+#ifdef TC_LIBMVEC
+/* Let the compiler call glibc's vector log and atan2 (libmvec) in the plain loops below. */
+__attribute__((simd("notinbranch"))) double log(double);
+__attribute__((simd("notinbranch"))) double atan2(double, double);
+#endif
+
+#define FOUR_PI 12.566370614359172953850573533118
+
+/* The fan's apex moves along the projection's ruling, away from the nearest edge, to FAN_APEX_BAND
+ * of the parameter range or to the distance of the nearest perpendicular edge (as fan_apex in
+ * _qgc3d.py: the fan triangle over a nearby edge is no longer a sliver). */
+#define FAN_APEX_BAND 0.25
+
+static void fan_apex(double u, double v, double *ua, double *va) {
+    double mu = fmin(u, 1 - u), mv = fmin(v, 1 - v);
+    *ua = u;
+    *va = v;
+    if (mv <= mu) {
+        double t = fmin(mu, FAN_APEX_BAND);
+        *va = v <= 0.5 ? fmax(v, t) : fmin(v, 1 - t);
+    } else {
+        double t = fmin(mv, FAN_APEX_BAND);
+        *ua = u <= 0.5 ? fmax(u, t) : fmin(u, 1 - t);
+    }
+}
+
+/* Whether the point (corners p relative to it) lies within 1.1 times the quad's bounding radius of
+ * its centre: every point near one of its edges does. */
+static int near_quad(const double p[4][3]) {
+    double m[3], r2 = 0;
+    for (int c = 0; c < 3; ++c) m[c] = 0.25 * (p[0][c] + p[1][c] + p[2][c] + p[3][c]);
+    for (int k = 0; k < 4; ++k) {
+        double e[3] = {p[k][0] - m[0], p[k][1] - m[1], p[k][2] - m[2]};
+        r2 = fmax(r2, dot3(e, e));
+    }
+    return dot3(m, m) <= 1.21 * r2;
+}
+
+/* Eq. 19 (m = 3): 2K + 1 nodes in [0, 1] concentrated around t. */
+static void grid19(double t, int K, double *x) {
+    for (int i = 0; i <= 2 * K; ++i) {
+        if (i < K) {
+            double s = (double)(K - i) / K;
+            x[i] = (1 - s * s * s) * t;
+        } else if (i > K) {
+            double s = (double)(i - K) / K;
+            x[i] = (t - 1) * (1 - s * s * s) + 1;
+        } else {
+            x[i] = t;
+        }
+    }
+}
+
+/*
+ * P: (V, 3) vertices; quads: (Q, 4) int32; size: (Q,); pinv, null: (Q, 8, 4) pseudo-inverse and
+ * null-space basis (columns) of A_q built on corners relative to origin (3,); pattern: (Pn, 3, 2)
+ * int32 sub-triangles as (u index, v index) on a (2K+1)^2 grid; X: (n, 3). Outputs: PHI (n, V)
+ * incremented by the quads' phi (principal values on the cage), PSIQ (n, 4Q), ONQ (n,) the first
+ * quad a point lies on (or -1) and UV (n, 2) its projection there. s_*: the Green-kernel tables
+ * (as tc_gc3d's arguments) of the quads' split triangles, 2q: (q0 q1 q2) and 2q + 1: (q0 q2 q3).
+ */
+void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *pinv,
+              const double *null, const double *origin, const int *pattern, long Pn, int K, const double *X, long n,
+              double tol, double qtol, const double *gl, int nthreads, double *PHI, double *PSIQ, int *ONQ, double *UV,
+              const double *s_Pv, const int *s_tri, const int *s_edges, long s_E, const double *s_eu, const int *s_fe,
+              const double *s_nrm,
+              const double *s_two_area, const double *s_ell, const double *s_edir, const double *s_eout,
+              const double *s_gbary) {
+    const int G = 2 * K + 1;
+    /* The split triangles (q0 q1 q2), (q0 q2 q3) of every quad (2q, 2q + 1), as a set for the
+     * Green kernel: per point, their integrals in one vectorised pass (tc_gc_point). */
+    const long T2 = 2 * Q;
+    gc_tables sg = {s_Pv, V, s_tri, T2, s_edges, s_E, s_eu, s_fe, s_nrm, s_two_area, s_ell, s_edir, s_eout, s_gbary,
+                    NULL};
+    tc_gc_prepare(&sg);
+    const size_t sws = tc_gc_workspace(&sg);
+    /* The pattern's sub-triangles as flat grid-node indices (corner c of triangle t at [c * Pn + t])
+     * and their u and v indices; its unique edges (nodes EJ, EK) and, for each triangle, the edge
+     * opposite each corner (TE, same layout): an edge's integral int dl / r is shared by the
+     * triangles on both sides. */
+    int *node = (int *)malloc(sizeof(int) * 12 * (size_t)Pn), *iu = node + 3 * Pn, *iv = iu + 3 * Pn;
+    int *TE = iv + 3 * Pn, *EJ = (int *)malloc(sizeof(int) * 6 * (size_t)Pn), *EK = EJ + 3 * Pn;
+    int *seen = (int *)malloc(sizeof(int) * 25 * (size_t)G * G); /* (node, offset to the other node) */
+    for (long i = 0; i < 25 * (long)G * G; ++i) seen[i] = -1;
+    long NE = 0;
+    for (long t = 0; t < Pn; ++t)
+        for (int c = 0; c < 3; ++c) {
+            long r = 3 * t + c;
+            iu[c * Pn + t] = pattern[2 * r];
+            iv[c * Pn + t] = pattern[2 * r + 1];
+            node[c * Pn + t] = pattern[2 * r] * G + pattern[2 * r + 1];
+        }
+    for (long t = 0; t < Pn; ++t)
+        for (int c = 0; c < 3; ++c) {
+            int j = node[((c + 1) % 3) * Pn + t], k = node[((c + 2) % 3) * Pn + t];
+            int lo = j < k ? j : k, hi = j < k ? k : j;
+            int du = hi / G - lo / G, dv = hi % G - lo % G; /* Algorithm 1's edges span <= 2 cells */
+            int *slot = du <= 2 && dv >= -2 && dv <= 2 ? seen + 25 * (long)lo + (du + 2) * 5 + (dv + 2) : NULL;
+            long id = slot ? *slot : -1;
+            if (!slot) /* (any other pattern: a linear search) */
+                for (long e = 0; e < NE && id < 0; ++e)
+                    if (EJ[e] == lo && EK[e] == hi) id = e;
+            if (id < 0) {
+                id = NE++;
+                EJ[id] = lo;
+                EK[id] = hi;
+                if (slot) *slot = (int)id;
+            }
+            TE[c * Pn + t] = (int)id;
+        }
+    free(seen);
+    /* Eq. 19's nodes are affine in the centre t (node i = ga[i] + gb[i] t): so are the grid node
+     * g = (i, j) = i G + j, (u_i, v_j) = (GA[g] + GB[g] u, GA[G^2 + g] + GB[G^2 + g] v), and a
+     * sub-triangle's centroid (uc, vc) = (UA + UB u, VA + VB v): no per-point grid, no gathers. */
+    double *UA = (double *)malloc(sizeof(double) * (4 * (size_t)Pn + 4 * (size_t)G * G)), *UB = UA + Pn;
+    double *VA = UB + Pn, *VB = VA + Pn, *GA = VB + Pn, *GB = GA + 2 * G * G;
+    {
+        double *ga = (double *)malloc(sizeof(double) * 2 * (size_t)G), *gb = ga + G;
+        grid19(0.0, K, ga);
+        grid19(1.0, K, gb);
+        for (int i = 0; i < G; ++i) gb[i] -= ga[i];
+        for (long t = 0; t < Pn; ++t) { /* (sums in locals: gcc 12 -O3 miscompiled the same sums
+                                           * accumulated in place after a zeroing store) */
+            double ua = 0.0, ub = 0.0, va = 0.0, vb = 0.0;
+            for (int c = 0; c < 3; ++c) {
+                ua += ga[iu[c * Pn + t]];
+                ub += gb[iu[c * Pn + t]];
+                va += ga[iv[c * Pn + t]];
+                vb += gb[iv[c * Pn + t]];
+            }
+            UA[t] = ua / 3;
+            UB[t] = ub / 3;
+            VA[t] = va / 3;
+            VB[t] = vb / 3;
+        }
+        for (int g = 0; g < G * G; ++g) {
+            GA[g] = ga[g / G];
+            GB[g] = gb[g / G];
+            GA[G * G + g] = ga[g % G];
+            GB[G * G + g] = gb[g % G];
+        }
+        free(ga);
+    }
+    const double inv4pi = 1.0 / FOUR_PI;
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)G * G + 2 * (size_t)NE));
+        double *sbuf = (double *)malloc(sizeof(double) * (sws + 5 * (size_t)T2));
+        double *SPSI = sbuf + sws, *SP = SPSI + T2, *SOM = SP + 3 * T2;
+        double *Sx = buf, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
+        double *IE = SR + G * G, *EINV = IE + NE;
+#pragma omp for schedule(dynamic, 16)
+        for (long pt = 0; pt < n; ++pt) {
+            const double *x = X + 3 * pt;
+            double *phi = PHI + pt * V, *psiq = PSIQ + pt * 4 * Q;
+            ONQ[pt] = -1;
+            double s_alpha[3];
+            tc_gc_point(&sg, x, tol, sbuf, SPSI, SP, SOM, s_alpha);
+            for (long q = 0; q < Q; ++q) {
+                const int *qi = quads + 4 * q;
+                quad_pair qp;
+                tc_quad_pair(P, qi, x, size[q], tol, 1, &qp);
+                double u = qp.u, v = qp.v;
+                if (qp.on && ONQ[pt] < 0) { /* (a corner: its Lagrange values) */
+                    ONQ[pt] = (int)q;
+                    UV[2 * pt] = qp.vertex < 0 ? u : (qp.vertex == 1 || qp.vertex == 2 ? 1.0 : 0.0);
+                    UV[2 * pt + 1] = qp.vertex < 0 ? v : (qp.vertex >= 2 ? 1.0 : 0.0);
+                }
+                const double *b = qp.b, *cc = qp.cc, *dd = qp.dd;
+                double rhs[4] = {0, 0, 0, 0}; /* the invariants */
+                /* Outside the quad's tetrahedron the point cannot lie between the sheet and the split
+                 * (q0 q1 q2), (q0 q2 q3): those two triangles give the same invariants, already
+                 * computed for all quads above. Within 1.1 times the quad's bounding radius of its
+                 * centre, the fan instead, as for the quads around: near an edge, two quads must see
+                 * it in the same form (split and fan treat the point's side of the edge with
+                 * different bits, and their errors of eps / distance did not cancel). */
+                if (!qp.inside && !qp.on && !near_quad(qp.p)) {
+                    for (long t = 2 * q; t < 2 * q + 2; ++t) {
+                        for (int i = 0; i < 3; ++i) {
+                            double ph = SP[i * T2 + t];
+                            const double *c3 = P + 3 * s_tri[i * T2 + t];
+                            for (int c = 0; c < 3; ++c) rhs[c] += ph * (c3[c] - origin[c]);
+                            rhs[3] += ph;
+                        }
+                        for (int c = 0; c < 3; ++c) rhs[c] += SPSI[t] * s_nrm[3 * t + c];
+                    }
+                } else { /* on the fan from the projection (apex) to the four edges */
+                    /* The fan's frames from the corners themselves (a quad edge then has the bits
+                     * of the neighbouring quad's fan or triangle face: consistent sides near it). */
+                    double apex[3], ua = u, va = v;
+                    if (!qp.on) fan_apex(u, v, &ua, &va);
+                    const double wq[4] = {(1 - ua) * (1 - va), ua * (1 - va), ua * va, (1 - ua) * va};
+                    for (int c = 0; c < 3; ++c)
+                        apex[c] = wq[0] * P[3 * qi[0] + c] + wq[1] * P[3 * qi[1] + c] + wq[2] * P[3 * qi[2] + c] +
+                                  wq[3] * P[3 * qi[3] + c];
+                    for (int e = 0; e < 4; ++e) {
+                        double ab[3][3], a[3][3], nf[3], ell[3], edir[9], eout[9], gbary[9], ph[3], ps, om, al[3];
+                        memcpy(ab[0], P + 3 * qi[e], sizeof(ab[0]));
+                        memcpy(ab[1], P + 3 * qi[(e + 1) & 3], sizeof(ab[1]));
+                        memcpy(ab[2], apex, sizeof(ab[2]));
+                        for (int i = 0; i < 3; ++i)
+                            for (int c = 0; c < 3; ++c) a[i][c] = ab[i][c] - x[c];
+                        double two_area = tc_tri_frame(ab, nf, ell, edir, eout, gbary);
+                        /* The quad edge (opposite the apex) with the bits Python gave it in the split
+                         * triangles' tables, the function that made the cage faces' (a triangle face
+                         * across the edge then sees the point on the same side: PU was off by 7e-6 at
+                         * 4e-14 from such an edge of Beast, the C and torch norms differing by an ulp). */
+                        {
+                            const long t = e < 2 ? 2 * q : 2 * q + 1;
+                            const int ci = e == 0 ? 2 : (e == 3 ? 1 : 0);
+                            for (int c = 0; c < 3; ++c) edir[6 + c] = s_edir[9 * t + 3 * ci + c];
+                            ell[2] = s_ell[3 * t + ci];
+                            cross3(edir + 6, nf, eout + 6);
+                            for (int c = 0; c < 3; ++c)
+                                gbary[6 + c] = two_area > 0 ? -eout[6 + c] * ell[2] / two_area : 0.0;
+                        }
+                        /* The apex on this edge (a point on the quad's boundary): the triangle is
+                         * empty, up to rounding that would make it a sliver seen from its own edge. */
+                        if (two_area <= tol * ell[2]) continue;
+                        tc_tri_green(a, nf, two_area, ell, edir, eout, gbary, tol, ph, &ps, &om, al);
+                        for (int i = 0; i < 3; ++i) {
+                            for (int c = 0; c < 3; ++c) rhs[c] += ph[i] * (ab[i][c] - origin[c]);
+                            rhs[3] += ph[i];
+                        }
+                        for (int c = 0; c < 3; ++c) rhs[c] += ps * nf[c];
+                    }
+                }
+                const double *Ap = pinv + 32 * q, *Nl = null + 32 * q;
+                double bar[8];
+                for (int i = 0; i < 8; ++i)
+                    bar[i] = Ap[4 * i] * rhs[0] + Ap[4 * i + 1] * rhs[1] + Ap[4 * i + 2] * rhs[2] + Ap[4 * i + 3] * rhs[3];
+                double est[8];
+                if (qtol > 0) {
+                    /* the defining integrals to the tolerance (on the quad too: both integrands are
+                     * O(1 / r) there, the principal value is the integral); no norm correction */
+                    tc_quad_integrals(qp.p[0], b, cc, dd, u, v, qp.on, qtol, gl, 1, est);
+                    for (int i = 0; i < 8; ++i) est[i] *= inv4pi;
+                } else {
+                    /* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18). */
+                    const double p0x = qp.p[0][0], p0y = qp.p[0][1], p0z = qp.p[0][2];
+#pragma omp simd
+                    for (long g = 0; g < G * G; ++g) { /* grid nodes on the quad, minus the point */
+                        double uu = GA[g] + GB[g] * u, vv = GA[G * G + g] + GB[G * G + g] * v, uv = uu * vv;
+                        double sx = p0x + uu * b[0] + vv * cc[0] + uv * dd[0];
+                        double sy = p0y + uu * b[1] + vv * cc[1] + uv * dd[1];
+                        double sz = p0z + uu * b[2] + vv * cc[2] + uv * dd[2];
+                        Sx[g] = sx;
+                        Sy[g] = sy;
+                        Sz[g] = sz;
+                        SR[g] = sqrt(sx * sx + sy * sy + sz * sz);
+                    }
+                    const double *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
+                    /* Edges: int dl / r (tc_edge_log_arg, then the logs in a loop of their own, vectorised
+                     * with libmvec) and 1 / length. */
+#pragma omp simd
+                    for (long e = 0; e < NE; ++e) {
+                        int j = EJ[e], k = EK[e];
+                        double ajx = Sx[j], ajy = Sy[j], ajz = Sz[j], Rj = SR[j], Rk = SR[k];
+                        double Ex = Sx[k] - ajx, Ey = Sy[k] - ajy, Ez = Sz[k] - ajz;
+                        double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
+                        double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
+                        double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
+                        double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
+                        double arg = tc_edge_log_arg(lj, lk, Rj, Rk, cx * cx + cy * cy + cz * cz);
+                        IE[e] = arg > 1e-300 ? arg : 1e-300;
+                        EINV[e] = invl; /* 1 / length (0 for a degenerate edge) */
+                    }
+#pragma omp simd
+                    for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
+                    /* Sub-triangles: Van Oosterom-Strackee solid angle (tan(omega / 2) = det / den,
+                     * det = h 2A), psi = (sum_e d_e I_e - h omega) / 4 pi with d_e the signed distance
+                     * of the foot point to edge e's line, and the bilinear basis at the centroid. */
+                    double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
+#pragma omp simd reduction(+ : e0, e1, e2, e3, e4, e5, e6, e7)
+                    for (long t = 0; t < Pn; ++t) {
+                        int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
+                        double a0x = Sx[i0], a0y = Sy[i0], a0z = Sz[i0], R0 = SR[i0];
+                        double a1x = Sx[i1], a1y = Sy[i1], a1z = Sz[i1], R1 = SR[i1];
+                        double a2x = Sx[i2], a2y = Sy[i2], a2z = Sz[i2], R2 = SR[i2];
+                        double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
+                        double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
+                        double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
+                        double two_area = sqrt(crx * crx + cry * cry + crz * crz);
+                        double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
+                        double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
+                        double h = det * inv2A, ha = h >= 0 ? h : -h;
+                        double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
+                                     (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+                        double omv = 2.0 * atan2(det, den);
+                        double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
+                        /* d_e = a_j . (E_e x cr) / (|E_e| 2A), E_e from corner j to corner k. */
+                        double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z; /* edge opposite corner 0 */
+                        double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
+                        double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z; /* opposite corner 1 */
+                        double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
+                        double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
+                        int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
+                        double d0 = m0 * inv2A * EINV[k0], d1 = m1 * inv2A * EINV[k1], d2 = m2 * inv2A * EINV[k2];
+                        double q0 = d0 * IE[k0], q1 = d1 * IE[k1], q2 = d2 * IE[k2];
+                        double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
+                        double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
+                        double uc = UA[t] + UB[t] * u, vc = VA[t] + VB[t] * v;
+                        double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
+                        double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
+                        double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
+                        double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
+                        e0 += b0 * so;
+                        e1 += b1 * so;
+                        e2 += b2 * so;
+                        e3 += b3 * so;
+                        e4 += b0 * sp;
+                        e5 += b1 * sp;
+                        e6 += b2 * sp;
+                        e7 += b3 * sp;
+                    }
+                    est[0] = e0;
+                    est[1] = e1;
+                    est[2] = e2;
+                    est[3] = e3;
+                    est[4] = e4;
+                    est[5] = e5;
+                    est[6] = e6;
+                    est[7] = e7;
+                }
+                /* Phi = Phi_bar + sum_i lambda_i kappa_i with the norm correction (none with qtol). */
+                double eb = 0, bb = 0, coef[4];
+                for (int i = 0; i < 8; ++i) {
+                    eb += est[i] * bar[i];
+                    bb += bar[i] * bar[i];
+                }
+                double scale = qtol > 0 ? 1.0 : (eb != 0 ? bb / eb : 0.0);
+                for (int j = 0; j < 4; ++j) {
+                    coef[j] = 0;
+                    for (int i = 0; i < 8; ++i) coef[j] += Nl[4 * i + j] * est[i];
+                    coef[j] *= scale;
+                }
+                for (int i = 0; i < 8; ++i) {
+                    double val = bar[i];
+                    for (int j = 0; j < 4; ++j) val += Nl[4 * i + j] * coef[j];
+                    if (i < 4)
+                        phi[qi[i]] += val;
+                    else
+                        psiq[4 * q + i - 4] = val;
+                }
+            }
+        }
+        free(buf);
+        free(sbuf);
+    }
+    tc_gc_free(&sg);
+    free(node);
+    free(EJ);
+    free(UA);
+}

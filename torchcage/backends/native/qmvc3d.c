@@ -1,0 +1,522 @@
+/*
+ * Native CPU kernel of the quad part of torchcage's quad mean value coordinates (float64).
+ *
+ * The same steps and thresholds as torchcage/families/quad_mean_value/kernel.py (see its docstring): per point
+ * and quad, the mean vector, the kernel kappa and least-norm solution (Cramer form plus one
+ * refinement step), the two-step smooth projection, the adaptive (2n+1)^2 Riemann sum and the
+ * norm-corrected lambda. One point per iteration, OpenMP over points. The tests check this kernel
+ * against the torch kernel.
+ */
+#define _GNU_SOURCE
+#include <float.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "native.h"
+
+#define SPLIT_FORM_RATIO 0.01
+#define REFINE 3       /* as REFINE in _qmvc3d.py */
+#define NEAR_FLAT 1e-3 /* as NEAR_FLAT in _qmvc3d.py */
+#define ON_QUAD_BAND 4.0 /* as ON_QUAD_BAND in _qmvc3d.py */
+
+static const int HULL[4][3] = {{0, 1, 3}, {1, 2, 3}, {0, 2, 1}, {0, 3, 2}};
+
+/* Quads seen from more than 10^FAR_QUAD_LO times their size blend towards, and beyond 10^FAR_QUAD_HI
+ * take, the Gauss rule of the defining integrals (as FAR_QUAD_LOG and GAUSS4 in _qmvc3d.py). */
+#define FAR_QUAD_LO 1.5
+#define FAR_QUAD_HI 2.5
+static const double GAUSS_T[4] = {0.06943184420297371, 0.33000947820757187, 0.6699905217924281, 0.9305681557970262};
+static const double GAUSS_W[4] = {0.17392742256872679, 0.3260725774312732, 0.3260725774312732, 0.17392742256872679};
+
+/* Weight of the Gauss rule: a smoothstep in log10(min_i |p_i| / size) from FAR_QUAD_LO to FAR_QUAD_HI. */
+static double far_blend(const double *R, double size) {
+    double rmin = fmin(fmin(R[0], R[1]), fmin(R[2], R[3]));
+    double ratio = rmin / size;
+    if (!(ratio > 1.0)) return 0.0;
+    double s = (log10(ratio) - FAR_QUAD_LO) / (FAR_QUAD_HI - FAR_QUAD_LO);
+    s = s < 0 ? 0 : (s > 1 ? 1 : s);
+    return s * s * (3 - 2 * s);
+}
+
+/* The four corner integrals int phi_i N.(xi - x) / |xi - x|^4 du dv by the tensor Gauss rule (as
+ * gauss_weights in _qmvc3d.py): xi - x = p0 + u b + v cc + u v dd, N = N0 + u Nu + v Nv. */
+static void gauss_weights(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
+                          const double *Nu, const double *Nv, double *wg) {
+    wg[0] = wg[1] = wg[2] = wg[3] = 0.0;
+    for (int a = 0; a < 4; ++a) {
+        double u = GAUSS_T[a];
+        for (int l = 0; l < 4; ++l) {
+            double v = GAUSS_T[l], dx[3], N[3];
+            for (int c = 0; c < 3; ++c) {
+                dx[c] = p0[c] + u * b[c] + v * cc[c] + u * v * dd[c];
+                N[c] = N0[c] + u * Nu[c] + v * Nv[c];
+            }
+            double r2 = dot3(dx, dx);
+            double f = dot3(N, dx) / (r2 * r2) * GAUSS_W[a] * GAUSS_W[l];
+            wg[0] += (1 - u) * (1 - v) * f;
+            wg[1] += u * (1 - v) * f;
+            wg[2] += u * v * f;
+            wg[3] += (1 - u) * v * f;
+        }
+    }
+}
+
+/* Angle between a and b from |a x b| (cn), a . b (d) and |a| |b| (rr), through the half-angle
+ * tangent (accurate for all angles, and atan is cheaper than atan2). */
+static inline double angle3(double cn, double d, double rr) {
+    double t = cn / (rr + fabs(d));
+    return d < 0 ? M_PI - 2 * atan(t) : 2 * atan(t);
+}
+
+/* Mean vector of the quad seen from the origin of p (Eq. 16); edges through it count nothing. */
+static void mean_vector(const double p[4][3], double *m) {
+    m[0] = m[1] = m[2] = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        const double *a = p[i], *b = p[(i + 1) & 3];
+        double c[3];
+        cross3(a, b, c);
+        double c2 = dot3(c, c);
+        if (!(c2 > 0)) continue;
+        double cn = sqrt(c2), g = 0.5 * angle3(cn, dot3(a, b), sqrt(dot3(a, a) * dot3(b, b))) / cn;
+        m[0] += g * c[0];
+        m[1] += g * c[1];
+        m[2] += g * c[2];
+    }
+}
+
+/* Mean value weights of the triangle (a0, a1, a2) (corners minus the point): direct vector form,
+ * the stable split form near its plane. */
+static void triangle_weights(const double *a0, const double *a1, const double *a2, double *w) {
+    const double *a[3] = {a0, a1, a2};
+    double E[3][3], N[3][3], nrm[3], R[3], dots[3], Nn[3];
+    for (int e = 0; e < 3; ++e) {
+        const double *j = a[(e + 1) % 3], *k = a[(e + 2) % 3];
+        for (int c = 0; c < 3; ++c) E[e][c] = j[c] - k[c];
+        cross3(j, k, N[e]);
+        Nn[e] = sqrt(dot3(N[e], N[e]));
+        dots[e] = dot3(j, k);
+        R[e] = sqrt(dot3(a[e], a[e]));
+    }
+    double cr[3], d1[3], d2[3];
+    for (int c = 0; c < 3; ++c) {
+        d1[c] = a1[c] - a0[c];
+        d2[c] = a2[c] - a0[c];
+    }
+    cross3(d1, d2, cr);
+    double two_area = sqrt(dot3(cr, cr));
+    for (int c = 0; c < 3; ++c) nrm[c] = cr[c] / two_area;
+    double h = dot3(nrm, a0);
+    double rmin = fmin(R[0], fmin(R[1], R[2]));
+    if (fabs(h) < SPLIT_FORM_RATIO * rmin) {
+        double s[3], ell[3], gram[9];
+        for (int e = 0; e < 3; ++e) {
+            s[e] = dot3(N[e], nrm);
+            ell[e] = sqrt(dot3(E[e], E[e]));
+            for (int f = 0; f < 3; ++f) gram[3 * e + f] = dot3(E[e], E[f]);
+        }
+        tc_stable_face(h, s, dots, R, ell, gram, two_area, w);
+        return;
+    }
+    double m[3] = {0.0, 0.0, 0.0};
+    for (int e = 0; e < 3; ++e) {
+        if (!(Nn[e] > 0)) continue;
+        double g = 0.5 * angle3(Nn[e], dots[e], R[(e + 1) % 3] * R[(e + 2) % 3]) / Nn[e];
+        for (int c = 0; c < 3; ++c) m[c] += g * N[e][c];
+    }
+    double inv = 1.0 / (two_area * h);
+    for (int i = 0; i < 3; ++i) w[i] = dot3(N[i], m) * inv;
+}
+
+/* Kernel kappa of A = [p0..p3] (Eq. 26) and the rows of |kappa|^2 A^+ (Cramer form, see
+ * kernel_and_pinv in _qmvc3d.py), from the six cross products c[a][b] = p_a x p_b (a < b; the
+ * table holds c[b][a] = -c[a][b] too). */
+static double kernel_and_pinv(const double p[4][3], double c[4][4][3], double *k, double rows[4][3]) {
+    for (int a = 0; a < 4; ++a)
+        for (int b = a + 1; b < 4; ++b) {
+            cross3(p[a], p[b], c[a][b]);
+            for (int d = 0; d < 3; ++d) c[b][a][d] = -c[a][b][d];
+        }
+    k[0] = dot3(p[1], c[2][3]);
+    k[1] = -dot3(p[2], c[3][0]);
+    k[2] = dot3(p[3], c[0][1]);
+    k[3] = -dot3(p[0], c[1][2]);
+    for (int i = 0; i < 4; ++i) {
+        rows[i][0] = rows[i][1] = rows[i][2] = 0.0;
+        for (int j = 0; j < 4; ++j) {
+            if (j == i) continue;
+            int cols[3], t = 0, pos = 0;
+            for (int q = 0; q < 4; ++q)
+                if (q != j) {
+                    if (q == i) pos = t;
+                    cols[t++] = q;
+                }
+            int y = cols[(pos + 1) % 3], z = cols[(pos + 2) % 3];
+            double s = (j & 1) ? -k[j] : k[j];
+            for (int d = 0; d < 3; ++d) rows[i][d] += s * c[y][z][d];
+        }
+    }
+    return k[0] * k[0] + k[1] * k[1] + k[2] * k[2] + k[3] * k[3];
+}
+
+static double badness(double r) { return (r < 0 ? -r : 0) + (r > 1 ? r - 1 : 0) + 1e-3 * fabs(r - 0.5); }
+
+/* (u, v) where the line through the origin of p along d meets the bilinear sheet (Appendix B). */
+static void intersect(const double p[4][3], const double *d, double *u_out, double *v_out) {
+    double A0[3], A1[3], B0[3], B1[3], t[3], t2[3];
+    for (int c = 0; c < 3; ++c) {
+        A0[c] = p[0][c];
+        A1[c] = p[3][c] - p[0][c];
+        B0[c] = p[1][c];
+        B1[c] = p[2][c] - p[1][c];
+    }
+    cross3(A0, B0, t);
+    double c0 = dot3(t, d);
+    cross3(A0, B1, t);
+    cross3(A1, B0, t2);
+    double c1 = dot3(t, d) + dot3(t2, d);
+    cross3(A1, B1, t);
+    double c2 = dot3(t, d);
+    double disc = c1 * c1 - 4 * c0 * c2;
+    double sq = disc > 0 ? sqrt(disc) : 0.0;
+    double qq = -0.5 * (c1 + (c1 >= 0 ? sq : -sq));
+    double r1 = c2 != 0 ? qq / c2 : 1e300, r2 = qq != 0 ? c0 / qq : 1e300;
+    double v = badness(r1) <= badness(r2) ? r1 : r2;
+    v = v < 0 ? 0 : (v > 1 ? 1 : v);
+    double a[3], e[3];
+    for (int c = 0; c < 3; ++c) {
+        a[c] = A0[c] + v * A1[c];
+        e[c] = B0[c] + v * B1[c] - a[c];
+    }
+    double d2 = dot3(d, d), inv = d2 > 0 ? 1.0 / d2 : 0.0;
+    double ed = dot3(e, d) * inv, ad = dot3(a, d) * inv, ep[3], ap[3];
+    for (int c = 0; c < 3; ++c) {
+        ep[c] = e[c] - ed * d[c];
+        ap[c] = a[c] - ad * d[c];
+    }
+    double ee = dot3(ep, ep);
+    double u = ee > 0 ? -dot3(ap, ep) / ee : 0.5;
+    *u_out = u < 0 ? 0 : (u > 1 ? 1 : u);
+    *v_out = v;
+}
+
+static void grid(double t, int n, double *nodes, double *len) {
+    int K = 2 * n + 1;
+    for (int k = 0; k < K; ++k) {
+        double s = (double)k / n;
+        nodes[k] = s <= 1 ? s * t : t + (s - 1) * (1 - t);
+    }
+    for (int k = 0; k < K; ++k) len[k] = (nodes[k + 1 < K ? k + 1 : K - 1] - nodes[k > 0 ? k - 1 : 0]) / 2;
+}
+
+/* The Riemann estimate Omega (Eqs. 22-23) of the four corner integrals on the adaptive grid around
+ * (u, v), separable in the bilinear basis (as riemann_sums in _qmvc3d.py); un..va: 4 (2n+1) scratch. */
+static void riemann_sums(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
+                         const double *Nu, const double *Nv, double u, double v, int n, double *un, double *om) {
+    const int K = 2 * n + 1;
+    double *ua = un + K, *vn = ua + K, *va = vn + K;
+    grid(u, n, un, ua);
+    grid(v, n, vn, va);
+    double S = 0, Su = 0, Sv = 0, Suv = 0;
+    for (int a = 0; a < K; ++a) {
+        double Pu[3], Qu[3], Ru[3];
+        for (int c = 0; c < 3; ++c) {
+            Pu[c] = p0[c] + un[a] * b[c];
+            Qu[c] = cc[c] + un[a] * dd[c];
+            Ru[c] = N0[c] + un[a] * Nu[c];
+        }
+        double acc0 = 0, acc1 = 0;
+#pragma omp simd reduction(+ : acc0, acc1)
+        for (int l = 0; l < K; ++l) {
+            double vv = vn[l];
+            double d0 = Pu[0] + vv * Qu[0], d1 = Pu[1] + vv * Qu[1], d2 = Pu[2] + vv * Qu[2];
+            double r2 = d0 * d0 + d1 * d1 + d2 * d2;
+            double Nd = (Ru[0] + vv * Nv[0]) * d0 + (Ru[1] + vv * Nv[1]) * d1 + (Ru[2] + vv * Nv[2]) * d2;
+            double f = Nd * va[l] / (r2 * r2);
+            acc0 += f;
+            acc1 += f * vv;
+        }
+        acc0 *= ua[a];
+        acc1 *= ua[a];
+        S += acc0;
+        Sv += acc1;
+        Su += un[a] * acc0;
+        Suv += un[a] * acc1;
+    }
+    om[0] = S - Su - Sv + Suv;
+    om[1] = Su - Suv;
+    om[2] = Suv;
+    om[3] = Sv - Suv;
+}
+
+/* Per point-quad quantities shared by QMVC and QGC: the corners minus the point, the kernel
+ * kappa and pseudo-inverse rows, the mean vector, the tetrahedron's edge terms, the sheet's
+ * parametrisation, and the smooth projection (u, v) of Algorithm 1 (see project in _qmvc3d.py).
+ * Without project, (u, v) is the centre (or the corner the point sits on) and on means on a corner:
+ * for pairs whose quadrature never splits the quad, which are far from it. */
+void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, int project,
+                  quad_pair *qp) {
+    double p[4][3], R2[4];
+    int vertex = -1;
+    for (int i = 0; i < 4; ++i) {
+        for (int c = 0; c < 3; ++c) p[i][c] = P[3 * qi[i] + c] - x[c];
+        R2[i] = dot3(p[i], p[i]);
+        if (R2[i] <= tol * tol && (vertex < 0 || R2[i] < R2[vertex])) vertex = i;
+    }
+    double m[3], k[4], rows[4][3], c[4][4][3], g[4][4], R[4];
+    double D = kernel_and_pinv(p, c, k, rows);
+    /* Edge terms theta_ab / (2 |p_a x p_b|) of the tetrahedron's six edges, shared by the
+     * quad's mean vector (its four boundary edges) and the hull faces' weights. */
+    for (int i = 0; i < 4; ++i) R[i] = sqrt(R2[i]);
+    for (int a = 0; a < 4; ++a)
+        for (int bb = a + 1; bb < 4; ++bb) {
+            if (!project && bb == a + 2) { /* a diagonal: the hull faces' alone */
+                g[a][bb] = g[bb][a] = 0.0;
+                continue;
+            }
+            double c2 = dot3(c[a][bb], c[a][bb]), cn = sqrt(c2);
+            g[a][bb] = g[bb][a] = c2 > 0 ? 0.5 * angle3(cn, dot3(p[a], p[bb]), R[a] * R[bb]) / cn : 0.0;
+        }
+    for (int d = 0; d < 3; ++d) m[d] = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        int j = (i + 1) & 3;
+        for (int d = 0; d < 3; ++d) m[d] += g[i][j] * c[i][j][d];
+    }
+    double kabs = fabs(k[0]) + fabs(k[1]) + fabs(k[2]) + fabs(k[3]);
+    /* kappa vanishes only for a planar quad and a point on its plane: |kappa|_1 = |h| sum_i 2 A_i
+     * there (A_i the corner triangles' areas), so the test below is |h| <= tol (as in _qmvc3d.py). */
+    double area2 = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        const double *a1 = P + 3 * qi[(i + 1) & 3], *a2 = P + 3 * qi[(i + 2) & 3], *a3 = P + 3 * qi[(i + 3) & 3];
+        double e1[3] = {a2[0] - a1[0], a2[1] - a1[1], a2[2] - a1[2]}, e2[3] = {a3[0] - a1[0], a3[1] - a1[1], a3[2] - a1[2]};
+        double cr[3];
+        cross3(e1, e2, cr);
+        area2 += sqrt(dot3(cr, cr));
+    }
+    int flat = kabs <= tol * area2;
+    (void)size;
+    double alpha = k[0] + k[1] + k[2] + k[3], sgn = alpha >= 0 ? 1.0 : -1.0;
+    int inside = alpha != 0;
+    for (int i = 0; i < 4; ++i) inside = inside && (k[i] * sgn >= -1e-13 * kabs);
+    /* The signs of kappa mean nothing when it is at the level of its rounding error (a point on
+     * the plane of a nearly planar quad, off it): not inside then (as in _qmvc3d.py). */
+    double noise = 16.0 * DBL_EPSILON * (R[1] * R[2] * R[3] + R[0] * R[2] * R[3] + R[0] * R[1] * R[3] + R[0] * R[1] * R[2]);
+    inside = inside && kabs > noise;
+    /* (from the corners, not from p: differences of p lose eps |x - q| / size far away) */
+    double b[3], cc[3], dd[3];
+    const double *q0 = P + 3 * qi[0], *q1 = P + 3 * qi[1], *q2 = P + 3 * qi[2], *q3 = P + 3 * qi[3];
+    for (int c = 0; c < 3; ++c) {
+        b[c] = q1[c] - q0[c];
+        cc[c] = q3[c] - q0[c];
+        dd[c] = q0[c] - q1[c] + q2[c] - q3[c];
+    }
+    double N0[3], Nu[3], Nv[3], nq[3];
+    cross3(b, cc, N0);
+    cross3(b, dd, Nu);
+    cross3(dd, cc, Nv);
+    for (int c = 0; c < 3; ++c) nq[c] = N0[c] + 0.5 * (Nu[c] + Nv[c]);
+    /* Projection (Algorithm 1). */
+    double pp[4][3], d[3], u = 0.5, v = 0.5;
+    memcpy(pp, p, sizeof(pp));
+    if (!project) {
+        /* the centre, or the corner below */
+    } else if (flat) {
+        memcpy(d, nq, sizeof(d));
+    } else if (inside || vertex >= 0) {
+        memcpy(d, m, sizeof(d));
+    } else {
+        double num[3] = {0, 0, 0}, den = 0;
+        for (int f = 0; f < 4; ++f) {
+            const int *h = HULL[f];
+            double wt[3];
+            /* The face's determinant is +-kappa of the corner it leaves out. */
+            double det = dot3(p[h[0]], c[h[1]][h[2]]);
+            double e1[3], e2[3], cr[3];
+            for (int d = 0; d < 3; ++d) {
+                e1[d] = p[h[1]][d] - p[h[0]][d];
+                e2[d] = p[h[2]][d] - p[h[0]][d];
+            }
+            cross3(e1, e2, cr);
+            double two_area = sqrt(dot3(cr, cr));
+            double rmin = fmin(R[h[0]], fmin(R[h[1]], R[h[2]]));
+            if (fabs(det) < SPLIT_FORM_RATIO * rmin * two_area) {
+                triangle_weights(p[h[0]], p[h[1]], p[h[2]], wt); /* stable form near the plane */
+            } else {
+                double mt[3] = {0, 0, 0};
+                for (int e = 0; e < 3; ++e) {
+                    int j = h[(e + 1) % 3], l = h[(e + 2) % 3];
+                    for (int d = 0; d < 3; ++d) mt[d] += g[j][l] * c[j][l][d];
+                }
+                for (int i = 0; i < 3; ++i) wt[i] = dot3(c[h[(i + 1) % 3]][h[(i + 2) % 3]], mt) / det;
+            }
+            for (int i = 0; i < 3; ++i) {
+                double a = fabs(wt[i]);
+                if (!isfinite(a)) a = 0.0;
+                den += a;
+                for (int d = 0; d < 3; ++d) num[d] += a * P[3 * qi[h[i]] + d];
+            }
+        }
+        if (den > 0)
+            for (int i = 0; i < 4; ++i)
+                for (int c = 0; c < 3; ++c) pp[i][c] = P[3 * qi[i] + c] - num[c] / den;
+        mean_vector(pp, d);
+    }
+    if (vertex >= 0) { /* on a corner: its parameters */
+        u = (vertex == 1 || vertex == 2) ? 1.0 : 0.0;
+        v = vertex >= 2 ? 1.0 : 0.0;
+    } else if (project) {
+        intersect(pp, d, &u, &v);
+    }
+    double xi[3];
+    for (int c = 0; c < 3; ++c) xi[c] = p[0][c] + u * b[c] + v * cc[c] + u * v * dd[c];
+    memcpy(qp->p, p, sizeof(p));
+    memcpy(qp->R, R, sizeof(R));
+    memcpy(qp->m, m, sizeof(m));
+    memcpy(qp->k, k, sizeof(k));
+    memcpy(qp->rows, rows, sizeof(rows));
+    memcpy(qp->b, b, sizeof(b));
+    memcpy(qp->cc, cc, sizeof(cc));
+    memcpy(qp->dd, dd, sizeof(dd));
+    memcpy(qp->N0, N0, sizeof(N0));
+    memcpy(qp->Nu, Nu, sizeof(Nu));
+    memcpy(qp->Nv, Nv, sizeof(Nv));
+    qp->D = D;
+    qp->kabs = kabs;
+    qp->flat = flat;
+    qp->inside = inside;
+    qp->u = u;
+    qp->v = v;
+    qp->vertex = vertex;
+    /* (A point within tol of a planar quad's plane gets no weight from it off the quad: within tol of
+     * its boundary too, it is on the quad, or it would get no weight from either face of an edge.) */
+    /* (ON_QUAD_BAND tolerances: the projection is not the nearest point of a curved sheet; as in
+     * _qmvc3d.py) */
+    qp->on = vertex >= 0 || (project && dot3(xi, xi) <= (flat ? 2.0 : ON_QUAD_BAND * ON_QUAD_BAND) * tol * tol);
+}
+
+/*
+ * P: (V, 3) vertices; quads: (Q, 4) int32; size: (Q,) longest edge or diagonal; X: (npts, 3) points;
+ * tol: absolute on-cage tolerance; n: grid parameter; qtol > 0: the defining integrals to this relative
+ * tolerance (tc_quad_integrals with the Gauss table gl) instead of the Riemann sum, lambda = Omega .
+ * kappa / D (see qmvc3d_chunk in _qmvc3d.py). W: (npts, V) in/out: the triangles' raw weights
+ * on entry (rows with on[p] = 1 are final); on exit the normalised coordinates, on[p] = 1 for the
+ * points on the cage.
+ */
+void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *X, long npts,
+               double tol, int n, double qtol, const double *gl, int nthreads, double *W, unsigned char *on) {
+    const int K = 2 * n + 1;
+    double centre[3];
+    const double far2 = tc_far_centre(P, V, 3, 1, 3, centre);
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *un = (double *)malloc(sizeof(double) * 4 * (size_t)K);
+#pragma omp for schedule(dynamic, 16)
+        for (long pt = 0; pt < npts; ++pt) {
+            double *w = W + pt * V;
+            if (on[pt]) continue;
+            const double *x = X + 3 * pt;
+            for (long q = 0; q < Q && !on[pt]; ++q) {
+                const int *qi = quads + 4 * q;
+                quad_pair qp;
+                /* The projection serves only the first split of the quadrature and the on-quad
+                 * test: a quad integrated whole is far from the point (see tc_quad_whole). */
+                int project = !(qtol > 0) || !tc_quad_whole(P, qi, x, qtol);
+                tc_quad_pair(P, qi, x, size[q], tol, project, &qp);
+                if (qp.vertex >= 0) {
+                    memset(w, 0, sizeof(double) * (size_t)V);
+                    w[qi[qp.vertex]] = 1.0;
+                    on[pt] = 1;
+                    break;
+                }
+                double(*p)[3] = qp.p, (*rows)[3] = qp.rows, *m = qp.m, *k = qp.k, *R = qp.R;
+                double *b = qp.b, *cc = qp.cc, *dd = qp.dd, *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
+                double D = qp.D, kabs = qp.kabs, u = qp.u, v = qp.v;
+                int flat = qp.flat, inside = qp.inside;
+                if (qp.on) {
+                    memset(w, 0, sizeof(double) * (size_t)V);
+                    w[qi[0]] += (1 - u) * (1 - v);
+                    w[qi[1]] += u * (1 - v);
+                    w[qi[2]] += u * v;
+                    w[qi[3]] += (1 - u) * v;
+                    on[pt] = 1;
+                    break;
+                }
+                if (flat) continue; /* a planar quad seen edge-on: no weight */
+                double beta = far_blend(R, size[q]), wg[4], om[4];
+                if (qtol > 0) {
+                    tc_quad_integrals(p[0], b, cc, dd, u, v, 0, qtol, gl, 0, om);
+                    for (int i = 0; i < 4; ++i) wg[i] = om[i];
+                } else if (beta > 0) {
+                    gauss_weights(p[0], b, cc, dd, N0, Nu, Nv, wg);
+                }
+                if (beta >= 1) { /* seen small: the Gauss rule alone */
+                    for (int i = 0; i < 4; ++i) w[qi[i]] += wg[i];
+                    continue;
+                }
+                /* Least-norm solution, one refinement step (Eqs. 20, 28). */
+                double invD = 1.0 / D, wb[4], res[3];
+                for (int i = 0; i < 4; ++i) wb[i] = dot3(rows[i], m) * invD;
+                for (int c = 0; c < 3; ++c)
+                    res[c] = m[c] - (wb[0] * p[0][c] + wb[1] * p[1][c] + wb[2] * p[2][c] + wb[3] * p[3][c]);
+                for (int i = 0; i < 4; ++i) wb[i] += dot3(rows[i], res) * invD;
+                if (qtol <= 0) riemann_sums(p[0], b, cc, dd, N0, Nu, Nv, u, v, n, un, om);
+                double ok = 0, ow = 0, ww = 0;
+                for (int i = 0; i < 4; ++i) {
+                    ok += om[i] * k[i];
+                    ow += om[i] * wb[i];
+                    ww += wb[i] * wb[i];
+                }
+                double lam = qtol > 0 ? ok * invD : (ow != 0 ? ok * invD * ww / ow : 0.0);
+                double wq[4];
+                for (int i = 0; i < 4; ++i) wq[i] = wb[i] + lam * k[i];
+                double Rmax = fmax(fmax(R[0], R[1]), fmax(R[2], R[3]));
+                int near_flat = !inside && kabs < NEAR_FLAT * size[q] * size[q] * Rmax;
+                if (near_flat) {
+                    /* Near a flat quad's plane: least-norm solution from the split triangles' stable
+                     * weights (see _near_flat_weights in _qmvc3d.py). */
+                    double t1[3], t2[3], wp[4];
+                    triangle_weights(p[0], p[1], p[2], t1);
+                    triangle_weights(p[0], p[2], p[3], t2);
+                    wp[0] = t1[0] + t2[0];
+                    wp[1] = t1[1];
+                    wp[2] = t1[2] + t2[1];
+                    wp[3] = t2[2];
+                    if (isfinite(wp[0] + wp[1] + wp[2] + wp[3])) {
+                        double invn = 1.0 / sqrt(D), kh[4], pk = 0, okh = 0, ow2 = 0, ww2 = 0, wb2[4];
+                        for (int i = 0; i < 4; ++i) {
+                            kh[i] = k[i] * invn;
+                            pk += wp[i] * kh[i];
+                        }
+                        for (int i = 0; i < 4; ++i) {
+                            wb2[i] = wp[i] - pk * kh[i];
+                            okh += om[i] * kh[i];
+                            ow2 += om[i] * wb2[i];
+                            ww2 += wb2[i] * wb2[i];
+                        }
+                        double lam2 = qtol > 0 ? okh : (ow2 != 0 ? okh * ww2 / ow2 : 0.0);
+                        for (int i = 0; i < 4; ++i) wq[i] = wb2[i] + lam2 * kh[i];
+                        for (int it = 0; it < REFINE; ++it) {
+                            for (int c = 0; c < 3; ++c)
+                                res[c] = (wp[0] - wq[0]) * p[0][c] + (wp[1] - wq[1]) * p[1][c] +
+                                         (wp[2] - wq[2]) * p[2][c] + (wp[3] - wq[3]) * p[3][c];
+                            for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
+                        }
+                        for (int i = 0; i < 4; ++i) w[qi[i]] += beta > 0 ? (1 - beta) * wq[i] + beta * wg[i] : wq[i];
+                        continue;
+                    }
+                }
+                /* Restore A w = m (kappa's rounding error is amplified by a large lambda). */
+                for (int it = 0; it < REFINE; ++it) {
+                    for (int c = 0; c < 3; ++c)
+                        res[c] = m[c] - (wq[0] * p[0][c] + wq[1] * p[1][c] + wq[2] * p[2][c] + wq[3] * p[3][c]);
+                    for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
+                }
+                for (int i = 0; i < 4; ++i) w[qi[i]] += beta > 0 ? (1 - beta) * wq[i] + beta * wg[i] : wq[i];
+            }
+            if (on[pt]) continue;
+            double inv = 1.0 / tc_mv_total(w, V, P, 3, 1, 3, x, centre, far2);
+            for (long c = 0; c < V; ++c) w[c] *= inv;
+        }
+        free(un);
+    }
+}

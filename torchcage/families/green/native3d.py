@@ -1,0 +1,77 @@
+"""Glue to the native CPU kernel of 3D Green coordinates (``torchcage/backends/native/gc3d.c``): its
+tables, keyed by ``tc_gc3d``'s argument names (layouts in ``torchcage/backends/native/abi.py``), and the
+call on a chunk of points."""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+
+from torchcage._core.common import unique_face_edges
+from torchcage.backends import native as _native
+from torchcage.families.green.far_triangle import FAR_RATIO
+from torchcage.families.green.kernel3d import TriangleGreenData, triangle_green_geometry
+
+__all__ = ["native_chunk", "native_subset_tables", "native_tables"]
+
+
+def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, object]:
+    """``tc_gc3d``'s per-cage arguments: among them the unique edges with their unit directions,
+    for each face the edge opposite each corner, and the far-field rule (none, ``Q = 0``, where
+    ``data`` has none)."""
+    edges, face_edge, _ = unique_face_edges(data.tri)
+    T = data.tri.shape[0]
+    if data.far_nodes is not None and data.longest is not None:
+        far = (data.longest, data.far_nodes, data.far_weights, data.far_bary)
+    else:
+        far = (data.two_area, data.p.new_zeros(T, 0, 3), data.p.new_zeros(T, 0), data.p.new_zeros(0, 3))
+    edges = edges.T  # (2, E)
+    direction = vertices[edges[1]] - vertices[edges[0]]
+    return {
+        "Pv": vertices.T.contiguous(),
+        "V": vertices.shape[0],
+        "tri": data.tri.T.to(torch.int32).contiguous(),
+        "T": data.tri.shape[0],
+        "edges": edges.to(torch.int32).contiguous(),
+        "E": edges.shape[1],
+        "eu": (direction / direction.norm(dim=1, keepdim=True)).T.contiguous(),
+        "fe": face_edge.T.to(torch.int32).contiguous(),
+        "nrm": data.normal.contiguous(),
+        "two_area": data.two_area.contiguous(),
+        "ell": (data.grad_bary.norm(dim=-1) * data.two_area[:, None]).contiguous(),
+        "edir": data.edge_dir.contiguous(),
+        "eout": data.edge_out.contiguous(),
+        "gbary": data.grad_bary.contiguous(),
+        "longest": far[0].contiguous(),
+        "far_nodes": far[1].contiguous(),
+        "far_w": far[2].contiguous(),
+        "far_bary": far[3].contiguous(),
+        "Q": far[3].shape[0],
+        "far_c": FAR_RATIO,
+        "tol": data.tol,
+    }
+
+
+def native_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: float) -> dict[str, object]:
+    """:func:`native_tables` of triangles ``tri`` ``(T, 3)`` over ``vertices`` ``(V, 3)`` float64
+    that need not close a cage (a triquad cage's triangles, the split triangles of its quads)."""
+    p = vertices[tri]
+    return native_tables(TriangleGreenData(p, *triangle_green_geometry(p), tri, tol), vertices)
+
+
+def native_chunk(
+    x: torch.Tensor,
+    tables: dict[str, object],
+    lib: ctypes.CDLL,
+    phi: torch.Tensor,
+    psi: torch.Tensor,
+    on_face: torch.Tensor | None = None,
+    alpha: torch.Tensor | None = None,
+) -> None:
+    """The native kernel on a chunk: ``x`` ``(n, 3)`` float64 into ``phi`` ``(n, V)`` and ``psi``
+    ``(n, T)`` (contiguous float64 CPU tensors, written in place). With ``on_face`` ``(n,)`` int32
+    and ``alpha`` ``(n, 3)`` float64 given, the triangles are part of a larger cage: ``phi`` keeps
+    the principal values and those receive the first face each point lies on (-1: none) and the
+    point's barycentric coordinates there, for the caller's jump term."""
+    _native.call(lib, "tc_gc3d", **tables, X=x.contiguous(), n=x.shape[0], PHI=phi, PSI=psi, ONF=on_face, AL=alpha)

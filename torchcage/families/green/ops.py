@@ -1,0 +1,147 @@
+"""The autograd Functions of Green coordinates: values by the fastest kernel; derivatives with
+respect to the points by the closed-form gradients (Hessians on double backward), and with
+respect to the rest cage's vertices by recomputing chunk by chunk.
+
+``GreenFunction`` computes ``(phi, psi)`` without a graph (the native kernel where it serves) and,
+in ``backward``, runs the torch kernel again over chunks of points under autograd, one chunk at a
+time: the derivatives are exact (autograd of the same closed forms) and the memory of a backward
+pass is that of one chunk's intermediates, not of every point's (plain autograd of the forward
+kept them all: 1.8 GB for the FireHydrant model). Double backward works: with ``create_graph``
+the chunks' graphs are kept.
+
+For the points alone (the rest cage constant), ``backward`` contracts the closed-form gradients
+(:func:`torchcage.families.green.derivatives`, native where it loads) with the incoming
+cotangents instead: ``GreenGradFunction`` computes them, and its own derivative with respect to the
+points is the closed-form Hessian (``GreenHessFunction``), so double backward is analytic too.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchcage._core.common import result_dtype
+from torchcage.cage import Cage
+from torchcage.families.green.derivatives_flat import bare_derivatives
+from torchcage.families.green.dispatch import green_flat
+
+__all__ = ["GreenFunction", "GreenGradFunction", "GreenHessFunction", "green_function"]
+
+#: Point-face pairs per chunk of the backward pass (about 1 KB of autograd state each).
+_PAIRS = 1 << 17
+
+
+def _cage(vertices: Tensor, faces: Tensor) -> Cage:
+    return Cage._from_faces(vertices, faces)
+
+
+def _derivatives(points: Tensor, vertices: Tensor, faces: Tensor, order: int) -> tuple[Tensor, Tensor]:
+    """Closed-form gradients (order 1) or Hessians (order 2) of the bare Green integrals at the
+    points, in the points' dtype: ``(d phi (N, V, D...), d psi (N, T, D...))``."""
+    cage = _cage(vertices.detach(), faces)
+    compute, _ = result_dtype(points, cage, None)
+    out = bare_derivatives(points.detach().to(compute), cage.to(compute), order)
+    d_phi, d_psi = (out[0], out[1]) if order == 1 else (out[2], out[3])
+    # (sum phi is constant: its derivatives vanish exactly, as in green_derivatives)
+    d_phi = d_phi - d_phi.mean(dim=1, keepdim=True)
+    return d_phi.to(points.dtype), d_psi.to(points.dtype)
+
+
+class GreenHessFunction(torch.autograd.Function):
+    """``(points (N, D), vertices (V, D), faces) -> (H phi (N, V, D, D), H psi (N, T, D, D))``."""
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+        return _derivatives(points, vertices, faces, 2)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        pass
+
+    @staticmethod
+    def backward(ctx, gh_phi: Tensor, gh_psi: Tensor):
+        raise RuntimeError("third derivatives of Green coordinates are not implemented (gradients and Hessians are)")
+
+
+class GreenGradFunction(torch.autograd.Function):
+    """``(points (N, D), vertices (V, D), faces) -> (grad phi (N, V, D), grad psi (N, T, D))``,
+    closed form; its derivative with respect to the points is the closed-form Hessian (the rest
+    cage is a constant here: :class:`GreenFunction` takes this path only then)."""
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+        return _derivatives(points, vertices, faces, 1)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(inputs[0], inputs[1])
+        ctx.faces = inputs[2]
+
+    @staticmethod
+    def backward(ctx, g_phi: Tensor, g_psi: Tensor):
+        x, P = ctx.saved_tensors
+        if ctx.needs_input_grad[1]:
+            raise RuntimeError("GreenGradFunction differentiates with respect to the points only")
+        h_phi, h_psi = GreenHessFunction.apply(x, P, ctx.faces)
+        gx = torch.einsum("nvc,nvcd->nd", g_phi, h_phi) + torch.einsum("ntc,ntcd->nd", g_psi, h_psi)
+        return gx, None, None
+
+
+class GreenFunction(torch.autograd.Function):
+    """``(points (N, D), vertices (V, D), faces, chunk_size, backend) -> (phi (N, V), psi (N, T))``."""
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int, backend: str):
+        cage = _cage(vertices, faces)
+        compute, out = result_dtype(points, cage, None)
+        phi, psi = green_flat(points.to(compute), cage.to(compute), chunk_size or None, False, backend)
+        return phi.to(out), psi.to(out)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(inputs[0], inputs[1])
+        ctx.faces = inputs[2]
+
+    @staticmethod
+    def backward(ctx, gphi: Tensor, gpsi: Tensor):
+        x, P = ctx.saved_tensors
+        need_x, need_P = ctx.needs_input_grad[:2]
+        if need_x and not need_P and not P.requires_grad:
+            # the points alone: the closed-form gradients (Hessians on double backward)
+            d_phi, d_psi = GreenGradFunction.apply(x, P, ctx.faces)
+            gx = 0
+            if gphi is not None:
+                gx = gx + torch.einsum("nv,nvc->nc", gphi.to(d_phi.dtype), d_phi)
+            if gpsi is not None:
+                gx = gx + torch.einsum("nt,ntc->nc", gpsi.to(d_psi.dtype), d_psi)
+            return (gx if torch.is_tensor(gx) else torch.zeros_like(x)), None, None, None, None
+        create = torch.is_grad_enabled()
+        size = max(64, _PAIRS // max(1, ctx.faces.shape[0]))
+        gx_parts, gP = [], torch.zeros_like(P) if need_P else None
+        gphi = gphi if gphi is not None else torch.zeros(x.shape[0], P.shape[0], dtype=x.dtype, device=x.device)
+        gpsi = gpsi if gpsi is not None else torch.zeros(x.shape[0], ctx.faces.shape[0], dtype=x.dtype, device=x.device)
+        for s in range(0, x.shape[0], size):
+            sl = slice(s, s + size)
+            with torch.enable_grad():
+                xc = x[sl] if create and x.requires_grad else x[sl].detach().requires_grad_(need_x)
+                Pc = P if create and P.requires_grad else P.detach().requires_grad_(need_P)
+                cage = _cage(Pc, ctx.faces)
+                compute, _ = result_dtype(xc, cage, None)
+                phi, psi = green_flat(xc.to(compute), cage.to(compute), None, False, "torch")
+                wrt = [t for t, need in ((xc, need_x), (Pc, need_P)) if need]
+                cot = (gphi[sl].to(compute), gpsi[sl].to(compute))
+                grads = torch.autograd.grad((phi, psi), wrt, cot, create_graph=create, allow_unused=True)
+            grads = [torch.zeros_like(t) if gr is None else gr.to(t.dtype) for t, gr in zip(wrt, grads, strict=True)]
+            if need_x:
+                gx_parts.append(grads[0])
+            if need_P:
+                gP = gP + grads[-1]
+        gx = (torch.cat(gx_parts) if gx_parts else torch.zeros_like(x)) if need_x else None
+        return gx, gP, None, None, None
+
+
+def green_function(points: Tensor, cage: Cage, chunk_size: int | None = None, backend: str = "auto"):
+    """Green coordinates ``(phi (N, V), psi (N, T))`` of checked points ``(N, D)``, differentiable
+    with respect to the points and ``cage.vertices`` through :class:`GreenFunction`."""
+    faces = cage.triangles if cage.dim == 3 else cage.edges
+    return GreenFunction.apply(points, cage.vertices, faces, chunk_size or 0, backend)

@@ -1,0 +1,1 @@
+"""Triton kernel of 3D Green coordinates."""

@@ -1,0 +1,2 @@
+"""Local barycentric coordinates, solved by ADMM on a mesh of the cage interior: ``api`` and
+``module``."""

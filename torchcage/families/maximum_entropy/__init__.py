@@ -1,0 +1,1 @@
+"""Maximum entropy coordinates with a mean value prior: ``api`` and ``module``."""

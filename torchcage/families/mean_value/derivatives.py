@@ -1,0 +1,261 @@
+r"""Analytic gradients and Hessians of mean value coordinates (3D triangle cages, 2D polygons).
+
+With the raw weights ``w`` and ``W = sum_i w_i``, the coordinates ``lam = w / W`` have
+
+.. math::
+    \nabla\lambda_i = \frac{\nabla w_i - \lambda_i \nabla W}{W},\qquad
+    H\lambda_i = \frac{H w_i - \lambda_i H W - \nabla\lambda_i \nabla W^T - \nabla W \nabla\lambda_i^T}{W}.
+
+The weights' derivatives are closed-form (Thiery, Tierny, Boubekeur 2014 give one derivation;
+torchcage uses its own, stable one). In 3D each point–face pair takes one of three evaluations,
+all exact up to rounding:
+
+* **direct**: from ``sum_j w_j a_j = m`` (``a_j = p_j - x``, ``m`` the face's mean vector)
+  follow ``U dw = dm + W e_c`` and ``U d2w = d2m + dW e_c + dW e_d`` with ``U = [a_1 a_2 a_3]``;
+  the cross products ``N_e`` in ``m`` are affine in ``x``, so only the scalars
+  ``theta_e / (2|N_e|)`` need derivatives (by the chain rule, through
+  ``G(t) = atan(sqrt t)/sqrt t``, smooth through the edges' support lines);
+* **near the face's support plane** (``|h| < DERIVATIVE_SPLIT_FORM_RATIO min |a_i|``, the published formulas' weak spot:
+  the ratio of two vanishing quantities), the split form of the coordinates (see ``_mvc3d``), in
+  which every term carries its power of the distance ``h`` explicitly, is differentiated as it
+  stands; where an edge is seen under a small angle its two large terms are combined through a
+  divided difference of ``G``, so the form stays exact through the edge's support line;
+* **far field** (longest edge below ``DERIVATIVE_FAR_FIELD_RATIO`` times the distance): the
+  defining integral ``h int phi_i / |p - x|^4 dA`` by a collapsed Gauss rule, differentiated under the integral (the
+  vector form loses ``(r / edge)^k`` digits there).
+
+In 2D each edge adds ``tan(alpha/2) / r`` to its two vertices, with ``tan(alpha/2)`` in one of two
+cancellation-free forms. The kernels are native C (``backends/native/mvcd3d.c``, ``mvcd2d.c``, glue and
+thresholds in ``_mvcd_native``), with a small second-order jet type doing the chain rule; for
+CUDA points the Triton kernels ``families/mean_value/triton/mvcd3d.py`` and ``mvcd2d.py`` evaluate the same formulas.
+Where none serves (no C compiler, no triton), ``_mvcd_torch`` differentiates the torch kernel of
+the coordinates instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from torchcage._core.batch import over_cage_batch
+from torchcage._core.centre import centred, extent_of, keep_extent
+from torchcage._core.common import as_inputs, check_points, chunks, far_unity, triangle_geometry
+from torchcage.backends import Op, select
+from torchcage.cage import Cage
+from torchcage.errors import PointsError
+from torchcage.families.mean_value import derivatives_native as _mvcd_native
+from torchcage.families.mean_value.derivatives_torch import torch_derivatives
+
+__all__ = ["derivatives_flat", "mean_value_derivatives", "mean_value_gradients", "mean_value_hessians"]
+
+
+#: The kernels of the analytic mean value derivatives: the native one takes CPU points of any
+#: dtype (cast to float64) and serves calls inside autograd Functions (it computes derivatives).
+MVC_DERIVATIVES = Op(
+    "mean value derivatives", native_dims=(2, 3), native_float64_only=False, triton=True, triton_dims=(2, 3)
+)
+
+
+def derivatives_flat(
+    x: torch.Tensor,
+    cage: Cage,
+    order: int,
+    chunk_size: int | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The kernel on checked points ``x`` ``(n, D)``: float64 tensors ``lam (n, V)``,
+    ``grad (n, V, D)``, ``hess (n, V, D, D)`` (empty for ``order=1``) and the ``(n,)`` bool mask of
+    points on the cage (their rows hold the interpolant and its derivatives: see mvcd3d.c). The
+    native kernel (CPU) or, where it cannot serve, autograd of the torch kernel
+    (:mod:`._mvcd_torch`, on the points' device).
+
+    The derivatives of every row sum to zero over the vertices (the coordinates sum to 1): their
+    mean over the vertices, the kernels' rounding, is taken out. Left in, it multiplied the
+    cage's distance from the origin in ``sum_v grad_v V_v^T = I`` (a translated cage) and the
+    centred identity is unchanged by it (``sum_v (V_v - m) = 0`` for the vertices' mean ``m``).
+
+    Raises:
+        PointsError: points where the coordinates are undefined (the total weight vanishes).
+    """
+    lam, grad, hess, on = _derivatives_flat(x, cage, order, chunk_size, progress, backend)
+    grad = grad - grad.mean(dim=1, keepdim=True)
+    if order == 2:
+        hess = hess - hess.mean(dim=1, keepdim=True)
+    return lam, grad, hess, on
+
+
+def _derivatives_flat(
+    x: torch.Tensor,
+    cage: Cage,
+    order: int,
+    chunk_size: int | None,
+    progress: bool | Callable[[int, int], None],
+    backend: str,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`derivatives_flat` before the derivatives' mean over the vertices is taken out."""
+    choice = select(MVC_DERIVATIVES, backend, x, graph=False)  # (the kernels record no graph)
+    if choice.kind == "triton":
+        return _triton_derivatives(x, cage, order, chunk_size, progress)
+    if choice.lib is None:
+        return torch_derivatives(x, cage, order, chunk_size, progress)
+    lib = choice.lib
+    D, V = cage.dim, cage.num_vertices
+    x = x.detach().to("cpu", torch.float64)
+    n = x.shape[0]
+    lam = torch.empty((n, V), dtype=torch.float64)
+    grad = torch.empty((n, V, D), dtype=torch.float64)
+    hess = torch.empty((n, V, D, D) if order == 2 else (0,), dtype=torch.float64)
+    tables = _mvcd_native.native_tables(cage)
+    flags = torch.empty(n, dtype=torch.uint8)
+    size = chunk_size if chunk_size is not None else 4096
+    for sl in chunks(n, size, progress, desc="mean value derivatives"):
+        H = hess[sl] if order == 2 else None
+        _mvcd_native.native_chunk(x[sl], tables, lib, order, lam[sl], grad[sl], H, flags[sl])
+    bad = torch.nonzero(flags == 2).flatten()[:10].tolist()
+    if bad:
+        raise PointsError(
+            f"mean value coordinates are undefined at points {bad} (the total weight vanishes there); move these points"
+        )
+    return lam, grad, hess, flags == 1
+
+
+def _triton_derivatives(
+    x: torch.Tensor, cage: Cage, order: int, chunk_size: int | None, progress: bool | Callable[[int, int], None]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`derivatives_flat` by the Triton kernel (float64, on the points' device)."""
+    if cage.dim == 2:
+        from torchcage.families.mean_value.triton.mvcd2d import mvcd2d_triton as kernel
+    else:
+        from functools import partial
+
+        from torchcage.families.mean_value.triton.mvcd3d import derivative_tables, mvcd3d_triton
+
+        kernel = partial(mvcd3d_triton, tables=derivative_tables(cage, x.device))  # (built once for all chunks)
+
+    n, V, D = x.shape[0], cage.num_vertices, cage.dim
+    lam = x.new_empty((n, V), dtype=torch.float64)
+    grad = x.new_empty((n, V, D), dtype=torch.float64)
+    hess = x.new_empty((n, V, D, D) if order == 2 else (0,), dtype=torch.float64)
+    flags = torch.zeros(n, dtype=torch.uint8, device=x.device)
+    for sl in chunks(n, chunk_size if chunk_size is not None else 4096, progress, desc="mean value derivatives"):
+        lam[sl], grad[sl], h, flags[sl] = kernel(x[sl], cage, order)
+        if order == 2:
+            hess[sl] = h
+    bad = torch.nonzero(flags == 2).flatten()[:10].tolist()
+    if bad:
+        raise PointsError(
+            f"mean value coordinates are undefined at points {bad} (the total weight vanishes there); move these points"
+        )
+    return lam, grad, hess, flags == 1
+
+
+def mean_value_derivatives(
+    points: torch.Tensor,
+    cage: Cage,
+    order: int = 2,
+    *,
+    chunk_size: int | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Mean value coordinates with their analytic gradients and (``order=2``) Hessians.
+
+    Args:
+        points: ``(*, D)`` query points off the cage, ``D = cage.dim``.
+        cage: a closed triangle cage (3D) or a closed polygon (2D).
+            Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
+            ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
+            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
+        order: 1 (gradients) or 2 (gradients and Hessians).
+        chunk_size: points per chunk (memory grows with ``chunk_size x V x D^2``). Default: 4096.
+        progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
+        backend: ``"auto"`` (default): the native kernel for CPU points when it is loadable; for
+            points on CUDA the Triton kernel where triton is installed; else autograd of the
+            torch kernel on the points' device (the same values to about 1e-10). ``"native"``,
+            ``"torch"`` or ``"triton"`` to force one.
+
+    Computed in float64, returned in the points' dtype and device.
+    These values are plain tensors (no autograd graph): to differentiate through the coordinates,
+    call :func:`mean_value_coordinates` on points that require grad.
+
+    Returns:
+        ``(lam (*, V), grad (*, V, D), hess (*, V, D, D) or None)``: ``grad[..., i, c]`` is
+        ``d lam_i / d x_c``, ``hess[..., i, c, d]`` is ``d^2 lam_i / d x_c d x_d``.
+
+    Raises:
+        PointsError: points on the cage (the coordinates are not differentiable there), points where
+            the coordinates are undefined, NaN/inf, or points of the wrong shape.
+        ValueError: ``order`` not 1 or 2.
+
+    Examples:
+        >>> import torch, torchcage
+        >>> from torchcage import functional as F
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+        >>> x = torch.tensor([[0.1, 0.2, -0.3]], dtype=torch.float64)
+        >>> lam, grad, hess = F.mean_value_derivatives(x, cube)
+        >>> grad.shape, hess.shape
+        (torch.Size([1, 8, 3]), torch.Size([1, 8, 3, 3]))
+        >>> torch.allclose(torch.einsum("nvc,vd->ncd", grad, cube.vertices), torch.eye(3, dtype=torch.float64))
+        True
+    """
+    points, cage = as_inputs(points, cage)
+    if order not in (1, 2):
+        raise ValueError(f"order must be 1 or 2, got {order}")
+    if cage.is_batched:
+        return over_cage_batch(
+            mean_value_derivatives, points, cage, order=order, chunk_size=chunk_size, progress=progress, backend=backend
+        )
+    flat = check_points(points, cage)
+    if cage.dim == 3:
+        triangle_geometry(cage, torch.float64, "use cage.triangulated() to split quads")
+    x, rel = centred(flat.detach(), cage, torch.float64)  # (relative to the cage's centre: translation invariant)
+    with keep_extent(extent_of(cage.vertices)):
+        lam, grad, hess, on = derivatives_flat(x, rel, order, chunk_size, progress, backend)
+    idx = torch.nonzero(on).flatten()[:10].tolist()
+    if idx:
+        raise PointsError(
+            f"points {idx} lie on the cage, where mean value coordinates are not differentiable; move them off the cage"
+        )
+    lam, grad, hess = far_unity(lam, x.to(lam), rel.vertices.to(lam), grad, hess if order == 2 else None)
+    dt = flat.dtype
+    lead, D, V = points.shape[:-1], cage.dim, cage.num_vertices
+    out_l = lam.to(flat.device, dt).reshape(*lead, V)
+    out_g = grad.to(flat.device, dt).reshape(*lead, V, D)
+    out_h = hess.to(flat.device, dt).reshape(*lead, V, D, D) if order == 2 else None
+    return out_l, out_g, out_h
+
+
+def mean_value_gradients(points: torch.Tensor, cage: Cage, **kwargs: object) -> torch.Tensor:
+    """Analytic gradients ``(*, V, D)`` of the mean value coordinates: ``[..., i, c] = d lam_i / d x_c``.
+
+    Same arguments as :func:`mean_value_derivatives` (without ``order``).
+
+    Examples:
+        >>> import torch, torchcage
+        >>> from torchcage import functional as F
+        >>> square = torchcage.Cage(torch.tensor([[0., 0], [1, 0], [1, 1], [0, 1]], dtype=torch.float64),
+        ...                         torch.tensor([[0, 1], [1, 2], [2, 3], [3, 0]]))
+        >>> g = F.mean_value_gradients(torch.tensor([[0.3, 0.6]], dtype=torch.float64), square)
+        >>> torch.allclose(g.sum(dim=1), torch.zeros(1, 2, dtype=torch.float64))
+        True
+    """
+    return mean_value_derivatives(points, cage, 1, **kwargs)[1]  # type: ignore[arg-type]
+
+
+def mean_value_hessians(points: torch.Tensor, cage: Cage, **kwargs: object) -> torch.Tensor:
+    """Analytic Hessians ``(*, V, D, D)`` of the mean value coordinates:
+    ``[..., i, c, d] = d^2 lam_i / d x_c d x_d``.
+
+    Same arguments as :func:`mean_value_derivatives` (without ``order``).
+
+    Examples:
+        >>> import torch, torchcage
+        >>> from torchcage import functional as F
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+        >>> H = F.mean_value_hessians(torch.tensor([[0.1, 0.2, -0.3]], dtype=torch.float64), cube)
+        >>> torch.einsum("nvcd,ve->necd", H, cube.vertices).abs().max() < 1e-12  # linear precision
+        tensor(True)
+    """
+    return mean_value_derivatives(points, cage, 2, **kwargs)[2]  # type: ignore[return-value]

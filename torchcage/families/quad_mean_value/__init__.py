@@ -1,0 +1,2 @@
+"""Quad mean value coordinates (triquad cages): ``api``, ``module``, the torch ``kernel``, the native
+glue ``native`` and ``triton/``."""

@@ -1,0 +1,1 @@
+"""Triton kernel of quad mean value coordinates."""
