@@ -14,7 +14,8 @@ from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 HERE = Path(__file__).parent
-_spec = importlib.util.spec_from_file_location("_tc_build", HERE / "torchcage" / "backends" / "native" / "_buildspec.py")
+NATIVE = HERE / "torchcage" / "backends" / "native"
+_spec = importlib.util.spec_from_file_location("_tc_build", NATIVE / "_buildspec.py")
 _build = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_build)
 
@@ -48,7 +49,7 @@ extensions = [
         extra_compile_args=[*_build.BASE_FLAGS, *flags],
         extra_link_args=["-fopenmp"],
         libraries=[*libs, "m"],
-        define_macros=[("TC_SOURCE_DIGEST", f'"{_build.source_digest(HERE / "torchcage" / "backends" / "native")}"')],
+        define_macros=[("TC_SOURCE_DIGEST", f'"{_build.source_digest(NATIVE)}"')],
         optional=True,
     )
     for name, (flags, libs) in _build.prebuilt_variants().items()
