@@ -300,3 +300,63 @@ def cube_files(tmp_path, scale: float = 0.5):
     torchcage.save_mesh(tmp_path / "mesh.obj", scale * ball.vertices, ball.triangles)
     return ["deform", "--cage", str(tmp_path / "cage.obj"), "--deformed", str(tmp_path / "pose.obj"),
             "--mesh", str(tmp_path / "mesh.obj")]  # fmt: skip
+
+
+# ------------------------------------------------------------------ the family contract (test_contract.py)
+#: Mesh size of the solved families' cases: coarse, so that a solve takes well under a second.
+CONTRACT_CELLS = 150
+
+
+def contract_polygon() -> torchcage.Cage:
+    """A small non-symmetric pentagon (counter-clockwise): the 2D cage of the contract tests."""
+    return torchcage.Cage(torch.tensor([[0.0, 0], [2, 0], [2, 1], [1, 1.5], [0, 1]], dtype=torch.float64))
+
+
+def contract_cage(faces: str, dim: int) -> torchcage.Cage:
+    """The cage of a family's contract case: in 3D the packaged cube ``[-1, 1]^3`` (six quads),
+    triangulated for a ``"triangles"`` family and kept with its quads for a ``"triquads"`` one; in
+    2D :func:`contract_polygon`."""
+    if dim == 2:
+        return contract_polygon()
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj"))
+    return cube.triangulated() if faces == "triangles" else cube
+
+
+def contract_points(dim: int) -> torch.Tensor:
+    """A few fixed float64 points well inside :func:`contract_cage` (``(5, 3)`` or ``(4, 2)``): off
+    the cage, off its symmetry planes, not all on one line."""
+    if dim == 2:
+        return torch.tensor([[0.5, 0.5], [1.5, 0.7], [1.0, 1.1], [0.3, 0.2]], dtype=torch.float64)
+    return torch.tensor(
+        [[0.1, 0.2, -0.3], [-0.5, 0.4, 0.2], [0.3, -0.6, 0.5], [0.05, -0.1, 0.15], [0.7, 0.6, -0.65]],
+        dtype=torch.float64,
+    )
+
+
+def dense_outputs(out) -> tuple[torch.Tensor, ...]:
+    """A functional entry's result as a tuple of dense tensors (one for weights, two for Green's
+    ``(phi, psi)``; a sparse result, as local barycentric coordinates give, made dense)."""
+    outs = out if isinstance(out, tuple) else (out,)
+    return tuple(t.to_dense() if t.layout != torch.strided else t for t in outs)
+
+
+def contract_solution(short: str, cage: torchcage.Cage):
+    """One solve of a solved family on ``cage`` (``CONTRACT_CELLS`` cells), to pass as ``solution=``,
+    or ``None`` for a family whose solver is not known here (its calls then solve each time)."""
+    from torchcage import functional as F
+
+    solvers = {
+        "lbc": F.solve_local_barycentric,
+        "hc": F.solve_harmonic_coordinates,
+        "bbw": F.solve_bounded_biharmonic_weights,
+    }
+    if short not in solvers:
+        return None
+    # One thread: the ADMM loop of a small solve is thousands of tiny products, which torch's thread
+    # pool slows 10-100x on a busy machine (measured on the 2-core box: 0.2 s alone, 2-20 s with 2 threads).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return solvers[short](cage, target_cells=CONTRACT_CELLS)
+    finally:
+        torch.set_num_threads(threads)
