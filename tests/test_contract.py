@@ -45,7 +45,7 @@ DIFFERENTIABLE = {"mvc", "gc", "qmvc", "qgc"}
 POINTS_DTYPE_RESULT = {"lbc", "hc", "bbw"}
 
 FIRST_GRAPH_BREAK = (
-    "first graph break: torchcage/functional/_common.py as_inputs calls "
+    "first graph break: torchcage/_core/common.py as_inputs calls "
     "torch._C._functorch.is_functorch_wrapped_tensor(cage.vertices), which Dynamo cannot trace, before "
     "torch.compiler.is_compiling() could short-circuit it; the next one is check_finite's data-dependent "
     "`if bool(bad.any())`"
@@ -548,7 +548,7 @@ def test_compile_module(key, fresh_dynamo) -> None:
             "gc-2d": "vmap: index_add_ into an unbatched tensor with a vmapped operand (2D Green kernel)",
             "gc-3d": VMAP_INPLACE,
             "qgc": VMAP_INPLACE,
-            "qmvc": "vmap: backend 'auto' hands the vmapped points to the native kernel (_qmvc3d_native), which "
+            "qmvc": "vmap: backend 'auto' hands the vmapped points to the native kernel (families/quad_mean_value/native.py), which "
             "crashes with RuntimeError 'Cannot access data pointer of Tensor that doesn't have storage' (no clear "
             "error; mvc detects the functorch tensor and takes its custom op)",
             "lbc": VMAP_LOCATE,
