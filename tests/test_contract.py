@@ -548,9 +548,8 @@ def test_compile_module(key, fresh_dynamo) -> None:
             "gc-2d": "vmap: index_add_ into an unbatched tensor with a vmapped operand (2D Green kernel)",
             "gc-3d": VMAP_INPLACE,
             "qgc": VMAP_INPLACE,
-            "qmvc": "vmap: backend 'auto' hands the vmapped points to the native kernel (families/quad_mean_value/native.py), which "
-            "crashes with RuntimeError 'Cannot access data pointer of Tensor that doesn't have storage' (no clear "
-            "error; mvc detects the functorch tensor and takes its custom op)",
+            "qmvc": "vmap: data-dependent control flow in the torch kernel (families/quad_mean_value/kernel.py "
+            "project: if bool(outside.any())); the native kernel is no longer handed vmapped points",
             "lbc": VMAP_LOCATE,
             "hc": VMAP_LOCATE,
             "bbw": VMAP_LOCATE,
