@@ -22,7 +22,6 @@ from typing import Any
 import pytest
 import torch
 from support import CONTRACT_CELLS, contract_cage, contract_points, contract_solution, dense_outputs
-from torch.autograd.gradcheck import GradcheckError
 
 import torchcage
 from torchcage.errors import PointsError
@@ -188,22 +187,18 @@ def test_output_shapes(key) -> None:
     assert [tuple(o.shape) for o in outs] == [(N, w) for w in expected_widths(case)]
 
 
-@pytest.mark.parametrize(
-    "key",
-    cases(
-        xfail={
-            "lbc": "points (*, N, D) give a 2-D sparse (prod(*) N, V): the leading point dims are flattened "
-            "(the entry documents (N, D) only), neither kept nor refused"
-        },
-        raises=AssertionError,
-    ),
-)
+@pytest.mark.parametrize("key", ALL)
 def test_leading_point_dims(key) -> None:
     """Points ``(2, 3, N, D)`` (a different permutation of the points in each ``[i, j]``) give
-    ``(2, 3, N, ...)``, each ``[i, j]`` the rows of the call on ``(N, D)`` in that permutation."""
+    ``(2, 3, N, ...)``, each ``[i, j]`` the rows of the call on ``(N, D)`` in that permutation;
+    lbc, whose result is a sparse ``(N, V)`` matrix, refuses them with a PointsError."""
     case = get_case(key)
     x = case.points
     X = torch.stack([x.roll(k, 0) for k in range(6)]).reshape(2, 3, *x.shape)
+    if case.short == "lbc":
+        with pytest.raises(PointsError, match="sparse"):
+            case.call(X)
+        return
     outs = case.call(X)
     for o, r in zip(outs, case.call(), strict=True):
         assert o.shape == (2, 3, *r.shape)
@@ -235,17 +230,7 @@ def test_mixed_dtypes_give_the_documented_dtype(key) -> None:
         assert o.dtype == want
 
 
-@pytest.mark.parametrize(
-    "key",
-    cases(
-        xfail={
-            s: "with solution= the entry drops its other keyword options unread: dtype=torch.float32 (or "
-            "target_cells=, or a misspelt option) is accepted silently and the result stays float64"
-            for s in ("lbc", "hc", "bbw")
-        },
-        raises=pytest.fail.Exception,
-    ),
-)
+@pytest.mark.parametrize("key", ALL)
 def test_dtype_option(key) -> None:
     """Where the entry has ``dtype=``: float64 inputs with ``dtype=torch.float32`` give float32 (the
     float64 values rounded), float32 inputs with ``dtype=torch.float64`` give float64. Where it has
@@ -425,24 +410,14 @@ def test_linear_precision(key) -> None:
 
 
 # -------------------------------------------------------------------------------------- gradients
-@pytest.mark.parametrize(
-    "key",
-    cases(
-        xfail={
-            "lbc": "points that require grad give a result without an autograd graph (a constant: backward "
-            "through it alone raises 'does not require grad'; summed with other terms the points' gradient is "
-            "silently missing), where hc and bbw differentiate and mec refuses up front"
-        },
-        raises=GradcheckError,
-    ),
-)
+@pytest.mark.parametrize("key", ALL)
 def test_gradcheck_points(key) -> None:
     """float64 gradcheck (fast mode) of the functional with respect to two points, where the family
     says it is differentiable (closed form; hc and bbw: piecewise linear on the solve's mesh, so at
-    points inside its cells); mec refuses points that require grad with a PointsError."""
+    points inside its cells); mec and lbc refuse points that require grad with a PointsError."""
     case = get_case(key)
     x = case.points[:2].clone().requires_grad_()
-    if case.short == "mec":
+    if case.short in ("mec", "lbc"):
         with pytest.raises(PointsError, match="not differentiable"):
             case.call(x)
         return
@@ -550,13 +525,14 @@ def test_compile_module(key, fresh_dynamo) -> None:
             "qgc": VMAP_INPLACE,
             "qmvc": "vmap: data-dependent control flow in the torch kernel (families/quad_mean_value/kernel.py "
             "project: if bool(outside.any())); the native kernel is no longer handed vmapped points",
-            "lbc": VMAP_LOCATE,
+            "lbc": "vmap: refused with a PointsError (a transform records a graph, and the sparse, thresholded "
+            "weights are not differentiable)",
             "hc": VMAP_LOCATE,
             "bbw": VMAP_LOCATE,
             "mec": "vmap: .item() on a vmapped tensor: the on-cage tolerance reads the points' extent "
             "(maximum_entropy.py: float(x.abs().max()))",
         },
-        raises=RuntimeError,
+        raises=(RuntimeError, PointsError),
     ),
 )
 def test_vmap_over_point_sets(key) -> None:

@@ -14,7 +14,7 @@ import torch
 
 from torchcage._core.common import as_inputs, check_points
 from torchcage.cage import Cage
-from torchcage.families.harmonic.api import check_mesh_solution, interpolate_on_mesh
+from torchcage.families.harmonic.api import check_mesh_solution, interpolate_on_mesh, refuse_options_with_solution
 from torchcage.solvers.biharmonic import BBWResult, solve_bbw
 from torchcage.solvers.domain import Domain, domain_for
 
@@ -100,6 +100,7 @@ def bounded_biharmonic_weights(
     lead = points.shape[:-1]
     flat = check_points(points, cage)
     if solution is not None:
+        refuse_options_with_solution(options, "bounded_biharmonic_weights")
         check_mesh_solution(solution, cage, "bounded biharmonic weights")
     result = solution if solution is not None else solve_bounded_biharmonic_weights(cage, **options)
     out = interpolate_on_mesh(flat, result.domain, result.weights, chunk_size, cage)

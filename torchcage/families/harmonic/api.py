@@ -20,7 +20,23 @@ from torchcage.solvers.domain import Domain, check_solution, domain_for
 from torchcage.solvers.harmonic import HarmonicResult, solve_harmonic
 from torchcage.solvers.locate import locate_points, outside_points
 
-__all__ = ["check_mesh_solution", "harmonic_coordinates", "interpolate_on_mesh", "solve_harmonic_coordinates"]
+__all__ = [
+    "check_mesh_solution",
+    "harmonic_coordinates",
+    "interpolate_on_mesh",
+    "refuse_options_with_solution",
+    "solve_harmonic_coordinates",
+]
+
+
+def refuse_options_with_solution(options: dict[str, Any], what: str) -> None:
+    """Raise ``TypeError`` for options given with ``solution=``: they are the solve's, and nothing
+    is solved then (they were dropped unread: ``dtype=``, ``target_cells=``, a misspelt name)."""
+    if options:
+        raise TypeError(
+            f"{what} with solution= solves nothing: the options {', '.join(sorted(options))} would be ignored; "
+            "drop them, or solve again with them instead of passing solution="
+        )
 
 
 def check_mesh_solution(solution: Any, cage: Cage, what: str) -> None:
@@ -111,6 +127,7 @@ def harmonic_coordinates(
     lead = points.shape[:-1]
     flat = check_points(points, cage)
     if solution is not None:
+        refuse_options_with_solution(options, "harmonic_coordinates")
         check_mesh_solution(solution, cage, "harmonic coordinates")
     result = solution if solution is not None else solve_harmonic_coordinates(cage, **options)
     out = interpolate_on_mesh(flat, result.domain, result.weights, chunk_size, cage)

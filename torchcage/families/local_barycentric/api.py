@@ -15,10 +15,10 @@ from typing import Any
 
 import torch
 
-from torchcage._core.common import as_inputs, check_points
+from torchcage._core.common import as_inputs, check_points, records_graph
 from torchcage.cage import Cage
 from torchcage.errors import PointsError
-from torchcage.families.harmonic.api import check_mesh_solution
+from torchcage.families.harmonic.api import check_mesh_solution, refuse_options_with_solution
 from torchcage.solvers.domain import Domain, domain_for
 from torchcage.solvers.lbc import LBCResult, make_feasible, solve_lbc
 from torchcage.solvers.locate import locate_points, outside_points
@@ -115,9 +115,20 @@ def local_barycentric_coordinates(
         (True, True, True)
     """
     points, cage = as_inputs(points, cage)
+    if records_graph(points):
+        raise PointsError(
+            "local_barycentric_coordinates is not differentiable with respect to the points (sparse weights, "
+            "thresholded); pass detached points, or use harmonic_coordinates, which differentiate"
+        )
+    if points.ndim > 2:
+        raise PointsError(
+            f"local_barycentric_coordinates returns a sparse (N, V) matrix: give points (N, {cage.dim}), e.g. "
+            f"points.reshape(-1, {cage.dim}), got shape {tuple(points.shape)}"
+        )
     flat = check_points(points, cage)
     V = cage.num_vertices
     if solution is not None:
+        refuse_options_with_solution(options, "local_barycentric_coordinates")
         check_mesh_solution(solution, cage, "local barycentric coordinates")
     result = solution if solution is not None else solve_local_barycentric(cage, **options)
     thr = 1e-3 / V if threshold is None else float(threshold)
