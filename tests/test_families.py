@@ -47,6 +47,7 @@ def test_unknown_name_lists_the_choices() -> None:
 
 @pytest.mark.parametrize("alias", sorted(ALIASES))
 def test_alias_warns_and_gives_the_same_result(alias: str) -> None:
+    pytest.importorskip("kornia", reason="image warping needs kornia (torchcage[image])")
     square = torch.tensor([[2.0, 2], [13, 2], [13, 13], [2, 13]], dtype=torch.float64)
     with pytest.warns(DeprecationWarning, match=f"{alias!r} is deprecated") as caught:
         old = CageWarp(square, 16, 16, method=alias)

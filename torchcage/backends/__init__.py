@@ -117,7 +117,8 @@ def select(
         The :class:`Choice`.
 
     Raises:
-        ValueError: a value ``op`` does not accept (see :func:`check`).
+        ValueError: a value ``op`` does not accept (see :func:`check`), or ``"native"`` /
+            ``"triton"`` for points of a dimension that kernel does not serve.
         RuntimeError: ``"native"`` or ``"triton"`` where that kernel cannot serve this call; the
             message says why and what to use instead.
     """
@@ -132,7 +133,9 @@ def select(
         return Choice("torch")
     if backend == "triton":
         if dim not in op.triton_dims:
-            raise RuntimeError(f"the Triton kernel of {op.name} serves {_dims(op.triton_dims)}, got {dim}D points")
+            raise ValueError(
+                f"backend='triton' for {op.name} serves {_dims(op.triton_dims)}, got {dim}D points; use 'auto'"
+            )
         if graph:
             raise RuntimeError(
                 f"the Triton kernel of {op.name} records no autograd graph; use backend='auto' to differentiate "
@@ -165,7 +168,9 @@ def select(
 def _native_library(op: Op, points: torch.Tensor, graph: bool, dim: int) -> ctypes.CDLL:
     """The library for ``backend="native"``, or the reason it cannot serve."""
     if dim not in op.native_dims:
-        raise RuntimeError(f"the native kernel of {op.name} serves {_dims(op.native_dims)}, got {dim}D points")
+        raise ValueError(
+            f"backend='native' for {op.name} serves {_dims(op.native_dims)}, got {dim}D points; use 'auto'"
+        )
     if graph and not op.native_graph:
         raise RuntimeError(
             f"the native kernel of {op.name} records no autograd graph; use backend='torch' (or 'auto') to "

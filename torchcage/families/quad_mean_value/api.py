@@ -100,10 +100,10 @@ def prepare_quad_call(
     return flat.to(compute), out_dtype, cage.vertices.to(compute), on_cage_tolerance(cage)
 
 
-#: The kernels of quad mean value coordinates: ``"auto"`` keeps the torch kernel on CUDA until the
-#: Triton kernel passes its GPU tests in full (on an H200 on 2026-12-04 it was 0.19 off, then after
-#: a fix 11 of 12 passed, docs/gpu.md); ``backend="triton"`` takes it.
-QMVC = Op("quad mean value coordinates", triton=True, triton_auto=False)
+#: The kernels of quad mean value coordinates: on CUDA, ``"auto"`` takes the Triton kernel (the
+#: paper's Riemann sum; ``tol=`` runs on torch): it passed every test of tests/test_triton_qmvc.py
+#: compiled on an H200 (docs/gpu.md).
+QMVC = Op("quad mean value coordinates", triton=True)
 
 
 def quad_mean_value_coordinates(
@@ -141,10 +141,9 @@ def quad_mean_value_coordinates(
             whatever it is (float32 would lose accuracy near the cage: see docs/accuracy.md).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): the native C kernel for float64 CPU points when no autograd
-            graph is needed, else the torch kernel (also on CUDA); ``"torch"``, ``"native"`` or
-            ``"triton"`` to force one. ``"triton"`` (CUDA points, triton installed, no graph,
-            ``tol=None``) is experimental: ``"auto"`` takes it once it passes its GPU tests in full
-            (docs/gpu.md).
+            graph is needed, the Triton kernel for CUDA points (triton installed, no graph,
+            ``tol=None``; docs/gpu.md), else the torch kernel; ``"torch"``, ``"native"`` or
+            ``"triton"`` to force one.
         allow_invalid: compute even if some quads are invalid (with a warning) instead of raising.
         tol: if given (in ``[1e-14, 0.1]``), the exact coordinates: the quads' defining integrals
             to this relative tolerance by an error-controlled Gauss quadrature (``n`` is then
@@ -205,7 +204,7 @@ def quad_mean_value_coordinates(
             "backend='torch' or 'native'"
         )
     choice = select(QMVC, backend, x, cage.vertices)
-    use_triton, lib = choice.kind == "triton", choice.lib
+    use_triton, lib = choice.kind == "triton" and quad_tol is None, choice.lib  # (tol: torch on CUDA)
     T, Q = cage.triangles.shape[0], cage.quads.shape[0]
     tdata = triangle_data(verts, cage.triangles, tol) if T else None
     qdata = quad_data(verts, cage.quads, tol) if Q else None
