@@ -45,3 +45,27 @@ def test_a_clone_elsewhere_finds_the_data_beside_it(tmp_path) -> None:
     shutil.rmtree(data)
     out = subprocess.run(["bash", "-c", script], cwd=clone, env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+@pytest.mark.skipif(shutil.which("bash") is None or shutil.which("sed") is None, reason="needs bash and sed")
+def test_ci_tests_the_oldest_declared_torch() -> None:
+    """CI's floor step installs the lower bound of pyproject.toml's torch requirement (issue 41
+    item 6), read from the file by the script's own line; the range also admits the local 2.13.0."""
+    tomllib = pytest.importorskip("tomllib")
+    from packaging.requirements import Requirement
+    from packaging.version import Version
+
+    root = CI.parents[1]
+    deps = tomllib.loads((root / "pyproject.toml").read_text())["project"]["dependencies"]
+    (req,) = [Requirement(d) for d in deps if Requirement(d).name == "torch"]
+    (lower,) = [s.version for s in req.specifier if s.operator == ">="]
+    assert Version(lower) in req.specifier and Version("2.13.0") in req.specifier
+    text = CI.read_text()
+    (line,) = [ln for ln in text.splitlines() if ln.startswith('floor="$(')]
+    out = subprocess.run(["bash", "-c", line + '\necho "$floor"'], cwd=root, capture_output=True, text=True, check=True)
+    assert Version(out.stdout.strip()) == Version(lower)
+    # the step installs that torch with the project in one pip call, checks it, and runs the default tier
+    step = text[text.index(line) :]
+    assert '. "$floor_dir/venv/bin/activate"' in step
+    assert 'python -m pip install --quiet "torch==$floor" -e ".[test,docs]"' in step
+    assert "python -m pytest -q" in step and "|| true" not in step

@@ -34,7 +34,7 @@ import math
 
 import torch
 
-from torchcage._core.common import on_cage_tolerance
+from torchcage._core.common import on_cage_tolerance, safe_atan2
 from torchcage.cage import Cage
 from torchcage.errors import CageError
 
@@ -83,7 +83,9 @@ def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor,
     t = -ab / Q  # projection parameter of the point on each edge
     on_line = cross.abs() <= tol * norm_a
     on_edge = on_line & (t >= -tol / norm_a) & (t <= 1 + tol / norm_a)
-    theta = torch.atan2(cross.abs(), (b * bp).sum(-1))
+    # safe_atan2: a point on a vertex gives atan2(0, 0), whose derivative is NaN before torch 2.10
+    # (the where below masks the value, not a NaN in the backward pass)
+    theta = safe_atan2(cross.abs(), (b * bp).sum(-1))
     theta = torch.where(on_edge, 0.0, theta)
     sigma = torch.where(cross >= 0, 1.0, -1.0).to(points.dtype)
     # log P at the ends, each multiplied by a factor that vanishes where P does (the point on a vertex).
