@@ -44,8 +44,8 @@ DIFFERENTIABLE = {"mvc", "gc", "qmvc", "qgc"}
 POINTS_DTYPE_RESULT = {"lbc", "hc", "bbw"}
 
 FIRST_GRAPH_BREAK = (
-    "first graph break (mvc compiles: one opaque custom op, families/mean_value/compiled.py; the other "
-    "families have none yet): torchcage/_core/common.py as_inputs calls "
+    "first graph break (the closed-form families compile: one opaque custom op each, _core/compiled.py; "
+    "the solved ones and mec have none yet): torchcage/_core/common.py as_inputs calls "
     "torch._C._functorch.is_functorch_wrapped_tensor(cage.vertices), which Dynamo cannot trace, before "
     "torch.compiler.is_compiling() could short-circuit it; the next one is check_finite's data-dependent "
     "`if bool(bad.any())`"
@@ -455,26 +455,27 @@ def test_gradcheck_full(key) -> None:
 
 # ------------------------------------------------------------------------------ custom ops, compile
 def _op_arguments(case: Case) -> tuple:
-    """The arguments of a family's registered op, by op name (add one here with each new op)."""
-    faces = case.cage.triangles if case.dim == 3 else case.cage.edges
-    args = {"mean_value_coordinates": (case.points, case.cage.vertices, faces, 0, "auto")}
-    return args[case.fam.function().__name__]
+    """The arguments of a family's registered op (``torchcage._core.compiled.CompiledOp``)."""
+    c = case.cage
+    n, tol = case.options.get("n", 0), case.options.get("tol", -1.0)
+    return (case.points, c.vertices, c.triangles, c.quads, c.edges, 0, "auto", n, tol)
 
 
 @pytest.mark.parametrize(
     "key",
-    cases(xfail={f.short: "no registered op yet" for f in FAMILIES if f.short != "mvc"}, raises=NoRegisteredOpError),
+    cases(xfail={f.short: "no registered op yet" for f in FAMILIES if f.op is None}, raises=NoRegisteredOpError),
 )
 def test_opcheck(key) -> None:
-    """The family's custom op ``torch.ops.torchcage.<functional name>`` passes
-    ``torch.library.opcheck`` (schema, fake tensor, autograd registration, AOT dispatch)."""
+    """The family's custom op ``torch.ops.torchcage.<family.op>`` passes ``torch.library.opcheck``
+    (schema, fake tensor, autograd registration, AOT dispatch) and equals the functional entry."""
     case = get_case(key)
-    name = case.fam.function().__name__
-    try:
-        op = getattr(torch.ops.torchcage, name)
-    except AttributeError as err:
-        raise NoRegisteredOpError(f"no torch.ops.torchcage.{name}") from err
-    torch.library.opcheck(op.default, _op_arguments(case))
+    if case.fam.op is None:
+        raise NoRegisteredOpError(f"{case.short}: the registry names no op")
+    op = getattr(torch.ops.torchcage, case.fam.op)
+    args = _op_arguments(case)
+    torch.library.opcheck(op.default, args)
+    for o, r in zip(op(*args), case.call(), strict=True):
+        close(o, r, 1e-14)
 
 
 @pytest.fixture
@@ -486,23 +487,23 @@ def fresh_dynamo():
 
 @pytest.mark.filterwarnings("ignore:Dynamo does not know how to trace")
 @pytest.mark.parametrize(
-    "key", cases(xfail={f.short: FIRST_GRAPH_BREAK for f in FAMILIES if f.short != "mvc"}, raises=Unsupported)
+    "key",
+    cases(xfail={f.short: FIRST_GRAPH_BREAK for f in FAMILIES if f.short not in DIFFERENTIABLE}, raises=Unsupported),
 )
 def test_compile_functional(key, fresh_dynamo) -> None:
     """``torch.compile(fullgraph=True)`` of the functional call (backend "eager") gives the eager
-    outputs; for mvc (one opaque custom op under compilation) the gradients with respect to the
-    points and the cage's vertices too (backend "aot_eager")."""
+    outputs; for the closed-form families (one opaque custom op each under compilation) the
+    gradients with respect to the points and the cage's vertices too (backend "aot_eager")."""
     case = get_case(key)
     fn, opts = case.fam.function(), case.options  # (the registry's import is resolved outside)
     compiled = torch.compile(lambda y: dense_outputs(fn(y, case.cage, **opts)), fullgraph=True, backend="eager")
     for o, r in zip(compiled(case.points), case.call(), strict=True):
         close(o, r, 1e-14)
-    if case.short != "mvc":
+    if case.short not in DIFFERENTIABLE:
         return
-    faces = case.cage.faces if case.dim == 3 else case.cage.edges
 
     def f(y, P):
-        return fn(y, torchcage.Cage(P, faces, validate=False))
+        return torch.cat(dense_outputs(fn(y, case.cage.with_vertices(P), **opts)), dim=-1)
 
     x = case.points.clone().requires_grad_()
     P = case.cage.vertices.clone().requires_grad_()

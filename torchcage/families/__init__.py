@@ -58,6 +58,9 @@ class Family:
         inside_only: defined inside the cage only (points outside are refused or meaningless).
         help: a one-line description for ``--help``.
         outside: what the family does with points outside the cage (ends the outside warning).
+        op: the name of its registered op, ``torch.ops.torchcage.<op>`` (the functional entry as
+            one opaque custom op, which ``torch.compile(fullgraph=True)`` calls:
+            :mod:`torchcage._core.compiled`), or ``None``.
     """
 
     short: str
@@ -76,6 +79,7 @@ class Family:
     inside_only: bool = False
     help: str = ""
     outside: str = ""
+    op: str | None = None
     _cache: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -113,6 +117,7 @@ FAMILIES: tuple[Family, ...] = (
         faces="triangles",
         backends=("native", "torch", "triton"),
         jacobian=True,
+        op="mean_value",
         help="mean value, any closed cage, quads split",
         outside="mean value coordinates extrapolate there (defined, but the farther out a point lies the less it "
         "follows the cage); enlarge the cage around them",
@@ -127,6 +132,7 @@ FAMILIES: tuple[Family, ...] = (
         outputs=("phi", "psi"),
         backends=("native", "torch", "triton"),
         jacobian=True,
+        op="green",
         help="Green, quasi-conformal, quads split",
         outside="Green coordinates continue them through the nearest faces, exact at rest but extrapolating those "
         "faces' motion; enlarge the cage around them",
@@ -140,6 +146,7 @@ FAMILIES: tuple[Family, ...] = (
         faces="triquads",
         backends=("native", "torch", "triton"),
         tol=True,
+        op="quad_mean_value",
         help="quad mean value, quads kept",
         outside="quad mean value coordinates extrapolate there (defined, but the farther out a point lies the less "
         "it follows the cage); enlarge the cage around them",
@@ -154,6 +161,7 @@ FAMILIES: tuple[Family, ...] = (
         outputs=("phi", "psi"),
         backends=("native", "torch"),
         tol=True,
+        op="quad_green",
         help="quad Green, quads kept",
         outside="quad Green coordinates are defined inside the cage only and map these points to (nearly) the "
         "origin; enlarge the cage around them or use mean value coordinates",

@@ -21,6 +21,7 @@ from torchcage._core.common import (
     snap_to_vertices,
     unit_sum,
 )
+from torchcage._core.compiled import CompiledOp
 from torchcage.cage import Cage
 from torchcage.families.green.dispatch import green_flat
 from torchcage.families.green.exterior import extend_outside
@@ -46,6 +47,17 @@ def centred(x: torch.Tensor, cage: Cage, dtype: torch.dtype) -> tuple[torch.Tens
     with torch.no_grad():
         centre = (v.detach().amax(dim=0) + v.detach().amin(dim=0)) / 2
     return x.to(dtype) - centre, cage._like(v - centre)
+
+
+#: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
+COMPILED = CompiledOp(
+    "green",
+    lambda points, cage, options: tuple(green_coordinates(points, cage, **options)),
+    lambda vertices, triangles, quads, edges: [
+        vertices.shape[-2],
+        triangles.shape[0] if vertices.shape[-1] == 3 else edges.shape[0],
+    ],
+)
 
 
 def green_coordinates(
@@ -107,6 +119,9 @@ def green_coordinates(
     """
     if exterior not in ("extend", "none"):
         raise ValueError(f"exterior must be 'extend' or 'none', got {exterior!r}")
+    if torch.compiler.is_compiling() and exterior == "extend":  # one opaque op (checks are not traceable)
+        phi, psi = COMPILED(points, cage, chunk_size, backend)
+        return (phi, psi) if dtype is None else (phi.to(dtype), psi.to(dtype))
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(

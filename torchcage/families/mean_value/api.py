@@ -14,13 +14,20 @@ import torch
 from torchcage._core.batch import over_cage_batch
 from torchcage._core.centre import centred
 from torchcage._core.common import as_inputs, check_points, far_unity, records_graph, result_dtype
+from torchcage._core.compiled import CompiledOp
 from torchcage.cage import Cage
-from torchcage.families.mean_value.compiled import compiled_mean_value
 from torchcage.families.mean_value.dispatch import coordinates_flat
 from torchcage.families.mean_value.kernel3d import triangle_cage_data
 from torchcage.families.mean_value.ops import mean_value_function
 
 __all__ = ["mean_value_coordinates"]
+
+#: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
+COMPILED = CompiledOp(
+    "mean_value",
+    lambda points, cage, options: (mean_value_coordinates(points, cage, **options),),
+    lambda vertices, triangles, quads, edges: [vertices.shape[-2]],
+)
 
 
 def mean_value_coordinates(
@@ -90,7 +97,7 @@ def mean_value_coordinates(
         True
     """
     if torch.compiler.is_compiling():  # one opaque op: the checks below are not traceable
-        lam = compiled_mean_value(points, cage, chunk_size, backend)
+        (lam,) = COMPILED(points, cage, chunk_size, backend)
         return lam if dtype is None else lam.to(dtype)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:

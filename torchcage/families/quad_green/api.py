@@ -9,6 +9,7 @@ import torch
 
 from torchcage._core.batch import over_cage_batch
 from torchcage._core.common import ON_CAGE_TOLERANCE, VERTEX_SNAP, as_inputs, chunks, snap_to_vertices, unit_sum
+from torchcage._core.compiled import CompiledOp
 from torchcage.backends import Op, select
 from torchcage.cage import Cage
 from torchcage.errors import warn_outside
@@ -110,6 +111,14 @@ def _chunk(x: torch.Tensor, tri_part, quad_part, V: int) -> tuple[torch.Tensor, 
     return phi, torch.cat(psis, dim=1)
 
 
+#: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
+COMPILED = CompiledOp(
+    "quad_green",
+    lambda points, cage, options: tuple(quad_green_coordinates(points, cage, **options)),
+    lambda vertices, triangles, quads, edges: [vertices.shape[-2], triangles.shape[0] + 4 * quads.shape[0]],
+)
+
+
 def quad_green_coordinates(
     points: torch.Tensor,
     cage: Cage,
@@ -181,6 +190,9 @@ def quad_green_coordinates(
         >>> torch.allclose(phi @ cube.vertices + psi @ N, x)
         True
     """
+    if torch.compiler.is_compiling() and not allow_invalid:  # one opaque op (checks are not traceable)
+        phi, psi = COMPILED(points, cage, chunk_size, backend, n, tol)
+        return (phi, psi) if dtype is None else (phi.to(dtype), psi.to(dtype))
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(

@@ -22,6 +22,7 @@ from torchcage._core.common import (
     records_graph,
     result_dtype,
 )
+from torchcage._core.compiled import CompiledOp
 from torchcage.backends import Op, check, select
 from torchcage.cage import Cage
 from torchcage.errors import CageError, PointsError
@@ -106,6 +107,14 @@ def prepare_quad_call(
 QMVC = Op("quad mean value coordinates", triton=True)
 
 
+#: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
+COMPILED = CompiledOp(
+    "quad_mean_value",
+    lambda points, cage, options: (quad_mean_value_coordinates(points, cage, **options),),
+    lambda vertices, triangles, quads, edges: [vertices.shape[-2]],
+)
+
+
 def quad_mean_value_coordinates(
     points: torch.Tensor,
     cage: Cage,
@@ -177,6 +186,9 @@ def quad_mean_value_coordinates(
         >>> torch.allclose(exact @ cube.vertices, x), bool((exact - w).abs().max() < 1e-2)
         (True, True)
     """
+    if torch.compiler.is_compiling() and not allow_invalid:  # one opaque op (checks are not traceable)
+        (lam,) = COMPILED(points, cage, chunk_size, backend, n, tol)
+        return lam if dtype is None else lam.to(dtype)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(
