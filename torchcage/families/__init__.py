@@ -117,7 +117,7 @@ FAMILIES: tuple[Family, ...] = (
         faces="triangles",
         backends=("native", "torch", "triton"),
         jacobian=True,
-        op="mean_value",
+        op="mvc",
         help="mean value, any closed cage, quads split",
         outside="mean value coordinates extrapolate there (defined, but the farther out a point lies the less it "
         "follows the cage); enlarge the cage around them",
@@ -146,7 +146,7 @@ FAMILIES: tuple[Family, ...] = (
         faces="triquads",
         backends=("native", "torch", "triton"),
         tol=True,
-        op="quad_mean_value",
+        op="qmvc",
         help="quad mean value, quads kept",
         outside="quad mean value coordinates extrapolate there (defined, but the farther out a point lies the less "
         "it follows the cage); enlarge the cage around them",
@@ -161,7 +161,7 @@ FAMILIES: tuple[Family, ...] = (
         outputs=("phi", "psi"),
         backends=("native", "torch"),
         tol=True,
-        op="quad_green",
+        op="qgc",
         help="quad Green, quads kept",
         outside="quad Green coordinates are defined inside the cage only and map these points to (nearly) the "
         "origin; enlarge the cage around them or use mean value coordinates",

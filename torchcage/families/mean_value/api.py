@@ -24,7 +24,7 @@ __all__ = ["mean_value_coordinates"]
 
 #: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
 COMPILED = CompiledOp(
-    "mean_value",
+    "mvc",
     lambda points, cage, options: (mean_value_coordinates(points, cage, **options),),
     lambda vertices, triangles, quads, edges: [vertices.shape[-2]],
 )

@@ -113,7 +113,7 @@ def _chunk(x: torch.Tensor, tri_part, quad_part, V: int) -> tuple[torch.Tensor, 
 
 #: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
 COMPILED = CompiledOp(
-    "quad_green",
+    "qgc",
     lambda points, cage, options: tuple(quad_green_coordinates(points, cage, **options)),
     lambda vertices, triangles, quads, edges: [vertices.shape[-2], triangles.shape[0] + 4 * quads.shape[0]],
 )

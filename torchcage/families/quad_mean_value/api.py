@@ -109,7 +109,7 @@ QMVC = Op("quad mean value coordinates", triton=True)
 
 #: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
 COMPILED = CompiledOp(
-    "quad_mean_value",
+    "qmvc",
     lambda points, cage, options: (quad_mean_value_coordinates(points, cage, **options),),
     lambda vertices, triangles, quads, edges: [vertices.shape[-2]],
 )
