@@ -20,6 +20,7 @@ Examples:
     >>> f = torch.compile(lambda y: F.mean_value_coordinates(y, cube), fullgraph=True, backend="eager")
     >>> torch.allclose(f(x), F.mean_value_coordinates(x, cube))
     True
+    >>> torch._dynamo.reset()  # (the compiled code's caches, before the doctest's globals go)
 """
 
 from __future__ import annotations
