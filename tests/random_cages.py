@@ -1,4 +1,4 @@
-"""Random cages of the adversarial sweeps (issue 42): convex hulls, star-shaped spheres, needles,
+"""Random cages of the adversarial sweeps: convex hulls, star-shaped spheres, needles,
 slabs and bilinear triquad cages, optionally rotated, scaled and translated; and points on the
 support planes of their faces. Builders only (no tests here).
 """

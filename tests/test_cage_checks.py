@@ -1,4 +1,4 @@
-"""Cage geometry that cannot be computed with is refused on every path (issue 42, items 5-7):
+"""Cage geometry that cannot be computed with is refused on every path:
 coincident vertices, flat cages, NaN/inf vertices given through paths that skip the constructor's
 checks (``validate=False`` / ``"topology"``, ``with_vertices``), and unit normals at any scale."""
 

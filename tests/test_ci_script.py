@@ -1,4 +1,4 @@
-"""CI's script finds the papers' data by the README's rule only (issue 43 item 11): ``../shared/data``
+"""CI's script finds the papers' data by the README's rule only: ``../shared/data``
 beside the checkout, or ``$TORCHCAGE_DATA``; no machine's absolute path."""
 
 from __future__ import annotations
@@ -49,8 +49,8 @@ def test_a_clone_elsewhere_finds_the_data_beside_it(tmp_path) -> None:
 
 @pytest.mark.skipif(shutil.which("bash") is None or shutil.which("sed") is None, reason="needs bash and sed")
 def test_ci_tests_the_oldest_declared_torch() -> None:
-    """CI's floor step installs the lower bound of pyproject.toml's torch requirement (issue 41
-    item 6), read from the file by the script's own line; the range also admits the local 2.13.0."""
+    """CI's floor step installs the lower bound of pyproject.toml's torch requirement, read from
+    the file by the script's own line; the range also admits the local 2.13.0."""
     tomllib = pytest.importorskip("tomllib")
     from packaging.requirements import Requirement
     from packaging.version import Version

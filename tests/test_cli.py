@@ -26,7 +26,7 @@ def test_demo_writes_everything(tmp_path, capsys):
     from PIL import Image
 
     image = Image.open(tmp_path / "deformation.png").convert("RGB")
-    assert image.size[0] == 1600  # two 800-pixel panels, titles above, a legend below (issue 22 item 15)
+    assert image.size[0] == 1600  # two 800-pixel panels, titles above, a legend below
     strip = {image.getpixel((x, y)) for x in range(0, 600, 2) for y in range(image.size[1] - 40, image.size[1])}
 
     def near(rgb):
@@ -67,7 +67,7 @@ def test_demo_with_green_coordinates(tmp_path):
 
 
 def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
-    """Issue 22 items 4 and 14: --method lbc, --format, --up / camera, --strict."""
+    """--method lbc, --format, --up / camera, --strict."""
     args = cube_files(tmp_path)
     assert main([*args, "--out", str(tmp_path / "lbc"), "--method", "lbc", "--no-picture"]) == 0
     rest, _ = torchcage.load_mesh(tmp_path / "lbc" / "rest_mesh.obj")
@@ -91,7 +91,7 @@ def test_deform_lbc_formats_camera_and_strict(tmp_path, capsys):
     poke = cube_files(tmp_path / "poke", scale=1.4)  # the sphere pokes out of the cube a little
     capsys.readouterr()
     assert main([*poke, "--out", str(tmp_path / "gc0"), "--method", "gc", "--no-picture"]) == 0
-    err = capsys.readouterr().err  # continued through the nearest faces, and said (issue 43 item 4: every point out)
+    err = capsys.readouterr().err  # continued through the nearest faces, and said (every point out)
     assert "points lie outside the cage" in err and "nearest faces" in err and err.count("outside the cage") == 1
     v0, _ = torchcage.load_mesh(tmp_path / "gc0" / "rest_mesh.obj")
     v1, _ = torchcage.load_mesh(tmp_path / "gc0" / "deformed_mesh.obj")
@@ -117,7 +117,7 @@ def test_bench_validates_arguments(capsys):
 
 
 def test_bench_prints_as_it_goes_and_names_the_kernel_library(capsys, monkeypatch):
-    """Issue 43 item 7: the header and the kernel library are out before the first measurement
+    """The header and the kernel library are out before the first measurement
     ends, and each row as it is measured; every option has help."""
     import pytest
 
@@ -219,7 +219,7 @@ def test_ply_without_trimesh_says_writing(tmp_path, capsys, monkeypatch):
 
 
 def test_up_axis_default_and_auto_rule(capsys):
-    """Issue 43 item 9: --up defaults to auto: y (the OBJ convention) unless the mesh stands
+    """--up defaults to auto: y (the OBJ convention) unless the mesh stands
     along z; models of the data set's kind (y-up, long along x, thin along z) are not laid down."""
     import pytest
 

@@ -1,4 +1,4 @@
-"""Every ``python`` code block of the README and the docs runs (issue 22, item 16): the blocks of
+"""Every ``python`` code block of the README and the docs runs: the blocks of
 one page run in order in one namespace, in a temporary working directory."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The documentation site as a reader sees it (issue 43, item 6): the maths typeset, no Sphinx roles.
+"""The documentation site as a reader sees it: the maths typeset, no Sphinx roles.
 
 The site is built once (``mkdocs build --strict`` into a temporary folder, as CI builds it),
 served from 127.0.0.1 and opened in headless Chromium with every other host unresolvable (the

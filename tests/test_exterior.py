@@ -1,4 +1,4 @@
-"""Green coordinates outside the cage: Lipman et al.'s exterior extension (issue 14, item 14).
+"""Green coordinates outside the cage: Lipman et al.'s exterior extension.
 
 Properties: outside points are reproduced at rest (partition of unity and linear precision); under
 a deformation the extended map continues the interior one across a face (continuous, and as smooth

@@ -239,7 +239,7 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
 def test_green_jacobian_example_names_the_extra_when_matplotlib_is_missing() -> None:
-    """Issue 43 item 9: no raw ModuleNotFoundError; the message names the extra (pyproject's
+    """No raw ModuleNotFoundError; the message names the extra (pyproject's
     `examples` extra brings matplotlib)."""
     import subprocess
     import sys
@@ -255,7 +255,7 @@ def test_green_jacobian_example_names_the_extra_when_matplotlib_is_missing() -> 
 
 
 def test_coordinate_field_picture_has_a_title_and_a_colour_scale(tmp_path) -> None:
-    """Issue 43 item 9: the 2D field picture has a title strip and a colour scale whose colours
+    """The 2D field picture has a title strip and a colour scale whose colours
     are render_field_2d's own: red at +1 (top), white at 0, blue at -1 (bottom)."""
     import importlib.util
 

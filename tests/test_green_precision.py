@@ -1,4 +1,4 @@
-"""Green coordinates where rounding used to decide the answer (issue 42 items 1, 2, 13): points a
+"""Green coordinates where rounding used to decide the answer: points a
 few rounding units from a polygon's vertex, gradients just outside a thin cage's edge, cages far
 from the origin. Random cages and points; references in 50-digit mpmath."""
 
@@ -92,7 +92,7 @@ def random_polygon_cases(seed: int, count: int, translate: bool):
 
 
 def test_green2d_kernel_next_to_vertices_agrees_with_mpmath():
-    """The bare integrals at points 1e-15..1e-12 of the size from a vertex (issue 42 item 1: the
+    """The bare integrals at points 1e-15..1e-12 of the size from a vertex (the
     side of an edge was decided by a cross product that had cancelled, phi off by 0.1)."""
     g = torch.Generator().manual_seed(11)
     worst = 0.0
@@ -176,7 +176,7 @@ def outside_edges(cage: torchcage.Cage, lo: float, hi: float, per: int, g: torch
 
 def test_green_gradients_outside_needle_edges_sum_to_zero():
     """d(sum phi)/dx = 0 (sum phi is 1 outside too, by the extension) at 1e-14..1e-7 of the size
-    outside needles' edges (issue 42 item 2: the solid angle's Van Oosterom-Strackee value over the
+    outside needles' edges (the solid angle's Van Oosterom-Strackee value over the
     on-plane band gave 1e11 / size). Autograd of the torch kernel (the rest cage's vertices
     differentiated too, so no closed form stands in): what is left is the rounding of the faces'
     singular terms (each ~1 / distance), relative to them below 1e-3 (2e-4 at 1e-14 of the size,
@@ -212,7 +212,7 @@ def _moved(cage: torchcage.Cage, g: torch.Generator, distance: float = 1e6) -> t
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_green_translated_cages_linear_precision_and_jacobian(dim):
-    """Cages moved by 1e6 of their sizes (issue 42 item 13): linear precision and the Jacobian
+    """Cages moved by 1e6 of their sizes: linear precision and the Jacobian
     identity (sum P_i grad phi_i^T + sum n_t grad psi_t^T = I) about the cage's centre within a few
     units of the input's rounding (1e6 eps) relative to the size, for points inside, outside and
     1e-9..1e-3 of the size from vertices (there the rounding of the edges' angle gradients,

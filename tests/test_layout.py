@@ -150,7 +150,7 @@ def test_custom_ops_are_registered_at_import() -> None:
 
 
 def test_docstring_examples_render_as_code():
-    """Issue 22 item 17: Google-style ``Examples:`` sections (griffe renders their ``>>>`` lines as
+    """Google-style ``Examples:`` sections (griffe renders their ``>>>`` lines as
     code); a singular ``Example:`` became a grey block quote in the API reference."""
     import re
 

@@ -205,7 +205,7 @@ def test_conjugate_gradient_y_step_matches_the_factorisation():
 
 
 def test_lbc_on_a_sliver_cage_with_dangling_mesh_vertices() -> None:
-    """Issue 14 (sweep finding): the mesher leaves vertices in no cell next to the sliver cube's
+    """The mesher leaves vertices in no cell next to the sliver cube's
     sliver; their infinite geodesic distance made every normalised distance 0, the ADMM penalty 0
     and the solve a ZeroDivisionError. Distances are now normalised over the cells' vertices."""
     from torchcage.testing import sliver_cube
@@ -219,7 +219,7 @@ def test_lbc_on_a_sliver_cage_with_dangling_mesh_vertices() -> None:
 
 
 def test_lbc_points_on_the_cage_faces_are_located() -> None:
-    """Issue 14 (sweep finding at 1e6 queries): points on the cube's faces beside a flat boundary
+    """Points on the cube's faces beside a flat boundary
     cell (far centroid) were not found in 48 candidate cells and got the clamped coordinates of
     another cell, 1e-2 away. The search now widens to 384 candidates, and clamped points take the
     nearest clamped candidate."""
@@ -235,7 +235,7 @@ def test_lbc_points_on_the_cage_faces_are_located() -> None:
 
 
 def test_lbc_partition_of_unity_after_dropping_small_entries() -> None:
-    """Issue 14: the reproduction correction after small entries are dropped left the sums off by
+    """The reproduction correction after small entries are dropped left the sums off by
     2e-10 (raw coordinates), then 2e-12 (centred and scaled); rows are now renormalised exactly."""
     from torchcage.geometry import inside_cage
     from torchcage.testing import adversarial_points

@@ -192,7 +192,7 @@ def _sheet_samples(cage, k: int, seed: int):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_points_on_and_just_inside_bilinear_quads_are_accepted(seed: int) -> None:
-    """Issue 42 item 10: points on the bilinear (non-planar) quads of a random triquad cage, and
+    """Points on the bilinear (non-planar) quads of a random triquad cage, and
     1e-10..1e-6 of the size inside them, were refused as outside (the inside test and the on-cage
     test used the quads' split triangles, up to 0.1 of the size away from the sheets here). On the
     sheet: the bilinear weights; inside: nonnegative coordinates reproducing the point."""
@@ -212,7 +212,7 @@ def test_points_on_and_just_inside_bilinear_quads_are_accepted(seed: int) -> Non
 
 
 def test_float32_points_on_the_cage_are_on_it() -> None:
-    """Issue 42 item 4: float32 points on a cage's faces and quads round to just outside it (by
+    """Float32 points on a cage's faces and quads round to just outside it (by
     about eps32 |x|) and were refused; within the rounding of their dtype they are on the cage and
     get its interpolant."""
     from random_cages import triquad_cage

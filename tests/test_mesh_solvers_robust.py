@@ -1,5 +1,5 @@
 """The mesh-based coordinates (harmonic, bounded biharmonic, local barycentric) on inputs a sweep
-found wrong (issue 42 items 8, 9, 11, 12; issue 43 item 7): zero LBC tolerances, curved quads,
+found wrong: zero LBC tolerances, curved quads,
 long thin cells, flat, tiny, huge and far-away cages, solutions of other cages, and the progress
 bars."""
 

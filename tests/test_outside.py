@@ -1,4 +1,4 @@
-"""Points outside the cage (issue 43 item 4): `deform` and `torchcage deform` say so for every
+"""Points outside the cage: `deform` and `torchcage deform` say so for every
 family, with the count and how far; `outside="error"` / `--strict` refuse them; points inside
 (or on the cage, rounded to float32) say nothing. Independent check: for the axis-aligned cube
 [-1, 1]^3 a point lies outside iff some |x_i| > 1, at distance |max(|x| - 1, 0)|."""
@@ -89,7 +89,7 @@ def test_deform_warns_for_every_family_with_count_and_distance(method: str) -> N
 
 
 def test_deform_batch_shapes_are_checked() -> None:
-    """Issue 42 item 12: two rest cages and three deformed cages is a clear error, not a torch
+    """Two rest cages and three deformed cages is a clear error, not a torch
     broadcasting failure; the shapes that do broadcast agree with one call per cage."""
     tri = CUBE.triangulated()
     rest = torch.stack([tri.vertices, 1.5 * tri.vertices])

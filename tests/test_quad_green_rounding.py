@@ -1,4 +1,4 @@
-"""Quad Green coordinates of points given in float32 on the cage (issue 42 item 4): they round to
+"""Quad Green coordinates of points given in float32 on the cage: they round to
 just off it, half of them outside, where the bare integrals give 0; within the rounding of their
 dtype they are on the cage. Points that are truly outside warn with their count."""
 

@@ -485,7 +485,7 @@ def test_far_field_on_a_cage_far_from_the_origin(backend: str, family: str) -> N
 
 @pytest.mark.parametrize("model", ["cube", "Beast"])
 def test_qmvc_far_field_relative_linear_precision(backend: str, model: str) -> None:
-    """Issue 14, QMVC far field: quads seen small take the Gauss rule of their defining integrals
+    """Quads seen small take the Gauss rule of their defining integrals
     (the mean vector of Cramer's form cancels there), and a triquad cage's triangles take the
     far-field rule (their own sum does not show the cancellation). Relative LP <= 1e-8 from 1e2 to
     1e9 cage sizes (it was 2e4 at 1e9)."""
@@ -530,7 +530,7 @@ def test_qmvc_far_blend_is_continuous(backend: str) -> None:
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_mvc_derivatives_far_field(backend: str, dim: int) -> None:
-    """Issue 14, derivatives far away: the native kernels normalise by the weights' first moment as
+    """The native kernels normalise by the weights' first moment as
     a jet (value, gradient, Hessian), and the 2D edge cross product takes the edge from its
     vertices. Relative LP of the coordinates, ``sum_i grad lam_i v_i^T = I`` and
     ``sum_i H lam_i v_i = 0`` hold to 1e-10 out to 1e9 cage sizes (the 3D kernel had 1.4e-6, the

@@ -1,5 +1,4 @@
-"""Deforming Gaussian splats with a cage and mapping deformed-space samples back to rest space
-(issue 45, items 2 and 3)."""
+"""Deforming Gaussian splats with a cage and mapping deformed-space samples back to rest space."""
 
 from __future__ import annotations
 

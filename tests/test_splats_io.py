@@ -1,5 +1,5 @@
 """Splat scenes: the 3D Gaussian splatting PLY file (bit-exact round trips) and the exact rotation
-of spherical-harmonic colours (issue 45, items 1 and 2's colour part)."""
+of spherical-harmonic colours."""
 
 from __future__ import annotations
 

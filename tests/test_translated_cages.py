@@ -1,4 +1,4 @@
-"""Mean value coordinates on cages far from the origin (issue 42, item 13): computed relative to the
+"""Mean value coordinates on cages far from the origin: computed relative to the
 cage's centre (``_core/centre.py``), linear precision and the derivative identity hold to the
 rounding of the results themselves, whatever the translation.
 

@@ -1,7 +1,7 @@
 """The Triton kernels against the native ones, run by Triton's interpreter on CPU tensors
 (``TRITON_INTERPRET=1``; CI's own step: ``pytest -m triton``) or on a GPU when there is one.
 
-Targets (issue 16): float64 within 1e-12 (relative to ``max(1, |lam|)``) of the native kernel
+Targets: float64 within 1e-12 (relative to ``max(1, |lam|)``) of the native kernel
 (2e-12 on Bench's support planes, where the native kernel itself is 1.7e-12 from the 40-digit
 reference); float32 within 1e-5 of the native kernel on the same float32 inputs (1e-3 relative far
 away, where the coordinates are ``distance / size`` sums that cancel to one).
@@ -79,7 +79,7 @@ def test_float64_matches_the_native_kernel(name: str) -> None:
 
 @pytest.mark.parametrize("name", ["cube", "twisted_bar", "FireHydrant", "Beast"])
 def test_float32_matches_the_native_kernel_on_the_same_inputs(name: str) -> None:
-    """float32 compute (``backend="triton", dtype=torch.float32``) against float64 native on the
+    """Float32 compute (``backend="triton", dtype=torch.float32``) against float64 native on the
     float32-rounded cage and points: 1e-5 off the far field (the split forms near support planes
     are kept in float32) and linear precision 1e-4 of the size; far away (coordinates of size
     ``distance / size`` summing to one, which float32 keeps to about 1e-3 relative) linear precision
@@ -447,7 +447,7 @@ def test_green_float64_matches_the_native_kernel(name: str) -> None:
 
 @pytest.mark.parametrize("name", ["cube", "twisted_bar", "FireHydrant"])
 def test_green_float32_matches_the_native_kernel_on_the_same_inputs(name: str) -> None:
-    """float32 compute against float64 native on the float32-rounded cage and points: 1e-5 off the
+    """Float32 compute against float64 native on the float32-rounded cage and points: 1e-5 off the
     far field (where float32 bare integrals are meaningless: the default extension replaces them)."""
     if name not in CAGES:
         pytest.skip("the QMVC data set is not available (TORCHCAGE_DATA)")

@@ -1,7 +1,7 @@
 """The Triton kernel of quad mean value coordinates against the native one, run by Triton's
 interpreter on CPU tensors (``TRITON_INTERPRET=1``; CI's own step: ``pytest -m triton``) or on a GPU.
 
-Target (issue 16): float64 within 1e-12 of the native kernel, relative to ``max(1, |lam|)``
+Target: float64 within 1e-12 of the native kernel, relative to ``max(1, |lam|)``
 (measured: 6e-13 at worst, Bench). Where the coordinates are ill-conditioned in every backend
 (points next to a quad, down to 1e-15 of the size, and points 1e9 sizes away), the native kernel's
 own coordinates move by up to 6e-7 when the point moves by one ulp; there the bound is four times
@@ -119,7 +119,7 @@ def test_grid_parameter_and_batches() -> None:
 
 
 def test_float32_points_are_computed_in_float64() -> None:
-    """float32 points: the result is float32, computed in float64 (as every backend of the quad
+    """Float32 points: the result is float32, computed in float64 (as every backend of the quad
     coordinates), so it is the native float64 result rounded."""
     cage = CAGES["cube"]
     x = 0.5 * torch.randn(16, 3, generator=torch.Generator().manual_seed(3)).clamp(-1.8, 1.8)

@@ -1,4 +1,4 @@
-"""py.typed ships with the package (issue 43 item 8), so that type checkers read torchcage's
+"""py.typed ships with the package, so that type checkers read torchcage's
 annotations; CI's `mypy` step (pyproject's [tool.mypy]) checks tests/typing_check.py against them."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The cage editor in a real browser: headless Chromium loads the page, renders the mesh, and a
 drag through the page's own pointer handling changes the pose that the server reports; a page from
-another local origin, and a DNS-rebinding name, can change and read nothing (issue 43, item 1).
+another local origin, and a DNS-rebinding name, can change and read nothing.
 
 Skips, with the reason, where no Chromium can be had (``apt-get install chromium``; CI installs
 it). ``TORCHCAGE_EDITOR_SCREENSHOT=path.png`` keeps the screenshot (the docs' picture).

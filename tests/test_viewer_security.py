@@ -1,5 +1,5 @@
 """The editor's server refuses what another web page, a DNS-rebinding page or a misbehaving
-client could send (issue 43, items 1, 2, 3 and 5): forged headers over raw HTTP on 127.0.0.1,
+client could send: forged headers over raw HTTP on 127.0.0.1,
 deep JSON, stalled and dropping clients, a full worker pool, unportable save prefixes, a taken
 port and a missing browser. (Chromium from a second local origin: test_viewer_browser.py.)"""
 

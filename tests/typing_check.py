@@ -1,4 +1,4 @@
-"""Static check of the public API as a user's code sees it (issue 43 item 8): run by mypy in CI
+"""Static check of the public API as a user's code sees it: run by mypy in CI
 (``mypy``, configured in pyproject.toml), never called at run time. Each ``assert_type`` fails
 the check when torchcage's annotations are lost (no ``py.typed``: every name is ``Any``) or
 wrong; the functions are not called, so importing this module (pytest's doctest collection
