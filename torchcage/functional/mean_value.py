@@ -17,7 +17,7 @@ from ._batch import over_cage_batch
 from ._centre import centred
 from ._common import as_inputs, check_points, far_unity, records_graph, result_dtype
 from ._mvc3d import triangle_cage_data
-from ._mvc_dispatch import coordinates_flat
+from ._mvc_dispatch import coordinates_batch, coordinates_flat
 
 __all__ = ["mean_value_coordinates"]
 
@@ -90,6 +90,11 @@ def mean_value_coordinates(
     """
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
+        # One native call for the whole batch (CPU, no autograd graph, a triangle cage) ...
+        lam = coordinates_batch(points, cage, chunk_size, dtype, progress, backend)
+        if lam is not None:
+            return lam
+        # ... elsewhere (the torch kernel, Triton, an autograd graph, 2D) one call per element.
         return over_cage_batch(
             mean_value_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend
         )
