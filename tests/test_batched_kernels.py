@@ -151,3 +151,30 @@ def test_the_kernel_refuses_a_point_batch_that_is_neither_one_nor_the_cages():
     W = torch.empty(3, 5, 42, dtype=D64)
     with pytest.raises(ValueError, match="points for 2 cages"):
         _mvc3d_native.native_chunk(torch.zeros(2, 5, 3, dtype=D64), tables, _native.library(), W)
+
+
+@pytest.mark.native
+def test_the_kernel_flags_rows_that_are_not_finite():
+    V, tri = _cages(2)
+    tables = _mvc3d_native.batch_tables(V, tri, torch.full((2,), 1e-12, dtype=D64))
+    X = torch.stack([_points(V[b], tri, seed=b)[:70] for b in range(2)])  # inside (60), then vertices
+    X[1, 3] = float("nan")  # (no public path passes such a point: it only makes a row that is not finite)
+    W = torch.empty(2, 70, 42, dtype=D64)
+    flags = _mvc3d_native.native_chunk(X, tables, _native.library(), W)
+    assert flags[1, 3] == 2 and (flags[0, :60] == 0).all() and (flags[0, 60:] == 1).all()
+    assert torch.isfinite(W.sum(-1)).logical_xor(flags == 2).all()
+
+
+@pytest.mark.native
+def test_undefined_points_are_named_by_element(monkeypatch):
+    V, tri = _cages(3)
+    real = _mvc3d_native.native_chunk
+
+    def chunk(x, tables, lib, W, normalize=True):
+        flags = real(x, tables, lib, W, normalize)
+        flags[1, 4] = 2  # as the kernel marks a row whose total weight vanishes
+        return flags
+
+    monkeypatch.setattr(_mvc3d_native, "native_chunk", chunk)
+    with pytest.raises(torchcage.PointsError, match=r"undefined at points \[4\] in batch element \(1,\)"):
+        F.mean_value_coordinates(torch.zeros(5, 3, dtype=D64), torchcage.Cage(V, tri))

@@ -82,7 +82,8 @@ void tc_stable_face(double h, const double *s, const double *dots, const double 
  * longest) and the on-cage tolerance tol carry a leading batch axis (B, ...).
  * X: (XB, n, 3) points, XB = 1 (one point set shared by every cage) or B.
  * Output W: (B, n, V) coordinates, normalised when normalize != 0, else the raw weights (on[b, p] = 1
- * marks points on the cage, whose rows hold their interpolating values either way).
+ * marks points on the cage, whose rows hold their interpolating values either way; with normalize,
+ * on[b, p] = 2 marks rows that are not finite: the total weight vanishes there, outside the cage).
  */
 
 /* One cage's tables (the batch element's slices of tc_mvc3d's arguments) and what is derived from
@@ -100,7 +101,8 @@ typedef struct {
 } mvc3d_scratch;
 
 /* The coordinates (raw weights unless normalize) of the point x0, x1, x2 against cage g, written to
- * w (V,); returns 1 when the point is on the cage (w holds the interpolating values). */
+ * w (V,); returns 1 when the point is on the cage (w holds the interpolating values), 2 when the
+ * normalised coordinates are undefined (their sum is not finite: the total weight vanishes), else 0. */
 static inline int mvc3d_point(const mvc3d_cage *g, long V, const int *tri, long T, const int *edges, long E,
                               const int *fe, const int *inc_ptr, const int *inc_idx, const double *fs, long Q,
                               double far_c, double cancel_c, double near_c, double x0, double x1, double x2,
@@ -267,9 +269,13 @@ static inline int mvc3d_point(const mvc3d_cage *g, long V, const int *tri, long 
     }
     if (!normalize) return 0;
     const double xp[3] = {x0, x1, x2};
-    double inv = 1.0 / tc_mv_total(w, V, P, 1, V, 3, xp, g->centre, g->far2);
-    for (long v = 0; v < V; ++v) w[v] *= inv;
-    return 0;
+    double inv = 1.0 / tc_mv_total(w, V, P, 1, V, 3, xp, g->centre, g->far2), sum = 0.0;
+#pragma omp simd reduction(+ : sum)
+    for (long v = 0; v < V; ++v) {
+        w[v] *= inv;
+        sum += w[v]; /* (only its finiteness is read: any order will do) */
+    }
+    return isfinite(sum) ? 0 : 2;
 }
 
 void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,

@@ -100,8 +100,9 @@ def native_chunk(
     x: torch.Tensor, tables: dict[str, object], lib: ctypes.CDLL, W: torch.Tensor, normalize: bool = True
 ) -> torch.Tensor:
     """The native kernel on a chunk of float64 points, coordinates (raw weights with
-    ``normalize=False``) written into the contiguous ``W``; returns the uint8 on-cage flags (rows on
-    the cage hold their interpolating values).
+    ``normalize=False``) written into the contiguous ``W``; returns the uint8 flags: 1 on the cage
+    (rows hold their interpolating values), with ``normalize`` 2 where the row is not finite (the
+    total weight vanishes), else 0.
 
     One cage (``tables["B"] == 1``): ``x`` ``(n, 3)``, ``W`` ``(n, V)``, flags ``(n,)``. A batch of
     ``B`` cages: ``x`` ``(B, n, 3)``, or ``(1, n, 3)`` shared by every cage, ``W`` ``(B, n, V)``,

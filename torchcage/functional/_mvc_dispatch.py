@@ -157,14 +157,15 @@ def coordinates_batch(
     # The kernel needs no temporaries beyond its output: chunks only pace the progress bar.
     size = chunk_size if chunk_size is not None else default_chunk(B * cage.triangles.shape[0], 1 << 23)
     out = torch.empty((B, N, V), dtype=torch.float64)
+    flags = torch.empty((B, N), dtype=torch.uint8)
     for sl in chunks(N, size, progress, desc="mean value coordinates"):
         if sl.start == 0 and sl.stop == N:
-            _mvc3d_native.native_chunk(x, tables, lib, out)
+            flags = _mvc3d_native.native_chunk(x, tables, lib, out)
         else:
             part = torch.empty((B, sl.stop - sl.start, V), dtype=torch.float64)
-            _mvc3d_native.native_chunk(x[:, sl], tables, lib, part)
+            flags[:, sl] = _mvc3d_native.native_chunk(x[:, sl], tables, lib, part)
             out[:, sl] = part
-    bad = ~torch.isfinite(out.sum(dim=-1))  # (B, N): a row sum is finite iff every entry is
+    bad = flags == 2  # (B, N): rows whose sum is not finite (the kernel checks them, sparing a pass here)
     if bool(bad.any()):
         b = int(torch.nonzero(bad.any(dim=1))[0])
         idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
