@@ -147,7 +147,7 @@ def face_constants(p: torch.Tensor) -> dict[str, torch.Tensor]:
         "edge_len": edge_len,
         "gram": edges @ edges.transpose(-1, -2),
         "longest": edge_len.amax(dim=-1),  # (amax: max(dim).values cost milliseconds on 2 busy cores)
-        "far_nodes": torch.einsum("qi,...tic->...tqc", bary, p),
+        "far_nodes": bary @ p,  # (*B, T, Q, 3), sum_i bary[q, i] p[t, i]: contiguous (an einsum's was not)
         "far_coef": (two_area[..., None, None] * qw[:, None]) * bary,
     }
 

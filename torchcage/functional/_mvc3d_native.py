@@ -20,8 +20,25 @@ def topology_tables(tri: torch.Tensor, V: int) -> dict[str, object]:
     """``tc_mvc3d``'s topology arguments of triangles ``tri`` ``(T, 3)`` over ``V`` vertices, shared
     by every cage of a batch: the corners, the unique edges and, for the edge opposite each corner,
     its index ``fe`` and orientation ``fs`` (+1 when stored as ``(t[i+1], t[i+2])``), and the
-    vertex-to-corner incidence as CSR (``inc_ptr``, ``inc_idx``); the scalar constants too."""
-    tri = tri.cpu()
+    vertex-to-corner incidence as CSR (``inc_ptr``, ``inc_idx``); the scalar constants too.
+
+    The tensors are cached by the triangles' content (a training loop builds a new cage with the
+    same faces each step): the kernel only reads them; the dictionary is new at every call."""
+    tri = tri.detach().cpu().contiguous()
+    key = (V, tuple(tri.shape), tri.numpy().tobytes())
+    cached = _TOPOLOGY.get(key)
+    if cached is None:
+        cached = _topology_tables(tri, V)
+        if len(_TOPOLOGY) >= 8:
+            _TOPOLOGY.pop(next(iter(_TOPOLOGY)))  # (the oldest first: dicts keep insertion order)
+        _TOPOLOGY[key] = cached
+    return dict(cached)
+
+
+_TOPOLOGY: dict[tuple[int, tuple[int, ...], bytes], dict[str, object]] = {}
+
+
+def _topology_tables(tri: torch.Tensor, V: int) -> dict[str, object]:
     T = tri.shape[0]
     uniq, inv, sign = unique_face_edges(tri)
     # Vertex -> face corners (index c * T + f), as CSR, to gather the corner weights per vertex.
