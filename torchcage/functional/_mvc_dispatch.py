@@ -17,6 +17,7 @@ from . import _mvc2d_native, _mvc3d_native
 from ._batch import broadcast_batch
 from ._centre import centred_batch
 from ._common import (
+    FAR_MOMENT,
     chunks,
     default_chunk,
     far_unity,
@@ -141,8 +142,8 @@ def coordinates_batch(
     compute, out_dtype = result_dtype(pts, cage, dtype, backend)
     if compute != torch.float64:
         return None
-    bad = ~torch.isfinite(pts).all(dim=-1)  # (1 or B, N)
-    if bool(bad.any()):
+    if not bool(torch.isfinite(pts).all()):
+        bad = ~torch.isfinite(pts).all(dim=-1)  # (1 or B, N)
         b = int(torch.nonzero(bad.any(dim=1))[0])
         idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
         where = _batch_name(torch.tensor(b), batch) if pts.shape[0] > 1 else ""
@@ -173,5 +174,16 @@ def coordinates_batch(
             f"mean value coordinates are undefined at points {idx}{_batch_name(torch.tensor(b), batch)} (the total "
             "weight vanishes there, which happens only outside the cage); move these points"
         )
-    (lam,) = far_unity(out, x.expand(B, N, 3), v)
-    return lam.to(out_dtype).reshape(*batch, N, V)
+    if _may_be_far(x, v):  # (else far_unity leaves every row as it is: a pass over the points spared)
+        (out,) = far_unity(out, x.expand(B, N, 3), v)
+    return out.to(out_dtype).reshape(*batch, N, V)
+
+
+def _may_be_far(x: torch.Tensor, v: torch.Tensor) -> bool:
+    """Whether some point of ``x`` ``(B or 1, N, 3)`` may lie in the far region of its cage ``v``
+    ``(B, V, 3)`` (``_common.far_region``): False when the points' bounding box lies within half
+    the far radius of every cage's centre (a bound that no rounding can cross)."""
+    c = (v.amax(dim=1) + v.amin(dim=1)) / 2  # (B, 3), as far_region
+    r2 = ((v - c[:, None]) ** 2).sum(dim=-1).amax(dim=-1)  # (B,)
+    corner = torch.maximum((x.amax(dim=1) - c).abs(), (x.amin(dim=1) - c).abs())  # (B, 3): the farthest box corner
+    return bool(((corner**2).sum(dim=-1) > 0.25 * FAR_MOMENT**2 * r2).any())
