@@ -43,7 +43,9 @@ def mean_value_coordinates(
             :func:`torchcage.functional.quad_mean_value_coordinates` or ``cage.triangulated()``.
             Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
             ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
-            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
+            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md). For
+            a triangle cage on the CPU without an autograd graph, the whole batch is one native
+            kernel call; elsewhere, one call per element.
         chunk_size: points per chunk; peak memory grows with ``chunk_size x faces``. Default: about
             130k (3D) or 260k (2D) point–face pairs per chunk in the torch kernel.
         dtype: dtype of the result (default: that of the inputs). The kernels compute in float64
@@ -94,7 +96,8 @@ def mean_value_coordinates(
         lam = coordinates_batch(points, cage, chunk_size, dtype, progress, backend)
         if lam is not None:
             return lam
-        # ... elsewhere (the torch kernel, Triton, an autograd graph, 2D) one call per element.
+        # ... elsewhere (the torch kernel, Triton, an autograd graph, 2D) one call per element for
+        # now (_batch.over_cage_batch): those paths have no batched kernel yet.
         return over_cage_batch(
             mean_value_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend
         )
