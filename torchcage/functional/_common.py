@@ -89,14 +89,24 @@ def snap_to_vertices(x: torch.Tensor, vertices: torch.Tensor, radius: float) -> 
     if x.shape[0] == 0 or vertices.shape[0] == 0:
         return x
     V = vertices.to(x.dtype)
-    best = torch.empty(x.shape[0], dtype=torch.int64, device=x.device)
+    best = torch.zeros(x.shape[0], dtype=torch.int64, device=x.device)
     near = torch.empty(x.shape[0], dtype=torch.bool, device=x.device)
     step = max(1, (1 << 22) // max(1, V.shape[0]))
+    Vd = V.detach()
     with torch.no_grad():
         for s in range(0, x.shape[0], step):
-            d2 = (x[s : s + step, None, :].detach() - V[None].detach()).square().sum(-1)
-            m, i = d2.min(dim=1)
-            best[s : s + step], near[s : s + step] = i, m <= radius * radius
+            xs = x[s : s + step].detach()
+            # squared distances component by component (the same sums as .square().sum(-1) over
+            # the last axis, a third of its time), their minimum by amin, and the nearest vertex
+            # only for the rows that snap (min(dim) with indices cost twice the rest)
+            d2 = (xs[:, None, 0] - Vd[:, 0]).square()
+            for k in range(1, xs.shape[1]):
+                d2 = d2 + (xs[:, None, k] - Vd[:, k]).square()
+            ns = d2.amin(dim=1) <= radius * radius
+            near[s : s + step] = ns
+            if bool(ns.any()):
+                idx = torch.nonzero(ns).flatten()
+                best[s + idx] = d2[idx].argmin(dim=1)
     if not bool(near.any()):
         return x
     return torch.where(near[:, None], V[best], x)
