@@ -7,6 +7,7 @@ points (:func:`coordinates_batch`)."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import torch
 
@@ -175,7 +176,7 @@ def coordinates_batch(
             "weight vanishes there, which happens only outside the cage); move these points"
         )
     if _may_be_far(x, v):  # (else far_unity leaves every row as it is: a pass over the points spared)
-        (out,) = far_unity(out, x.expand(B, N, 3), v)
+        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
     return out.to(out_dtype).reshape(*batch, N, V)
 
 
