@@ -125,6 +125,14 @@ def test_two_batch_dimensions_and_chunks(monkeypatch):
             _assert_same(out[i, j], F.mean_value_coordinates(pts[0, j], cage[i, j]))
 
 
+def test_no_points():
+    V, tri = _cages(2)
+    cage = torchcage.Cage(V, tri)
+    for pts in (torch.zeros(0, 3, dtype=D64), torch.zeros(2, 0, 3, dtype=D64)):
+        assert F.mean_value_coordinates(pts, cage).shape == (2, 0, 42)
+        assert F.mean_value_coordinates(pts, cage, backend="torch").shape == (2, 0, 42)
+
+
 def test_a_degenerate_element_is_named():
     V, tri = _cages(4)
     t = tri[7]

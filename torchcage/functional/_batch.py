@@ -75,8 +75,9 @@ def broadcast_batch(points: Any, cage: Cage) -> tuple[torch.Tensor, torch.Tensor
         raise PointsError(f"the batch of cages and points is empty (batch shape {tuple(batch)})")
     N, V, D = points.shape[-2], cage.num_vertices, cage.dim
     shared = points.shape[:-2].numel() == 1
-    pts = points.reshape(1, N, D) if shared else points.expand(*batch, N, D).reshape(-1, N, D)
-    verts = cage.vertices.expand(*batch, V, D).reshape(-1, V, D)
+    nb = batch.numel()  # (not -1 in reshape: ambiguous for N = 0 points)
+    pts = points.reshape(1, N, D) if shared else points.expand(*batch, N, D).reshape(nb, N, D)
+    verts = cage.vertices.expand(*batch, V, D).reshape(nb, V, D)
     return pts, verts, batch
 
 

@@ -184,6 +184,8 @@ def _may_be_far(x: torch.Tensor, v: torch.Tensor) -> bool:
     """Whether some point of ``x`` ``(B or 1, N, 3)`` may lie in the far region of its cage ``v``
     ``(B, V, 3)`` (``_common.far_region``): False when the points' bounding box lies within half
     the far radius of every cage's centre (a bound that no rounding can cross)."""
+    if x.shape[1] == 0:
+        return False
     c = (v.amax(dim=1) + v.amin(dim=1)) / 2  # (B, 3), as far_region
     r2 = ((v - c[:, None]) ** 2).sum(dim=-1).amax(dim=-1)  # (B,)
     corner = torch.maximum((x.amax(dim=1) - c).abs(), (x.amin(dim=1) - c).abs())  # (B, 3): the farthest box corner
