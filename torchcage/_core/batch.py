@@ -1,4 +1,5 @@
-"""Batched rest cages in the functional API: one call per batch element, results stacked.
+"""Batched rest cages in the functional API: one call per batch element, results stacked (where no
+batched kernel serves: mean value coordinates on the native kernel take a batch in one call).
 
 A batched cage ``(*B, V, D)`` takes points ``(*Bp, N, D)`` whose batch shape broadcasts with
 ``B`` (``(N, D)``: one point set shared by every cage) and gives ``(*B', N, ...)`` with ``B'`` the
@@ -16,7 +17,7 @@ import torch
 from torchcage.cage import Cage
 from torchcage.errors import PointsError
 
-__all__ = ["over_cage_batch"]
+__all__ = ["broadcast_batch", "over_cage_batch"]
 
 
 def over_cage_batch(fn: Callable[..., Any], points: torch.Tensor, cage: Cage, **kwargs: Any) -> Any:
@@ -30,6 +31,28 @@ def over_cage_batch(fn: Callable[..., Any], points: torch.Tensor, cage: Cage, **
 
     Returns:
         ``fn``'s outputs with the broadcast batch shape in front: ``(*B', N, ...)``.
+
+    Raises:
+        PointsError: points without a point axis, or a batch shape that does not broadcast.
+    """
+    pts, verts, batch = broadcast_batch(points, cage)
+    pts = pts.expand(verts.shape[0], *pts.shape[1:])
+    results = [fn(pts[b], cage._like(verts[b]), **kwargs) for b in range(verts.shape[0])]
+    if isinstance(results[0], tuple):
+        return tuple(_stack([r[k] for r in results], batch) for k in range(len(results[0])))
+    return _stack(results, batch)
+
+
+def broadcast_batch(points: Any, cage: Cage) -> tuple[torch.Tensor, torch.Tensor, torch.Size]:
+    """The points and a batched cage's vertices over their broadcast batch shape ``B'``, flattened.
+
+    Args:
+        points: ``(N, D)`` or ``(*Bp, N, D)``.
+        cage: a batched cage, batch shape ``B``.
+
+    Returns:
+        ``(points (1, N, D)`` when one set is shared by every cage, else ``(prod B', N, D)``;
+        ``vertices (prod B', V, D)``; ``B')``. Views where no copy is needed.
 
     Raises:
         PointsError: points without a point axis, or a batch shape that does not broadcast.
@@ -51,12 +74,11 @@ def over_cage_batch(fn: Callable[..., Any], points: torch.Tensor, cage: Cage, **
     if batch.numel() == 0:
         raise PointsError(f"the batch of cages and points is empty (batch shape {tuple(batch)})")
     N, V, D = points.shape[-2], cage.num_vertices, cage.dim
-    pts = points.expand(*batch, N, D).reshape(-1, N, D)
-    verts = cage.vertices.expand(*batch, V, D).reshape(-1, V, D)
-    results = [fn(pts[b], cage._like(verts[b]), **kwargs) for b in range(verts.shape[0])]
-    if isinstance(results[0], tuple):
-        return tuple(_stack([r[k] for r in results], batch) for k in range(len(results[0])))
-    return _stack(results, batch)
+    shared = points.shape[:-2].numel() == 1
+    nb = batch.numel()  # (not -1 in reshape: ambiguous for N = 0 points)
+    pts = points.reshape(1, N, D) if shared else points.expand(*batch, N, D).reshape(nb, N, D)
+    verts = cage.vertices.expand(*batch, V, D).reshape(nb, V, D)
+    return pts, verts, batch
 
 
 def _stack(parts: list[torch.Tensor | None], batch: torch.Size) -> torch.Tensor | None:

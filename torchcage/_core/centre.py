@@ -30,7 +30,7 @@ import torch
 
 from torchcage.cage import Cage
 
-__all__ = ["centre_of", "centred", "extent_of", "keep_extent", "rounding_extent"]
+__all__ = ["centre_of", "centred", "centred_batch", "extent_of", "keep_extent", "rounding_extent"]
 
 _EXTENT: ContextVar[float] = ContextVar("torchcage_rounding_extent", default=0.0)
 
@@ -59,7 +59,8 @@ def extent_of(vertices: torch.Tensor) -> float:
 
 
 def centre_of(vertices: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """The shift ``(D,)`` that centres ``vertices`` ``(V, D)``, detached, in ``dtype``: along each
+    """The shift ``(*B, D)`` that centres ``vertices`` ``(*B, V, D)`` (one cage, or a batch of cages
+    each centred on its own), detached, in ``dtype``: along each
     axis the middle of the bounding box where the cage lies further from the origin than its
     extent (then every coordinate is within a factor 2 of the middle and the subtraction is
     exact), else 0 (a cage around the origin is left as it is: subtracting a small middle from
@@ -72,8 +73,8 @@ def centre_of(vertices: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """
     v = vertices.detach().to(dtype)
     if v.numel() == 0:
-        return v.new_zeros(v.shape[-1])
-    hi, lo = v.amax(dim=0), v.amin(dim=0)
+        return v.new_zeros(*v.shape[:-2], v.shape[-1])
+    hi, lo = v.amax(dim=-2), v.amin(dim=-2)
     mid = (hi + lo) / 2
     return torch.where(mid.abs() > hi - lo, mid, torch.zeros_like(mid))
 
@@ -96,3 +97,25 @@ def centred(points: torch.Tensor, cage: Cage, dtype: torch.dtype) -> tuple[torch
     c = centre_of(cage.vertices, wide)
     x = (points.to(wide) - c).to(dtype)
     return x, cage._like((cage.vertices.to(wide) - c).to(dtype))
+
+
+def centred_batch(
+    points: torch.Tensor, vertices: torch.Tensor, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`centred` for a batch of cages at once: each cage ``b`` and its points relative to its
+    own centre, element by element the same numbers as :func:`centred` on ``cage[b]``.
+
+    Args:
+        points: ``(B, N, D)`` points, one set per cage, or ``(1, N, D)``, shared.
+        vertices: ``(B, V, D)`` the cages' vertices.
+        dtype: the compute dtype (the subtraction itself is done in float64, except on MPS).
+
+    Returns:
+        ``(x, vertices (B, V, D))`` in ``dtype``, detached; ``x`` is ``(B, N, D)``, or ``(1, N, D)``
+        when the points are shared and no cage needs a shift (cages around the origin).
+    """
+    wide = torch.float64 if points.device.type != "mps" else dtype
+    c = centre_of(vertices, wide)[:, None, :]  # (B, 1, D)
+    p = points.detach().to(wide)
+    x = (p if points.shape[0] == 1 and not bool(c.any()) else p - c).to(dtype)
+    return x, (vertices.detach().to(wide) - c).to(dtype)

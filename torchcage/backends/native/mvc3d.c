@@ -76,197 +76,259 @@ void tc_stable_face(double h, const double *s, const double *dots, const double 
  * nrm: (3, T) unit normals; two_area: (T,); ell: (T, 3) length of the edge opposite each corner;
  * gram: (T, 3, 3) E_i . E_e; far_nodes (T, Q, 3) and far_coef (T, Q, 3): the far-field rule, used
  * for points whose face weights sum in absolute value to more than cancel_c times their total, on
- * faces whose longest edge (longest: (T,)) is below far_c times the distance; X: (n, 3) points.
- * Output W: (n, V) coordinates, normalised when normalize != 0, else the raw weights (on[p] = 1
- * marks points on the cage, whose rows hold their interpolating values either way).
+ * faces whose longest edge (longest: (T,)) is below far_c times the distance.
+ * Batches (tc_mvc3d): B cages with one topology; the topology tables (tri, edges, fe, inc_ptr,
+ * inc_idx, fs) are shared, the geometric ones (P, nrm, two_area, ell, gram, far_nodes, far_coef,
+ * longest) and the on-cage tolerance tol carry a leading batch axis (B, ...).
+ * X: (XB, n, 3) points, XB = 1 (one point set shared by every cage) or B.
+ * Output W: (B, n, V) coordinates, normalised when normalize != 0, else the raw weights (on[b, p] = 1
+ * marks points on the cage, whose rows hold their interpolating values either way; with normalize,
+ * on[b, p] = 2 marks rows that are not finite: the total weight vanishes there, outside the cage).
  */
-void tc_mvc3d(const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,
-              const int *inc_ptr, const int *inc_idx,
-              const double *fs, const double *nrm, const double *two_area, const double *ell, const double *gram,
-              const double *far_nodes, const double *far_coef, const double *longest, long Q, double far_c,
-              double cancel_c, const double *X, long n, double tol, double near_c, int nthreads, double *W,
-              unsigned char *on, int normalize) {
+
+/* One cage's tables (the batch element's slices of tc_mvc3d's arguments) and what is derived from
+ * them once: the far-field centre and radius, and the thin faces. */
+typedef struct {
+    const double *P, *nrm, *two_area, *ell, *gram, *far_nodes, *far_coef, *longest;
+    double tol, centre[3], far2;
+    const long *thin;
+    long nthin;
+} mvc3d_cage;
+
+/* Per-thread scratch: vertex (4V), edge (8E) and face (5T) arrays. */
+typedef struct {
+    double *Ax, *Ay, *Az, *RA, *Nx, *Ny, *Nz, *Nn, *D, *Gx, *Gy, *Gz, *W0, *W1, *W2, *H, *RM;
+} mvc3d_scratch;
+
+/* The coordinates (raw weights unless normalize) of the point x0, x1, x2 against cage g, written to
+ * w (V,); returns 1 when the point is on the cage (w holds the interpolating values), 2 when the
+ * normalised coordinates are undefined (their sum is not finite: the total weight vanishes), else 0. */
+static inline int mvc3d_point(const mvc3d_cage *g, long V, const int *tri, long T, const int *edges, long E,
+                              const int *fe, const int *inc_ptr, const int *inc_idx, const double *fs, long Q,
+                              double far_c, double cancel_c, double near_c, double x0, double x1, double x2,
+                              int normalize, const mvc3d_scratch *sc, double *w) {
+    const double *P = g->P, *two_area = g->two_area, *ell = g->ell, *gram = g->gram, *longest = g->longest;
+    const double *far_nodes = g->far_nodes, *far_coef = g->far_coef;
+    const double tol = g->tol;
     const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
     const int *e0 = edges, *e1 = edges + E;
     const int *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
     const double *s0 = fs, *s1 = fs + T, *s2 = fs + 2 * T;
-    const double *nx = nrm, *ny = nrm + T, *nz = nrm + 2 * T;
-    double centre[3];
-    const double far2 = tc_far_centre(P, V, 1, V, 3, centre);
-    /* Thin faces (tc_thin_face): their pairs seen from a few widths take the swept form. */
-    long *thin = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1)), nthin = 0;
-    for (long f = 0; f < T; ++f)
-        if (two_area[f] > 0 && longest[f] * longest[f] > TC_THIN_ASPECT * two_area[f]) thin[nthin++] = f;
-#pragma omp parallel num_threads(nthreads)
-    {
-        /* Per-thread scratch: vertex (4V), edge (8E) and face (4T) arrays. */
-        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + 8 * (size_t)E + 5 * (size_t)T));
-        double *Ax = buf, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V;
-        double *Nx = RA + V, *Ny = Nx + E, *Nz = Ny + E, *Nn = Nz + E, *D = Nn + E, *Gx = D + E, *Gy = Gx + E,
-               *Gz = Gy + E;
-        double *W0 = Gz + E, *W1 = W0 + T, *W2 = W1 + T, *H = W2 + T, *RM = H + T;
-#pragma omp for schedule(dynamic, 64)
-        for (long p = 0; p < n; ++p) {
-            const double x0 = X[3 * p], x1 = X[3 * p + 1], x2 = X[3 * p + 2];
-            double *w = W + p * V;
-            on[p] = 0;
+    const double *nx = g->nrm, *ny = g->nrm + T, *nz = g->nrm + 2 * T;
+    double *Ax = sc->Ax, *Ay = sc->Ay, *Az = sc->Az, *RA = sc->RA, *Nx = sc->Nx, *Ny = sc->Ny, *Nz = sc->Nz,
+           *Nn = sc->Nn, *D = sc->D, *Gx = sc->Gx, *Gy = sc->Gy, *Gz = sc->Gz, *W0 = sc->W0, *W1 = sc->W1,
+           *W2 = sc->W2, *H = sc->H, *RM = sc->RM;
 #pragma omp simd
-            for (long v = 0; v < V; ++v) {
-                double ax = P[v] - x0, ay = P[V + v] - x1, az = P[2 * V + v] - x2;
-                Ax[v] = ax;
-                Ay[v] = ay;
-                Az[v] = az;
-                RA[v] = sqrt(ax * ax + ay * ay + az * az);
-                w[v] = 0.0;
+    for (long v = 0; v < V; ++v) {
+        double ax = P[v] - x0, ay = P[V + v] - x1, az = P[2 * V + v] - x2;
+        Ax[v] = ax;
+        Ay[v] = ay;
+        Az[v] = az;
+        RA[v] = sqrt(ax * ax + ay * ay + az * az);
+        w[v] = 0.0;
+    }
+    /* Edges: N = a_j x a_k, |N|, a_j . a_k, and the half-angle tangent argument. */
+#pragma omp simd
+    for (long q = 0; q < E; ++q) {
+        int j = e0[q], k = e1[q];
+        double ajx = Ax[j], ajy = Ay[j], ajz = Az[j], akx = Ax[k], aky = Ay[k], akz = Az[k];
+        double cx = ajy * akz - ajz * aky, cy = ajz * akx - ajx * akz, cz = ajx * aky - ajy * akx;
+        double nn = sqrt(cx * cx + cy * cy + cz * cz), d = ajx * akx + ajy * aky + ajz * akz;
+        double rr = RA[j] * RA[k];
+        Nx[q] = cx;
+        Ny[q] = cy;
+        Nz[q] = cz;
+        Nn[q] = nn;
+        D[q] = d;
+        Gx[q] = nn / (rr + fabs(d)); /* tan of the half angle, or of its complement */
+    }
+#pragma omp simd
+    for (long q = 0; q < E; ++q) Gx[q] = atan(Gx[q]);
+    /* g N with g = theta / (2 |N|), theta = 2 atan(.) or pi - 2 atan(.). */
+#pragma omp simd
+    for (long q = 0; q < E; ++q) {
+        double obtuse = D[q] < 0 ? 1.0 : 0.0; /* branch-free, so that the loop vectorises */
+        double th = obtuse * M_PI + (1.0 - 2.0 * obtuse) * 2.0 * Gx[q];
+        double gq = 0.5 * th / (Nn[q] > 1e-300 ? Nn[q] : 1e-300); /* any finite g will do where N = 0 */
+        Gx[q] = gq * Nx[q];
+        Gy[q] = gq * Ny[q];
+        Gz[q] = gq * Nz[q];
+    }
+    /* Faces, direct vector form for all; pairs near a support plane are redone below. */
+#pragma omp simd
+    for (long f = 0; f < T; ++f) {
+        int a = f0[f], b = f1[f], c = f2[f], i0 = t0[f];
+        double sa = s0[f], sb = s1[f], sc_ = s2[f];
+        double h = nx[f] * Ax[i0] + ny[f] * Ay[i0] + nz[f] * Az[i0];
+        double mx = sa * Gx[a] + sb * Gx[b] + sc_ * Gx[c];
+        double my = sa * Gy[a] + sb * Gy[b] + sc_ * Gy[c];
+        double mz = sa * Gz[a] + sb * Gz[b] + sc_ * Gz[c];
+        double inv = 1.0 / (two_area[f] * h);
+        W0[f] = sa * (Nx[a] * mx + Ny[a] * my + Nz[a] * mz) * inv;
+        W1[f] = sb * (Nx[b] * mx + Ny[b] * my + Nz[b] * mz) * inv;
+        W2[f] = sc_ * (Nx[c] * mx + Ny[c] * my + Nz[c] * mz) * inv;
+        H[f] = h;
+        double r0 = RA[i0], r1 = RA[t1[f]], r2 = RA[t2[f]]; /* no fmin: it blocks vectorisation */
+        double r01 = r0 < r1 ? r0 : r1;
+        RM[f] = r01 < r2 ? r01 : r2;
+    }
+    long best = -1; /* the largest face holding the point (its barycentric values are the best conditioned) */
+    double best_bc[3] = {0, 0, 0};
+    for (long f = 0; f < T; ++f) {
+        double h = H[f], rmin = RM[f];
+        if (!(fabs(h) >= near_c * rmin && rmin > tol)) {
+            const int t[3] = {t0[f], t1[f], t2[f]};
+            const int fq[3] = {f0[f], f1[f], f2[f]};
+            const double sg[3] = {s0[f], s1[f], s2[f]};
+            double R[3] = {RA[t[0]], RA[t[1]], RA[t[2]]}, s[3], dots[3];
+            for (int e = 0; e < 3; ++e) {
+                int q = fq[e];
+                s[e] = sg[e] * (Nx[q] * nx[f] + Ny[q] * ny[f] + Nz[q] * nz[f]);
+                dots[e] = D[q];
             }
-            /* Edges: N = a_j x a_k, |N|, a_j . a_k, and the half-angle tangent argument. */
-#pragma omp simd
-            for (long q = 0; q < E; ++q) {
-                int j = e0[q], k = e1[q];
-                double ajx = Ax[j], ajy = Ay[j], ajz = Az[j], akx = Ax[k], aky = Ay[k], akz = Az[k];
-                double cx = ajy * akz - ajz * aky, cy = ajz * akx - ajx * akz, cz = ajx * aky - ajy * akx;
-                double nn = sqrt(cx * cx + cy * cy + cz * cz), d = ajx * akx + ajy * aky + ajz * akz;
-                double rr = RA[j] * RA[k];
-                Nx[q] = cx;
-                Ny[q] = cy;
-                Nz[q] = cz;
-                Nn[q] = nn;
-                D[q] = d;
-                Gx[q] = nn / (rr + fabs(d)); /* tan of the half angle, or of its complement */
-            }
-#pragma omp simd
-            for (long q = 0; q < E; ++q) Gx[q] = atan(Gx[q]);
-            /* g N with g = theta / (2 |N|), theta = 2 atan(.) or pi - 2 atan(.). */
-#pragma omp simd
-            for (long q = 0; q < E; ++q) {
-                double obtuse = D[q] < 0 ? 1.0 : 0.0; /* branch-free, so that the loop vectorises */
-                double th = obtuse * M_PI + (1.0 - 2.0 * obtuse) * 2.0 * Gx[q];
-                double g = 0.5 * th / (Nn[q] > 1e-300 ? Nn[q] : 1e-300); /* any finite g will do where N = 0 */
-                Gx[q] = g * Nx[q];
-                Gy[q] = g * Ny[q];
-                Gz[q] = g * Nz[q];
-            }
-            /* Faces, direct vector form for all; pairs near a support plane are redone below. */
-#pragma omp simd
-            for (long f = 0; f < T; ++f) {
-                int a = f0[f], b = f1[f], c = f2[f], i0 = t0[f];
-                double sa = s0[f], sb = s1[f], sc = s2[f];
-                double h = nx[f] * Ax[i0] + ny[f] * Ay[i0] + nz[f] * Az[i0];
-                double mx = sa * Gx[a] + sb * Gx[b] + sc * Gx[c];
-                double my = sa * Gy[a] + sb * Gy[b] + sc * Gy[c];
-                double mz = sa * Gz[a] + sb * Gz[b] + sc * Gz[c];
-                double inv = 1.0 / (two_area[f] * h);
-                W0[f] = sa * (Nx[a] * mx + Ny[a] * my + Nz[a] * mz) * inv;
-                W1[f] = sb * (Nx[b] * mx + Ny[b] * my + Nz[b] * mz) * inv;
-                W2[f] = sc * (Nx[c] * mx + Ny[c] * my + Nz[c] * mz) * inv;
-                H[f] = h;
-                double r0 = RA[i0], r1 = RA[t1[f]], r2 = RA[t2[f]]; /* no fmin: it blocks vectorisation */
-                double r01 = r0 < r1 ? r0 : r1;
-                RM[f] = r01 < r2 ? r01 : r2;
-            }
-            long best = -1; /* the largest face holding the point (its barycentric values are the best conditioned) */
-            double best_bc[3] = {0, 0, 0};
-            for (long f = 0; f < T; ++f) {
-                double h = H[f], rmin = RM[f];
-                if (!(fabs(h) >= near_c * rmin && rmin > tol)) {
-                    const int t[3] = {t0[f], t1[f], t2[f]};
-                    const int fq[3] = {f0[f], f1[f], f2[f]};
-                    const double sg[3] = {s0[f], s1[f], s2[f]};
-                    double R[3] = {RA[t[0]], RA[t[1]], RA[t[2]]}, s[3], dots[3];
-                    for (int e = 0; e < 3; ++e) {
-                        int q = fq[e];
-                        s[e] = sg[e] * (Nx[q] * nx[f] + Ny[q] * ny[f] + Nz[q] * nz[f]);
-                        dots[e] = D[q];
-                    }
-                    const double *lf = ell + 3 * f;
-                    if ((fabs(h) <= tol && s[0] >= -tol * lf[0] && s[1] >= -tol * lf[1] && s[2] >= -tol * lf[2]) ||
-                        rmin <= tol) {
-                        /* On the face (or a vertex): barycentric (Lagrange) values, nothing else counts. */
-                        double bc[3];
-                        for (int i = 0; i < 3; ++i)
-                            bc[i] = rmin <= tol ? (R[i] <= tol ? 1.0 : 0.0) : (s[i] > 0 ? s[i] : 0.0);
-                        if (rmin <= tol || best < 0 || two_area[f] > two_area[best]) {
-                            best = f;
-                            for (int i = 0; i < 3; ++i) best_bc[i] = bc[i];
-                        }
-                        if (rmin <= tol) break; /* a vertex: its Lagrange values whichever face */
-                        continue;
-                    }
-                    double wf[3];
-                    tc_stable_face(h, s, dots, R, lf, gram + 9 * f, two_area[f], wf);
-                    W0[f] = wf[0];
-                    W1[f] = wf[1];
-                    W2[f] = wf[2];
+            const double *lf = ell + 3 * f;
+            if ((fabs(h) <= tol && s[0] >= -tol * lf[0] && s[1] >= -tol * lf[1] && s[2] >= -tol * lf[2]) ||
+                rmin <= tol) {
+                /* On the face (or a vertex): barycentric (Lagrange) values, nothing else counts. */
+                double bc[3];
+                for (int i = 0; i < 3; ++i) bc[i] = rmin <= tol ? (R[i] <= tol ? 1.0 : 0.0) : (s[i] > 0 ? s[i] : 0.0);
+                if (rmin <= tol || best < 0 || two_area[f] > two_area[best]) {
+                    best = f;
+                    for (int i = 0; i < 3; ++i) best_bc[i] = bc[i];
                 }
-            }
-            if (best >= 0) {
-                double sum = best_bc[0] + best_bc[1] + best_bc[2];
-                memset(w, 0, sizeof(double) * (size_t)V);
-                w[t0[best]] += best_bc[0] / sum;
-                w[t1[best]] += best_bc[1] / sum;
-                w[t2[best]] += best_bc[2] / sum;
-                on[p] = 1;
+                if (rmin <= tol) break; /* a vertex: its Lagrange values whichever face */
                 continue;
             }
-            for (long q = 0; q < nthin; ++q) { /* thin faces seen from a few widths: the swept form */
-                long f = thin[q];
-                const int t[3] = {t0[f], t1[f], t2[f]};
-                double a[3][3], wf[3], gf[3][3], Hf[3][6];
-                for (int i = 0; i < 3; ++i) a[i][0] = Ax[t[i]], a[i][1] = Ay[t[i]], a[i][2] = Az[t[i]];
-                if (!tc_thin_face((const double(*)[3])a, two_area[f])) continue;
-                const double nf[3] = {nx[f], ny[f], nz[f]};
-                tc_thin_mvc((const double(*)[3])a, nf, H[f], two_area[f], wf, gf, Hf);
-                W0[f] = wf[0];
-                W1[f] = wf[1];
-                W2[f] = wf[2];
-            }
-            /* Gather the face-corner weights (W0, W1, W2 are contiguous) into the vertices. */
-            double total = 0.0, abs_sum = 0.0;
-            for (long v = 0; v < V; ++v) {
-                double acc = 0.0;
-                for (int k = inc_ptr[v]; k < inc_ptr[v + 1]; ++k) acc += W0[inc_idx[k]];
-                w[v] = acc;
-                total += acc;
-            }
-            int seen_tiny = 0; /* some face seen below 1e-3 of its distance: its vector form cancels */
+            double wf[3];
+            tc_stable_face(h, s, dots, R, lf, gram + 9 * f, two_area[f], wf);
+            W0[f] = wf[0];
+            W1[f] = wf[1];
+            W2[f] = wf[2];
+        }
+    }
+    if (best >= 0) {
+        double sum = best_bc[0] + best_bc[1] + best_bc[2];
+        memset(w, 0, sizeof(double) * (size_t)V);
+        w[t0[best]] += best_bc[0] / sum;
+        w[t1[best]] += best_bc[1] / sum;
+        w[t2[best]] += best_bc[2] / sum;
+        return 1;
+    }
+    for (long q = 0; q < g->nthin; ++q) { /* thin faces seen from a few widths: the swept form */
+        long f = g->thin[q];
+        const int t[3] = {t0[f], t1[f], t2[f]};
+        double a[3][3], wf[3], gf[3][3], Hf[3][6];
+        for (int i = 0; i < 3; ++i) a[i][0] = Ax[t[i]], a[i][1] = Ay[t[i]], a[i][2] = Az[t[i]];
+        if (!tc_thin_face((const double(*)[3])a, two_area[f])) continue;
+        const double nf[3] = {nx[f], ny[f], nz[f]};
+        tc_thin_mvc((const double(*)[3])a, nf, H[f], two_area[f], wf, gf, Hf);
+        W0[f] = wf[0];
+        W1[f] = wf[1];
+        W2[f] = wf[2];
+    }
+    /* Gather the face-corner weights (W0, W1, W2 are contiguous) into the vertices. */
+    double total = 0.0, abs_sum = 0.0;
+    for (long v = 0; v < V; ++v) {
+        double acc = 0.0;
+        for (int k = inc_ptr[v]; k < inc_ptr[v + 1]; ++k) acc += W0[inc_idx[k]];
+        w[v] = acc;
+        total += acc;
+    }
+    int seen_tiny = 0; /* some face seen below 1e-3 of its distance: its vector form cancels */
 #pragma omp simd reduction(+ : abs_sum) reduction(| : seen_tiny)
-            for (long f = 0; f < T; ++f) {
-                abs_sum += fabs(W0[f] + W1[f] + W2[f]);
-                seen_tiny |= longest[f] * FAR_ALWAYS_RATIO < RM[f];
-            }
-            if (abs_sum > cancel_c * fabs(total) || seen_tiny) {
-                /* The face weights cancel (far outside), or faces are seen so small that the vector
-                 * form's error eps (r / edge)^3 would hide the cancellation: redo faces seen small
-                 * by quadrature, w_i = h * sum_q c_qi / |p_q - x|^4, and gather again. */
-                for (long f = 0; f < T; ++f) {
-                    if (!(longest[f] < far_c * RM[f])) continue;
-                    const double *nq = far_nodes + 3 * Q * f, *cq = far_coef + 3 * Q * f;
-                    double acc0 = 0.0, acc1 = 0.0, acc2 = 0.0;
+    for (long f = 0; f < T; ++f) {
+        abs_sum += fabs(W0[f] + W1[f] + W2[f]);
+        seen_tiny |= longest[f] * FAR_ALWAYS_RATIO < RM[f];
+    }
+    if (abs_sum > cancel_c * fabs(total) || seen_tiny) {
+        /* The face weights cancel (far outside), or faces are seen so small that the vector
+         * form's error eps (r / edge)^3 would hide the cancellation: redo faces seen small
+         * by quadrature, w_i = h * sum_q c_qi / |p_q - x|^4, and gather again. */
+        for (long f = 0; f < T; ++f) {
+            if (!(longest[f] < far_c * RM[f])) continue;
+            const double *nq = far_nodes + 3 * Q * f, *cq = far_coef + 3 * Q * f;
+            double acc0 = 0.0, acc1 = 0.0, acc2 = 0.0;
 #pragma omp simd reduction(+ : acc0, acc1, acc2)
-                    for (long k = 0; k < Q; ++k) {
-                        double d0 = nq[3 * k] - x0, d1 = nq[3 * k + 1] - x1, d2 = nq[3 * k + 2] - x2;
-                        double r2 = d0 * d0 + d1 * d1 + d2 * d2, inv = 1.0 / (r2 * r2);
-                        acc0 += cq[3 * k] * inv;
-                        acc1 += cq[3 * k + 1] * inv;
-                        acc2 += cq[3 * k + 2] * inv;
-                    }
-                    double h = H[f];
-                    W0[f] = h * acc0;
-                    W1[f] = h * acc1;
-                    W2[f] = h * acc2;
-                }
-                for (long v = 0; v < V; ++v) {
-                    double acc = 0.0;
-                    for (int k = inc_ptr[v]; k < inc_ptr[v + 1]; ++k) acc += W0[inc_idx[k]];
-                    w[v] = acc;
-                }
+            for (long k = 0; k < Q; ++k) {
+                double d0 = nq[3 * k] - x0, d1 = nq[3 * k + 1] - x1, d2 = nq[3 * k + 2] - x2;
+                double r2 = d0 * d0 + d1 * d1 + d2 * d2, inv = 1.0 / (r2 * r2);
+                acc0 += cq[3 * k] * inv;
+                acc1 += cq[3 * k + 1] * inv;
+                acc2 += cq[3 * k + 2] * inv;
             }
-            if (!normalize) continue;
-            const double xp[3] = {x0, x1, x2};
-            double inv = 1.0 / tc_mv_total(w, V, P, 1, V, 3, xp, centre, far2);
-            for (long v = 0; v < V; ++v) w[v] *= inv;
+            double h = H[f];
+            W0[f] = h * acc0;
+            W1[f] = h * acc1;
+            W2[f] = h * acc2;
+        }
+        for (long v = 0; v < V; ++v) {
+            double acc = 0.0;
+            for (int k = inc_ptr[v]; k < inc_ptr[v + 1]; ++k) acc += W0[inc_idx[k]];
+            w[v] = acc;
+        }
+    }
+    if (!normalize) return 0;
+    const double xp[3] = {x0, x1, x2};
+    double inv = 1.0 / tc_mv_total(w, V, P, 1, V, 3, xp, g->centre, g->far2), sum = 0.0;
+#pragma omp simd reduction(+ : sum)
+    for (long v = 0; v < V; ++v) {
+        w[v] *= inv;
+        sum += w[v]; /* (only its finiteness is read: any order will do) */
+    }
+    return isfinite(sum) ? 0 : 2;
+}
+
+void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,
+              const int *inc_ptr, const int *inc_idx, const double *fs, const double *nrm, const double *two_area,
+              const double *ell, const double *gram, const double *far_nodes, const double *far_coef,
+              const double *longest, long Q, double far_c, double cancel_c, const double *X, long XB, long n,
+              const double *tol, double near_c, int nthreads, double *W, unsigned char *on, int normalize) {
+    if (B <= 0 || n <= 0) return;
+    if (XB != 1 && XB != B) { /* (the glue refuses this; never read past X: NaN, which callers report) */
+        for (long i = 0; i < B * n * V; ++i) W[i] = NAN;
+        memset(on, 0, (size_t)(B * n));
+        return;
+    }
+    const long xs = XB == 1 ? 0 : 3 * n; /* one point set shared by every cage, or one per cage */
+    mvc3d_cage *cages = (mvc3d_cage *)malloc(sizeof(mvc3d_cage) * (size_t)B);
+    /* Thin faces (tc_thin_face) of each cage: their pairs seen from a few widths take the swept form. */
+    long *thin = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1) * (size_t)B);
+    for (long b = 0; b < B; ++b) {
+        mvc3d_cage *g = cages + b;
+        g->P = P + 3 * V * b;
+        g->nrm = nrm + 3 * T * b;
+        g->two_area = two_area + T * b;
+        g->ell = ell + 3 * T * b;
+        g->gram = gram + 9 * T * b;
+        g->far_nodes = far_nodes + 3 * Q * T * b;
+        g->far_coef = far_coef + 3 * Q * T * b;
+        g->longest = longest + T * b;
+        g->tol = tol[b];
+        g->far2 = tc_far_centre(g->P, V, 1, V, 3, g->centre);
+        long *tb = thin + T * b, nthin = 0;
+        for (long f = 0; f < T; ++f)
+            if (g->two_area[f] > 0 && g->longest[f] * g->longest[f] > TC_THIN_ASPECT * g->two_area[f]) tb[nthin++] = f;
+        g->thin = tb;
+        g->nthin = nthin;
+    }
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + 8 * (size_t)E + 5 * (size_t)T));
+        mvc3d_scratch sc;
+        sc.Ax = buf, sc.Ay = sc.Ax + V, sc.Az = sc.Ay + V, sc.RA = sc.Az + V;
+        sc.Nx = sc.RA + V, sc.Ny = sc.Nx + E, sc.Nz = sc.Ny + E, sc.Nn = sc.Nz + E, sc.D = sc.Nn + E;
+        sc.Gx = sc.D + E, sc.Gy = sc.Gx + E, sc.Gz = sc.Gy + E;
+        sc.W0 = sc.Gz + E, sc.W1 = sc.W0 + T, sc.W2 = sc.W1 + T, sc.H = sc.W2 + T, sc.RM = sc.H + T;
+        /* One work item per (cage, point) pair, so that threads stay busy whatever B and n are. */
+#pragma omp for schedule(dynamic, 64)
+        for (long i = 0; i < B * n; ++i) {
+            const long b = i / n, p = i - b * n;
+            const double *x = X + xs * b + 3 * p;
+            on[i] = (unsigned char)mvc3d_point(cages + b, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c,
+                                               cancel_c, near_c, x[0], x[1], x[2], normalize, &sc, W + i * V);
         }
         free(buf);
     }
     free(thin);
+    free(cages);
 }

@@ -1,7 +1,7 @@
 r"""Mean value coordinates for closed triangle cages (3D) and closed polygons (2D): the public
-function. The kernels live beside it: ``_mvc3d`` (torch, 3D: the formulation and its numerical
-care are described there), ``_mvc2d`` (2D), ``_mvc3d_native`` and ``_mvc2d_native`` (the native
-CPU kernels' glue), chosen in ``_mvc_dispatch``; with a graph, the call goes through
+function. The kernels live beside it: ``kernel3d`` (torch, 3D: the formulation and its numerical
+care are described there), ``kernel2d`` (2D), ``native3d`` and ``native2d`` (the native CPU
+kernels' glue), chosen in ``dispatch``; with a graph, the call goes through
 :mod:`torchcage.families.mean_value.ops`.
 """
 
@@ -16,7 +16,7 @@ from torchcage._core.centre import centred
 from torchcage._core.common import as_inputs, check_points, far_unity, records_graph, result_dtype
 from torchcage._core.compiled import CompiledOp
 from torchcage.cage import Cage
-from torchcage.families.mean_value.dispatch import coordinates_flat
+from torchcage.families.mean_value.dispatch import coordinates_batch, coordinates_flat
 from torchcage.families.mean_value.kernel3d import triangle_cage_data
 from torchcage.families.mean_value.ops import mean_value_function
 
@@ -51,7 +51,9 @@ def mean_value_coordinates(
             :func:`torchcage.functional.quad_mean_value_coordinates` or ``cage.triangulated()``.
             Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
             ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
-            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
+            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md). For
+            a triangle cage on the CPU without an autograd graph, the whole batch is one native
+            kernel call; elsewhere, one call per element.
         chunk_size: points per chunk; peak memory grows with ``chunk_size x faces``. Default: about
             130k (3D) or 260k (2D) point–face pairs per chunk in the torch kernel.
         dtype: dtype of the result (default: that of the inputs). The kernels compute in float64
@@ -101,6 +103,12 @@ def mean_value_coordinates(
         return lam if dtype is None else lam.to(dtype)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
+        # One native call for the whole batch (CPU, no autograd graph, a triangle cage) ...
+        lam = coordinates_batch(points, cage, chunk_size, dtype, progress, backend)
+        if lam is not None:
+            return lam
+        # ... elsewhere (the torch kernel, Triton, an autograd graph, 2D) one call per element for
+        # now (_batch.over_cage_batch): those paths have no batched kernel yet.
         return over_cage_batch(
             mean_value_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend
         )

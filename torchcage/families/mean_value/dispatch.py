@@ -1,24 +1,37 @@
 """Mean value coordinates of checked points without an autograd graph: the one place that picks a
 kernel (native C, Triton or torch) and runs it over chunks of points. Both the public function
-(:mod:`.mean_value`) and the autograd Functions (:mod:`torchcage.families.mean_value.ops`) import it;
-it imports neither."""
+(:mod:`.api`) and the autograd Functions (:mod:`torchcage.families.mean_value.ops`) import it;
+it imports neither. A batch of 3D triangle cages with one topology is one native call per chunk of
+points (:func:`coordinates_batch`)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import torch
 
-from torchcage._core.common import chunks, default_chunk, normalise_weights, records_graph
+from torchcage._core.batch import broadcast_batch
+from torchcage._core.centre import centred_batch
+from torchcage._core.common import (
+    FAR_MOMENT,
+    chunks,
+    default_chunk,
+    far_unity,
+    normalise_weights,
+    on_cage_tolerances,
+    records_graph,
+    result_dtype,
+)
 from torchcage.backends import Op, select
-from torchcage.cage import Cage
+from torchcage.cage import Cage, _batch_name
 from torchcage.errors import PointsError
 from torchcage.families.mean_value import native2d as _mvc2d_native
 from torchcage.families.mean_value import native3d as _mvc3d_native
 from torchcage.families.mean_value.kernel2d import mvc2d_chunk, polygon_data
 from torchcage.families.mean_value.kernel3d import mvc3d_chunk, triangle_cage_data
 
-__all__ = ["MVC", "coordinates_flat"]
+__all__ = ["MVC", "coordinates_batch", "coordinates_flat"]
 
 #: The kernels of mean value coordinates (:func:`torchcage.backends.select` chooses).
 MVC = Op("mean value coordinates", native_dims=(2, 3), triton=True, triton_dims=(2, 3))
@@ -99,3 +112,85 @@ def coordinates_flat(
                 "which happens only outside the cage); move these points"
             )
     return out
+
+
+def coordinates_batch(
+    points: torch.Tensor,
+    cage: Cage,
+    chunk_size: int | None = None,
+    dtype: torch.dtype | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+    backend: str = "auto",
+) -> torch.Tensor | None:
+    """Mean value coordinates ``(*B', N, V)`` of points ``(N, 3)`` or ``(*Bp, N, 3)`` for a batch
+    of 3D triangle cages with one topology (batch shape ``B``, ``B'`` the broadcast shape) by the
+    native kernel: one call per chunk of points for every cage at once, the per-cage tables built
+    by one set of tensor operations. Element by element the numbers of the public function on
+    ``cage[b]`` (the same tables, the same kernel, the same far-field correction).
+
+    ``None`` where the native kernel does not serve (the torch kernel, Triton, an autograd graph,
+    2D or quad cages, another device or compute dtype, no native build): the caller then computes
+    element by element (``_batch.over_cage_batch``), which also raises the errors of those paths.
+    The cages' geometry is checked by the caller (``as_inputs``: ``Cage.check_geometry``, vectorised
+    over the batch, naming the element).
+
+    Raises:
+        PointsError: points that do not broadcast with the cages, points holding NaN or inf, or
+            points where the coordinates are undefined (the total weight vanishes); the batch
+            element is named.
+    """
+    if cage.dim != 3 or cage.has_quads or backend not in ("auto", "native") or records_graph(points, cage.vertices):
+        return None
+    pts, verts, batch = broadcast_batch(points, cage)
+    if not pts.is_floating_point() or pts.device != cage.device or pts.device.type != "cpu":
+        return None  # (the per-element path raises the errors that name these)
+    compute, out_dtype = result_dtype(pts, cage, dtype, backend)
+    if compute != torch.float64:
+        return None
+    if not bool(torch.isfinite(pts).all()):
+        bad = ~torch.isfinite(pts).all(dim=-1)  # (1 or B, N)
+        b = int(torch.nonzero(bad.any(dim=1))[0])
+        idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
+        where = _batch_name(torch.tensor(b), batch) if pts.shape[0] > 1 else ""
+        raise PointsError(f"points contain NaN or inf (flattened indices {idx}{where}); remove or fix them")
+    # relative to each cage's centre, as the single-cage function does (module _centre)
+    x, v = centred_batch(pts, verts, compute)
+    lib = select(MVC, backend, x, v, graph=False).lib
+    if lib is None:
+        return None
+    B, N, V = v.shape[0], x.shape[1], v.shape[1]
+    tables = _mvc3d_native.batch_tables(v, cage.triangles, on_cage_tolerances(v))
+    # The kernel needs no temporaries beyond its output: chunks only pace the progress bar.
+    size = chunk_size if chunk_size is not None else default_chunk(B * cage.triangles.shape[0], 1 << 23)
+    out = torch.empty((B, N, V), dtype=torch.float64)
+    flags = torch.empty((B, N), dtype=torch.uint8)
+    for sl in chunks(N, size, progress, desc="mean value coordinates"):
+        if sl.start == 0 and sl.stop == N:
+            flags = _mvc3d_native.native_chunk(x, tables, lib, out)
+        else:
+            part = torch.empty((B, sl.stop - sl.start, V), dtype=torch.float64)
+            flags[:, sl] = _mvc3d_native.native_chunk(x[:, sl], tables, lib, part)
+            out[:, sl] = part
+    bad = flags == 2  # (B, N): rows whose sum is not finite (the kernel checks them, sparing a pass here)
+    if bool(bad.any()):
+        b = int(torch.nonzero(bad.any(dim=1))[0])
+        idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
+        raise PointsError(
+            f"mean value coordinates are undefined at points {idx}{_batch_name(torch.tensor(b), batch)} (the total "
+            "weight vanishes there, which happens only outside the cage); move these points"
+        )
+    if _may_be_far(x, v):  # (else far_unity leaves every row as it is: a pass over the points spared)
+        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
+    return out.to(out_dtype).reshape(*batch, N, V)
+
+
+def _may_be_far(x: torch.Tensor, v: torch.Tensor) -> bool:
+    """Whether some point of ``x`` ``(B or 1, N, 3)`` may lie in the far region of its cage ``v``
+    ``(B, V, 3)`` (``_common.far_region``): False when the points' bounding box lies within half
+    the far radius of every cage's centre (a bound that no rounding can cross)."""
+    if x.shape[1] == 0:
+        return False
+    c = (v.amax(dim=1) + v.amin(dim=1)) / 2  # (B, 3), as far_region
+    r2 = ((v - c[:, None]) ** 2).sum(dim=-1).amax(dim=-1)  # (B,)
+    corner = torch.maximum((x.amax(dim=1) - c).abs(), (x.amin(dim=1) - c).abs())  # (B, 3): the farthest box corner
+    return bool(((corner**2).sum(dim=-1) > 0.25 * FAR_MOMENT**2 * r2).any())

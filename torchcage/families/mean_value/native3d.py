@@ -1,6 +1,7 @@
 """Glue to the native CPU kernel of 3D mean value coordinates (``torchcage/backends/native/mvc3d.c``):
-its tables, keyed by ``tc_mvc3d``'s argument names (layouts in ``torchcage/backends/native/abi.py``), and
-the call on a chunk of points."""
+its tables, keyed by ``tc_mvc3d``'s argument names (layouts in ``torchcage/backends/native/abi.py``),
+and the call on a chunk of points. The kernel takes a batch of cages with one topology: the topology
+tables are shared, the geometric ones carry a leading batch axis (one cage: a batch of one)."""
 
 from __future__ import annotations
 
@@ -15,24 +16,42 @@ from torchcage.families.mean_value.kernel3d import (
     FAR_FIELD_RATIO,
     SPLIT_FORM_RATIO,
     TriangleCageData,
+    face_constants,
 )
 
-__all__ = ["native_chunk", "native_tables"]
+__all__ = ["batch_tables", "native_chunk", "native_tables", "topology_tables"]
 
 
-def native_tables(data: TriangleCageData) -> dict[str, object]:
-    """``tc_mvc3d``'s per-cage arguments, built once: among them the unique edges and, for the
-    edge opposite each corner, its index ``fe`` and orientation ``fs`` (+1 when stored as
-    ``(t[i+1], t[i+2])``), and the vertex-to-corner incidence as CSR (``inc_ptr``, ``inc_idx``)."""
-    tri = data.tri
-    V, T = data.vertices.shape[1], tri.shape[0]
+def topology_tables(tri: torch.Tensor, V: int) -> dict[str, object]:
+    """``tc_mvc3d``'s topology arguments of triangles ``tri`` ``(T, 3)`` over ``V`` vertices, shared
+    by every cage of a batch: the corners, the unique edges and, for the edge opposite each corner,
+    its index ``fe`` and orientation ``fs`` (+1 when stored as ``(t[i+1], t[i+2])``), and the
+    vertex-to-corner incidence as CSR (``inc_ptr``, ``inc_idx``); the scalar constants too.
+
+    The tensors are cached by the triangles' content (a training loop builds a new cage with the
+    same faces each step): the kernel only reads them; the dictionary is new at every call."""
+    tri = tri.detach().cpu().contiguous()
+    key = (V, tuple(tri.shape), tri.numpy().tobytes())
+    cached = _TOPOLOGY.get(key)
+    if cached is None:
+        cached = _topology_tables(tri, V)
+        if len(_TOPOLOGY) >= 8:
+            _TOPOLOGY.pop(next(iter(_TOPOLOGY)))  # (the oldest first: dicts keep insertion order)
+        _TOPOLOGY[key] = cached
+    return dict(cached)
+
+
+_TOPOLOGY: dict[tuple[int, tuple[int, ...], bytes], dict[str, object]] = {}
+
+
+def _topology_tables(tri: torch.Tensor, V: int) -> dict[str, object]:
+    T = tri.shape[0]
     uniq, inv, sign = unique_face_edges(tri)
     # Vertex -> face corners (index c * T + f), as CSR, to gather the corner weights per vertex.
     corner_vertex = tri.T.reshape(-1)
     inc_ptr = torch.zeros(V + 1, dtype=torch.long)
     inc_ptr[1:] = torch.cumsum(torch.bincount(corner_vertex, minlength=V), 0)
     return {
-        "P": data.vertices.contiguous(),
         "V": V,
         "tri": tri.T.to(torch.int32).contiguous(),
         "T": T,
@@ -41,28 +60,86 @@ def native_tables(data: TriangleCageData) -> dict[str, object]:
         "fe": inv.T.to(torch.int32).contiguous(),
         "inc_ptr": inc_ptr.to(torch.int32),
         "inc_idx": torch.argsort(corner_vertex, stable=True).to(torch.int32),
-        "fs": sign.to(data.vertices.dtype).T.contiguous(),
-        "nrm": data.normal[:, :, 0].contiguous(),
-        "two_area": data.two_area[:, 0].contiguous(),
-        "ell": data.edge_len[:, :, 0].T.contiguous(),
-        "gram": data.gram.contiguous(),
-        "far_nodes": data.far_nodes.contiguous(),
-        "far_coef": data.far_coef.contiguous(),
-        "longest": data.longest[:, 0].contiguous(),
-        "Q": data.far_nodes.shape[1],
+        "fs": sign.T.contiguous(),
         "far_c": FAR_FIELD_RATIO,
         "cancel_c": CANCELLATION_RATIO,
         "near_c": SPLIT_FORM_RATIO,
-        "tol": data.tol,
     }
+
+
+def native_tables(data: TriangleCageData) -> dict[str, object]:
+    """``tc_mvc3d``'s arguments for one cage (a batch of one), built once from its constants."""
+    tables = topology_tables(data.tri, data.vertices.shape[1])
+    tables.update(
+        {
+            "B": 1,
+            "P": data.vertices.contiguous()[None],
+            "nrm": data.normal[:, :, 0].contiguous()[None],
+            "two_area": data.two_area[:, 0].contiguous()[None],
+            "ell": data.edge_len[:, :, 0].T.contiguous()[None],
+            "gram": data.gram.contiguous()[None],
+            "far_nodes": data.far_nodes.contiguous()[None],
+            "far_coef": data.far_coef.contiguous()[None],
+            "longest": data.longest[:, 0].contiguous()[None],
+            "Q": data.far_nodes.shape[1],
+            "tol": torch.tensor([data.tol], dtype=torch.float64),
+        }
+    )
+    return tables
+
+
+def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """``tc_mvc3d``'s arguments for a batch of cages with one topology, every geometric table of
+    the ``B`` cages computed by one set of tensor operations (element by element the numbers of
+    :func:`native_tables` on ``triangle_data`` of that cage).
+
+    Args:
+        vertices: ``(B, V, 3)`` float64 CPU vertices.
+        tri: ``(T, 3)`` the shared triangles.
+        tol: ``(B,)`` float64 absolute on-cage tolerances.
+    """
+    B, V = vertices.shape[0], vertices.shape[1]
+    c = face_constants(vertices[:, tri])
+    tables = topology_tables(tri, V)
+    tables.update(
+        {
+            "B": B,
+            "P": vertices.transpose(1, 2).contiguous(),
+            "nrm": c["normal"].transpose(1, 2).contiguous(),
+            "two_area": c["two_area"].contiguous(),
+            "ell": c["edge_len"].contiguous(),
+            "gram": c["gram"].contiguous(),
+            "far_nodes": c["far_nodes"].contiguous(),
+            "far_coef": c["far_coef"].contiguous(),
+            "longest": c["longest"].contiguous(),
+            "Q": c["far_nodes"].shape[2],
+            "tol": tol.to(torch.float64).contiguous(),
+        }
+    )
+    return tables
 
 
 def native_chunk(
     x: torch.Tensor, tables: dict[str, object], lib: ctypes.CDLL, W: torch.Tensor, normalize: bool = True
 ) -> torch.Tensor:
-    """The native kernel on a chunk: ``x`` ``(n, 3)`` float64 -> coordinates (raw weights with
-    ``normalize=False``) written into the contiguous ``W`` ``(n, V)``; returns the ``(n,)`` uint8
-    on-cage flags (rows on the cage hold their interpolating values)."""
-    on = torch.empty((x.shape[0],), dtype=torch.uint8)
-    _native.call(lib, "tc_mvc3d", **tables, X=x.contiguous(), n=x.shape[0], W=W, on=on, normalize=int(normalize))
-    return on
+    """The native kernel on a chunk of float64 points, coordinates (raw weights with
+    ``normalize=False``) written into the contiguous ``W``; returns the uint8 flags: 1 on the cage
+    (rows hold their interpolating values), with ``normalize`` 2 where the row is not finite (the
+    total weight vanishes), else 0.
+
+    One cage (``tables["B"] == 1``): ``x`` ``(n, 3)``, ``W`` ``(n, V)``, flags ``(n,)``. A batch of
+    ``B`` cages: ``x`` ``(B, n, 3)``, or ``(1, n, 3)`` shared by every cage, ``W`` ``(B, n, V)``,
+    flags ``(B, n)``.
+
+    Raises:
+        ValueError: points whose batch is neither 1 nor the cages' (or a wrong shape: ``_native.call``).
+    """
+    batched = x.dim() == 3
+    X = x.contiguous() if batched else x.contiguous()[None]
+    Wb = W if batched else W[None]
+    B, XB, n = int(tables["B"]), X.shape[0], X.shape[1]  # type: ignore[call-overload]
+    if XB not in (1, B):
+        raise ValueError(f"tc_mvc3d: points for {XB} cages, but the tables hold {B}: give 1 (shared) or {B}")
+    on = torch.empty((B, n), dtype=torch.uint8)
+    _native.call(lib, "tc_mvc3d", **tables, X=X, XB=XB, n=n, W=Wb, on=on, normalize=int(normalize))
+    return on if batched else on[0]

@@ -1,0 +1,145 @@
+"""Benchmark of batched rest cages: one native call for the whole batch against a loop of
+single-cage calls, mean value coordinates forward (no graph, CPU).
+
+The setting of ``learnable.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each, a 42-vertex /
+80-triangle icosphere cage per shape (each jittered), points inside. *loop*: ``over_cage_batch``
+calling ``F.mean_value_coordinates`` per element (per element its tables, its checks and one
+native call); *batched*: ``F.mean_value_coordinates`` on the batched ``Cage`` (one set of tables
+for the batch, one native call). With ``--baseline REV`` (default ``HEAD``; ``none`` to skip), also
+the loop of the library at git revision ``REV`` (exported to a temporary folder; what a batched cage
+cost before this benchmark's revision, the single-cage path's own set-up included). Each call
+builds the cage (``validate="topology"``, as a training step does), so the geometric check runs
+every time. *kernel*: the time inside the native calls (the C function itself, argument checks
+excluded); *set-up*: the rest, and its share of the total. Each tree runs in its own process, its
+implementations interleaved, best of ``--repeat``; *speed-up* is against the first row of the
+dtype.
+
+Usage: ``python benchmarks/batched.py [--batch 8] [--points 5000] [--repeat 10] [--baseline REV]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+KERNEL = [0.0]
+
+
+def _child(args: argparse.Namespace) -> None:
+    """Time ``args.impl`` (comma-separated) of the torchcage on ``PYTHONPATH``; print JSON."""
+    import torch
+
+    import torchcage
+    from torchcage.functional import mean_value_coordinates
+
+    try:  # (the layout since the families' folders; a baseline revision may predate it)
+        from torchcage._core.batch import over_cage_batch
+        from torchcage.backends import native as _native
+        from torchcage.backends.native import abi
+    except ImportError:
+        from torchcage._native import abi  # type: ignore[no-redef]
+        from torchcage.functional._batch import over_cage_batch  # type: ignore[no-redef]
+
+        from torchcage import _native  # type: ignore[no-redef]
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from learnable import problem
+
+    def timed_call(lib, name: str, **arguments: object) -> None:  # _native.call, the C function timed
+        arguments.setdefault("nthreads", torch.get_num_threads())
+        c_args = abi.check_arguments(name, arguments)
+        t = time.perf_counter()
+        getattr(lib, name)(*c_args)
+        KERNEL[0] += time.perf_counter() - t
+
+    _native.call = timed_call  # every glue module calls it through the module attribute
+    x, P, faces, _ = problem(args.batch, args.points, getattr(torch, args.dtype), "cpu")
+    impls: dict[str, Callable[[], torch.Tensor]] = {
+        "loop": lambda: over_cage_batch(mean_value_coordinates, x, torchcage.Cage(P, faces, validate="topology")),
+        "batched": lambda: mean_value_coordinates(x, torchcage.Cage(P, faces, validate="topology")),
+    }
+    names = args.impl.split(",")
+    best = {k: (float("inf"), 0.0) for k in names}
+    with torch.no_grad():
+        outs = {k: impls[k]() for k in names}  # (warm-up: lazy imports, the native library)
+        for _ in range(args.repeat):
+            for k in names:
+                KERNEL[0] = 0.0
+                t = time.perf_counter()
+                impls[k]()
+                dt = time.perf_counter() - t
+                if dt < best[k][0]:
+                    best[k] = (dt, KERNEL[0])
+    ref = outs[names[0]]
+    diff = {k: float((outs[k] - ref).abs().max()) for k in names}
+    print(json.dumps({"best": best, "diff": diff, "threads": torch.get_num_threads()}))
+
+
+def _run(tree: Path, args: argparse.Namespace, dtype: str, impl: str) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    cmd = [sys.executable, __file__, "--child", "--impl", impl, "--dtype", dtype]
+    cmd += ["--batch", str(args.batch), "--points", str(args.points), "--repeat", str(args.repeat)]
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if res.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr[-2000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--points", type=int, default=5000)
+    ap.add_argument("--repeat", type=int, default=10)
+    ap.add_argument("--baseline", default="HEAD", help="git revision whose loop is timed too ('none': skip)")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--impl", default="loop,batched", help=argparse.SUPPRESS)
+    ap.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        _child(args)
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        base = None
+        if args.baseline != "none":
+            rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", args.baseline], capture_output=True,
+                                 text=True, check=True).stdout.strip()  # fmt: skip
+            archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "torchcage"], capture_output=True,
+                                     check=True).stdout  # fmt: skip
+            subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+            base = (f"loop at {rev}", Path(tmp))
+        rows = []
+        for dtype in ("float32", "float64"):
+            runs = []
+            if base is not None:
+                r = _run(base[1], args, dtype, "loop")
+                runs.append((base[0], *r["best"]["loop"]))
+            r = _run(ROOT, args, dtype, "loop,batched")
+            runs += [("loop", *r["best"]["loop"]), ("batched", *r["best"]["batched"])]
+            rows.append((dtype, runs, r["diff"]["batched"], r["threads"]))
+    print(
+        f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages, CPU, "
+        f"{rows[0][3]} threads, best of {args.repeat}\n"
+    )
+    print("| dtype | path | forward | kernel | set-up | set-up share | speed-up |")
+    print("|---|---|---|---|---|---|---|")
+    for dtype, runs, diff, _ in rows:
+        first = runs[0][1]
+        for name, total, kernel in runs:
+            setup = total - kernel
+            print(
+                f"| {dtype} | {name} | {total * 1e3:.1f} ms | {kernel * 1e3:.1f} ms | {setup * 1e3:.1f} ms | "
+                f"{setup / total:.0%} | {first / total:.2f}x |"
+            )
+        print(f"| {dtype} | largest difference, batched - loop | {diff:.1e} | | | | |")
+
+
+if __name__ == "__main__":
+    main()

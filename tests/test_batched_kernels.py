@@ -1,0 +1,188 @@
+"""Batched rest cages as one native kernel call: mean value coordinates of a batch of 3D triangle
+cages with one topology agree with the loop of single-cage calls (the same tables, the same kernel),
+for points inside, outside, on faces, edges and vertices and far away, and the batch's errors name
+the element."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchcage
+from torchcage import functional as F
+from torchcage._core.batch import over_cage_batch
+from torchcage.backends import native as _native
+from torchcage.families.mean_value import native3d as _mvc3d_native
+from torchcage.testing import icosphere
+
+D64 = torch.float64
+
+
+def _cages(B: int, seed: int = 0, shift: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(B, 42, 3)`` jittered, scaled icospheres (float64) and their triangles; ``shift`` moves
+    the last cage that far from the origin (its coordinates are then computed relative to its
+    centre)."""
+    ico = icosphere()
+    g = torch.Generator().manual_seed(seed)
+    V = ico.vertices * (1 + 0.3 * torch.rand(B, 1, 1, generator=g, dtype=D64))
+    V = V + 0.03 * torch.randn(B, 42, 3, generator=g, dtype=D64)
+    V[-1] += shift
+    return V, ico.triangles
+
+
+def _points(V: torch.Tensor, tri: torch.Tensor, seed: int = 1) -> torch.Tensor:
+    """``(N, 3)`` points of every kind for the cage ``V`` ``(42, 3)``: inside, on vertices, on edge
+    midpoints, on faces (barycentric), just off faces on both sides, outside, and far away."""
+    g = torch.Generator().manual_seed(seed)
+    c = V.mean(0)
+    p = V[tri]
+    bary = torch.rand(tri.shape[0], 3, generator=g, dtype=D64)
+    bary = bary / bary.sum(1, keepdim=True)
+    on_face = (bary[:, :, None] * p).sum(1)
+    nrm = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+    d = torch.randn(60, 3, generator=g, dtype=D64)
+    d = d / d.norm(dim=1, keepdim=True)
+    return torch.cat(
+        [
+            c + 0.8 * torch.rand(60, 1, generator=g, dtype=D64) * d,  # inside
+            V[:12],  # on vertices
+            0.5 * (p[:12, 0] + p[:12, 1]),  # on edges
+            on_face[:20],  # on faces
+            on_face[20:40] + 1e-9 * nrm[20:40],  # just outside the faces
+            on_face[40:60] - 1e-7 * nrm[40:60],  # just inside
+            c + (2 + 3 * torch.rand(30, 1, generator=g, dtype=D64)) * d[:30],  # outside
+            c + 1e4 * d[30:40],  # far
+            c + 1e7 * d[40:45],  # very far (first-moment normaliser)
+        ]
+    )
+
+
+def _assert_same(out: torch.Tensor, ref: torch.Tensor) -> None:
+    """Equal to rounding: the same tables and kernel give the same numbers (bitwise here; a few
+    ulps are allowed for platforms whose batched tensor ops round differently)."""
+    assert out.shape == ref.shape and out.dtype == ref.dtype
+    eps = torch.finfo(out.dtype).eps
+    err = (out - ref).abs() / ref.abs().clamp_min(1.0)
+    assert torch.isfinite(out).all() and float(err.max()) <= 4 * eps, float(err.max())
+
+
+class _CountCalls:
+    """Counts ``tc_mvc3d`` calls (with their batch size) through ``_native.call``."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.batches: list[int] = []
+        real = _native.call
+
+        def call(lib, name, **kw):
+            if name == "tc_mvc3d":
+                self.batches.append(int(kw["B"]))
+            return real(lib, name, **kw)
+
+        monkeypatch.setattr(_native, "call", call)
+
+
+@pytest.mark.native
+@pytest.mark.parametrize("dtype", [torch.float32, D64])
+@pytest.mark.parametrize("B", [1, 3])
+@pytest.mark.parametrize("shift", [0.0, 1e3])
+def test_batched_call_equals_the_loop(dtype, B, shift, monkeypatch):
+    V, tri = _cages(B, shift=shift)
+    cage = torchcage.Cage(V.to(dtype), tri)
+    per_cage = torch.stack([_points(V[b], tri, seed=b) for b in range(B)]).to(dtype)  # (B, N, 3)
+    shared = per_cage[0]  # (N, 3): on cage 0's faces, near the others'
+    count = _CountCalls(monkeypatch)
+    for pts in (per_cage, shared):
+        count.batches.clear()
+        out = F.mean_value_coordinates(pts, cage)
+        assert count.batches == [B]  # the whole batch in one native call
+        ref = torch.stack([F.mean_value_coordinates(pts if pts.ndim == 2 else pts[b], cage[b]) for b in range(B)])
+        _assert_same(out, ref)
+        _assert_same(out, over_cage_batch(F.mean_value_coordinates, pts, cage))
+    # rows sum to one and reproduce the points (the coordinates themselves, not only their agreement)
+    W = F.mean_value_coordinates(per_cage.double(), torchcage.Cage(V, tri))
+    near = (per_cage.double() - V.mean(1, keepdim=True)).norm(dim=-1) < 10
+    assert (W.sum(-1) - 1).abs().max() < 1e-9
+    assert ((W @ V - per_cage.double()).norm(dim=-1)[near]).max() < 1e-9 * (1 + shift)
+
+
+@pytest.mark.native
+def test_two_batch_dimensions_and_chunks(monkeypatch):
+    V, tri = _cages(6, seed=3)
+    cage = torchcage.Cage(V.reshape(2, 3, 42, 3), tri)
+    pts = torch.stack([_points(V[b], tri, seed=b) for b in range(6)]).reshape(2, 3, -1, 3)
+    count = _CountCalls(monkeypatch)
+    out = F.mean_value_coordinates(pts, cage, chunk_size=100)
+    N = pts.shape[-2]
+    assert out.shape == (2, 3, N, 42) and count.batches == [6] * -(-N // 100)  # one call per chunk
+    for i in range(2):
+        for j in range(3):
+            _assert_same(out[i, j], F.mean_value_coordinates(pts[i, j], cage[i, j]))
+    # points broadcast over the first batch axis: (3, N, 3) against cages (2, 3)
+    out = F.mean_value_coordinates(pts[0], cage)
+    for i in range(2):
+        for j in range(3):
+            _assert_same(out[i, j], F.mean_value_coordinates(pts[0, j], cage[i, j]))
+
+
+def test_no_points():
+    V, tri = _cages(2)
+    cage = torchcage.Cage(V, tri)
+    for pts in (torch.zeros(0, 3, dtype=D64), torch.zeros(2, 0, 3, dtype=D64)):
+        assert F.mean_value_coordinates(pts, cage).shape == (2, 0, 42)
+        assert F.mean_value_coordinates(pts, cage, backend="torch").shape == (2, 0, 42)
+
+
+def test_a_degenerate_element_is_named():
+    V, tri = _cages(4)
+    t = tri[7]
+    V[2, t[2]] = 0.5 * (V[2, t[0]] + V[2, t[1]])  # triangle 7 of element 2 collapses to a segment
+    x = torch.zeros(5, 3, dtype=D64)
+    with pytest.raises(torchcage.DegenerateFaceError, match=r"triangles \[7\] in batch element \(2,\)"):
+        F.mean_value_coordinates(x, torchcage.Cage(V, tri, validate="topology"))
+    with pytest.raises(torchcage.DegenerateFaceError, match=r"in batch element \(1, 0\)"):
+        F.mean_value_coordinates(x, torchcage.Cage(V.reshape(2, 2, 42, 3), tri, validate="topology"))
+
+
+def test_points_with_nan_are_named_by_element():
+    V, tri = _cages(3)
+    x = torch.zeros(3, 5, 3, dtype=D64)
+    x[1, 4, 2] = float("nan")
+    with pytest.raises(torchcage.PointsError, match=r"indices \[4\].*batch element \(1,\)"):
+        F.mean_value_coordinates(x, torchcage.Cage(V, tri))
+
+
+@pytest.mark.native
+def test_the_kernel_refuses_a_point_batch_that_is_neither_one_nor_the_cages():
+    V, tri = _cages(3)
+    tables = _mvc3d_native.batch_tables(V, tri, torch.full((3,), 1e-12, dtype=D64))
+    W = torch.empty(3, 5, 42, dtype=D64)
+    with pytest.raises(ValueError, match="points for 2 cages"):
+        _mvc3d_native.native_chunk(torch.zeros(2, 5, 3, dtype=D64), tables, _native.library(), W)
+
+
+@pytest.mark.native
+def test_the_kernel_flags_rows_that_are_not_finite():
+    V, tri = _cages(2)
+    tables = _mvc3d_native.batch_tables(V, tri, torch.full((2,), 1e-12, dtype=D64))
+    X = torch.stack([_points(V[b], tri, seed=b)[:70] for b in range(2)])  # inside (60), then vertices
+    X[1, 3] = float("nan")  # (no public path passes such a point: it only makes a row that is not finite)
+    W = torch.empty(2, 70, 42, dtype=D64)
+    flags = _mvc3d_native.native_chunk(X, tables, _native.library(), W)
+    assert flags[1, 3] == 2 and (flags[0, :60] == 0).all() and (flags[0, 60:] == 1).all()
+    assert torch.isfinite(W.sum(-1)).logical_xor(flags == 2).all()
+
+
+@pytest.mark.native
+def test_undefined_points_are_named_by_element(monkeypatch):
+    V, tri = _cages(3)
+    real = _mvc3d_native.native_chunk
+
+    def chunk(x, tables, lib, W, normalize=True):
+        flags = real(x, tables, lib, W, normalize)
+        flags[1, 4] = 2  # as the kernel marks a row whose total weight vanishes
+        return flags
+
+    monkeypatch.setattr(_mvc3d_native, "native_chunk", chunk)
+    with pytest.raises(torchcage.PointsError, match=r"undefined at points \[4\] in batch element \(1,\)"):
+        F.mean_value_coordinates(torch.zeros(5, 3, dtype=D64), torchcage.Cage(V, tri))
