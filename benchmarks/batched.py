@@ -35,6 +35,8 @@ KERNEL = [0.0]
 
 def _child(args: argparse.Namespace) -> None:
     """Time ``args.impl`` (comma-separated) of the torchcage on ``PYTHONPATH``; print JSON."""
+    # (an editable install's import hook would serve modules of the checkout to a baseline tree)
+    sys.meta_path[:] = [f for f in sys.meta_path if not type(f).__module__.startswith("__editable__")]
     import torch
 
     import torchcage
@@ -133,6 +135,9 @@ def main() -> None:
     for dtype, runs, diff, _ in rows:
         first = runs[0][1]
         for name, total, kernel in runs:
+            if kernel == 0:  # (a baseline revision whose native calls the timer does not see)
+                print(f"| {dtype} | {name} | {total * 1e3:.1f} ms | - | - | - | {first / total:.2f}x |")
+                continue
             setup = total - kernel
             print(
                 f"| {dtype} | {name} | {total * 1e3:.1f} ms | {kernel * 1e3:.1f} ms | {setup * 1e3:.1f} ms | "
