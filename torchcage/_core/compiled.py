@@ -112,7 +112,8 @@ class CompiledOp:
                     torch.zeros_like(o) if g.dim() == 0 else g.to(o.dtype)  # (0-dim: an output not used)
                     for g, o in zip(grads, outs, strict=True)
                 ]
-                return torch.autograd.grad(outs, (x, P), cot, allow_unused=True)
+                gx, gP = torch.autograd.grad(outs, (x, P), cot, allow_unused=True)
+                return gx, gP
 
             # A custom op's body runs below the autograd dispatch key (nothing it computes records
             # a graph), and the eager backward may differentiate the torch kernels by autograd: it
