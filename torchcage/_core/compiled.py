@@ -25,8 +25,8 @@ Examples:
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import torch
 from torch import Tensor
@@ -39,6 +39,20 @@ __all__ = ["CompiledOp"]
 Eager = Callable[[Tensor, Cage, dict], tuple[Tensor, ...]]
 #: ``widths(vertices, triangles, quads, edges) -> [K of each output]``.
 Widths = Callable[[Tensor, Tensor, Tensor, Tensor], list[int]]
+
+
+@contextmanager
+def _autograd_inside_an_op() -> Iterator[None]:
+    """Autograd recording within a custom op's body. The dispatcher runs the body below the
+    autograd keys (they are in the thread's exclude set: nothing computed there records a graph);
+    the eager backward differentiates parts of the torch kernels by autograd, so the block lifts
+    that exclusion, on the same thread (another thread would wait on the autograd engine's device
+    thread that runs this backward on CUDA)."""
+    C = torch._C
+    autograd_keys = C._dispatch_keyset_full() - C._after_autograd_keyset
+    exclude = C._dispatch_tls_local_exclude_set() - autograd_keys
+    with C._ForceDispatchKeyGuard(C._dispatch_tls_local_include_set(), exclude), torch.enable_grad():
+        yield
 
 
 def _cage(vertices: Tensor, triangles: Tensor, quads: Tensor, edges: Tensor) -> Cage:
@@ -115,11 +129,8 @@ class CompiledOp:
                 gx, gP = torch.autograd.grad(outs, (x, P), cot, allow_unused=True)
                 return gx, gP
 
-            # A custom op's body runs below the autograd dispatch key (nothing it computes records
-            # a graph), and the eager backward may differentiate the torch kernels by autograd: it
-            # runs on a thread of its own, whose dispatch state is the default one.
-            with ThreadPoolExecutor(max_workers=1) as pool:
-                gx, gP = pool.submit(run).result()
+            with _autograd_inside_an_op():
+                gx, gP = run()
             gx = torch.zeros_like(points) if gx is None else gx.to(points.dtype)
             gP = torch.zeros_like(vertices) if gP is None else gP.to(vertices.dtype)
             return gx, gP
@@ -165,9 +176,24 @@ class CompiledOp:
         backend: str = "auto",
         n: int | None = None,
         tol: float | None = None,
+        dtype: torch.dtype | None = None,
     ) -> list[Tensor]:
-        """The outputs, through the op (under ``torch.compile``)."""
-        return self.values(
+        """The outputs, through the op (under ``torch.compile``), in ``dtype`` when given. The
+        options are checked as the eager function checks them (the op's sentinels 0 and -1 must
+        not turn a wrong value into the default).
+
+        Raises:
+            ValueError: ``chunk_size`` or ``n`` not a positive integer, a negative ``tol``.
+            TypeError: ``dtype`` not a floating-point dtype.
+        """
+        for name, value in (("chunk_size", chunk_size), ("n", n)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if tol is not None and not float(tol) >= 0:
+            raise ValueError(f"tol must be a nonnegative number, got {tol!r}")
+        if dtype is not None and not dtype.is_floating_point:
+            raise TypeError(f"dtype must be a floating-point dtype, got {dtype}")
+        outs = self.values(
             points,
             cage.vertices,
             cage.triangles,
@@ -178,3 +204,4 @@ class CompiledOp:
             0 if n is None else int(n),
             -1.0 if tol is None else float(tol),
         )
+        return outs if dtype is None else [o.to(dtype) for o in outs]

@@ -1,6 +1,6 @@
 r"""Green integrals of thin triangles seen from a few widths away, by a quadrature across the width.
 
-The closed forms of :mod:`._green3d` write a face's hat-function integral as
+The closed forms of :mod:`torchcage.families.green.kernel3d` write a face's hat-function integral as
 :math:`\alpha_i \Omega + h\, g_i \cdot K`. For a triangle of width ``w`` (twice its area over its
 longest edge ``L``) seen from a point ``D`` from it, the barycentric coordinates :math:`\alpha_i` of
 the foot point reach ``D / w`` and :math:`g_i` reaches ``1 / w``, while :math:`\Omega` and ``K``

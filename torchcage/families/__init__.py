@@ -47,7 +47,8 @@ class Family:
         faces: ``"triangles"`` (quads split) or ``"triquads"`` (quads kept).
         outputs: the names of the functional entry's outputs: ``("weights",)`` or
             ``("phi", "psi")`` (Green's vertex and face coordinates).
-        backends: the ``backend=`` values the functional entry accepts besides ``"auto"``.
+        backends: the ``backend=`` values the functional entry accepts besides ``"auto"`` (empty:
+            it takes no ``backend=``).
         tol: the functional entry and the module take ``tol=`` (error-controlled quadrature).
         solved: computed by a solve on a mesh of the cage's interior (slow, iterative or sparse).
         extra: the optional extra it needs (``pip install 'torchcage[<extra>]'``), or ``None``.
@@ -70,7 +71,7 @@ class Family:
     dims: tuple[int, ...]
     faces: FaceKind
     outputs: tuple[str, ...] = ("weights",)
-    backends: tuple[str, ...] = ("torch",)
+    backends: tuple[str, ...] = ()
     tol: bool = False
     solved: bool = False
     extra: str | None = None

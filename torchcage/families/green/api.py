@@ -1,6 +1,6 @@
 """Green coordinates for closed triangle cages (3D) and closed polygons (2D): the public function.
 
-The closed forms and their numerical care are described in ``_green3d`` and ``_green2d``.
+The closed forms and their numerical care are described in ``kernel3d`` and ``kernel2d``.
 """
 
 from __future__ import annotations
@@ -120,8 +120,8 @@ def green_coordinates(
     if exterior not in ("extend", "none"):
         raise ValueError(f"exterior must be 'extend' or 'none', got {exterior!r}")
     if torch.compiler.is_compiling() and exterior == "extend":  # one opaque op (checks are not traceable)
-        phi, psi = COMPILED(points, cage, chunk_size, backend)
-        return (phi, psi) if dtype is None else (phi.to(dtype), psi.to(dtype))
+        phi, psi = COMPILED(points, cage, chunk_size, backend, dtype=dtype)
+        return phi, psi
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(

@@ -1,7 +1,7 @@
 r"""Derivatives of Green coordinates with respect to the points: gradients and Hessians.
 
 For points inside a triangle cage they come in closed form from per-face edge sums
-(:mod:`._green3d_derivatives`, whose docstring derives them; the native kernel ``gcd3d.c`` for
+(:mod:`.derivatives3d`, whose docstring derives them; the native kernel ``gcd3d.c`` for
 float64 CPU points), inside a polygon from per-edge end-point terms
 (:func:`._green2d.green2d_derivatives`). Rows the closed form does not serve (points outside the
 cage, whose coordinates are continued by the exterior extension; points on the cage; thin faces

@@ -42,7 +42,7 @@ point nears the edge's line; there ``w_e`` vanishes with its term. ``w_e`` is ta
 nearer end, as the values' kernel does (:func:`._green3d._edge_perpendicular`).
 
 Faces seen from far (the nearest corner ``FAR_RATIO`` longest edges away) take ``Omega_t``, ``K_t``
-and their gradients from the quadrature rule of :mod:`._far_triangle`: the edge sums lose
+and their gradients from the quadrature rule of :mod:`.far_triangle`: the edge sums lose
 ``eps rho^2`` there.
 """
 

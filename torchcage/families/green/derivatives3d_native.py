@@ -1,5 +1,5 @@
 """Glue to the native CPU kernel of the derivatives of 3D Green coordinates
-(``torchcage/backends/native/gcd3d.c``): the values' tables (:mod:`._green3d_native`) and the call."""
+(``torchcage/backends/native/gcd3d.c``): the values' tables (:mod:`.native3d`) and the call."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Derivatives of the bare Green integrals (no exterior extension) at checked points: the closed
 form where it serves (the native kernel for float64 CPU points, else the torch kernel) and, for the
 other rows, autograd of the torch kernel. Both the public :func:`.green_derivatives` and the
-autograd Functions (:mod:`torchcage.families.green.ops`) import it; it imports neither."""
+autograd Functions (:mod:`.ops`) import it; it imports neither."""
 
 from __future__ import annotations
 
@@ -48,8 +48,8 @@ def closed_form(
     exact (n,))`` of a triangle cage or a polygon at points ``x`` in the compute dtype (Hessians
     empty ``(0,)`` for ``order=1``); rows where ``exact`` is False are zero (see
     :func:`._green3d_derivatives.green3d_derivatives`, :func:`._green2d.green2d_derivatives`)."""
-    if cage.dim == 2:  # (torch only: polygons have few edges)
-        check_backend(backend)
+    if cage.dim == 2:  # (torch only: polygons have few edges; "native" is refused as for 3D points it cannot take)
+        select(GC_DERIVATIVES, backend, x, graph=False)
         parts = [green2d_derivatives(x[sl], cage, order) for sl in chunks(x.shape[0], chunk_size or 4096)]
         return tuple(torch.cat(col) for col in zip(*parts, strict=True))
     n, V = x.shape[0], cage.num_vertices

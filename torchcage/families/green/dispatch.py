@@ -1,6 +1,6 @@
 """Green coordinates of checked points without an autograd Function: the one place that picks a
 kernel (native C, Triton or torch) and runs it over chunks of points. Both the public function
-(:mod:`.green`) and the autograd Function (:mod:`torchcage.families.green.ops`) import it."""
+(:mod:`.green`) and the autograd Function (:mod:`.ops`) import it."""
 
 from __future__ import annotations
 

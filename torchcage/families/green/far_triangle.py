@@ -1,7 +1,7 @@
 r"""Green integrals of triangles seen from far away, by quadrature.
 
 Far from a face (its nearest corner ``FAR_RATIO`` longest edges away or more) the closed forms of
-:mod:`._green3d` lose digits: their terms (``alpha_i Omega`` against ``h g_i . K``, the edge
+:mod:`.kernel3d` lose digits: their terms (``alpha_i Omega`` against ``h g_i . K``, the edge
 integrals' ``asinh`` differences) are ``rho = r / edge`` times larger than the integrals they sum
 to, and the rounding grows like ``eps rho^2`` (5e-6 of a face's terms at ``rho = 1e4``). There the
 integrands are smooth on the face, and a Gauss rule on the collapsed square (order
@@ -17,7 +17,7 @@ With ``y`` a node, ``a = y - x``, ``r = |a|``, ``h = a . n`` (the same for every
     4\pi\,\phi_{t,i} = \int_t \Gamma_i \frac{h}{r^3},\quad 4\pi\,\psi_t = \int_t \frac{1}{r},\quad
     \Omega_t = \int_t \frac{h}{r^3},\quad K_t = \int_t \frac{a - h n}{r^3},
 
-and their gradients with respect to the point (for the Hessians of :mod:`._green3d_derivatives`):
+and their gradients with respect to the point (for the Hessians of :mod:`.derivatives3d`):
 
 .. math::
     \nabla\Omega_t = \int_t \Big(\frac{3 h\, a}{r^5} - \frac{n}{r^3}\Big),\qquad

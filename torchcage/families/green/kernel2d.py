@@ -119,7 +119,7 @@ def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor,
 def green2d_derivatives(points: torch.Tensor, cage: Cage, order: int = 1) -> tuple[torch.Tensor, ...]:
     r"""Gradients (and Hessians) of 2D Green coordinates with respect to the points, closed form.
 
-    The 2D counterparts of the 3D formulas (:mod:`._green3d_derivatives`): per edge ``e`` from
+    The 2D counterparts of the 3D formulas (:mod:`.derivatives3d`): per edge ``e`` from
     ``v_j`` to ``v_k`` (unit direction ``u``, outward normal ``n``, length ``l``), with
     ``a = v_j - x``, ``b = v_k - x``, the signed angle ``omega`` the edge subtends (positive on the
     inner side), the in-line moment ``K = u log(|b| / |a|)`` and the hat functions' gradients

@@ -176,7 +176,7 @@ def green3d_chunk(x: torch.Tensor, data: TriangleGreenData) -> tuple[torch.Tenso
         ``(phi_face (n, T, 3), psi (n, T), omega (n, T), on_face (n, T), alpha (n, T, 3))``: each
         face's contribution to its corners' ``phi``, ``psi``, the solid angles, whether the point
         lies on the face, and the barycentric coordinates of its foot point. Faces seen from far
-        (:mod:`._far_triangle`) take the quadrature rule.
+        (:mod:`.far_triangle`) take the quadrature rule.
     """
     a = data.p[None] - x[:, None, None, :]  # (n, T, 3 corners, 3)
     geometry = (data.normal[None], data.two_area[None], data.edge_dir[None], data.edge_out[None], data.grad_bary[None])

@@ -96,7 +96,7 @@ class GreenCoordinates(CageModule):
             to the points (buffers ``phi_gradients`` ``(N, V, D)``, ``psi_gradients`` ``(N, T, D)``)
             and, for 2, their Hessians (``phi_hessians``, ``psi_hessians``), so that
             :meth:`jacobian` / :meth:`hessian` of every pose cost a matrix product. Otherwise they
-            are computed (:func:`torchcage.families.green.derivatives`) on each call.
+            are computed (:func:`torchcage.functional.green_derivatives`) on each call.
 
     Shape:
         - Input: ``(*, V, D)`` deformed cage vertices.

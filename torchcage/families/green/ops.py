@@ -10,7 +10,7 @@ kept them all: 1.8 GB for the FireHydrant model). Double backward works: with ``
 the chunks' graphs are kept.
 
 For the points alone (the rest cage constant), ``backward`` contracts the closed-form gradients
-(:func:`torchcage.families.green.derivatives`, native where it loads) with the incoming
+(:func:`torchcage.functional.green_derivatives`, native where it loads) with the incoming
 cotangents instead: ``GreenGradFunction`` computes them, and its own derivative with respect to the
 points is the closed-form Hessian (``GreenHessFunction``), so double backward is analytic too.
 """

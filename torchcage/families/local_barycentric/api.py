@@ -115,12 +115,13 @@ def local_barycentric_coordinates(
         (True, True, True)
     """
     points, cage = as_inputs(points, cage)
-    if records_graph(points):
+    if records_graph(points, cage.vertices):
         raise PointsError(
-            "local_barycentric_coordinates is not differentiable with respect to the points (sparse weights, "
-            "thresholded); pass detached points, or use harmonic_coordinates, which differentiate"
+            "local_barycentric_coordinates is not differentiable with respect to the points or the cage's vertices "
+            "(sparse, thresholded weights of an iterative solve), and takes no torch.func transform; pass detached "
+            "points and cage, or use harmonic_coordinates, which differentiate with respect to the points"
         )
-    if points.ndim > 2:
+    if points.ndim > 2 and not cage.is_batched:  # (a batch of cages: check_points names that first)
         raise PointsError(
             f"local_barycentric_coordinates returns a sparse (N, V) matrix: give points (N, {cage.dim}), e.g. "
             f"points.reshape(-1, {cage.dim}), got shape {tuple(points.shape)}"

@@ -2,7 +2,7 @@ r"""Mean value coordinates for closed triangle cages (3D) and closed polygons (2
 function. The kernels live beside it: ``kernel3d`` (torch, 3D: the formulation and its numerical
 care are described there), ``kernel2d`` (2D), ``native3d`` and ``native2d`` (the native CPU
 kernels' glue), chosen in ``dispatch``; with a graph, the call goes through
-:mod:`torchcage.families.mean_value.ops`.
+:mod:`.ops`.
 """
 
 from __future__ import annotations
@@ -99,8 +99,8 @@ def mean_value_coordinates(
         True
     """
     if torch.compiler.is_compiling():  # one opaque op: the checks below are not traceable
-        (lam,) = COMPILED(points, cage, chunk_size, backend)
-        return lam if dtype is None else lam.to(dtype)
+        (lam,) = COMPILED(points, cage, chunk_size, backend, dtype=dtype)
+        return lam
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         # One native call for the whole batch (CPU, no autograd graph, a triangle cage) ...

@@ -16,7 +16,7 @@ all exact up to rounding:
   ``theta_e / (2|N_e|)`` need derivatives (by the chain rule, through
   ``G(t) = atan(sqrt t)/sqrt t``, smooth through the edges' support lines);
 * **near the face's support plane** (``|h| < DERIVATIVE_SPLIT_FORM_RATIO min |a_i|``, the published formulas' weak spot:
-  the ratio of two vanishing quantities), the split form of the coordinates (see ``_mvc3d``), in
+  the ratio of two vanishing quantities), the split form of the coordinates (see ``kernel3d``), in
   which every term carries its power of the distance ``h`` explicitly, is differentiated as it
   stands; where an edge is seen under a small angle its two large terms are combined through a
   divided difference of ``G``, so the form stays exact through the edge's support line;
@@ -26,9 +26,9 @@ all exact up to rounding:
 
 In 2D each edge adds ``tan(alpha/2) / r`` to its two vertices, with ``tan(alpha/2)`` in one of two
 cancellation-free forms. The kernels are native C (``backends/native/mvcd3d.c``, ``mvcd2d.c``, glue and
-thresholds in ``_mvcd_native``), with a small second-order jet type doing the chain rule; for
+thresholds in ``derivatives_native``), with a small second-order jet type doing the chain rule; for
 CUDA points the Triton kernels ``families/mean_value/triton/mvcd3d.py`` and ``mvcd2d.py`` evaluate the same formulas.
-Where none serves (no C compiler, no triton), ``_mvcd_torch`` differentiates the torch kernel of
+Where none serves (no C compiler, no triton), ``derivatives_torch`` differentiates the torch kernel of
 the coordinates instead.
 """
 
@@ -69,7 +69,7 @@ def derivatives_flat(
     ``grad (n, V, D)``, ``hess (n, V, D, D)`` (empty for ``order=1``) and the ``(n,)`` bool mask of
     points on the cage (their rows hold the interpolant and its derivatives: see mvcd3d.c). The
     native kernel (CPU) or, where it cannot serve, autograd of the torch kernel
-    (:mod:`._mvcd_torch`, on the points' device).
+    (:mod:`.derivatives_torch`, on the points' device).
 
     The derivatives of every row sum to zero over the vertices (the coordinates sum to 1): their
     mean over the vertices, the kernels' rounding, is taken out. Left in, it multiplied the

@@ -1,12 +1,12 @@
 """Mean value coordinates with their gradients and Hessians by autograd of the torch kernel: the
-derivatives wherever the native kernel (``_mvcd_native``) cannot serve (any device, no C
+derivatives wherever the native kernel (``derivatives_native``) cannot serve (any device, no C
 compiler, ``TORCHCAGE_NATIVE=0``). The torch kernel is finite under autograd everywhere (see
 docs/accuracy.md), its far-field and split forms included, so these are the derivatives of the
 same coordinates: they agree with the native analytic ones to about 1e-12 (gradients) and 1e-10
 (Hessians) relative, next to faces included (both divide the weights' 1/h out there first;
 docs/accuracy.md has the figures). On the line of an edge outside it, where the split form is not
 differentiable term by term, the derivatives are the mean of those beside the line
-(:mod:`._edge_line`; plain autograd there was off by up to 7 absolute)."""
+(:mod:`.edge_line`; plain autograd there was off by up to 7 absolute)."""
 
 from __future__ import annotations
 

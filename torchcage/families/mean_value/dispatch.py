@@ -1,6 +1,6 @@
 """Mean value coordinates of checked points without an autograd graph: the one place that picks a
 kernel (native C, Triton or torch) and runs it over chunks of points. Both the public function
-(:mod:`.api`) and the autograd Functions (:mod:`torchcage.families.mean_value.ops`) import it;
+(:mod:`.api`) and the autograd Functions (:mod:`.ops`) import it;
 it imports neither. A batch of 3D triangle cages with one topology is one native call per chunk of
 points (:func:`coordinates_batch`)."""
 

@@ -1,8 +1,8 @@
 """Points on the line of a cage edge outside the edge: where the torch kernel's split form is not
 differentiable term by term (each adjacent face's weight has a ``|h|`` kink that cancels only in
 the sum), the derivatives are taken as the mean of those at two points beside the line. Used by the
-autograd fallbacks (``torchcage.families.mean_value.ops``) and by ``mean_value_derivatives``' torch path
-(``_mvcd_torch``)."""
+autograd fallbacks (``ops``) and by ``mean_value_derivatives``' torch path
+(``derivatives_torch``)."""
 
 from __future__ import annotations
 

@@ -208,7 +208,7 @@ def _point_grad(x: Tensor, P: Tensor, faces: Tensor, g: Tensor) -> Tensor:
 
 def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> tuple[Tensor | None, Tensor]:
     """First-order products with respect to the points and the rest vertices of a 3D cage at once:
-    the hand-derived reverse mode of the direct form (``_mvc3d_vjp``) for the regular points, chunk
+    the hand-derived reverse mode of the direct form (``vjp3d``) for the regular points, chunk
     by chunk; the others (near a support plane, on the cage, far outside) as in
     :meth:`MeanValueFunction.backward`'s general path, restricted to them."""
     dt = torch.float64 if x.device.type != "mps" else x.dtype

@@ -1,7 +1,7 @@
 r"""Vector-Jacobian products of 3D mean value coordinates with respect to the points and the rest
 cage's vertices in one pass, by hand-derived reverse mode of the direct vector form.
 
-For a face with corners ``p_1, p_2, p_3`` and ``a_i = p_i - x`` (see ``_mvc3d``):
+For a face with corners ``p_1, p_2, p_3`` and ``a_i = p_i - x`` (see ``kernel3d``):
 
 .. math::
     N_e = a_{e+1} \times a_{e+2},\; d_e = a_{e+1}\cdot a_{e+2},\; \theta_e = \operatorname{atan2}(|N_e|, d_e),\;
@@ -31,7 +31,7 @@ against autograd of the torch kernel and with ``gradcheck``.
 
 The direct form is accurate where the point is away from every face's support plane (its error is
 ``eps * r / |h|``), where the face weights do not cancel (inside the cage and near it), where no
-face is seen very small and no thin face from a few widths (``_thin_triangle``); a point is
+face is seen very small and no thin face from a few widths (``torchcage._core.thin_triangle``); a point is
 *regular* when all of that holds for every face. The caller
 handles the other points (near a support plane, on the cage, far outside) with the torch kernel.
 """

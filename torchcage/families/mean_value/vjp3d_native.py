@@ -1,5 +1,5 @@
 """Glue to the native CPU kernel of the joint vector-Jacobian product of 3D mean value
-coordinates (``torchcage/backends/native/mvc3d_vjp.c``; the formulas in :mod:`._mvc3d_vjp`)."""
+coordinates (``torchcage/backends/native/mvc3d_vjp.c``; the formulas in :mod:`.vjp3d`)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-r"""Green coordinates for triquad cages (QGC): the public function. The kernel is ``_qgc3d``."""
+r"""Green coordinates for triquad cages (QGC): the public function. The kernel is ``kernel``."""
 
 from __future__ import annotations
 
@@ -191,8 +191,8 @@ def quad_green_coordinates(
         True
     """
     if torch.compiler.is_compiling() and not allow_invalid:  # one opaque op (checks are not traceable)
-        phi, psi = COMPILED(points, cage, chunk_size, backend, n, tol)
-        return (phi, psi) if dtype is None else (phi.to(dtype), psi.to(dtype))
+        phi, psi = COMPILED(points, cage, chunk_size, backend, n, check_tol(tol), dtype=dtype)
+        return phi, psi
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(

@@ -178,7 +178,7 @@ def qgc3d_chunk(
         x: ``(m, 3)`` points.
         data: the quads' constants.
         quad_tol: if given, the null-space part from the defining integrals to this relative tolerance
-            (:mod:`._quad_quadrature`): ``Phi = Phi_bar + sum_i (Omega . kappa_i) kappa_i``, the
+            (:mod:`torchcage._core.quad_quadrature`): ``Phi = Phi_bar + sum_i (Omega . kappa_i) kappa_i``, the
             orthogonal projection of the integrals onto the solutions of the invariants (no norm
             correction, which serves the Riemann sum's bias).
 

@@ -1,5 +1,5 @@
 r"""Quad mean value coordinates (QMVC) for quad and triquad cages: the public function. The torch
-kernel (any device, differentiable) is ``_qmvc3d``; ``backends/native/qmvc3d.c`` is the CPU float64 one."""
+kernel (any device, differentiable) is ``kernel``; ``backends/native/qmvc3d.c`` is the CPU float64 one."""
 
 from __future__ import annotations
 
@@ -187,8 +187,8 @@ def quad_mean_value_coordinates(
         (True, True)
     """
     if torch.compiler.is_compiling() and not allow_invalid:  # one opaque op (checks are not traceable)
-        (lam,) = COMPILED(points, cage, chunk_size, backend, n, tol)
-        return lam if dtype is None else lam.to(dtype)
+        (lam,) = COMPILED(points, cage, chunk_size, backend, n, check_tol(tol), dtype=dtype)
+        return lam
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         return over_cage_batch(

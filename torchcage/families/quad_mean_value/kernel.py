@@ -380,7 +380,7 @@ def qmvc3d_chunk(
         data: the quads' constants.
         n: grid parameter (``(2n+1)^2`` samples per quad).
         tol: if given, the defining integrals are computed to this relative tolerance
-            (:mod:`._quad_quadrature`) instead of by the Riemann sum, and the weights are their
+            (:mod:`torchcage._core.quad_quadrature`) instead of by the Riemann sum, and the weights are their
             orthogonal projection onto the solutions of ``A w = m`` (``lambda = Omega . kappa / D``:
             no norm correction, which only serves the Riemann sum's bias); far quads take the
             integrals themselves.

@@ -1,5 +1,5 @@
 """Triton kernel of 3D Green coordinates (closed triangle cages): the formulas of the native kernel
-(``torchcage/backends/native/gc3d.c``, ``tc_gc_point``; derivation in :mod:`torchcage.families.green.kernel3d`),
+(``torchcage/backends/native/gc3d.c``, ``tc_gc_point``; derivation in :mod:`.kernel3d`),
 a block of points per program and a loop over the faces.
 
 Per point–face pair: the edge integrals ``I_e`` (``log`` of the ratio that does not cancel), the
@@ -9,7 +9,7 @@ from their nearer ends: the same bits for both faces of an edge), then ``psi`` a
 of ``phi``. Points on a face get the principal values plus the hat values of the largest face
 holding them with the jump weight ``1 - omega / 4 pi``. Pairs of a thin face seen from a few widths
 are flagged: the caller redoes those points with the torch kernel's swept form. Faces seen from far
-(:mod:`torchcage.families.green.far_triangle`) take its Gauss rule, in the blocks where a point needs it.
+(:mod:`.far_triangle`) take its Gauss rule, in the blocks where a point needs it.
 
 Shapes: ``P (V, 3)``, ``tri (T, 3)`` int32, per-face tables ``(T, ...)``, ``X (n, 3)`` ->
 ``PHI (n, V)``, ``PSI (n, T)`` (the bare integrals, as :func:`._green_dispatch.green_flat`) and

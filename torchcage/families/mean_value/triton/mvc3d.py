@@ -1,5 +1,5 @@
 """Triton kernel of 3D mean value coordinates (closed triangle cages): the formulas of the native
-kernel (``torchcage/backends/native/mvc3d.c``; derivation in :mod:`torchcage.families.mean_value.kernel3d`), a block
+kernel (``torchcage/backends/native/mvc3d.c``; derivation in :mod:`.kernel3d`), a block
 of points per program and a loop over the faces.
 
 Per point–face pair: the direct vector form ``w_i = N_i . m / (2 A h)``; the stable split form where

@@ -1,6 +1,6 @@
 """Triton kernel of the analytic gradients and Hessians of 3D mean value coordinates: the formulas
 of the native kernel (``torchcage/backends/native/mvcd3d.c``, whose header derives them), a block of points
-per program and a loop over the faces, every quantity a second-order jet (:mod:`._jet3`).
+per program and a loop over the faces, every quantity a second-order jet (:mod:`.jet3`).
 
 Per point–face pair, as the native kernel chooses:
 
@@ -15,7 +15,7 @@ Per point–face pair, as the native kernel chooses:
 The kernel writes the raw weights' jets; :func:`mvcd3d_triton` normalises them in torch (the sum,
 the singular form ``(k s_v + h r_v) / (k sum s + h sum r)``, or far away the first moment) and
 redoes the flagged points (on the cage, or a thin face seen from a few widths) with the torch
-kernel's derivatives (:mod:`torchcage.families.mean_value.derivatives_torch`), on the same device.
+kernel's derivatives (:mod:`.derivatives_torch`), on the same device.
 
 Shapes: ``P (V, 3)``, ``tri (T, 3)`` int32, per-face tables ``(T, ...)``, ``X (n, 3)`` ->
 ``ACC (n, V, 10)`` (value, gradient, Hessian xx yy zz xy xz yz of each vertex's weight),
@@ -688,7 +688,7 @@ def mvcd3d_triton(
     ``order=1``) and flags ``(n,)`` (uint8: 1 on the cage, 2 the total weight vanishes) of points
     ``x (n, 3)``, in float64 on the points' device (as every backend of the derivatives: in float32
     the jets of far points overflow). Points on the cage or next to a thin face are redone by the
-    torch kernel's derivatives (:mod:`torchcage.families.mean_value.derivatives_torch`), on the same device.
+    torch kernel's derivatives (:mod:`.derivatives_torch`), on the same device.
 
     The public way in is ``F.mean_value_derivatives(points, cage, backend="triton")`` (or
     ``"auto"`` for CUDA points); the autograd Functions take it for CUDA points. ``tables``:

@@ -1,6 +1,6 @@
 """Triton kernel of quad mean value coordinates (the quads of a quad or triquad cage): the formulas
 and thresholds of the native kernel (``torchcage/backends/native/qmvc3d.c``; derivation in
-:mod:`torchcage.families.quad_mean_value.kernel`), a block of points per program and a loop over the quads.
+:mod:`.kernel`), a block of points per program and a loop over the quads.
 
 Per point–quad pair: the kernel ``kappa`` of ``A = [p_0 .. p_3]`` and the rows of its
 pseudo-inverse (Cramer form), the mean vector, the smooth projection ``(u, v)`` of Algorithm 1
@@ -8,9 +8,9 @@ pseudo-inverse (Cramer form), the mean vector, the smooth projection ``(u, v)`` 
 Riemann sum of the corner integrals around ``(u, v)``, the least-norm solution plus the
 norm-corrected ``lambda kappa``, the split triangles' stable weights near a flat quad's plane, and
 the order-4 Gauss rule for quads seen small (blended in by ``log10`` of the distance). Triangles
-(the mean value form of :mod:`.mvc3d`, raw weights) are added by the caller before this kernel
-runs; the normalisation is the caller's too. The exact integrals (``tol``) are not here: the
-caller takes the torch kernel for them.
+(the mean value form of :mod:`torchcage.families.mean_value.triton.mvc3d`, raw weights) are added
+by the caller before this kernel runs; the normalisation is the caller's too. The exact integrals
+(``tol``) are not here: the caller takes the torch kernel for them.
 
 Shapes: ``P (V, 3)``, ``quads (Q, 4)`` int32, per-quad tables ``(Q, ...)``, ``X (n, 3)``; ``W (n, V)``
 in/out (raw weights: the triangles' on entry, plus the quads' on exit), ``flags (n,)`` int32 in/out
@@ -39,7 +39,8 @@ NREFINE = tl.constexpr(REFINE)
 #: ``16 eps`` (float64): the rounding level of ``kappa`` (relative to ``sum_i prod_{j != i} |p_j|``).
 NOISE = tl.constexpr(16.0 * 2.220446049250313e-16)
 BIG = tl.constexpr(1e300)
-#: The split form of the hull and split triangles (as the mean value kernel's, :mod:`.mvc3d`).
+#: The split form of the hull and split triangles (as the mean value kernel's,
+#: :mod:`torchcage.families.mean_value.triton.mvc3d`).
 SPLIT = tl.constexpr(TRITON_SPLIT_FORM_RATIO)
 
 
