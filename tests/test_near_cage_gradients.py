@@ -140,3 +140,24 @@ def test_near_face_gradients_against_mpmath(distance):
         refv = torch.tensor(refv, dtype=D64).reshape(-1, 3)
         assert float((gP - refv).norm() / refv.norm()) <= TARGET, (i, distance)
     assert torch.isfinite(gP_all).all() and torch.isfinite(gx).all()
+
+
+def test_fused_backward_on_the_cage_matches_the_autograd_path():
+    """Per point on a face, on an edge and at a vertex (each alone, so that the rest vertices'
+    gradient is that point's): the fused backward (closed form on faces and at vertices) against
+    autograd of the torch kernel (``ops._vertex_vjp``, the path every such point took before)."""
+    ico = icosphere()
+    g = torch.Generator().manual_seed(6)
+    cage = tc.Cage(ico.vertices.to(D64) * 1.05 + 0.02 * torch.randn(42, 3, generator=g, dtype=D64), ico.triangles)
+    y, f, _ = _face_points(cage, 4, 7)
+    p = cage.vertices[cage.triangles[f]]
+    t = torch.rand(4, 1, generator=g, dtype=D64)
+    x = torch.cat([y, p[:, 0] * t + p[:, 1] * (1 - t), cage.vertices[:2]])
+    cot = torch.randn(x.shape[0], cage.num_vertices, generator=g, dtype=D64)
+    for i in range(x.shape[0]):
+        gx, gP = _grads(x[i : i + 1], cage, cot[i : i + 1])
+        c0 = cot[i : i + 1] - cot[i : i + 1].mean(dim=-1, keepdim=True)
+        ref = ops._vertex_vjp(x[i : i + 1], cage.vertices, cage.triangles, c0)
+        scale = max(float(ref.abs().max()), 1.0)
+        assert float((gP - ref).abs().max()) <= 1e-12 * scale, i
+        assert torch.equal(gx, ops._point_grad(x[i : i + 1], cage.vertices, cage.triangles, c0))
