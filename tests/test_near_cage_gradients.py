@@ -108,7 +108,9 @@ def test_on_face_gradients_are_the_interpolants(cage_name):
     assert torch.allclose(gx[len(f) :], gx_ref[len(f) :], rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.parametrize("distance", [1e-12, 1e-9, 1e-6, 1e-4])
+@pytest.mark.parametrize(
+    "distance", [1e-12, pytest.param(1e-9, marks=pytest.mark.slow), pytest.param(1e-6, marks=pytest.mark.slow), 1e-4]
+)
 def test_near_face_gradients_against_mpmath(distance):
     """Within ``1e-12 .. 1e-4`` of the size from a face, on both sides: the gradients with respect
     to the point and the rest vertices against 60-digit central differences of the mpmath
