@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import ctypes
+import functools
 
 import numpy as np
 import torch
@@ -30,8 +31,14 @@ G_ORDER = 16
 
 
 def _gauss01(order: int) -> tuple[torch.Tensor, torch.Tensor]:
-    y, w = np.polynomial.legendre.leggauss(order)
-    return torch.as_tensor((y + 1) / 2), torch.as_tensor(w / 2)
+    y, w = _leggauss(order)
+    return torch.tensor((y + 1) / 2), torch.tensor(w / 2)
+
+
+@functools.lru_cache(maxsize=8)
+def _leggauss(order: int):
+    """Gauss–Legendre nodes and weights on ``[-1, 1]``, computed once per order (read only)."""
+    return np.polynomial.legendre.leggauss(order)
 
 
 def native_tables(cage: Cage) -> dict[str, object]:

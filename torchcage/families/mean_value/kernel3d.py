@@ -51,7 +51,6 @@ from torchcage._core.common import (
     collapsed_gauss,
     nearest_where,
     on_cage_tolerance,
-    outside_point,
     records_graph,
     safe_atan2,
     safe_div,
@@ -412,6 +411,21 @@ def _divide_h_out(w: list[torch.Tensor], sing: list[torch.Tensor], h: torch.Tens
     return [hstar * w[i] + sing[i] * ratio for i in range(3)]
 
 
+def _gathered_weights(
+    x: torch.Tensor, data: TriangleCageData, far: bool | str, scaled: bool, q: dict | None = None
+) -> torch.Tensor:
+    """Unnormalised weights ``(V, n)`` of points ``x`` ``(n, 3)`` (their non-finite columns where a
+    point is on a face: the caller replaces them), :func:`face_weights` gathered per vertex."""
+    sing: list[torch.Tensor] | None = [] if scaled else None
+    w, qw = face_weights(x, data, far_field=far, q=q, singular=sing)
+    if sing is not None:
+        w = _divide_h_out(w, sing, qw["h"])
+    W = torch.zeros((data.vertices.shape[1], x.shape[0]), dtype=x.dtype, device=x.device)
+    for i in range(3):
+        W.index_add_(0, data.tri[:, i], w[i])
+    return W
+
+
 def mvc3d_chunk(
     x: torch.Tensor, data: TriangleCageData, scaled: bool = False, part: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -440,19 +454,17 @@ def mvc3d_chunk(
     on_cage = on_face.any(dim=0)
     any_on = bool(on_cage.any())
     if any_on and records_graph(x, data.vertices):
-        # The regular formula is singular on the cage: evaluate it off the cage for those points,
-        # so that the discarded values carry finite derivatives (no NaN through torch.where).
-        xs = torch.where(on_cage[:, None], outside_point(data.vertices.T), x)
-        sing: list[torch.Tensor] | None = [] if scaled else None
-        w, qw = face_weights(xs, data, far_field=far, singular=sing)
+        # The regular formula is singular on the cage: evaluate it on the points off the cage only,
+        # so that no discarded value carries a non-finite derivative (NaN through torch.where) and
+        # the points on the cage cost only their interpolant. (Evaluating it at a stand-in point
+        # far outside, as before, took the far-field quadrature on every face: 100 times an
+        # ordinary point's cost.)
+        off = torch.nonzero(~on_cage).squeeze(1)
+        W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
+        if off.numel():
+            W = W.index_copy(1, off, _gathered_weights(x.index_select(0, off), data, far, scaled))
     else:
-        sing = [] if scaled else None
-        w, qw = face_weights(x, data, far_field=far, q=q, singular=sing)
-    if sing is not None:
-        w = _divide_h_out(w, sing, qw["h"])
-    W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
-    for i in range(3):
-        W.index_add_(0, data.tri[:, i], w[i])
+        W = _gathered_weights(x, data, far, scaled, q)
     if any_on:
         cols = torch.nonzero(on_cage).squeeze(1)
         # the largest face holding each point: its barycentric values are the best conditioned

@@ -231,10 +231,49 @@ def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> 
         idx = torch.cat(irregular) if irregular else torch.zeros(0, dtype=torch.long, device=x.device)
     if idx.numel():
         xi, gi = x.index_select(0, idx), g.index_select(0, idx)
-        gP += _vertex_vjp(xi, P, faces, gi).to(dt)
-        if need_x:
-            gx[idx] = _point_grad(xi, P, faces, gi).to(dt)
+        if lib is not None:
+            gxi, lam_i, inside = _on_face_vjp(xi, P, faces, gi)
+            if bool(inside.any()):
+                # On a face (inside it) or at a vertex the coordinates are the interpolant's, and
+                # d lam_v / d p_j = -lam_j d lam_v / dx (barycentric coordinates are affine
+                # invariant; zero at a vertex): no autograd of the torch kernel for those points.
+                gP -= lam_i[inside].T.to(dt) @ gxi[inside].to(dt)
+                rest = torch.nonzero(~inside).flatten()
+                xi, gi = xi.index_select(0, rest), gi.index_select(0, rest)
+            if xi.shape[0]:
+                gP += _vertex_vjp(xi, P, faces, gi).to(dt)
+            if need_x:
+                gx[idx] = gxi.to(dt)
+        else:
+            gP += _vertex_vjp(xi, P, faces, gi).to(dt)
+            if need_x:
+                gx[idx] = _point_grad(xi, P, faces, gi).to(dt)
     return (gx.to(x.dtype) if need_x else None), gP.to(P.dtype)
+
+
+#: Points on a face whose barycentric coordinates there are all above this take the closed form
+#: of :func:`_on_face_vjp` (nearer an edge, the interpolant's face and its derivatives are the
+#: edge's: they keep autograd of the torch kernel).
+_ON_FACE_MARGIN = 1e-6
+
+
+def _on_face_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The native analytic ``sum g * d lam / d points`` ``(n, 3)`` (as :func:`_point_grad`), the
+    coordinates ``(n, V)`` (float64) and the ``(n,)`` mask of the points on the cage inside a face
+    (barycentric coordinates above ``_ON_FACE_MARGIN``, off every edge's line:
+    :func:`_edge_line_offsets`) or at a vertex."""
+    lam, grad, _, on = derivatives_flat(x, _cage(P.detach(), faces), 1)
+    grad = grad.to(x.device, torch.promote_types(x.dtype, P.dtype))
+    gx = torch.einsum("nv,nvc->nc", g, grad)
+    nonzero = (lam != 0).sum(dim=1)
+    in_face = (nonzero == 3) & ((lam > _ON_FACE_MARGIN).sum(dim=1) == 3)
+    at_vertex = (nonzero == 1) & (lam == 1).any(dim=1)
+    inside = on.to(x.device) & (in_face | at_vertex)
+    if bool(inside.any()):
+        off = _edge_line_offsets(x, P, faces)
+        if off is not None:
+            inside = inside & (off.abs().sum(dim=1) == 0)
+    return gx, lam, inside
 
 
 def _vertex_grad_vjp(points: Tensor, vertices: Tensor, faces: Tensor, G: Tensor) -> Tensor:

@@ -1,0 +1,166 @@
+"""Gradients of 3D mean value coordinates at points on and near the cage (issue 44, item 3).
+
+The fused backward (``ops._joint_vjp``) hands the points it cannot take (near a face's support
+plane, on the cage) to autograd of the torch kernel. Points on the cage used to evaluate the
+regular formula at a stand-in point far outside (to keep the discarded branch's derivatives
+finite), which took the far-field quadrature on every face: a hundred times an ordinary point.
+These tests check that the regular formula now runs on the off-cage points only, and that the
+gradients there are right: on faces, those of the barycentric interpolant (closed form, autograd);
+within ``1e-12 .. 1e-4`` of the size from a face, on both sides, 60-digit central differences of
+the mpmath reference (``tests/reference.py``), to the target of ``test_gradient_references``.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from reference import gradient_reference, mvc3d_reference
+
+import torchcage as tc
+from torchcage import functional as F
+from torchcage.families.mean_value import kernel3d, ops
+from torchcage.testing import icosphere
+
+D64 = torch.float64
+TARGET = 1e-7  # relative, as tests/test_gradient_references.py
+STEP = 1e-15  # of the size
+
+
+def _cube() -> tc.Cage:
+    return tc.load_cage(tc.data.path("cube.obj")).to(D64).triangulated()
+
+
+def _face_points(cage: tc.Cage, k: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``k`` points inside random faces: ``(points (k, 3), faces (k,), barycentric weights (k, 3))``."""
+    g = torch.Generator().manual_seed(seed)
+    f = torch.randint(0, cage.triangles.shape[0], (k,), generator=g)
+    w = 0.1 + torch.rand(k, 3, generator=g, dtype=D64)  # away from the edges
+    w = w / w.sum(-1, keepdim=True)
+    y = (w[..., None] * cage.vertices[cage.triangles[f]]).sum(-2)
+    return y, f, w
+
+
+def _grads(x: torch.Tensor, cage: tc.Cage, cot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gradients of ``sum cot * lam`` with respect to the points and the rest vertices (the fused
+    first-order backward)."""
+    xx, V = x.clone().requires_grad_(), cage.vertices.clone().requires_grad_()
+    lam = F.mean_value_coordinates(xx, tc.Cage(V, cage.triangles, validate=False))
+    (lam * cot).sum().backward()
+    return xx.grad, V.grad
+
+
+def test_points_on_the_cage_skip_the_regular_formula(monkeypatch):
+    """Autograd of the torch kernel evaluates the face weights of the off-cage points only (it
+    evaluated them for every point, at a far stand-in for those on the cage)."""
+    cage = _cube()
+    y, _, _ = _face_points(cage, 6, 0)
+    x = torch.cat([y, torch.tensor([[0.1, 0.2, -0.3], [0.4, -0.5, 0.2]], dtype=D64)])
+    seen: list[int] = []
+    inner = kernel3d.face_weights
+
+    def spy(pts, *args, **kwargs):
+        seen.append(pts.shape[0])
+        return inner(pts, *args, **kwargs)
+
+    monkeypatch.setattr(kernel3d, "face_weights", spy)
+    xx = x.clone().requires_grad_()
+    lam = ops._torch_coordinates(xx, cage.vertices, cage.triangles)  # (the backward's fallback)
+    (gx,) = torch.autograd.grad((lam * lam).sum(), xx)
+    assert seen and max(seen) == 2, seen
+    assert torch.isfinite(gx).all()
+
+
+@pytest.mark.parametrize("cage_name", ["cube", "icosphere"])
+def test_on_face_gradients_are_the_interpolants(cage_name):
+    """On a face the coordinates are its barycentric coordinates: the rest vertices' gradient and
+    the point's in-plane gradient are theirs (autograd of the closed form, area ratios)."""
+    if cage_name == "cube":
+        cage = _cube()
+    else:
+        ico = icosphere()
+        g = torch.Generator().manual_seed(1)
+        cage = tc.Cage(ico.vertices.to(D64) * 1.05 + 0.02 * torch.randn(42, 3, generator=g, dtype=D64), ico.triangles)
+    y, f, _ = _face_points(cage, 8, 2)
+    x = torch.cat([y, 0.3 * cage.vertices[:2]])  # two ordinary points alongside
+    cot = torch.randn(x.shape[0], cage.num_vertices, generator=torch.Generator().manual_seed(3), dtype=D64)
+    gx, gP = _grads(x, cage, cot)
+
+    # reference: barycentric coordinates of the on-face points, ordinary points by the torch kernel
+    V = cage.vertices.clone().requires_grad_()
+    xr = x.clone().requires_grad_()
+    p = V[cage.triangles[f]]  # (k, 3, 3)
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    a = p - xr[: len(f), None, :]
+    area = torch.stack(
+        [(torch.linalg.cross(a[:, (i + 1) % 3], a[:, (i + 2) % 3], dim=-1) * n).sum(-1) for i in range(3)]
+    )
+    bary = (area / (n * n).sum(-1)).T  # (k, 3)
+    lam_face = torch.zeros(len(f), cage.num_vertices, dtype=D64).scatter(1, cage.triangles[f], bary)
+    lam_rest = F.mean_value_coordinates(xr[len(f) :], tc.Cage(V, cage.triangles, validate=False), backend="torch")
+    lam = torch.cat([lam_face, lam_rest])
+    gx_ref, gP_ref = torch.autograd.grad((lam * cot).sum(), (xr, V))
+
+    assert torch.allclose(gP, gP_ref, rtol=1e-10, atol=1e-10 * float(gP_ref.abs().max()))
+    unit = (n / n.norm(dim=-1, keepdim=True)).detach()
+    tangential = gx[: len(f)] - (gx[: len(f)] * unit).sum(-1, keepdim=True) * unit
+    tangential_ref = gx_ref[: len(f)] - (gx_ref[: len(f)] * unit).sum(-1, keepdim=True) * unit
+    assert torch.allclose(tangential, tangential_ref, rtol=1e-10, atol=1e-10 * float(tangential_ref.abs().max()))
+    assert torch.allclose(gx[len(f) :], gx_ref[len(f) :], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "distance", [1e-12, pytest.param(1e-9, marks=pytest.mark.slow), pytest.param(1e-6, marks=pytest.mark.slow), 1e-4]
+)
+def test_near_face_gradients_against_mpmath(distance):
+    """Within ``1e-12 .. 1e-4`` of the size from a face, on both sides: the gradients with respect
+    to the point and the rest vertices against 60-digit central differences of the mpmath
+    reference, the same points batched with ordinary ones and with points on the cage."""
+    cage = _cube()
+    y, f, _ = _face_points(cage, 2, 4)
+    p = cage.vertices[cage.triangles[f]]
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True)
+    near = torch.cat([y + distance * cage.scale * n, y - distance * cage.scale * n])  # outside, inside
+    x = torch.cat([near, y, torch.tensor([[0.1, 0.2, -0.3]], dtype=D64)])
+    c = torch.randn(cage.num_vertices, generator=torch.Generator().manual_seed(5), dtype=D64)
+    gx, gP_all = _grads(x, cage, c.expand(x.shape[0], -1))
+    rows = cage.vertices.tolist()
+    cs = c.tolist()
+
+    def f_ref(z, verts):
+        return sum(a * b for a, b in zip(cs, mvc3d_reference(z, verts, cage.triangles), strict=True))
+
+    flat = [v for r in rows for v in r]
+    for i in range(near.shape[0]):
+        xi = near[i].tolist()
+        ref = torch.tensor(gradient_reference(lambda z, r=rows: f_ref(z, r), xi, cage.scale, STEP), dtype=D64)
+        assert float((gx[i] - ref).norm() / ref.norm()) <= TARGET, (i, distance)
+        (_, gP) = _grads(near[i : i + 1], cage, c[None])
+        refv = gradient_reference(
+            lambda z, xi=xi: f_ref(xi, [z[k * 3 : k * 3 + 3] for k in range(len(rows))]), flat, cage.scale, STEP
+        )
+        refv = torch.tensor(refv, dtype=D64).reshape(-1, 3)
+        assert float((gP - refv).norm() / refv.norm()) <= TARGET, (i, distance)
+    assert torch.isfinite(gP_all).all() and torch.isfinite(gx).all()
+
+
+def test_fused_backward_on_the_cage_matches_the_autograd_path():
+    """Per point on a face, on an edge and at a vertex (each alone, so that the rest vertices'
+    gradient is that point's): the fused backward (closed form on faces and at vertices) against
+    autograd of the torch kernel (``ops._vertex_vjp``, the path every such point took before)."""
+    ico = icosphere()
+    g = torch.Generator().manual_seed(6)
+    cage = tc.Cage(ico.vertices.to(D64) * 1.05 + 0.02 * torch.randn(42, 3, generator=g, dtype=D64), ico.triangles)
+    y, f, _ = _face_points(cage, 4, 7)
+    p = cage.vertices[cage.triangles[f]]
+    t = torch.rand(4, 1, generator=g, dtype=D64)
+    x = torch.cat([y, p[:, 0] * t + p[:, 1] * (1 - t), cage.vertices[:2]])
+    cot = torch.randn(x.shape[0], cage.num_vertices, generator=g, dtype=D64)
+    for i in range(x.shape[0]):
+        gx, gP = _grads(x[i : i + 1], cage, cot[i : i + 1])
+        c0 = cot[i : i + 1] - cot[i : i + 1].mean(dim=-1, keepdim=True)
+        with torch.no_grad():  # (first order: no graph of the reference)
+            ref = ops._vertex_vjp(x[i : i + 1], cage.vertices, cage.triangles, c0)
+        scale = max(float(ref.abs().max()), 1.0)
+        assert float((gP - ref).abs().max()) <= 1e-12 * scale, i
+        assert torch.equal(gx, ops._point_grad(x[i : i + 1], cage.vertices, cage.triangles, c0))
