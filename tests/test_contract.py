@@ -558,8 +558,13 @@ def test_compile_module(key, fresh_dynamo) -> None:
 )
 def test_vmap_over_point_sets(key) -> None:
     """``torch.func.vmap`` of the functional over a batch of point sets ``(B, N, D)`` equals the call
-    on each set."""
+    on each set (mvc: through its custom op's vmap rule, where the native kernel serves)."""
     case = get_case(key)
+    if case.short == "mvc" and not torchcage.backends.native.available():
+        pytest.xfail(
+            "vmap without the native kernel: the torch kernel branches on the data (kernel3d/kernel2d: "
+            "bool(on_cage.any()))"
+        )
     X = torch.stack([case.inner_points(s) for s in (1.0, 0.9, 0.8)])
     outs = torch.func.vmap(lambda y: case.fam.function()(y, case.cage, **case.options))(X)
     outs = outs if isinstance(outs, tuple) else (outs,)
