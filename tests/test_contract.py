@@ -502,8 +502,10 @@ def test_compile_functional(key, fresh_dynamo) -> None:
     if case.short not in DIFFERENTIABLE:
         return
 
-    def f(y, P):
-        return torch.cat(dense_outputs(fn(y, case.cage.with_vertices(P), **opts)), dim=-1)
+    faces = case.cage.faces if case.dim == 3 else case.cage.edges
+
+    def f(y, P):  # (the constructor, not with_vertices: torch 2.5's dynamo cannot trace cls.__new__)
+        return torch.cat(dense_outputs(fn(y, torchcage.Cage(P, faces, validate=False), **opts)), dim=-1)
 
     x = case.points.clone().requires_grad_()
     P = case.cage.vertices.clone().requires_grad_()

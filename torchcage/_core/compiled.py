@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import List  # noqa: UP035 (torch 2.5 infers op schemas from typing.List only)
 
 import torch
 from torch import Tensor
@@ -92,7 +93,7 @@ class CompiledOp:
             backend: str,
             n: int,
             tol: float,
-        ) -> list[Tensor]:
+        ) -> List[Tensor]:  # noqa: UP006 (torch 2.5's infer_schema reads typing.List)
             with torch.no_grad():
                 cage = _cage(vertices, triangles, quads, edges)
                 return [o.clone() for o in outer.eager(points, cage, outer._options(chunk_size, backend, n, tol))]
@@ -110,12 +111,12 @@ class CompiledOp:
             triangles: Tensor,
             quads: Tensor,
             edges: Tensor,
-            grads: list[Tensor],
+            grads: List[Tensor],  # noqa: UP006
             chunk_size: int,
             backend: str,
             n: int,
             tol: float,
-        ) -> tuple[Tensor, Tensor]:
+        ) -> List[Tensor]:  # noqa: UP006 (the two gradients)
             options = outer._options(chunk_size, backend, n, tol)
 
             def run() -> tuple[Tensor | None, Tensor | None]:
@@ -133,11 +134,11 @@ class CompiledOp:
                 gx, gP = run()
             gx = torch.zeros_like(points) if gx is None else gx.to(points.dtype)
             gP = torch.zeros_like(vertices) if gP is None else gP.to(vertices.dtype)
-            return gx, gP
+            return [gx, gP]
 
         @vjp.register_fake
         def _(points, vertices, triangles, quads, edges, grads, chunk_size, backend, n, tol):
-            return torch.empty_like(points), torch.empty_like(vertices)
+            return [torch.empty_like(points), torch.empty_like(vertices)]
 
         def setup(ctx, inputs, output) -> None:
             points, vertices, triangles, quads, edges, *options = inputs
