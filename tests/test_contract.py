@@ -54,7 +54,6 @@ VMAP_LOCATE = (
     "vmap: .item() on a vmapped tensor: the point location chunks its candidate pairs by data "
     "(torchcage/solvers/locate.py: int(torch.searchsorted(csum, ...)))"
 )
-VMAP_INPLACE = "vmap: in-place arithmetic into an unbatched tensor with a vmapped operand (Green kernel)"
 
 
 class NoRegisteredOpError(AssertionError):
@@ -543,11 +542,6 @@ def test_compile_module(key, fresh_dynamo) -> None:
     "key",
     cases(
         xfail={
-            "gc-2d": "vmap: index_add_ into an unbatched tensor with a vmapped operand (2D Green kernel)",
-            "gc-3d": VMAP_INPLACE,
-            "qgc": VMAP_INPLACE,
-            "qmvc": "vmap: data-dependent control flow in the torch kernel (families/quad_mean_value/kernel.py "
-            "project: if bool(outside.any())); the native kernel is no longer handed vmapped points",
             "lbc": "vmap: refused with a PointsError (a transform records a graph, and the sparse, thresholded "
             "weights are not differentiable)",
             "hc": VMAP_LOCATE,
@@ -573,6 +567,43 @@ def test_vmap_over_point_sets(key) -> None:
     for b in range(X.shape[0]):
         for o, r in zip(outs, case.call(X[b]), strict=True):
             close(o[b], r, 1e-12, f"set {b}")
+
+
+#: The families whose functional entry runs as its registered op under vmap (its vmap rule).
+VMAP_OP = ("gc", "qmvc", "qgc")
+
+
+@pytest.mark.parametrize("key", cases(lambda f: f.short in VMAP_OP))
+def test_vmap_over_cages(key) -> None:
+    """``torch.func.vmap`` over the cage's vertices (several poses of one topology), the points shared
+    or mapped too, equals the call on each pose; gradients through the mapped call equal those of
+    the loop."""
+    case = get_case(key)
+    f = case.fam.function()
+    poses = _poses(case)
+    X = torch.stack([case.inner_points(s) for s in (1.0, 0.9, 0.8)][: poses.shape[0]])
+
+    def mapped(y: torch.Tensor, v: torch.Tensor) -> Any:
+        return f(y, case.cage.with_vertices(v), **case.options)
+
+    for shared in (True, False):  # one point set for every pose, or one per pose
+        outs = torch.func.vmap(mapped, in_dims=(None if shared else 0, 0))(case.points if shared else X, poses)
+        outs = outs if isinstance(outs, tuple) else (outs,)
+        for b in range(poses.shape[0]):
+            x = case.points if shared else X[b]
+            for o, r in zip(outs, case.call(x, case.cage.with_vertices(poses[b])), strict=True):
+                close(o[b], r, 1e-12, f"pose {b}")
+    Xg, Pg = X.clone().requires_grad_(), poses.clone().requires_grad_()
+    outs = torch.func.vmap(mapped)(Xg, Pg)
+    outs = outs if isinstance(outs, tuple) else (outs,)
+    sum((o**2).sum() for o in outs).backward()
+    Xr, Pr = X.clone().requires_grad_(), poses.clone().requires_grad_()
+    total = sum(
+        sum((r**2).sum() for r in case.call(Xr[b], case.cage.with_vertices(Pr[b]))) for b in range(poses.shape[0])
+    )
+    total.backward()
+    close(Xg.grad, Xr.grad, 1e-10, "d/dpoints")
+    close(Pg.grad, Pr.grad, 1e-10, "d/dvertices")
 
 
 @pytest.mark.parametrize("key", cases(lambda f: f.short == "mvc"))

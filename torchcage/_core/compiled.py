@@ -12,6 +12,10 @@ What compiles: values and first derivatives with respect to the points and the c
 batched cages included. Not under compilation: double backward and ``torch.func`` transforms (eager
 calls have both where the family does).
 
+The same op serves ``torch.func.vmap`` of the values (:func:`through_op`): its vmap rule folds the
+mapped axis into the points (one cage) or into a batch of cages (a mapped cage), so a mapped call
+is one call of the eager function on all the point sets at once.
+
 Examples:
     >>> import torch, torchcage
     >>> from torchcage import functional as F
@@ -34,7 +38,7 @@ from torch import Tensor
 
 from torchcage.cage import Cage
 
-__all__ = ["CompiledOp"]
+__all__ = ["CompiledOp", "through_op"]
 
 #: ``eager(points, cage, options) -> tuple of outputs`` (each ``(*, N, K)``).
 Eager = Callable[[Tensor, Cage, dict], tuple[Tensor, ...]]
@@ -54,6 +58,41 @@ def _autograd_inside_an_op() -> Iterator[None]:
     exclude = C._dispatch_tls_local_exclude_set() - autograd_keys
     with C._ForceDispatchKeyGuard(C._dispatch_tls_local_include_set(), exclude), torch.enable_grad():
         yield
+
+
+def through_op(points: object, cage: object) -> bool:
+    """Whether a public function runs as its op: under ``torch.compile``, or when ``torch.func.vmap``
+    maps the points or the cage's vertices at the innermost level (the op's vmap rule then sees the
+    whole batch; another transform inside the map, such as ``grad``, keeps the eager path)."""
+    if torch.compiler.is_compiling():
+        return True
+    vertices = getattr(cage, "vertices", None)  # (anything else: the eager checks name the problem)
+    return any(isinstance(t, Tensor) and torch._C._functorch.is_batchedtensor(t) for t in (points, vertices))
+
+
+def _vmap_inputs(
+    points: Tensor, vertices: Tensor, pdim: int | None, vdim: int | None
+) -> tuple[Tensor, Tensor, Callable[[Tensor], Tensor]]:
+    """The op's arguments for all the mapped calls at once, and how to bring each output back to
+    the mapped shape (the mapped axis first).
+
+    One cage per call (vertices ``(V, D)`` for each call) and only the points mapped: the point sets
+    are folded into one. A mapped cage: a batch of cages ``(size, *Bc, V, D)`` with the points
+    ``(size or 1, *Bp, N, D)``, batch axes aligned as one call would broadcast them (a cage of one
+    call, ``(V, D)``, takes each call's points as one set ``(N, D)``)."""
+    p = points.movedim(pdim, 0) if pdim is not None else points.unsqueeze(0)
+    if vdim is None and vertices.dim() == 2:
+        lead = p.shape[:-1]
+        return p.reshape(-1, p.shape[-1]), vertices, lambda o: o.reshape(*lead, o.shape[-1])
+    v = vertices.movedim(vdim, 0) if vdim is not None else vertices.unsqueeze(0)
+    if v.dim() == 3:  # one cage per call: its points as one set
+        lead = p.shape[1:-1]
+        p = p.reshape(p.shape[0], -1, p.shape[-1])
+        return p, v, lambda o: o.reshape(o.shape[0], *lead, o.shape[-1])
+    rank = max(p.dim(), v.dim()) - 2  # batch axes of one call's points and cages, the mapped one included
+    p = p.reshape(p.shape[0], *[1] * (rank - (p.dim() - 2)), *p.shape[1:])
+    v = v.reshape(v.shape[0], *[1] * (rank - (v.dim() - 2)), *v.shape[1:])
+    return p, v, lambda o: o
 
 
 def _cage(vertices: Tensor, triangles: Tensor, quads: Tensor, edges: Tensor) -> Cage:
@@ -157,6 +196,18 @@ class CompiledOp:
             return gx, gP, None, None, None, None, None, None, None
 
         values.register_autograd(backward, setup_context=setup)
+
+        def values_vmap(info, in_dims, points, vertices, triangles, quads, edges, chunk_size, backend, n, tol):
+            if any(d is not None for d in in_dims[2:5]):
+                raise ValueError(
+                    f"torchcage::{name}: vmap over the cage's faces is not supported (one topology for every "
+                    "call); map over the points or the vertices"
+                )
+            p, v, back = _vmap_inputs(points, vertices, in_dims[0], in_dims[1])
+            outs = values(p, v, triangles, quads, edges, chunk_size, backend, n, tol)
+            return [back(o) for o in outs], [0] * len(outs)
+
+        values.register_vmap(values_vmap)
         self.values, self.vjp = values, vjp
 
     @staticmethod

@@ -21,7 +21,7 @@ from torchcage._core.common import (
     snap_to_vertices,
     unit_sum,
 )
-from torchcage._core.compiled import CompiledOp
+from torchcage._core.compiled import CompiledOp, through_op
 from torchcage.cage import Cage
 from torchcage.families.green.dispatch import green_flat
 from torchcage.families.green.exterior import extend_outside
@@ -119,7 +119,7 @@ def green_coordinates(
     """
     if exterior not in ("extend", "none"):
         raise ValueError(f"exterior must be 'extend' or 'none', got {exterior!r}")
-    if torch.compiler.is_compiling() and exterior == "extend":  # one opaque op (checks are not traceable)
+    if through_op(points, cage) and exterior == "extend":  # one opaque op (compile, vmap: :mod:`_core.compiled`)
         phi, psi = COMPILED(points, cage, chunk_size, backend, dtype=dtype)
         return phi, psi
     points, cage = as_inputs(points, cage)

@@ -9,7 +9,7 @@ import torch
 
 from torchcage._core.batch import over_cage_batch
 from torchcage._core.common import ON_CAGE_TOLERANCE, VERTEX_SNAP, as_inputs, chunks, snap_to_vertices, unit_sum
-from torchcage._core.compiled import CompiledOp
+from torchcage._core.compiled import CompiledOp, through_op
 from torchcage.backends import Op, select
 from torchcage.cage import Cage
 from torchcage.errors import warn_outside
@@ -190,7 +190,7 @@ def quad_green_coordinates(
         >>> torch.allclose(phi @ cube.vertices + psi @ N, x)
         True
     """
-    if torch.compiler.is_compiling() and not allow_invalid:  # one opaque op (checks are not traceable)
+    if through_op(points, cage) and not allow_invalid:  # one opaque op (compile, vmap: :mod:`_core.compiled`)
         phi, psi = COMPILED(points, cage, chunk_size, backend, n, check_tol(tol), dtype=dtype)
         return phi, psi
     points, cage = as_inputs(points, cage)

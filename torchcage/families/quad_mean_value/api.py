@@ -22,7 +22,7 @@ from torchcage._core.common import (
     records_graph,
     result_dtype,
 )
-from torchcage._core.compiled import CompiledOp
+from torchcage._core.compiled import CompiledOp, through_op
 from torchcage.backends import Op, check, select
 from torchcage.cage import Cage
 from torchcage.errors import CageError, PointsError
@@ -186,7 +186,7 @@ def quad_mean_value_coordinates(
         >>> torch.allclose(exact @ cube.vertices, x), bool((exact - w).abs().max() < 1e-2)
         (True, True)
     """
-    if torch.compiler.is_compiling() and not allow_invalid:  # one opaque op (checks are not traceable)
+    if through_op(points, cage) and not allow_invalid:  # one opaque op (compile, vmap: :mod:`_core.compiled`)
         (lam,) = COMPILED(points, cage, chunk_size, backend, n, check_tol(tol), dtype=dtype)
         return lam
     points, cage = as_inputs(points, cage)
