@@ -24,6 +24,7 @@ import torch
 from support import CONTRACT_CELLS, contract_cage, contract_points, contract_solution, dense_outputs
 
 import torchcage
+from torchcage._core.compiled import _vmap_records_autograd
 from torchcage.errors import PointsError
 from torchcage.families import FAMILIES, Family, family
 
@@ -50,6 +51,10 @@ FIRST_GRAPH_BREAK = (
     "torch.compiler.is_compiling() could short-circuit it; the next one is check_finite's data-dependent "
     "`if bool(bad.any())`"
 )
+#: The families whose functional entry runs as its registered op under vmap (its vmap rule).
+VMAP_OP = ("gc", "qmvc", "qgc")
+#: Why they do not map on a torch whose custom ops record no autograd through a vmap rule (2.5).
+VMAP_OLD_TORCH = "this torch records no autograd through a custom op's vmap rule (2.5): the eager path runs"
 VMAP_LOCATE = (
     "vmap: .item() on a vmapped tensor: the point location chunks its candidate pairs by data "
     "(torchcage/solvers/locate.py: int(torch.searchsorted(csum, ...)))"
@@ -561,6 +566,8 @@ def test_vmap_over_point_sets(key) -> None:
             "vmap without the native kernel: the torch kernel branches on the data (kernel3d/kernel2d: "
             "bool(on_cage.any()))"
         )
+    if case.short in VMAP_OP and not _vmap_records_autograd():
+        pytest.xfail(VMAP_OLD_TORCH)
     X = torch.stack([case.inner_points(s) for s in (1.0, 0.9, 0.8)])
     outs = torch.func.vmap(lambda y: case.fam.function()(y, case.cage, **case.options))(X)
     outs = outs if isinstance(outs, tuple) else (outs,)
@@ -569,15 +576,13 @@ def test_vmap_over_point_sets(key) -> None:
             close(o[b], r, 1e-12, f"set {b}")
 
 
-#: The families whose functional entry runs as its registered op under vmap (its vmap rule).
-VMAP_OP = ("gc", "qmvc", "qgc")
-
-
 @pytest.mark.parametrize("key", cases(lambda f: f.short in VMAP_OP))
 def test_vmap_over_cages(key) -> None:
     """``torch.func.vmap`` over the cage's vertices (several poses of one topology), the points shared
     or mapped too, equals the call on each pose; gradients through the mapped call equal those of
     the loop."""
+    if not _vmap_records_autograd():
+        pytest.skip(VMAP_OLD_TORCH)
     case = get_case(key)
     f = case.fam.function()
     poses = _poses(case)

@@ -29,6 +29,7 @@ Examples:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import List  # noqa: UP035 (torch 2.5 infers op schemas from typing.List only)
@@ -67,7 +68,30 @@ def through_op(points: object, cage: object) -> bool:
     if torch.compiler.is_compiling():
         return True
     vertices = getattr(cage, "vertices", None)  # (anything else: the eager checks name the problem)
-    return any(isinstance(t, Tensor) and torch._C._functorch.is_batchedtensor(t) for t in (points, vertices))
+    tensors = [t for t in (points, vertices) if isinstance(t, Tensor)]
+    if not any(torch._C._functorch.is_batchedtensor(t) for t in tensors):
+        return False
+    # Older torch (2.5) records no autograd through a custom op's vmap rule (and a mapped tensor
+    # reads requires_grad=False there): gradients would be missing without a word. There the eager
+    # path runs, as before the rule (and names what it cannot do).
+    return _vmap_records_autograd()
+
+
+@functools.cache
+def _vmap_records_autograd() -> bool:
+    """Whether this torch records autograd through a custom op's vmap rule (probed once on a
+    private one-line op)."""
+    x = torch.ones(2, 1, requires_grad=True)
+    return bool(torch.func.vmap(_probe)(x).requires_grad)
+
+
+@torch.library.custom_op("torchcage::_vmap_probe", mutates_args=())
+def _probe(x: Tensor) -> Tensor:
+    return x * 2
+
+
+_probe.register_autograd(lambda ctx, g: g * 2)
+_probe.register_vmap(lambda info, in_dims, x: (_probe(x), in_dims[0]))
 
 
 def _vmap_inputs(
