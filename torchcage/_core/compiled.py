@@ -179,19 +179,24 @@ class CompiledOp:
             backend: str,
             n: int,
             tol: float,
-        ) -> List[Tensor]:  # noqa: UP006 (the two gradients)
+            need_points: bool,
+            need_vertices: bool,
+        ) -> List[Tensor]:  # noqa: UP006 (the two gradients; zeros for one not needed)
             options = outer._options(chunk_size, backend, n, tol)
 
             def run() -> tuple[Tensor | None, Tensor | None]:
-                x = points.detach().requires_grad_()
-                P = vertices.detach().requires_grad_()
+                # only what the backward needs records a graph (the eager backward then spares
+                # the other: no point gradients for a cage-only loss)
+                x = points.detach().requires_grad_(need_points)
+                P = vertices.detach().requires_grad_(need_vertices)
                 outs = outer.eager(x, _cage(P, triangles, quads, edges), options)
                 cot = [
                     torch.zeros_like(o) if g.dim() == 0 else g.to(o.dtype)  # (0-dim: an output not used)
                     for g, o in zip(grads, outs, strict=True)
                 ]
-                gx, gP = torch.autograd.grad(outs, (x, P), cot, allow_unused=True)
-                return gx, gP
+                wrt = [t for t in (x, P) if t.requires_grad]
+                got = iter(torch.autograd.grad(outs, wrt, cot, allow_unused=True))
+                return (next(got) if need_points else None), (next(got) if need_vertices else None)
 
             with _autograd_inside_an_op():
                 gx, gP = run()
@@ -200,7 +205,9 @@ class CompiledOp:
             return [gx, gP]
 
         @vjp.register_fake
-        def _(points, vertices, triangles, quads, edges, grads, chunk_size, backend, n, tol):
+        def _(
+            points, vertices, triangles, quads, edges, grads, chunk_size, backend, n, tol, need_points, need_vertices
+        ):
             return [torch.empty_like(points), torch.empty_like(vertices)]
 
         def setup(ctx, inputs, output) -> None:
@@ -216,8 +223,9 @@ class CompiledOp:
                 )
             points, vertices, triangles, quads, edges = ctx.saved_tensors
             grads = [g if g is not None else torch.zeros(()) for g in grads]
-            gx, gP = vjp(points, vertices, triangles, quads, edges, list(grads), *ctx.options)
-            return gx, gP, None, None, None, None, None, None, None
+            need_x, need_P = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+            gx, gP = vjp(points, vertices, triangles, quads, edges, list(grads), *ctx.options, need_x, need_P)
+            return (gx if need_x else None), (gP if need_P else None), None, None, None, None, None, None, None
 
         values.register_autograd(backward, setup_context=setup)
 
