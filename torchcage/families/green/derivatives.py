@@ -14,10 +14,11 @@ from __future__ import annotations
 import torch
 
 from torchcage._core.common import as_inputs, check_points, result_dtype
+from torchcage.backends import check
 from torchcage.cage import Cage
 from torchcage.errors import CageError
 from torchcage.families.green.api import centred, green_coordinates
-from torchcage.families.green.derivatives_flat import autograd_rows, check_backend, closed_form
+from torchcage.families.green.derivatives_flat import GC_DERIVATIVES, autograd_rows, closed_form
 
 __all__ = ["green_derivatives"]
 
@@ -80,7 +81,7 @@ def green_derivatives(
     """
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order!r}")
-    check_backend(backend)
+    check(GC_DERIVATIVES, backend)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         raise CageError("green_derivatives takes one cage; call it per element (cage[b])")

@@ -5,12 +5,10 @@ autograd Functions (:mod:`.ops`) import it; it imports neither."""
 
 from __future__ import annotations
 
-import ctypes
-
 import torch
 
 from torchcage._core.common import chunks, default_chunk, jacobian_rows
-from torchcage.backends import Op, check, select
+from torchcage.backends import Op, select
 from torchcage.cage import Cage
 from torchcage.families.green import derivatives3d_native as _green3d_derivatives_native
 from torchcage.families.green.derivatives3d import green3d_derivatives
@@ -18,27 +16,11 @@ from torchcage.families.green.dispatch import green_flat
 from torchcage.families.green.kernel2d import green2d_derivatives
 from torchcage.families.green.kernel3d import triangle_green_data
 
-__all__ = ["autograd_rows", "bare_derivatives", "check_backend", "closed_form", "library"]
+__all__ = ["GC_DERIVATIVES", "autograd_rows", "bare_derivatives", "closed_form"]
 
 
 #: The kernels of Green derivatives: native C for 3D float64 CPU points, else torch.
 GC_DERIVATIVES = Op("Green derivatives")
-
-
-def check_backend(backend: str) -> None:
-    """Raise ``ValueError`` for a backend name the derivatives do not know."""
-    check(GC_DERIVATIVES, backend)
-
-
-def library(backend: str, x: torch.Tensor) -> ctypes.CDLL | None:
-    """The native library when it serves this call (float64 CPU points, a loadable library).
-
-    Raises:
-        ValueError: an unknown backend.
-        RuntimeError: ``"native"`` for points it cannot take (not float64 on the CPU) or without a
-            loadable library.
-    """
-    return select(GC_DERIVATIVES, backend, x, graph=False).lib  # (the kernels record no graph)
 
 
 def closed_form(
@@ -62,7 +44,7 @@ def closed_form(
     exact = torch.zeros(n, dtype=torch.bool, device=x.device)
     if n == 0:
         return gphi, gpsi, hphi, hpsi, exact
-    lib = library(backend, x)
+    lib = select(GC_DERIVATIVES, backend, x, graph=False).lib  # (the kernels record no graph)
     if lib is not None:
         verts = cage.vertices.to(x.dtype)
         exact = _green3d_derivatives_native.derivatives(x, data, verts, lib, order, gphi, gpsi, hphi, hpsi)
