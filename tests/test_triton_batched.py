@@ -193,3 +193,10 @@ def test_undefined_points_are_named_by_element(monkeypatch: pytest.MonkeyPatch) 
     x = torch.zeros(5, 3, dtype=D64, device=DEVICE)
     with pytest.raises(torchcage.PointsError, match=r"undefined at points \[4\] in batch element \(1,\)"):
         F.mean_value_coordinates(x, torchcage.Cage(V.to(DEVICE), tri.to(DEVICE)), backend="triton")
+
+
+def test_no_points() -> None:
+    V, tri = _cages(2)
+    cage = torchcage.Cage(V.to(DEVICE), tri.to(DEVICE))
+    for pts in (torch.zeros(0, 3, dtype=D64), torch.zeros(2, 0, 3, dtype=D64)):
+        assert F.mean_value_coordinates(pts.to(DEVICE), cage, backend="triton").shape == (2, 0, 8)
