@@ -266,11 +266,6 @@ def _mvc3d_kernel(
     thin += b * T
     far_nodes += b * T * Q * 3
     far_coef += b * T * Q * 3
-    c0 = tl.load(cen + 3 * b)
-    c1 = tl.load(cen + 3 * b + 1)
-    c2 = tl.load(cen + 3 * b + 2)
-    far2 = tl.load(far2 + b)
-    rad2 = tl.load(rad2 + b)
     tol = tl.load(tol + b)
     X += b * xs
     x0 = tl.load(X + 3 * offs, mask=live, other=0.0)
@@ -316,6 +311,12 @@ def _mvc3d_kernel(
     on = best_area >= 0.0
     # (a NaN or an overflow in the sums, far away in float32, counts as cancelling)
     far = (~(abs_sum <= cancel_c * tl.abs(total)) | tiny) & ~on & live
+    # (the cage's centre and radii loaded here, after the face loop: fewer registers live through it)
+    c0 = tl.load(cen + 3 * b)
+    c1 = tl.load(cen + 3 * b + 1)
+    c2 = tl.load(cen + 3 * b + 2)
+    far2 = tl.load(far2 + b)
+    rad2 = tl.load(rad2 + b)
     y0 = x0 - c0
     y1 = x1 - c1
     y2 = x2 - c2
