@@ -52,8 +52,9 @@ def mean_value_coordinates(
             Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
             ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
             (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md). For
-            a triangle cage on the CPU without an autograd graph, the whole batch is one native
-            kernel call; elsewhere, one call per element.
+            a triangle cage without an autograd graph, the whole batch is one native kernel
+            call (CPU) or one Triton launch (CUDA) per chunk of points; elsewhere, one call per
+            element.
         chunk_size: points per chunk; peak memory grows with ``chunk_size x faces``. Default: about
             130k (3D) or 260k (2D) point–face pairs per chunk in the torch kernel.
         dtype: dtype of the result (default: that of the inputs). The kernels compute in float64
@@ -103,11 +104,11 @@ def mean_value_coordinates(
         return lam
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
-        # One native call for the whole batch (CPU, no autograd graph, a triangle cage) ...
+        # One native call / Triton launch for the whole batch (no autograd graph, a triangle cage) ...
         lam = coordinates_batch(points, cage, chunk_size, dtype, progress, backend)
         if lam is not None:
             return lam
-        # ... elsewhere (the torch kernel, Triton, an autograd graph, 2D) one call per element for
+        # ... elsewhere (the torch kernel, an autograd graph, 2D) one call per element for
         # now (_batch.over_cage_batch): those paths have no batched kernel yet.
         return over_cage_batch(
             mean_value_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend

@@ -1,8 +1,8 @@
 """Mean value coordinates of checked points without an autograd graph: the one place that picks a
 kernel (native C, Triton or torch) and runs it over chunks of points. Both the public function
 (:mod:`.api`) and the autograd Functions (:mod:`.ops`) import it;
-it imports neither. A batch of 3D triangle cages with one topology is one native call per chunk of
-points (:func:`coordinates_batch`)."""
+it imports neither. A batch of 3D triangle cages with one topology is one native call (CPU) or
+one Triton launch (CUDA) per chunk of points (:func:`coordinates_batch`)."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from torchcage.errors import PointsError
 from torchcage.families.mean_value import native2d as _mvc2d_native
 from torchcage.families.mean_value import native3d as _mvc3d_native
 from torchcage.families.mean_value.kernel2d import mvc2d_chunk, polygon_data
-from torchcage.families.mean_value.kernel3d import mvc3d_chunk, triangle_cage_data
+from torchcage.families.mean_value.kernel3d import mvc3d_chunk, triangle_cage_data, triangle_data
 
 __all__ = ["MVC", "coordinates_batch", "coordinates_flat"]
 
@@ -124,13 +124,14 @@ def coordinates_batch(
 ) -> torch.Tensor | None:
     """Mean value coordinates ``(*B', N, V)`` of points ``(N, 3)`` or ``(*Bp, N, 3)`` for a batch
     of 3D triangle cages with one topology (batch shape ``B``, ``B'`` the broadcast shape) by the
-    native kernel: one call per chunk of points for every cage at once, the per-cage tables built
-    by one set of tensor operations. Element by element the numbers of the public function on
-    ``cage[b]`` (the same tables, the same kernel, the same far-field correction).
+    native kernel (CPU) or the Triton kernel (CUDA, or ``backend="triton"``): one call per chunk of
+    points for every cage at once, the per-cage tables built by one set of tensor operations.
+    Element by element the numbers of the public function on ``cage[b]`` (the same tables, the
+    same kernel, the same far-field correction).
 
-    ``None`` where the native kernel does not serve (the torch kernel, Triton, an autograd graph,
-    2D or quad cages, another device or compute dtype, no native build): the caller then computes
-    element by element (``_batch.over_cage_batch``), which also raises the errors of those paths.
+    ``None`` where neither serves (the torch kernel, an autograd graph, 2D or quad cages, another
+    device or compute dtype, no native build): the caller then computes element by element
+    (``_batch.over_cage_batch``), which also raises the errors of those paths.
     The cages' geometry is checked by the caller (``as_inputs``: ``Cage.check_geometry``, vectorised
     over the batch, naming the element).
 
@@ -139,13 +140,13 @@ def coordinates_batch(
             points where the coordinates are undefined (the total weight vanishes); the batch
             element is named.
     """
-    if cage.dim != 3 or cage.has_quads or backend not in ("auto", "native") or records_graph(points, cage.vertices):
+    if cage.dim != 3 or cage.has_quads or backend == "torch" or records_graph(points, cage.vertices):
         return None
     pts, verts, batch = broadcast_batch(points, cage)
-    if not pts.is_floating_point() or pts.device != cage.device or pts.device.type != "cpu":
+    if not pts.is_floating_point() or pts.device != cage.device:
         return None  # (the per-element path raises the errors that name these)
     compute, out_dtype = result_dtype(pts, cage, dtype, backend)
-    if compute != torch.float64:
+    if pts.device.type == "cpu" and backend != "triton" and compute != torch.float64:
         return None
     if not bool(torch.isfinite(pts).all()):
         bad = ~torch.isfinite(pts).all(dim=-1)  # (1 or B, N)
@@ -155,7 +156,11 @@ def coordinates_batch(
         raise PointsError(f"points contain NaN or inf (flattened indices {idx}{where}); remove or fix them")
     # relative to each cage's centre, as the single-cage function does (module _centre)
     x, v = centred_batch(pts, verts, compute)
-    lib = select(MVC, backend, x, v, graph=False).lib
+    choice = select(MVC, backend, x, v, graph=False)
+    if choice.kind == "triton":
+        out = _triton_batch(x, v, cage.triangles, chunk_size, progress, batch)
+        return out.to(out_dtype).reshape(*batch, x.shape[1], v.shape[1])
+    lib = choice.lib
     if lib is None:
         return None
     B, N, V = v.shape[0], x.shape[1], v.shape[1]
@@ -182,6 +187,58 @@ def coordinates_batch(
     if _may_be_far(x, v):  # (else far_unity leaves every row as it is: a pass over the points spared)
         out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
     return out.to(out_dtype).reshape(*batch, N, V)
+
+
+def _triton_batch(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    tri: torch.Tensor,
+    chunk_size: int | None,
+    progress: bool | Callable[[int, int], None],
+    batch: torch.Size,
+) -> torch.Tensor:
+    """:func:`coordinates_batch` by the Triton kernel: centred points ``x`` ``(B or 1, N, 3)`` and
+    vertices ``v`` ``(B, V, 3)`` in the compute dtype (float64, or float32 when asked) on the
+    kernel's device -> ``(B, N, V)``; one launch per chunk of points for every cage, the tables of
+    the batch built by one set of tensor operations. Points that see a thin face from a few widths
+    are redone by the torch kernel (a loop over the cages that have such points, as
+    :func:`coordinates_flat` does for one), then the far points' sums are restored (``far_unity``).
+    Element by element the numbers of the single-cage Triton path.
+
+    Raises:
+        PointsError: points where the coordinates are undefined, naming the batch element.
+    """
+    from torchcage.families.mean_value.triton.mvc3d import batch_tables, mvc3d_triton
+
+    B, N, V = v.shape[0], x.shape[1], v.shape[1]
+    tol = on_cage_tolerances(v)  # (B,) float64, as on_cage_tolerance of each centred cage
+    tables = batch_tables(v, tri, tol)
+    size = chunk_size if chunk_size is not None else default_chunk(B * tri.shape[0], 1 << 23)
+    out = torch.empty((B, N, V), dtype=x.dtype, device=x.device)
+    flags = torch.empty((B, N), dtype=torch.int32, device=x.device)
+    for sl in chunks(N, size, progress, desc="mean value coordinates"):
+        Wc, fc = mvc3d_triton(x[:, sl], tables)
+        out[:, sl] = Wc
+        flags[:, sl] = fc
+    redo = flags == 2  # (B, N): a thin face seen from a few widths (the torch kernel's swept form)
+    if bool(redo.any()):
+        for b in torch.nonzero(redo.any(dim=1)).flatten().tolist():
+            idx = torch.nonzero(redo[b]).flatten()
+            cr = x[b if x.shape[0] > 1 else 0].index_select(0, idx)
+            data = triangle_data(v[b], tri.to(v.device), float(tol[b]))
+            Wr, onr = mvc3d_chunk(cr, data)
+            out[b, idx] = normalise_weights(Wr.T, onr, v[b], cr)
+    bad = ~torch.isfinite(out.sum(dim=-1))  # (B, N): a row sum is finite iff every entry is
+    if bool(bad.any()):
+        b = int(torch.nonzero(bad.any(dim=1))[0])
+        idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
+        raise PointsError(
+            f"mean value coordinates are undefined at points {idx}{_batch_name(torch.tensor(b), batch)} (the total "
+            "weight vanishes there, which happens only outside the cage); move these points"
+        )
+    if _may_be_far(x, v):  # (else far_unity leaves every row as it is)
+        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
+    return out
 
 
 def _may_be_far(x: torch.Tensor, v: torch.Tensor) -> bool:

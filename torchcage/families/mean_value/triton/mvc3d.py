@@ -10,8 +10,11 @@ the faces seen small. Far from the cage the weights are normalised by their firs
 a thin face seen from a few widths (``_thin_triangle.thin_pairs``) are flagged: the caller redoes
 those points with the torch kernel's swept form.
 
-Shapes: ``P (V, 3)``, ``tri (T, 3)`` int32, per-face tables ``(T, ...)``, ``X (n, 3)`` -> ``W (n, V)``
-(normalised) and ``flags (n,)`` int32 (1: on the cage, 2: redo with the torch kernel).
+A batch of ``B`` cages with one topology is one launch (a program per cage and block of points):
+``tri (T, 3)`` int32 is shared, every other table carries a leading cage axis (``P (B, V, 3)``,
+per-face tables ``(B, T, ...)``, per-cage scalars ``(B,)``); ``X (B, n, 3)``, or ``(1, n, 3)``
+shared by every cage, -> ``W (B, n, V)`` (normalised) and ``flags (B, n)`` int32 (1: on the cage,
+2: redo with the torch kernel). One cage is a batch of one.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ import torch
 import triton
 import triton.language as tl
 
-from torchcage._core.thin_triangle import THIN_DISTANCE
+from torchcage._core.common import FAR_MOMENT
+from torchcage._core.thin_triangle import THIN_ASPECT, THIN_DISTANCE
 from torchcage.backends.triton import interpreted, warps
 from torchcage.backends.triton.common import PI, atan, atan2
 from torchcage.families.mean_value.kernel3d import (
@@ -29,9 +33,10 @@ from torchcage.families.mean_value.kernel3d import (
     FAR_FIELD_RATIO,
     PART_FAR_FIELD_RATIO,
     TriangleCageData,
+    face_constants,
 )
 
-__all__ = ["mvc3d_triton", "part_tables"]
+__all__ = ["batch_tables", "mvc3d_triton", "part_tables", "triton_tables"]
 
 TWO_PI = tl.constexpr(6.283185307179586)
 #: The split form serves pairs with ``|h| < TRITON_SPLIT_FORM_RATIO min |a_i|``: wider than the
@@ -241,16 +246,32 @@ def _far_face(x0, x1, x2, f, h, far_nodes, far_coef, Q, scale):
 
 @triton.jit
 def _mvc3d_kernel(
-    X, n, P, V, tri, T, nrm, two_area, ell, gram, longest, thin, far_nodes, far_coef, Q,
-    c0, c1, c2, far2, rad2, tol, near_c, far_c, cancel_c, far_always, thin_distance,
+    X, xs, n, P, V, tri, T, nrm, two_area, ell, gram, longest, thin, far_nodes, far_coef, Q,
+    cen, far2, rad2, tol, near_c, far_c, cancel_c, far_always, thin_distance,
     W, flags, BLOCK: tl.constexpr, NORMALIZE: tl.constexpr = True,
 ):  # fmt: skip
-    offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    # one program: a block of points against cage b (program index b * blocks + block); the
+    # topology (tri) is shared, every other table has a leading cage axis
+    pid = tl.program_id(0)
+    nblk = tl.cdiv(n, BLOCK)
+    b = (pid // nblk).to(tl.int64)
+    offs = (pid % nblk) * BLOCK + tl.arange(0, BLOCK)
     live = offs < n
+    P += b * V * 3
+    nrm += b * T * 3
+    two_area += b * T
+    ell += b * T * 3
+    gram += b * T * 9
+    longest += b * T
+    thin += b * T
+    far_nodes += b * T * Q * 3
+    far_coef += b * T * Q * 3
+    tol = tl.load(tol + b)
+    X += b * xs
     x0 = tl.load(X + 3 * offs, mask=live, other=0.0)
     x1 = tl.load(X + 3 * offs + 1, mask=live, other=0.0)
     x2 = tl.load(X + 3 * offs + 2, mask=live, other=0.0)
-    row = W + offs.to(tl.int64) * V
+    row = W + (b * n + offs) * V
     for v in range(V):
         tl.store(row + v, tl.zeros_like(x0), mask=live)
     total = tl.zeros_like(x0)
@@ -290,6 +311,12 @@ def _mvc3d_kernel(
     on = best_area >= 0.0
     # (a NaN or an overflow in the sums, far away in float32, counts as cancelling)
     far = (~(abs_sum <= cancel_c * tl.abs(total)) | tiny) & ~on & live
+    # (the cage's centre and radii loaded here, after the face loop: fewer registers live through it)
+    c0 = tl.load(cen + 3 * b)
+    c1 = tl.load(cen + 3 * b + 1)
+    c2 = tl.load(cen + 3 * b + 2)
+    far2 = tl.load(far2 + b)
+    rad2 = tl.load(rad2 + b)
     y0 = x0 - c0
     y1 = x1 - c1
     y2 = x2 - c2
@@ -351,47 +378,95 @@ def _mvc3d_kernel(
     tl.store(row + bi1, tl.load(row + bi1, mask=live & on, other=0.0) + bb1 / bsum, mask=live & on)
     tl.store(row + bi2, tl.load(row + bi2, mask=live & on, other=0.0) + bb2 / bsum, mask=live & on)
     flag = tl.where(on, 1, tl.where(redo, 2, 0))
-    tl.store(flags + offs, flag, mask=live)
+    tl.store(flags + b * n + offs, flag, mask=live)
 
 
 def triton_tables(data: TriangleCageData) -> dict[str, object]:
-    """The kernel's per-cage arguments, built once from the torch kernel's constants (compute dtype,
-    the cage's device)."""
+    """The kernel's arguments for one cage (a batch of one), built once from the torch kernel's
+    constants (compute dtype, the cage's device)."""
     v = data.vertices.T.contiguous()  # (V, 3)
-    lo, hi = v.min(dim=0).values, v.max(dim=0).values
-    c = 0.5 * (lo + hi)
-    from torchcage._core.common import FAR_MOMENT
-
-    r2 = float(((v - c) ** 2).sum(dim=1).max())
     T = data.tri.shape[0]
     thin = torch.zeros(T, dtype=torch.int32, device=v.device)
     thin[data.thin] = 1
+    tables = _topology(data.tri, v.shape[0], data.far_nodes.shape[1])
+    tables.update(
+        {
+            "P": v[None],
+            "nrm": torch.nan_to_num(data.normal[:, :, 0].T, nan=0.0).contiguous()[None],
+            "two_area": data.two_area[:, 0].contiguous()[None],
+            "ell": data.edge_len[:, :, 0].T.contiguous()[None],
+            "gram": data.gram.contiguous()[None],
+            "longest": data.longest[:, 0].contiguous()[None],
+            "thin": thin[None],
+            "far_nodes": data.far_nodes.contiguous()[None],
+            "far_coef": data.far_coef.contiguous()[None],
+            "tol": torch.full((1,), data.tol, dtype=v.dtype, device=v.device),
+        }
+    )
+    tables.update(_far_tables(v[None]))
+    return tables
+
+
+def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """The kernel's arguments for a batch of cages with one topology, every per-cage table of the
+    ``B`` cages computed by one set of tensor operations (element by element the numbers of
+    :func:`triton_tables` on ``triangle_cage_data`` of that cage, as ``native3d.batch_tables``).
+
+    Args:
+        vertices: ``(B, V, 3)`` vertices in the compute dtype, on the kernel's device.
+        tri: ``(T, 3)`` the shared triangles.
+        tol: ``(B,)`` absolute on-cage tolerances.
+
+    Returns:
+        The keyword arguments of the kernel but the points and outputs (per-cage tables with a
+        leading axis ``B``).
+    """
+    B, V = vertices.shape[0], vertices.shape[1]
+    tri = tri.to(vertices.device)
+    c = face_constants(vertices[:, tri])  # (B, T, ...)
+    two_area = c["two_area"]
+    thin = (c["edges"].square().sum(-1).amax(-1) > THIN_ASPECT * two_area) & (two_area > 0)  # as triangle_data
+    tables = _topology(tri, V, c["far_nodes"].shape[2])
+    tables.update(
+        {
+            "P": vertices.contiguous(),
+            "nrm": torch.nan_to_num(c["normal"], nan=0.0).contiguous(),
+            "two_area": two_area.contiguous(),
+            "ell": c["edge_len"].contiguous(),
+            "gram": c["gram"].contiguous(),
+            "longest": c["longest"].contiguous(),
+            "thin": thin.to(torch.int32).contiguous(),
+            "far_nodes": c["far_nodes"].contiguous(),
+            "far_coef": c["far_coef"].contiguous(),
+            "tol": tol.to(device=vertices.device, dtype=vertices.dtype).reshape(B).contiguous(),
+        }
+    )
+    tables.update(_far_tables(vertices))
+    return tables
+
+
+def _topology(tri: torch.Tensor, V: int, Q: int) -> dict[str, object]:
+    """The arguments shared by every cage of a batch: the triangles and the constants."""
     return {
-        "P": v,
-        "V": v.shape[0],
-        "tri": data.tri.to(torch.int32).contiguous(),
-        "T": T,
-        "nrm": torch.nan_to_num(data.normal[:, :, 0].T, nan=0.0).contiguous(),
-        "two_area": data.two_area[:, 0].contiguous(),
-        "ell": data.edge_len[:, :, 0].T.contiguous(),
-        "gram": data.gram.contiguous(),
-        "longest": data.longest[:, 0].contiguous(),
-        "thin": thin,
-        "far_nodes": data.far_nodes.contiguous(),
-        "far_coef": data.far_coef.contiguous(),
-        "Q": data.far_nodes.shape[1],
-        "c0": float(c[0]),
-        "c1": float(c[1]),
-        "c2": float(c[2]),
-        "far2": FAR_MOMENT * FAR_MOMENT * r2,
-        "rad2": r2,
-        "tol": data.tol,
+        "V": V,
+        "tri": tri.to(torch.int32).contiguous(),
+        "T": tri.shape[0],
+        "Q": Q,
         "near_c": TRITON_SPLIT_FORM_RATIO,
         "far_c": FAR_FIELD_RATIO,
         "cancel_c": CANCELLATION_RATIO,
         "far_always": FAR_ALWAYS_RATIO,
         "thin_distance": THIN_DISTANCE,
     }
+
+
+def _far_tables(v: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Each cage's bounding-box centre ``cen`` ``(B, 3)``, squared radius ``rad2`` ``(B,)`` about
+    it and the squared radius of its far region ``far2`` (``FAR_MOMENT`` radii), of ``v``
+    ``(B, V, 3)``."""
+    c = 0.5 * (v.amin(dim=1) + v.amax(dim=1))
+    r2 = ((v - c[:, None]) ** 2).sum(dim=-1).amax(dim=-1)
+    return {"cen": c.contiguous(), "rad2": r2.contiguous(), "far2": (FAR_MOMENT * FAR_MOMENT) * r2}
 
 
 def part_tables(data: TriangleCageData) -> dict[str, object]:
@@ -407,28 +482,43 @@ def part_tables(data: TriangleCageData) -> dict[str, object]:
 def mvc3d_triton(
     x: torch.Tensor, tables: dict[str, object], block: int | None = None, normalize: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normalised mean value coordinates ``(n, V)`` of points ``x`` ``(n, 3)`` (the tables' dtype and
-    device) and their flags ``(n,)`` int32: 1 on the cage, 2 where the caller must redo the point
-    with the torch kernel (a thin face seen from a few widths). ``block``: points per program (64 on
-    a GPU; the interpreter runs one op per call over the block, so there the block is large).
-    ``normalize=False``: the raw weights (rows on the cage hold their final values), for the
-    triangles of a triquad cage (tables from :func:`part_tables`)."""
-    n = x.shape[0]
+    """Normalised mean value coordinates of points ``x`` (the tables' dtype and device) and their
+    flags, int32: 1 on the cage, 2 where the caller must redo the point with the torch kernel (a
+    thin face seen from a few widths). One launch for every cage of the tables.
+
+    One cage (tables of a batch of one): ``x`` ``(n, 3)`` -> ``W`` ``(n, V)``, flags ``(n,)``. A
+    batch of ``B`` cages (:func:`batch_tables`): ``x`` ``(B, n, 3)``, or ``(1, n, 3)`` shared by
+    every cage -> ``W`` ``(B, n, V)``, flags ``(B, n)``.
+
+    ``block``: points per program (64 on a GPU; the interpreter runs one op per call over the block,
+    so there the block is large). ``normalize=False``: the raw weights (rows on the cage hold their
+    final values), for the triangles of a triquad cage (tables from :func:`part_tables`).
+
+    Raises:
+        ValueError: points whose batch is neither 1 nor the cages'.
+    """
+    batched = x.dim() == 3
+    X = x.contiguous() if batched else x.contiguous()[None]
+    B, XB, n = tables["P"].shape[0], X.shape[0], X.shape[1]  # type: ignore[attr-defined]
+    if XB not in (1, B) or (not batched and B != 1):
+        raise ValueError(
+            f"mvc3d_triton: points of shape {tuple(x.shape)} for tables of {B} cages: give (1 or {B}, n, 3)"
+            + (" or (n, 3)" if B == 1 else "")
+        )
     if block is None:
         block = min(4096, triton.next_power_of_2(max(n, 16))) if interpreted() else 64
-    W = torch.empty((n, tables["V"]), dtype=x.dtype, device=x.device)
-    flags = torch.empty(n, dtype=torch.int32, device=x.device)
-    if n == 0:
-        return W, flags
-    grid = (triton.cdiv(n, block),)
-    # float32: no fused multiply-adds. The on-cage test needs the exact zero of a cross product of
-    # collinear vectors (a point on an edge shared by coplanar faces, as a triangulated quad's
-    # diagonal): fused, ``a b - c d`` with equal products leaves the rounding error of one (3e-9 on
-    # the cube), far above the float64-scaled tolerance (4e-14), both faces refuse the point and its
-    # row was 0.15 off on an H200 (2026-12-04). float64's residue (1e-17) is below it (passed there).
-    fusion = x.dtype != torch.float32
-    _mvc3d_kernel[grid](
-        x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block, NORMALIZE=normalize, num_warps=warps(block),
-        enable_fp_fusion=fusion,
-    )  # fmt: skip
-    return W, flags
+    W = torch.empty((B, n, tables["V"]), dtype=x.dtype, device=x.device)
+    flags = torch.empty((B, n), dtype=torch.int32, device=x.device)
+    if n > 0:
+        grid = (B * triton.cdiv(n, block),)
+        # float32: no fused multiply-adds. The on-cage test needs the exact zero of a cross product of
+        # collinear vectors (a point on an edge shared by coplanar faces, as a triangulated quad's
+        # diagonal): fused, ``a b - c d`` with equal products leaves the rounding error of one (3e-9 on
+        # the cube), far above the float64-scaled tolerance (4e-14), both faces refuse the point and its
+        # row was 0.15 off on an H200 (2026-12-04). float64's residue (1e-17) is below it (passed there).
+        fusion = x.dtype != torch.float32
+        _mvc3d_kernel[grid](
+            X, 0 if XB == 1 else 3 * n, n, **tables, W=W, flags=flags, BLOCK=block, NORMALIZE=normalize,
+            num_warps=warps(block), enable_fp_fusion=fusion,
+        )  # fmt: skip
+    return (W, flags) if batched else (W[0], flags[0])

@@ -1,0 +1,202 @@
+"""Batched rest cages in one Triton launch: mean value coordinates of a batch of 3D triangle cages
+with one topology (the kernel's cage axis, tables built for the batch at once) agree with the loop
+of single-cage Triton calls, for points inside, outside, on faces, edges and vertices and far away,
+shared by every cage or one set per cage. Run by Triton's interpreter on CPU tensors
+(``TRITON_INTERPRET=1``) or on a GPU when there is one, as ``tests/test_triton.py``."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+import torchcage
+from torchcage import functional as F
+from torchcage.families.mean_value.kernel3d import triangle_cage_data
+from torchcage.testing import sliver_cube
+
+pytestmark = pytest.mark.triton
+
+triton = pytest.importorskip("triton", reason="triton is not installed (pip install torchcage[triton])")
+if not torch.cuda.is_available() and os.environ.get("TRITON_INTERPRET", "0") in ("", "0"):
+    pytest.skip("no GPU, and TRITON_INTERPRET=1 is not set: the Triton kernels cannot run", allow_module_level=True)
+
+from torchcage.families.mean_value.triton import mvc3d as _mvc3d  # noqa: E402
+
+DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+D64 = torch.float64
+
+
+def _cages(B: int, seed: int = 0, shift: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(B, 8, 3)`` jittered, scaled cubes (float64) and their 12 triangles (small: the interpreter
+    runs a face at a time); ``shift`` moves the last cage that far from the origin (computed
+    relative to its centre)."""
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj")).to(D64).triangulated()
+    g = torch.Generator().manual_seed(seed)
+    V = cube.vertices * (1 + 0.3 * torch.rand(B, 1, 1, generator=g, dtype=D64))
+    V = V + 0.03 * torch.randn(B, 8, 3, generator=g, dtype=D64)
+    V[-1] += shift
+    return V, cube.triangles
+
+
+def _points(V: torch.Tensor, tri: torch.Tensor, seed: int = 1, far: bool = False) -> torch.Tensor:
+    """Points of every kind for the cage ``V`` ``(8, 3)``: inside, on vertices, on edge midpoints,
+    on faces, just off faces on both sides (39); with ``far``, outside, far and very far away
+    instead (12: the far pass, slow in the interpreter)."""
+    g = torch.Generator().manual_seed(seed)
+    c = V.mean(0)
+    d = torch.nn.functional.normalize(torch.randn(12, 3, generator=g, dtype=D64), dim=1)
+    if far:
+        r = torch.tensor([2.0, 3.0, 5.0, 10.0, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9], dtype=D64)
+        return c + r[:, None] * d  # (from 1e3 radii on: the first-moment normaliser)
+    p = V[tri]
+    bary = torch.rand(12, 3, generator=g, dtype=D64)
+    on_face = (bary[:, :, None] * p).sum(1) / bary.sum(1, keepdim=True)
+    nrm = torch.nn.functional.normalize(torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1), dim=1)
+    return torch.cat(
+        [
+            c + 0.4 * torch.rand(8, 1, generator=g, dtype=D64) * d[:8],  # inside
+            V[:4],  # on vertices
+            0.5 * (p[:3, 0] + p[:3, 1]),  # on edges
+            on_face[:4],  # on faces
+            on_face[4:8] + 1e-9 * nrm[4:8],  # just outside the faces
+            on_face[8:12] - 1e-7 * nrm[8:12],  # just inside
+            on_face[:12:2] + 1e-3 * nrm[:12:2],  # near outside
+            on_face[1:12:2] - 1e-2 * nrm[1:12:2],  # near inside
+        ]
+    )
+
+
+def _assert_close(out: torch.Tensor, ref: torch.Tensor) -> None:
+    """Within 1e-12 (float64) or 1e-5 (float32) of ``ref``, relative to ``max(1, |ref|)``: the same
+    kernel on the same tables (the batch's built by batched tensor ops, which may round apart)."""
+    assert out.shape == ref.shape and out.dtype == ref.dtype
+    tol = 1e-12 if out.dtype == D64 else 1e-5
+    err = (out.double() - ref.double()).abs() / ref.double().abs().clamp_min(1.0)
+    assert bool(torch.isfinite(out).all()) and float(err.max()) <= tol, float(err.max())
+
+
+class _Launches:
+    """Counts the batched calls of the Triton kernel's wrapper, with their batch sizes."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.batches: list[int] = []
+        real = _mvc3d.mvc3d_triton
+
+        def wrapper(x, tables, *args, **kwargs):
+            self.batches.append(int(tables["P"].shape[0]))
+            return real(x, tables, *args, **kwargs)
+
+        monkeypatch.setattr(_mvc3d, "mvc3d_triton", wrapper)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, D64], ids=["float32", "float64"])
+@pytest.mark.parametrize("B", [1, 2])
+def test_batched_launch_equals_the_loop(dtype: torch.dtype, B: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Points one set per cage (XB = B) and shared (XB = 1), on and near the cages, the last cage
+    1e3 from the origin: the whole batch is one launch and element by element the single-cage
+    Triton call; in float64 the rows sum to one and reproduce the points."""
+    V, tri = _cages(B, shift=1e3 if B > 1 else 0.0)
+    cage = torchcage.Cage(V.to(dtype).to(DEVICE), tri.to(DEVICE))
+    per_cage = torch.stack([_points(V[b], tri, seed=b) for b in range(B)]).to(dtype).to(DEVICE)
+    opts = {"backend": "triton", "dtype": dtype}
+    launches = _Launches(monkeypatch)
+    for pts in (per_cage, per_cage[0]):
+        launches.batches.clear()
+        out = F.mean_value_coordinates(pts, cage, **opts)
+        assert launches.batches == [B]  # one launch for the whole batch
+        ref = torch.stack(
+            [F.mean_value_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], **opts) for b in range(B)]
+        )
+        _assert_close(out, ref)
+        if dtype == D64:
+            W, X = out.cpu(), (pts if pts.ndim == 3 else pts.expand(B, -1, -1)).cpu()
+            assert float((W.sum(-1) - 1).abs().max()) < 1e-12
+            assert float((W @ V - X).norm(dim=-1).max()) < 1e-9 * (1 + V.abs().max())
+
+
+def test_outside_and_far_points() -> None:
+    """Points from 2 to 1e9 radii (the far pass with its quadrature, the first-moment normaliser,
+    ``far_unity``), shared by two cages, one of them 1e3 from the origin."""
+    V, tri = _cages(2, seed=5, shift=1e3)
+    cage = torchcage.Cage(V.to(DEVICE), tri.to(DEVICE))
+    x = _points(V[0], tri, far=True).to(DEVICE)
+    out = F.mean_value_coordinates(x, cage, backend="triton")
+    for b in range(2):
+        _assert_close(out[b], F.mean_value_coordinates(x, cage[b], backend="triton"))
+    W = out.cpu()
+    y = x.cpu() - V.mean(1, keepdim=True)
+    # (far away the coordinates are of size distance / size: their sum is 1 to their rounding)
+    assert bool(((W.sum(-1) - 1).abs() <= 1e-13 * W.abs().sum(-1).clamp_min(1.0)).all())
+    assert float(((W @ V - x.cpu()).norm(dim=-1) / y.norm(dim=-1)).max()) < 1e-8
+
+
+def test_blocks_and_cages_in_one_grid() -> None:
+    """The kernel itself with small blocks (13 points, blocks of 8: two programs per cage, the
+    last partial), points one set per cage and shared, against the kernel on each cage's own
+    tables (the shared points' cage 0 is the per-cage call's cage 0)."""
+    V, tri = _cages(2, seed=4, shift=5.0)
+    V, tri = V.to(DEVICE), tri.to(DEVICE)
+    x = torch.stack([_points(V[b].cpu(), tri.cpu(), seed=7 + b)[6:19] for b in range(2)]).to(DEVICE)  # (2, 13, 3)
+    tol = torch.full((2,), 1e-13, dtype=D64)
+    tables = _mvc3d.batch_tables(V, tri, tol)
+
+    def single(b: int, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        one = _mvc3d.triton_tables(triangle_cage_data(torchcage.Cage(V[b], tri), D64))
+        one["tol"] = tol[b : b + 1].to(DEVICE)
+        return _mvc3d.mvc3d_triton(X, one, block=8)
+
+    W, flags = _mvc3d.mvc3d_triton(x, tables, block=8)
+    Ws, fs = _mvc3d.mvc3d_triton(x[:1], tables, block=8)
+    assert W.shape == Ws.shape == (2, 13, 8) and flags.shape == fs.shape == (2, 13)
+    assert int((flags == 1).sum()) > 0 and int((flags == 0).sum()) > 0  # on the cage and off it
+    for b, (Wb, fb) in enumerate(single(b, x[b]) for b in range(2)):
+        _assert_close(W[b], Wb)
+        assert torch.equal(flags[b], fb)
+    _assert_close(Ws[0], W[0])
+    Wb, fb = single(1, x[0])
+    _assert_close(Ws[1], Wb)
+    assert torch.equal(fs[1], fb)
+    with pytest.raises(ValueError, match="for tables of 2 cages"):
+        _mvc3d.mvc3d_triton(torch.zeros(3, 5, 3, dtype=D64, device=DEVICE), tables)
+
+
+def test_thin_faces_in_a_batch_are_redone_by_the_torch_kernel() -> None:
+    """The sliver cube and a stretched copy: points that see the sliver from a few widths are
+    flagged by the kernel and redone, per cage, by the torch kernel's swept form, as one cage."""
+    one = sliver_cube()
+    V = torch.stack([one.vertices, one.vertices * torch.tensor([1.0, 1.5, 0.8], dtype=D64)])
+    cage = torchcage.Cage(V.to(DEVICE), one.triangles.to(DEVICE))
+    g = torch.Generator().manual_seed(0)
+    x = (torch.rand(20, 3, generator=g, dtype=D64) - 0.5) * 1.6 * one.vertices.abs().amax()
+    x = torch.cat([x, one.vertices[:6] * 1.001]).to(DEVICE)
+    tables = _mvc3d.batch_tables(cage.vertices, cage.triangles, torch.full((2,), 1e-13, dtype=D64))
+    assert int((_mvc3d.mvc3d_triton(x[None], tables)[1] == 2).sum()) > 0
+    out = F.mean_value_coordinates(x, cage, backend="triton")
+    for b in range(2):
+        _assert_close(out[b], F.mean_value_coordinates(x, cage[b], backend="triton"))
+        ref = F.mean_value_coordinates(x.cpu(), cage[b].to("cpu"), backend="torch")
+        assert float(((out[b].cpu() - ref).abs() / ref.abs().clamp_min(1.0)).max()) < 1e-10
+
+
+def test_undefined_points_are_named_by_element(monkeypatch: pytest.MonkeyPatch) -> None:
+    V, tri = _cages(3)
+    real = _mvc3d.mvc3d_triton
+
+    def launch(x, tables, *args, **kwargs):
+        W, flags = real(x, tables, *args, **kwargs)
+        W[1, 4, 0] = float("nan")  # as a row whose total weight vanishes
+        return W, flags
+
+    monkeypatch.setattr(_mvc3d, "mvc3d_triton", launch)
+    x = torch.zeros(5, 3, dtype=D64, device=DEVICE)
+    with pytest.raises(torchcage.PointsError, match=r"undefined at points \[4\] in batch element \(1,\)"):
+        F.mean_value_coordinates(x, torchcage.Cage(V.to(DEVICE), tri.to(DEVICE)), backend="triton")
+
+
+def test_no_points() -> None:
+    V, tri = _cages(2)
+    cage = torchcage.Cage(V.to(DEVICE), tri.to(DEVICE))
+    for pts in (torch.zeros(0, 3, dtype=D64), torch.zeros(2, 0, 3, dtype=D64)):
+        assert F.mean_value_coordinates(pts.to(DEVICE), cage, backend="triton").shape == (2, 0, 8)
