@@ -8,9 +8,10 @@ import ctypes
 import torch
 
 from torchcage.backends import native as _native
+from torchcage.families.mean_value.edge_line import EDGE_LINE_BAND
 from torchcage.families.mean_value.kernel3d import CANCELLATION_RATIO, FAR_ALWAYS_RATIO, SPLIT_FORM_RATIO
 
-__all__ = ["native_vjp"]
+__all__ = ["native_vjp", "native_vjp_near"]
 
 
 def native_vjp(
@@ -41,3 +42,56 @@ def native_vjp(
         reg=reg,
     )
     return gx, gP, reg.bool()
+
+
+def native_vjp_near(
+    lib: ctypes.CDLL, x: torch.Tensor, vertices: torch.Tensor, tri: torch.Tensor, gbar: torch.Tensor, tol: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The joint product split per face for points near a face's support plane
+    (``torchcage/backends/native/mvc3d_vjp_near.c``): float64 CPU ``x`` ``(n, 3)``, ``vertices``
+    ``(V, 3)``, ``tri`` ``(T, 3)``, ``gbar`` ``(n, V)``.
+
+    Returns:
+        ``(gx (n, 3), gP (V, 3), split (n,) bool, pair (n, T) uint8, wbar (n, V), sn (n,), hs (n,))``:
+        the products over the faces regular for each point that takes the split (``split``); the
+        faces left to the caller (``pair``: 1, or 2 for the face around the point's foot, whose
+        distance is ``hs``); ``wbar = (gbar - gbar . lam) / W``; ``sn`` the sum over every face but
+        that one of ``wbar . w_f``.
+    """
+    n, V, T = x.shape[0], vertices.shape[0], tri.shape[0]
+    f64 = torch.float64
+    gx, gP, sn, hs = (
+        torch.empty((n, 3), dtype=f64),
+        torch.empty((V, 3), dtype=f64),
+        torch.empty(n, dtype=f64),
+        torch.empty(n, dtype=f64),
+    )
+    status, pair, wbar = (
+        torch.empty(n, dtype=torch.uint8),
+        torch.empty((n, T), dtype=torch.uint8),
+        torch.empty((n, V), dtype=f64),
+    )
+    _native.call(
+        lib,
+        "tc_mvc3d_vjp_near",
+        P=vertices.contiguous(),
+        V=V,
+        tri=tri.to(torch.int32).contiguous(),
+        T=T,
+        X=x.contiguous(),
+        n=n,
+        G=gbar.contiguous(),
+        tol=tol,
+        near_c=SPLIT_FORM_RATIO,
+        cancel_c=CANCELLATION_RATIO,
+        far_always=FAR_ALWAYS_RATIO,
+        band=EDGE_LINE_BAND,
+        GX=gx,
+        GP=gP,
+        status=status,
+        PAIR=pair,
+        WB=wbar,
+        SN=sn,
+        HS=hs,
+    )
+    return gx, gP, status.bool(), pair, wbar, sn, hs
