@@ -45,8 +45,8 @@ enum { Q_A = 0, Q_N = 9, Q_NN = 18, Q_D = 21, Q_TH = 24, Q_G = 27, Q_M = 30, Q_D
 enum { F_N = 0, F_ELL = 3, F_GRAM = 6, F_TWO_AREA = 15, F_LONGEST = 16, F_SIZE = 17 };
 
 void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
-                       double tol, double near_c, double cancel_c, double far_always, double band, int nthreads,
-                       double *GX, double *GP, unsigned char *status, unsigned char *PAIR, double *WB, double *SN,
+                       double tol, double near_c, double cancel_c, double far_always, double band, double near_d,
+                       double far_d, double margin, int nthreads, double *GX, double *GP, unsigned char *status, unsigned char *PAIR, double *WB, double *SN,
                        double *HS) {
     double *fc = (double *)malloc(sizeof(double) * F_SIZE * (size_t)(T > 0 ? T : 1));
     int any_thin = 0;
@@ -91,8 +91,8 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                 double a[3] = {P[3 * v] - x[0], P[3 * v + 1] - x[1], P[3 * v + 2] - x[2]};
                 L = fmin(L, sqrt(dot3(a, a)));
             }
-            int ok = L > tol;
-            long fstar = -1;
+            int ok = 1;
+            long fstar = -1, onf = -1, onv = -1;
             double abs_sum = 0.0;
             for (long f = 0; f < T && ok; ++f) {
                 const double *c = fc + F_SIZE * f;
@@ -116,7 +116,23 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                 const double two_area = c[F_TWO_AREA];
                 double det = dot3(a, N);
                 s[Q_DET] = det;
-                if (!(rmin > tol && c[F_LONGEST] * far_always >= rmin) ||
+                /* on the cage, as tc_mvcd3d (whose values and derivatives the general path takes
+                 * there): the first face, in order, whose corner is within tol, or which holds
+                 * the point within tol (its near-plane test, far faces skipped) */
+                if (rmin <= tol) {
+                    onv = tri[3 * f + (R[0] <= tol ? 0 : (R[1] <= tol ? 1 : 2))];
+                    break;
+                }
+                if (!(c[F_LONGEST] <= far_d * rmin)) {
+                    double h = dot3(c + F_N, a);
+                    int in_prism = fabs(h) <= tol && fabs(h) < near_d * rmin;
+                    for (int e = 0; e < 3 && in_prism; ++e) in_prism = dot3(c + F_N, N + 3 * e) >= -tol * c[F_ELL + e];
+                    if (in_prism) {
+                        onf = f;
+                        break;
+                    }
+                }
+                if (!(c[F_LONGEST] * far_always >= rmin) ||
                     (any_thin && c[F_LONGEST] * c[F_LONGEST] > TC_THIN_ASPECT * two_area &&
                      tc_thin_face((const double(*)[3])a, two_area))) {
                     ok = 0;
@@ -148,7 +164,7 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                         for (int q = 0; q < 3; ++q) r2 += (rel[q] - t * u[q]) * (rel[q] - t * u[q]);
                         if ((t < 0 || t > 1) && sqrt(r2) < band * L) ok = 0;
                     }
-                    if (fabs(h) <= tol && inside) ok = 0; /* on the face */
+                    if (fabs(h) <= tol && inside) ok = 0; /* on the face (by the test above: rounding) */
                     double turns = wind_angle / NEAR_TWO_PI, wind = nearbyint(turns);
                     if (fabs(turns - wind) > 0.25) ok = 0;
                     if (!ok) break;
@@ -173,6 +189,42 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                 abs_sum += fabs(fsum);
             }
             if (!ok) continue;
+            if (onf >= 0 || onv >= 0) { /* on the cage */
+                for (long f = 0; f < T && ok; ++f) /* (ops._edge_line_offsets' rule: the general path) */
+                    for (int e = 0; e < 3 && ok; ++e) {
+                        const double *pj = P + 3 * tri[3 * f + (e + 1) % 3], *pk = P + 3 * tri[3 * f + (e + 2) % 3];
+                        double u[3], rel[3], uu, t, r2 = 0.0;
+                        for (int q = 0; q < 3; ++q) u[q] = pk[q] - pj[q], rel[q] = x[q] - pj[q];
+                        uu = dot3(u, u);
+                        t = uu > 0 ? dot3(rel, u) / uu : 0.0;
+                        for (int q = 0; q < 3; ++q) r2 += (rel[q] - t * u[q]) * (rel[q] - t * u[q]);
+                        if ((t < 0 || t > 1) && sqrt(r2) < band * L && L > 0) ok = 0;
+                    }
+                if (!ok) continue;
+                if (onv >= 0) { /* at a vertex: lam is constant, no derivatives */
+                    status[p] = 2;
+                    continue;
+                }
+                /* in a face: its barycentric coordinates b_i = n . (a_j x a_k) / (2 area), their
+                 * gradients (E_i x n) / (2 area), all b_i above margin (else the general path) */
+                const double *c = fc + F_SIZE * onf, *N = S + (size_t)Q_SIZE * onf + Q_N;
+                double b[3], gxf[3] = {0, 0, 0};
+                for (int i = 0; i < 3; ++i) {
+                    const double *pj = P + 3 * tri[3 * onf + (i + 1) % 3], *pk = P + 3 * tri[3 * onf + (i + 2) % 3];
+                    double E[3], En[3];
+                    for (int q = 0; q < 3; ++q) E[q] = pj[q] - pk[q];
+                    cross3(E, c + F_N, En);
+                    b[i] = dot3(c + F_N, N + 3 * i) / c[F_TWO_AREA];
+                    if (!(b[i] > margin)) ok = 0;
+                    for (int q = 0; q < 3; ++q) gxf[q] += g[tri[3 * onf + i]] * En[q] / c[F_TWO_AREA];
+                }
+                if (!ok) continue;
+                status[p] = 2;
+                for (int q = 0; q < 3; ++q) GX[3 * p + q] = gxf[q];
+                for (int i = 0; i < 3; ++i)
+                    for (int q = 0; q < 3; ++q) gp[3 * tri[3 * onf + i] + q] -= b[i] * gxf[q];
+                continue;
+            }
             double total = 0.0;
             for (long v = 0; v < V; ++v) total += Wv[v];
             if (!(abs_sum <= cancel_c * fabs(total)) || total == 0.0 || !isfinite(total)) continue;

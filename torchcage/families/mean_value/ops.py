@@ -274,7 +274,7 @@ def _split_vjp(lib, x: Tensor, P: Tensor, faces: Tensor, g: Tensor, tol: float) 
         ``(gx (n, 3), gP (V, 3), split (n,) bool)``: the products over the points that took this
         path (``split``; the others' rows of ``gx`` are zero and they add nothing to ``gP``).
     """
-    gx, gP, split, pair, wbar, sn, hs = native_vjp_near(lib, x, P, faces, g, tol)
+    gx, gP, split, pair, wbar, sn, hs = native_vjp_near(lib, x, P, faces, g, tol, _ON_FACE_MARGIN)
     p_idx, f_idx = torch.nonzero(pair, as_tuple=True)
     if p_idx.numel() == 0:
         return gx, gP, split

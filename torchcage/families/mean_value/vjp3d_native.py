@@ -8,6 +8,7 @@ import ctypes
 import torch
 
 from torchcage.backends import native as _native
+from torchcage.families.mean_value.derivatives_native import DERIVATIVE_FAR_FIELD_RATIO, DERIVATIVE_SPLIT_FORM_RATIO
 from torchcage.families.mean_value.edge_line import EDGE_LINE_BAND
 from torchcage.families.mean_value.kernel3d import CANCELLATION_RATIO, FAR_ALWAYS_RATIO, SPLIT_FORM_RATIO
 
@@ -45,7 +46,13 @@ def native_vjp(
 
 
 def native_vjp_near(
-    lib: ctypes.CDLL, x: torch.Tensor, vertices: torch.Tensor, tri: torch.Tensor, gbar: torch.Tensor, tol: float
+    lib: ctypes.CDLL,
+    x: torch.Tensor,
+    vertices: torch.Tensor,
+    tri: torch.Tensor,
+    gbar: torch.Tensor,
+    tol: float,
+    margin: float,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The joint product split per face for points near a face's support plane
     (``torchcage/backends/native/mvc3d_vjp_near.c``): float64 CPU ``x`` ``(n, 3)``, ``vertices``
@@ -86,6 +93,9 @@ def native_vjp_near(
         cancel_c=CANCELLATION_RATIO,
         far_always=FAR_ALWAYS_RATIO,
         band=EDGE_LINE_BAND,
+        near_d=DERIVATIVE_SPLIT_FORM_RATIO,
+        far_d=DERIVATIVE_FAR_FIELD_RATIO,
+        margin=margin,
         GX=gx,
         GP=gP,
         status=status,
@@ -94,4 +104,4 @@ def native_vjp_near(
         SN=sn,
         HS=hs,
     )
-    return gx, gP, status.bool(), pair, wbar, sn, hs
+    return gx, gP, status != 0, pair, wbar, sn, hs
