@@ -15,18 +15,23 @@
  *      of wbar . w_f (with the identity sum_v wbar_v w_v = 0 it gives the coefficient of dh of
  *      f*'s c_i / h term without its cancellation: see _split_vjp).
  *
- * A point takes this path (status 1) only when every face is regular or careful; it is left to
- * the caller's general path (status 0, nothing accumulated) when it is on the cage (within tol
- * of a face inside it, or of a vertex), sees a thin face from a few widths, sees a face below
- * 1/far_always of its distance, its face weights cancel (far outside), more than one careful face
- * holds its foot point, the foot point lies on an edge's line to rounding (the two forms would
- * split c_i / h differently), or it lies within band times its distance to the nearest vertex of
- * the line of an edge outside the edge (ops._edge_line_offsets' rule, for which band is
- * EDGE_LINE_BAND: a superset of the points that rule takes).
+ * A point takes this path (status 1) only when every face is regular or careful. Points on the
+ * cage take the interpolant's closed form (status 2), as tc_mvcd3d and ops._on_face_vjp define it:
+ * the first face, in order, within tol of the point (tc_mvcd3d's test, with its near_d and far_d)
+ * or with a corner within tol; in a face, when its barycentric coordinates b_i all exceed margin,
+ * GX = sum_i gbar_i (E_i x n) / (2 area) and GP_i -= b_i GX (d lam_v / d p_j = -lam_j d lam_v / dx);
+ * at a vertex nothing (lam is constant). Every other point is left to the caller's general path
+ * (status 0, nothing accumulated): on the cage near an edge (some b_i <= margin), seeing a thin
+ * face from a few widths or a face below 1/far_always of its distance, with face weights that
+ * cancel (far outside), with more than one careful face holding its foot point, with the foot
+ * point on an edge's line to rounding (the two forms would split c_i / h differently), or within
+ * band times its distance to the nearest vertex of the line of an edge outside the edge
+ * (ops._edge_line_offsets' rule, for which band is EDGE_LINE_BAND: a superset of the points that
+ * rule takes).
  *
  * P (V, 3) vertices; tri (T, 3) int32 corners; X (n, 3) points; G (n, V) the cotangent dL/dlam.
  * Outputs (rows of points with status 0 are zero): GX (n, 3), GP (V, 3) summed over the points
- * with status 1, status (n,), PAIR (n, T), WB (n, V), SN (n,), HS (n,).
+ * with status 1 or 2, status (n,), PAIR (n, T), WB (n, V), SN (n,), HS (n,).
  */
 #include <math.h>
 #include <stdlib.h>

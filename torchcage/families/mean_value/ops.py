@@ -210,8 +210,10 @@ def _point_grad(x: Tensor, P: Tensor, faces: Tensor, g: Tensor) -> Tensor:
 def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> tuple[Tensor | None, Tensor]:
     """First-order products with respect to the points and the rest vertices of a 3D cage at once:
     the hand-derived reverse mode of the direct form (``vjp3d``) for the regular points, chunk
-    by chunk; the others (near a support plane, on the cage, far outside) as in
-    :meth:`MeanValueFunction.backward`'s general path, restricted to them."""
+    by chunk; with the native kernel, those near a support plane split per face
+    (:func:`_split_vjp`) and those on a face or at a vertex in closed form; the others (near an
+    edge's line, thin faces, far outside) as in :meth:`MeanValueFunction.backward`'s general path,
+    restricted to them."""
     dt = torch.float64 if x.device.type != "mps" else x.dtype
     x64, P64, g64 = x.detach().to(dt), P.detach().to(dt), g.to(dt)
     tol = on_cage_tolerance(_cage(P64, faces))
@@ -263,6 +265,8 @@ def _split_vjp(lib, x: Tensor, P: Tensor, faces: Tensor, g: Tensor, tol: float) 
     (the stable split form where the direct one is not accurate), ``wbar`` and the products over
     the faces regular for the point; here autograd of the split form
     (:func:`kernel3d._stable_face_weights`) over the other point–face pairs only, all at once.
+    Points on a face or at a vertex take the interpolant's closed form in the kernel (the values
+    of :func:`_on_face_vjp`).
 
     Where a face holds the point's foot point its weights carry a term ``c_i / h``, whose
     derivative ``-c_i dh / h^2`` times ``wbar ~ h`` cancels to ``O(1)`` (autograd of it lost
