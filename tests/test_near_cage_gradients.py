@@ -194,7 +194,7 @@ def _old_path(monkeypatch) -> None:
     """Send every point that is not regular to the general path (autograd of the whole torch
     kernel for the rest vertices, the native analytic gradient for the point), as before the split."""
 
-    def none(lib, x, P, faces, g, tol):
+    def none(lib, x, P, faces, g, tol, in_kernel=True):
         return torch.zeros_like(x), torch.zeros_like(P), torch.zeros(x.shape[0], dtype=torch.bool)
 
     monkeypatch.setattr(ops, "_split_vjp", none)
@@ -275,3 +275,23 @@ def test_split_near_edge_against_mpmath():
     )
     refv = torch.tensor(refv, dtype=D64).reshape(-1, 3)
     assert float((gP - refv).norm() / refv.norm()) <= TARGET
+
+
+@pytest.mark.skipif(not tc.backends.native.available(), reason="needs the native kernels")
+def test_split_pairs_forward_mode_matches_autograd_of_the_split_form():
+    """The kernel's forward-mode derivatives of the split form on the careful pairs (with the
+    ``c / h`` term's ``dh`` coefficient from ``sum wbar w = 0``) against autograd of the torch
+    split form over the same pairs (``in_kernel=False``), near faces and edges."""
+    from torchcage._core.common import on_cage_tolerance
+
+    cage = _jittered_icosphere(16)
+    lib, tol = tc.backends.native.library(), on_cage_tolerance(cage)
+    # (near an edge both lose about eps / distance, as in the test against the whole-point autograd)
+    for x, rtol in zip(_near_points(cage, 17), (1e-13, 1e-11), strict=True):
+        g = torch.randn(x.shape[0], cage.num_vertices, generator=torch.Generator().manual_seed(18), dtype=D64)
+        g = g - g.mean(dim=-1, keepdim=True)
+        gx, gP, split = ops._split_vjp(lib, x, cage.vertices, cage.triangles, g, tol)
+        gx_ref, gP_ref, split_ref = ops._split_vjp(lib, x, cage.vertices, cage.triangles, g, tol, in_kernel=False)
+        assert torch.equal(split, split_ref) and bool(split.all())
+        assert float((gP - gP_ref).abs().max()) <= rtol * float(gP_ref.abs().max())
+        assert float((gx - gx_ref).abs().max()) <= rtol * float(gx_ref.abs().max())

@@ -8,12 +8,13 @@
  *      test of mvc3d_vjp.c), the stable split form (tc_stable_face) on the pairs near the face's
  *      support plane (*careful* pairs), hence W, lam and wbar;
  *   2. runs the hand-derived adjoint of mvc3d_vjp.c over the regular pairs (into GX and GP);
- *   3. leaves the careful pairs to the caller (torchcage/families/mean_value/ops.py,
- *      _split_vjp), which differentiates the split form of those pairs only by autograd: PAIR
- *      marks them (1; 2 for the face whose foot point the point sees inside, f*, whose weights
- *      carry a term c_i / h), WB holds wbar, HS the h of f* and SN = sum over every face but f*
- *      of wbar . w_f (with the identity sum_v wbar_v w_v = 0 it gives the coefficient of dh of
- *      f*'s c_i / h term without its cancellation: see _split_vjp).
+ *   3. differentiates the split form of the careful pairs by forward mode in the nine components
+ *      of the face's a_i (dual_split_face: the operations of kernel3d._stable_face_weights), with
+ *      the coefficient of dh of the c_i / h term of the face holding the foot point (f*) taken
+ *      from the identity sum_v wbar_v w_v = 0 (no cancellation: see ops._split_vjp). With
+ *      split_pairs = 0 it leaves them to the caller (ops._split_vjp, autograd of the torch split
+ *      form: the tests compare the two): PAIR marks them (1; 2 for f*), WB holds wbar, HS the h
+ *      of f* and SN = sum over every face but f* of wbar . w_f.
  *
  * A point takes this path (status 1) only when every face is regular or careful. Points on the
  * cage take the interpolant's closed form (status 2), as tc_mvcd3d and ops._on_face_vjp define it:
@@ -49,9 +50,135 @@ enum { Q_A = 0, Q_N = 9, Q_NN = 18, Q_D = 21, Q_TH = 24, Q_G = 27, Q_M = 30, Q_D
  * the area, the longest edge. */
 enum { F_N = 0, F_ELL = 3, F_GRAM = 6, F_TWO_AREA = 15, F_LONGEST = 16, F_SIZE = 17 };
 
+/* Forward-mode derivatives with respect to the nine components of a face's a_i = p_i - x (those
+ * of x are minus their sum over the corners): a value and its nine partial derivatives. */
+typedef struct {
+    double v, d[9];
+} dual9;
+
+static inline dual9 d_const(double v) {
+    dual9 r;
+    r.v = v;
+    for (int k = 0; k < 9; ++k) r.d[k] = 0.0;
+    return r;
+}
+static inline dual9 d_add(dual9 a, dual9 b) {
+    a.v += b.v;
+    for (int k = 0; k < 9; ++k) a.d[k] += b.d[k];
+    return a;
+}
+static inline dual9 d_sub(dual9 a, dual9 b) {
+    a.v -= b.v;
+    for (int k = 0; k < 9; ++k) a.d[k] -= b.d[k];
+    return a;
+}
+static inline dual9 d_scale(dual9 a, double c) {
+    a.v *= c;
+    for (int k = 0; k < 9; ++k) a.d[k] *= c;
+    return a;
+}
+static inline dual9 d_mul(dual9 a, dual9 b) {
+    dual9 r;
+    r.v = a.v * b.v;
+    for (int k = 0; k < 9; ++k) r.d[k] = a.d[k] * b.v + a.v * b.d[k];
+    return r;
+}
+static inline dual9 d_div(dual9 a, dual9 b) {
+    dual9 r;
+    r.v = a.v / b.v;
+    for (int k = 0; k < 9; ++k) r.d[k] = (a.d[k] - r.v * b.d[k]) / b.v;
+    return r;
+}
+static inline dual9 d_sqrt(dual9 a) { /* (a.v > 0) */
+    dual9 r;
+    r.v = sqrt(a.v);
+    for (int k = 0; k < 9; ++k) r.d[k] = a.d[k] / (2.0 * r.v);
+    return r;
+}
+static inline dual9 d_atan2(dual9 y, dual9 x) {
+    dual9 r;
+    double q = x.v * x.v + y.v * y.v;
+    r.v = atan2(y.v, x.v);
+    for (int k = 0; k < 9; ++k) r.d[k] = q > 0 ? (x.v * y.d[k] - y.v * x.d[k]) / q : 0.0;
+    return r;
+}
+static inline dual9 d_dot(const dual9 *a, const dual9 *b) {
+    return d_add(d_add(d_mul(a[0], b[0]), d_mul(a[1], b[1])), d_mul(a[2], b[2]));
+}
+static inline void d_cross(const dual9 *a, const dual9 *b, dual9 *c) {
+    c[0] = d_sub(d_mul(a[1], b[2]), d_mul(a[2], b[1]));
+    c[1] = d_sub(d_mul(a[2], b[0]), d_mul(a[0], b[2]));
+    c[2] = d_sub(d_mul(a[0], b[1]), d_mul(a[1], b[0]));
+}
+
+/* The split form of one face's weights with their derivatives in a (9,): w_i = r_i + c_i / h, as
+ * _stable_face_weights in families/mean_value/kernel3d.py (the same operations, so that the
+ * derivatives are autograd's of it), its regular part r, its singular part c (zero where the
+ * face does not hold the foot point) and h, all as dual numbers. */
+static void dual_split_face(const double *a_in, dual9 *r, dual9 *c, dual9 *hout) {
+    dual9 a[3][3], E[3][3], e1[3], e2[3], cr[3], nrm[3];
+    for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k) {
+            a[i][k] = d_const(a_in[3 * i + k]);
+            a[i][k].d[3 * i + k] = 1.0;
+        }
+    for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k) E[i][k] = d_sub(a[(i + 1) % 3][k], a[(i + 2) % 3][k]);
+    for (int k = 0; k < 3; ++k) e1[k] = d_sub(a[1][k], a[0][k]), e2[k] = d_sub(a[2][k], a[0][k]);
+    d_cross(e1, e2, cr);
+    dual9 two_area = d_sqrt(d_dot(cr, cr));
+    for (int k = 0; k < 3; ++k) nrm[k] = d_div(cr[k], two_area);
+    dual9 h = d_dot(nrm, a[0]), h2 = d_mul(h, h);
+    dual9 sv[3], ell[3], t_over_N[3], S_rest = d_const(0.0);
+    double wind_angle = 0.0;
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        dual9 Ne[3];
+        d_cross(a[j], a[k], Ne);
+        sv[e] = d_dot(nrm, Ne);
+        ell[e] = d_sqrt(d_dot(E[e], E[e]));
+    }
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        double sigma = sv[e].v >= 0 ? 1.0 : -1.0;
+        dual9 s_abs = d_scale(sv[e], sigma), dots = d_dot(a[j], a[k]);
+        s_abs.v += 0.0;
+        dual9 qq = d_sub(dots, h2), l2 = d_mul(ell[e], ell[e]);
+        dual9 N2 = d_add(d_mul(sv[e], sv[e]), d_mul(h2, l2));
+        dual9 N = N2.v > 0 ? d_sqrt(N2) : d_const(0.0);
+        dual9 theta0 = d_atan2(s_abs, qq);
+        wind_angle += sigma * theta0.v;
+        dual9 Nps = d_add(N, s_abs);
+        dual9 safe_Nps = Nps.v > 0 ? Nps : d_const(1.0);
+        dual9 X = d_sub(d_div(d_mul(qq, l2), safe_Nps), s_abs);
+        dual9 Y = d_add(d_mul(dots, qq), d_mul(N, s_abs));
+        dual9 delta = d_atan2(d_mul(h2, X), Y);
+        dual9 delta_h2 = h2.v > 0 ? d_div(delta, h2) : d_div(X, Y);
+        dual9 theta = d_add(theta0, delta);
+        dual9 safe_N = N.v > 0 ? N : d_const(1.0);
+        if (N.v > 0) {
+            t_over_N[e] = d_div(theta, safe_N);
+        } else { /* 1 / (R_j R_k) */
+            dual9 Rj = d_sqrt(d_dot(a[j], a[j])), Rk = d_sqrt(d_dot(a[k], a[k]));
+            t_over_N[e] = d_div(d_const(1.0), d_mul(Rj, Rk));
+        }
+        dual9 eps_h2 = d_div(l2, d_mul(safe_N, safe_Nps));
+        S_rest = d_add(S_rest, d_scale(d_sub(delta_h2, d_mul(theta, eps_h2)), sigma));
+    }
+    double wind = nearbyint(wind_angle / NEAR_TWO_PI);
+    dual9 inv4A = d_div(d_const(1.0), d_scale(two_area, 2.0));
+    for (int i = 0; i < 3; ++i) {
+        dual9 B = d_mul(sv[i], S_rest);
+        for (int e = 0; e < 3; ++e) B = d_add(B, d_mul(t_over_N[e], d_dot(E[i], E[e])));
+        r[i] = d_mul(d_mul(h, B), inv4A);
+        c[i] = wind != 0 ? d_scale(d_mul(sv[i], inv4A), NEAR_TWO_PI * wind) : d_const(0.0);
+    }
+    *hout = h;
+}
+
 void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
                        double tol, double near_c, double cancel_c, double far_always, double band, double near_d,
-                       double far_d, double margin, int nthreads, double *GX, double *GP, unsigned char *status, unsigned char *PAIR, double *WB, double *SN,
+                       double far_d, double margin, int split_pairs, int nthreads, double *GX, double *GP, unsigned char *status, unsigned char *PAIR, double *WB, double *SN,
                        double *HS) {
     double *fc = (double *)malloc(sizeof(double) * F_SIZE * (size_t)(T > 0 ? T : 1));
     int any_thin = 0;
@@ -283,6 +410,38 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                         gx[c] -= abar[3 * i + c];
                     }
                 }
+            }
+            /* the careful pairs: forward-mode derivatives of their split form. Where the face
+             * holds the foot point (f*), w = r + c / h: the coefficient of dh, -(wbar . c) / h^2,
+             * is taken as (sn + wbar . r) / h (sum_v wbar_v w_v = 0), free of the cancellation of
+             * -c dh / h^2 against wbar ~ h. */
+            const double h0 = fstar >= 0 ? S[(size_t)Q_SIZE * fstar + Q_H] : 1.0;
+            for (long f = 0; f < T && split_pairs; ++f) {
+                const double *s = S + (size_t)Q_SIZE * f;
+                if (s[Q_KIND] == 0.0) continue;
+                dual9 r[3], c[3], h;
+                dual_split_face(s + Q_A, r, c, &h);
+                double wb[3], dl[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, wr = 0.0;
+                for (int i = 0; i < 3; ++i) {
+                    wb[i] = wbar[tri[3 * f + i]];
+                    wr += wb[i] * r[i].v;
+                    for (int k = 0; k < 9; ++k) dl[k] += wb[i] * r[i].d[k];
+                }
+                if (f == fstar) {
+                    double beta = (sn + wr) / h0;
+                    for (int k = 0; k < 9; ++k) {
+                        dl[k] += beta * h.d[k];
+                        for (int i = 0; i < 3; ++i) dl[k] += wb[i] / h0 * c[i].d[k];
+                    }
+                }
+                for (int i = 0; i < 3; ++i) {
+                    double *dst = gp + 3 * tri[3 * f + i];
+                    for (int q = 0; q < 3; ++q) {
+                        dst[q] += dl[3 * i + q];
+                        gx[q] -= dl[3 * i + q];
+                    }
+                }
+                pair[f] = 0;
             }
             for (int c = 0; c < 3; ++c) GX[3 * p + c] = gx[c];
             SN[p] = sn;

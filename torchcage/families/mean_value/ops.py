@@ -259,14 +259,17 @@ def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> 
     return (gx.to(x.dtype) if need_x else None), gP.to(P.dtype)
 
 
-def _split_vjp(lib, x: Tensor, P: Tensor, faces: Tensor, g: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+def _split_vjp(
+    lib, x: Tensor, P: Tensor, faces: Tensor, g: Tensor, tol: float, in_kernel: bool = True
+) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_joint_vjp`'s products for points ``x`` ``(n, 3)`` near a face's support plane (float64,
     CPU), split per face: the native kernel (:func:`native_vjp_near`) computes each point's weights
     (the stable split form where the direct one is not accurate), ``wbar`` and the products over
-    the faces regular for the point; here autograd of the split form
-    (:func:`kernel3d._stable_face_weights`) over the other point–face pairs only, all at once.
-    Points on a face or at a vertex take the interpolant's closed form in the kernel (the values
-    of :func:`_on_face_vjp`).
+    the faces regular for the point, and over the others (*careful* pairs) forward-mode derivatives
+    of the split form; with ``in_kernel=False`` it leaves those to autograd of the torch split
+    form (:func:`kernel3d._stable_face_weights`) here, over those point–face pairs only, all at
+    once (the same operations: the tests compare them). Points on a face or at a vertex take the
+    interpolant's closed form in the kernel (the values of :func:`_on_face_vjp`).
 
     Where a face holds the point's foot point its weights carry a term ``c_i / h``, whose
     derivative ``-c_i dh / h^2`` times ``wbar ~ h`` cancels to ``O(1)`` (autograd of it lost
@@ -278,7 +281,7 @@ def _split_vjp(lib, x: Tensor, P: Tensor, faces: Tensor, g: Tensor, tol: float) 
         ``(gx (n, 3), gP (V, 3), split (n,) bool)``: the products over the points that took this
         path (``split``; the others' rows of ``gx`` are zero and they add nothing to ``gP``).
     """
-    gx, gP, split, pair, wbar, sn, hs = native_vjp_near(lib, x, P, faces, g, tol, _ON_FACE_MARGIN)
+    gx, gP, split, pair, wbar, sn, hs = native_vjp_near(lib, x, P, faces, g, tol, _ON_FACE_MARGIN, in_kernel)
     p_idx, f_idx = torch.nonzero(pair, as_tuple=True)
     if p_idx.numel() == 0:
         return gx, gP, split

@@ -53,11 +53,14 @@ def native_vjp_near(
     gbar: torch.Tensor,
     tol: float,
     margin: float,
+    split_pairs: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The joint product split per face for points near a face's support plane, and in closed
     form for points on a face or at a vertex (``torchcage/backends/native/mvc3d_vjp_near.c``):
     float64 CPU ``x`` ``(n, 3)``, ``vertices`` ``(V, 3)``, ``tri`` ``(T, 3)``, ``gbar`` ``(n, V)``;
-    ``margin``: the smallest barycentric coordinate of a point on a face that the closed form takes.
+    ``margin``: the smallest barycentric coordinate of a point on a face that the closed form takes;
+    ``split_pairs``: the kernel differentiates the careful pairs too (forward mode of the split
+    form), else it leaves them to the caller (``pair``).
 
     Returns:
         ``(gx (n, 3), gP (V, 3), split (n,) bool, pair (n, T) uint8, wbar (n, V), sn (n,), hs (n,))``:
@@ -98,6 +101,7 @@ def native_vjp_near(
         near_d=DERIVATIVE_SPLIT_FORM_RATIO,
         far_d=DERIVATIVE_FAR_FIELD_RATIO,
         margin=margin,
+        split_pairs=int(split_pairs),
         GX=gx,
         GP=gP,
         status=status,
