@@ -281,6 +281,20 @@ def _split_vjp(
         ``(gx (n, 3), gP (V, 3), split (n,) bool)``: the products over the points that took this
         path (``split``; the others' rows of ``gx`` are zero and they add nothing to ``gP``).
     """
+    # (chunks of points: the kernel's per-point outputs wbar (n, V) and pair (n, T) stay bounded)
+    size = max(64, (1 << 22) // (P.shape[0] + faces.shape[0]))
+    gx, gP, split = torch.zeros_like(x), torch.zeros_like(P), torch.zeros(x.shape[0], dtype=torch.bool)
+    for s in range(0, x.shape[0], size):
+        gxc, gPc, split[s : s + size] = _split_chunk(lib, x[s : s + size], P, faces, g[s : s + size], tol, in_kernel)
+        gx[s : s + size] = gxc
+        gP += gPc
+    return gx, gP, split
+
+
+def _split_chunk(
+    lib, x: Tensor, P: Tensor, faces: Tensor, g: Tensor, tol: float, in_kernel: bool
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_split_vjp` on one chunk of points."""
     gx, gP, split, pair, wbar, sn, hs = native_vjp_near(lib, x, P, faces, g, tol, _ON_FACE_MARGIN, in_kernel)
     p_idx, f_idx = torch.nonzero(pair, as_tuple=True)
     if p_idx.numel() == 0:
