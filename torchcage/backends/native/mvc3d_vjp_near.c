@@ -178,8 +178,8 @@ static void dual_split_face(const double *a_in, dual9 *r, dual9 *c, dual9 *hout)
 
 void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
                        double tol, double near_c, double cancel_c, double far_always, double band, double near_d,
-                       double far_d, double margin, int split_pairs, int nthreads, double *GX, double *GP, unsigned char *status, unsigned char *PAIR, double *WB, double *SN,
-                       double *HS) {
+                       double far_d, double margin, int split_pairs, int nthreads, double *GX, double *GP,
+                       unsigned char *status, unsigned char *PAIR, double *WB, double *SN, double *HS) {
     double *fc = (double *)malloc(sizeof(double) * F_SIZE * (size_t)(T > 0 ? T : 1));
     int any_thin = 0;
     for (long f = 0; f < T; ++f) {
