@@ -163,4 +163,135 @@ def test_fused_backward_on_the_cage_matches_the_autograd_path():
             ref = ops._vertex_vjp(x[i : i + 1], cage.vertices, cage.triangles, c0)
         scale = max(float(ref.abs().max()), 1.0)
         assert float((gP - ref).abs().max()) <= 1e-12 * scale, i
-        assert torch.equal(gx, ops._point_grad(x[i : i + 1], cage.vertices, cage.triangles, c0))
+        # (the closed form of the near-cage kernel on faces: the same sums in another order)
+        ref_x = ops._point_grad(x[i : i + 1], cage.vertices, cage.triangles, c0)
+        assert float((gx - ref_x).abs().max()) <= 1e-14 * max(float(ref_x.abs().max()), 1.0), i
+
+
+def _jittered_icosphere(seed: int) -> tc.Cage:
+    ico = icosphere()
+    g = torch.Generator().manual_seed(seed)
+    return tc.Cage(ico.vertices.to(D64) * 1.05 + 0.02 * torch.randn(42, 3, generator=g, dtype=D64), ico.triangles)
+
+
+def _near_points(cage: tc.Cage, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points ``1e-6 .. 1e-3`` of the size from faces, on both sides, ``(16, 3)``, and as far inside
+    the cage from edges (both adjacent faces' planes near), ``(4, 3)``."""
+    y, f, _ = _face_points(cage, 8, seed)
+    p = cage.vertices[cage.triangles[f]]
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True)
+    d = torch.tensor([1e-6, 1e-5, 1e-4, 1e-3] * 2, dtype=D64)[:, None] * cage.scale
+    faces = torch.cat([y + d * n, y - d * n])
+    t = torch.rand(4, 1, generator=torch.Generator().manual_seed(seed + 1), dtype=D64)
+    e = p[:4, 0] * t + p[:4, 1] * (1 - t)
+    inward = p[:4].mean(dim=1) - e
+    edges = e - d[:4] * (n[:4] + inward / inward.norm(dim=-1, keepdim=True))
+    return faces, edges
+
+
+def _old_path(monkeypatch) -> None:
+    """Send every point that is not regular to the general path (autograd of the whole torch
+    kernel for the rest vertices, the native analytic gradient for the point), as before the split."""
+
+    def none(lib, x, P, faces, g, tol, in_kernel=True):
+        return torch.zeros_like(x), torch.zeros_like(P), torch.zeros(x.shape[0], dtype=torch.bool)
+
+    monkeypatch.setattr(ops, "_split_vjp", none)
+
+
+@pytest.mark.skipif(not tc.backends.native.available(), reason="needs the native kernels")
+def test_split_near_cage_backward_matches_the_whole_point_autograd(monkeypatch):
+    """Points near faces (both sides), near edges, on faces, at a vertex and ordinary ones, with a
+    random cotangent: the split backward (native products over the regular faces, autograd of the
+    split form over the others; closed form on the cage) against the path every such point took
+    before (autograd of the whole torch kernel), to rounding. The points near faces take the split."""
+    from torchcage._core.common import on_cage_tolerance
+    from torchcage.families.mean_value.vjp3d_native import native_vjp_near
+
+    cage = _jittered_icosphere(8)
+    near_faces, near_edges = _near_points(cage, 9)
+    on_faces, _, _ = _face_points(cage, 3, 10)
+    x = torch.cat([near_faces, near_edges, on_faces, cage.vertices[3:4], 0.4 * cage.vertices[:3]])
+    cot = torch.randn(x.shape[0], cage.num_vertices, generator=torch.Generator().manual_seed(11), dtype=D64)
+    gx, gP = _grads(x, cage, cot)
+    c0 = cot - cot.mean(dim=-1, keepdim=True)
+    split = native_vjp_near(
+        tc.backends.native.library(), x, cage.vertices, cage.triangles, c0, on_cage_tolerance(cage), 1e-6
+    )[2]
+    assert bool(split[: near_faces.shape[0]].all()) and bool(split[-7:-3].all())
+    _old_path(monkeypatch)
+    gx_ref, gP_ref = _grads(x, cage, cot)
+    # (near an edge both paths lose about eps / distance: 1e-12 at 1e-6 of the size, the split one
+    # nearer the 60-digit reference, test_split_near_edge_against_mpmath)
+    assert float((gP - gP_ref).abs().max()) <= 1e-11 * float(gP_ref.abs().max())
+    err = (gx - gx_ref).norm(dim=-1) / gx_ref.norm(dim=-1).clamp_min(1.0)
+    assert float(err[: near_faces.shape[0]].max()) <= 1e-13, err
+    assert float(err.max()) <= 1e-11, err
+
+
+@pytest.mark.parametrize("distance", [1e-6, 1e-4, 1e-3])
+def test_split_near_cage_gradcheck(distance):
+    """``gradcheck`` (float64, central differences of the forward) of the points' and the rest
+    vertices' gradients at points ``distance`` times the size from faces, on both sides, and from
+    edges: the split backward where the native kernels serve, else the general path."""
+    cage = _jittered_icosphere(12)
+    y, f, _ = _face_points(cage, 2, 13)
+    p = cage.vertices[cage.triangles[f]]
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True)
+    e = 0.5 * (p[:1, 0] + p[:1, 1])
+    inward = p[:1].mean(dim=1) - e
+    step = distance * cage.scale
+    x = torch.cat([y + step * n, y - step * n, e - step * (n[:1] + inward / inward.norm(dim=-1, keepdim=True))])
+    cot = torch.randn(x.shape[0], cage.num_vertices, generator=torch.Generator().manual_seed(14), dtype=D64)
+
+    def loss(xx, V):
+        return (F.mean_value_coordinates(xx, tc.Cage(V, cage.triangles, validate=False)) * cot).sum()
+
+    inputs = (x.clone().requires_grad_(), cage.vertices.clone().requires_grad_())
+    assert torch.autograd.gradcheck(loss, inputs, eps=1e-3 * step, atol=1e-6, rtol=1e-5, fast_mode=True)
+
+
+@pytest.mark.slow
+def test_split_near_edge_against_mpmath():
+    """A point ``1e-6`` of the size inside the cage from an edge (near both adjacent faces'
+    planes, the foot point inside one of them): the split backward's gradients with respect to the
+    point and the rest vertices against 60-digit central differences of the mpmath reference."""
+    cage = _jittered_icosphere(8)
+    x = _near_points(cage, 9)[1][:1]
+    c = torch.randn(cage.num_vertices, generator=torch.Generator().manual_seed(15), dtype=D64)
+    gx, gP = _grads(x, cage, c[None])
+    rows, cs, xi = cage.vertices.tolist(), c.tolist(), x[0].tolist()
+
+    def f_ref(z, verts):
+        return sum(a * b for a, b in zip(cs, mvc3d_reference(z, verts, cage.triangles), strict=True))
+
+    ref = torch.tensor(gradient_reference(lambda z: f_ref(z, rows), xi, cage.scale, STEP), dtype=D64)
+    assert float((gx[0] - ref).norm() / ref.norm()) <= TARGET
+    flat = [v for r in rows for v in r]
+    refv = gradient_reference(
+        lambda z: f_ref(xi, [z[k * 3 : k * 3 + 3] for k in range(len(rows))]), flat, cage.scale, STEP
+    )
+    refv = torch.tensor(refv, dtype=D64).reshape(-1, 3)
+    assert float((gP - refv).norm() / refv.norm()) <= TARGET
+
+
+@pytest.mark.skipif(not tc.backends.native.available(), reason="needs the native kernels")
+def test_split_pairs_forward_mode_matches_autograd_of_the_split_form():
+    """The kernel's forward-mode derivatives of the split form on the careful pairs (with the
+    ``c / h`` term's ``dh`` coefficient from ``sum wbar w = 0``) against autograd of the torch
+    split form over the same pairs (``in_kernel=False``), near faces and edges."""
+    from torchcage._core.common import on_cage_tolerance
+
+    cage = _jittered_icosphere(16)
+    lib, tol = tc.backends.native.library(), on_cage_tolerance(cage)
+    # (near an edge both lose about eps / distance, as in the test against the whole-point autograd)
+    for x, rtol in zip(_near_points(cage, 17), (1e-13, 1e-11), strict=True):
+        g = torch.randn(x.shape[0], cage.num_vertices, generator=torch.Generator().manual_seed(18), dtype=D64)
+        g = g - g.mean(dim=-1, keepdim=True)
+        gx, gP, split = ops._split_vjp(lib, x, cage.vertices, cage.triangles, g, tol)
+        gx_ref, gP_ref, split_ref = ops._split_vjp(lib, x, cage.vertices, cage.triangles, g, tol, in_kernel=False)
+        assert torch.equal(split, split_ref) and bool(split.all())
+        assert float((gP - gP_ref).abs().max()) <= rtol * float(gP_ref.abs().max())
+        assert float((gx - gx_ref).abs().max()) <= rtol * float(gx_ref.abs().max())

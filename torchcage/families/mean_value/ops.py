@@ -31,8 +31,9 @@ from torchcage.cage import Cage
 from torchcage.families.mean_value.derivatives import derivatives_flat
 from torchcage.families.mean_value.dispatch import coordinates_flat
 from torchcage.families.mean_value.edge_line import edge_line_offsets as _edge_line_offsets
+from torchcage.families.mean_value.kernel3d import _stable_face_weights
 from torchcage.families.mean_value.vjp3d import direct_vjp
-from torchcage.families.mean_value.vjp3d_native import native_vjp
+from torchcage.families.mean_value.vjp3d_native import native_vjp, native_vjp_near
 
 __all__ = ["MeanValueFunction", "MeanValueGradFunction", "MeanValueHessFunction", "mean_value_function"]
 
@@ -209,8 +210,10 @@ def _point_grad(x: Tensor, P: Tensor, faces: Tensor, g: Tensor) -> Tensor:
 def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> tuple[Tensor | None, Tensor]:
     """First-order products with respect to the points and the rest vertices of a 3D cage at once:
     the hand-derived reverse mode of the direct form (``vjp3d``) for the regular points, chunk
-    by chunk; the others (near a support plane, on the cage, far outside) as in
-    :meth:`MeanValueFunction.backward`'s general path, restricted to them."""
+    by chunk; with the native kernel, those near a support plane split per face
+    (:func:`_split_vjp`) and those on a face or at a vertex in closed form; the others (near an
+    edge's line, thin faces, far outside) as in :meth:`MeanValueFunction.backward`'s general path,
+    restricted to them."""
     dt = torch.float64 if x.device.type != "mps" else x.dtype
     x64, P64, g64 = x.detach().to(dt), P.detach().to(dt), g.to(dt)
     tol = on_cage_tolerance(_cage(P64, faces))
@@ -220,6 +223,11 @@ def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> 
     if lib is not None:  # one pass over all points: the kernel needs no temporaries beyond its outputs
         gx, gP, reg = native_vjp(lib, x64, P64, faces, g64, tol)
         idx = torch.nonzero(~reg).flatten()
+        if idx.numel():  # near a support plane: the careful form on the pairs that need it only
+            gxs, gPs, split = _split_vjp(lib, x64.index_select(0, idx), P64, faces, g64.index_select(0, idx), tol)
+            gP += gPs
+            gx[idx[split]] = gxs[split]
+            idx = idx[~split]
     else:
         size = max(64, (1 << 16) // max(1, faces.shape[0]))
         irregular = []
@@ -249,6 +257,76 @@ def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> 
             if need_x:
                 gx[idx] = _point_grad(xi, P, faces, gi).to(dt)
     return (gx.to(x.dtype) if need_x else None), gP.to(P.dtype)
+
+
+def _split_vjp(
+    lib, x: Tensor, P: Tensor, faces: Tensor, g: Tensor, tol: float, in_kernel: bool = True
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_joint_vjp`'s products for points ``x`` ``(n, 3)`` near a face's support plane (float64,
+    CPU), split per face: the native kernel (:func:`native_vjp_near`) computes each point's weights
+    (the stable split form where the direct one is not accurate), ``wbar`` and the products over
+    the faces regular for the point, and over the others (*careful* pairs) forward-mode derivatives
+    of the split form; with ``in_kernel=False`` it leaves those to autograd of the torch split
+    form (:func:`kernel3d._stable_face_weights`) here, over those point–face pairs only, all at
+    once (the same operations: the tests compare them). Points on a face or at a vertex take the
+    interpolant's closed form in the kernel (the values of :func:`_on_face_vjp`).
+
+    Where a face holds the point's foot point its weights carry a term ``c_i / h``, whose
+    derivative ``-c_i dh / h^2`` times ``wbar ~ h`` cancels to ``O(1)`` (autograd of it lost
+    ``eps / h``): the coefficient of ``dh`` is taken instead from ``sum_v wbar_v w_v = 0`` as
+    ``-(wbar . c) / h^2 = (sum over the other faces of wbar . w + wbar . r) / h``, ``r`` that face's
+    weights less ``c / h`` (no cancellation), as the torch kernel's ``scaled`` form does.
+
+    Returns:
+        ``(gx (n, 3), gP (V, 3), split (n,) bool)``: the products over the points that took this
+        path (``split``; the others' rows of ``gx`` are zero and they add nothing to ``gP``).
+    """
+    # (chunks of points: the kernel's per-point outputs wbar (n, V) and pair (n, T) stay bounded)
+    size = max(64, (1 << 22) // (P.shape[0] + faces.shape[0]))
+    gx, gP, split = torch.zeros_like(x), torch.zeros_like(P), torch.zeros(x.shape[0], dtype=torch.bool)
+    for s in range(0, x.shape[0], size):
+        gxc, gPc, split[s : s + size] = _split_chunk(lib, x[s : s + size], P, faces, g[s : s + size], tol, in_kernel)
+        gx[s : s + size] = gxc
+        gP += gPc
+    return gx, gP, split
+
+
+def _split_chunk(
+    lib, x: Tensor, P: Tensor, faces: Tensor, g: Tensor, tol: float, in_kernel: bool
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_split_vjp` on one chunk of points."""
+    gx, gP, split, pair, wbar, sn, hs = native_vjp_near(lib, x, P, faces, g, tol, _ON_FACE_MARGIN, in_kernel)
+    p_idx, f_idx = torch.nonzero(pair, as_tuple=True)
+    if p_idx.numel() == 0:
+        return gx, gP, split
+    corners = faces.index_select(0, f_idx)  # (M, 3)
+    star = pair[p_idx, f_idx] == 2  # the face around the point's foot
+    h0 = torch.where(star, hs.index_select(0, p_idx), 1.0)
+    wb = wbar[p_idx[:, None], corners]  # (M, 3)
+    with torch.enable_grad():
+        xp = x.index_select(0, p_idx).requires_grad_()
+        pf = P[corners].requires_grad_()  # (M, 3, 3)
+        a = [pf[:, i] - xp for i in range(3)]
+        E = [pf[:, (i + 1) % 3] - pf[:, (i + 2) % 3] for i in range(3)]
+        cr = torch.linalg.cross(pf[:, 1] - pf[:, 0], pf[:, 2] - pf[:, 0], dim=-1)
+        two_area = cr.norm(dim=-1)
+        nrm = cr / two_area[:, None]
+        h = (nrm * a[0]).sum(-1)
+        s = [(nrm * torch.linalg.cross(a[(e + 1) % 3], a[(e + 2) % 3], dim=-1)).sum(-1) for e in range(3)]
+        dots = [(a[(e + 1) % 3] * a[(e + 2) % 3]).sum(-1) for e in range(3)]
+        R = [a[i].norm(dim=-1) for i in range(3)]
+        ell = [E[e].norm(dim=-1) for e in range(3)]
+        gram = [[(E[i] * E[e]).sum(-1) for e in range(3)] for i in range(3)]
+        c: list[Tensor] = []
+        r = _stable_face_weights(h, s, dots, R, ell, gram, two_area, c)
+        wr = wb[:, 0] * r[0] + wb[:, 1] * r[1] + wb[:, 2] * r[2]
+        wc = wb[:, 0] * c[0] + wb[:, 1] * c[1] + wb[:, 2] * c[2]
+        beta = (sn.index_select(0, p_idx) + wr.detach()) / h0
+        loss = wr + torch.where(star, wc / h0 + beta * h, 0.0)
+        gxp, gpf = torch.autograd.grad(loss.sum(), (xp, pf))
+    gx.index_add_(0, p_idx, gxp)
+    gP.index_add_(0, corners.reshape(-1), gpf.reshape(-1, 3))
+    return gx, gP, split
 
 
 #: Points on a face whose barycentric coordinates there are all above this take the closed form

@@ -8,9 +8,11 @@ import ctypes
 import torch
 
 from torchcage.backends import native as _native
+from torchcage.families.mean_value.derivatives_native import DERIVATIVE_FAR_FIELD_RATIO, DERIVATIVE_SPLIT_FORM_RATIO
+from torchcage.families.mean_value.edge_line import EDGE_LINE_BAND
 from torchcage.families.mean_value.kernel3d import CANCELLATION_RATIO, FAR_ALWAYS_RATIO, SPLIT_FORM_RATIO
 
-__all__ = ["native_vjp"]
+__all__ = ["native_vjp", "native_vjp_near"]
 
 
 def native_vjp(
@@ -41,3 +43,71 @@ def native_vjp(
         reg=reg,
     )
     return gx, gP, reg.bool()
+
+
+def native_vjp_near(
+    lib: ctypes.CDLL,
+    x: torch.Tensor,
+    vertices: torch.Tensor,
+    tri: torch.Tensor,
+    gbar: torch.Tensor,
+    tol: float,
+    margin: float,
+    split_pairs: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The joint product split per face for points near a face's support plane, and in closed
+    form for points on a face or at a vertex (``torchcage/backends/native/mvc3d_vjp_near.c``):
+    float64 CPU ``x`` ``(n, 3)``, ``vertices`` ``(V, 3)``, ``tri`` ``(T, 3)``, ``gbar`` ``(n, V)``;
+    ``margin``: the smallest barycentric coordinate of a point on a face that the closed form takes;
+    ``split_pairs``: the kernel differentiates the careful pairs too (forward mode of the split
+    form), else it leaves them to the caller (``pair``).
+
+    Returns:
+        ``(gx (n, 3), gP (V, 3), split (n,) bool, pair (n, T) uint8, wbar (n, V), sn (n,), hs (n,))``:
+        the products over the faces regular for each point that takes the split, or the closed
+        form's (``split``; the other points are left to the caller); the faces left to the caller
+        (``pair``: 1, or 2 for the face around the point's foot, whose distance is ``hs``);
+        ``wbar = (gbar - gbar . lam) / W``; ``sn`` the sum over every face but that one of
+        ``wbar . w_f``.
+    """
+    n, V, T = x.shape[0], vertices.shape[0], tri.shape[0]
+    f64 = torch.float64
+    gx, gP, sn, hs = (
+        torch.empty((n, 3), dtype=f64),
+        torch.empty((V, 3), dtype=f64),
+        torch.empty(n, dtype=f64),
+        torch.empty(n, dtype=f64),
+    )
+    status, pair, wbar = (
+        torch.empty(n, dtype=torch.uint8),
+        torch.empty((n, T), dtype=torch.uint8),
+        torch.empty((n, V), dtype=f64),
+    )
+    _native.call(
+        lib,
+        "tc_mvc3d_vjp_near",
+        P=vertices.contiguous(),
+        V=V,
+        tri=tri.to(torch.int32).contiguous(),
+        T=T,
+        X=x.contiguous(),
+        n=n,
+        G=gbar.contiguous(),
+        tol=tol,
+        near_c=SPLIT_FORM_RATIO,
+        cancel_c=CANCELLATION_RATIO,
+        far_always=FAR_ALWAYS_RATIO,
+        band=EDGE_LINE_BAND,
+        near_d=DERIVATIVE_SPLIT_FORM_RATIO,
+        far_d=DERIVATIVE_FAR_FIELD_RATIO,
+        margin=margin,
+        split_pairs=int(split_pairs),
+        GX=gx,
+        GP=gP,
+        status=status,
+        PAIR=pair,
+        WB=wbar,
+        SN=sn,
+        HS=hs,
+    )
+    return gx, gP, status != 0, pair, wbar, sn, hs
