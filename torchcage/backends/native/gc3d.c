@@ -368,6 +368,64 @@ void tc_far_face(const gc_tables *g, long f, const double *x, double h, double *
     }
 }
 
+/* Face f (not degenerate) seen from a point near its plane or much nearer one corner than the
+ * others (corner offsets a, distances R): d (3) and h again from each edge's perpendicular w_e (from
+ * its nearer end, or its midpoint when both are as near): the same bits for both faces of an edge
+ * (the two run it in opposite directions, u' = -u exactly), so that coplanar neighbours split their
+ * solid angle without a gap near it; h from the nearest edge's w (torch: _edge_perpendicular). Sets
+ * the solid angle om by the edge sum (which does not cancel near the plane); on the face (returns 1)
+ * om = 0: the principal value (on its plane off the face the solid angle is kept: near an edge it is
+ * of order 1 even where |h| <= tol). */
+static inline int gc_near_face(const gc_tables *g, long f, const double a[3][3], const double *R, double tol,
+                               double *d, double *h_out, double *om) {
+    const double *ed = g->edir + 9 * f, *O = g->eout + 9 * f, *n = g->nrm + 3 * f;
+    double h = 0.0, best = INFINITY;
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        const double *u = ed + 3 * e;
+        double m[3] = {0.5 * (a[j][0] + a[k][0]), 0.5 * (a[j][1] + a[k][1]), 0.5 * (a[j][2] + a[k][2])};
+        if (R[j] < R[k]) {
+            m[0] = a[j][0], m[1] = a[j][1], m[2] = a[j][2];
+        } else if (R[k] < R[j]) {
+            m[0] = a[k][0], m[1] = a[k][1], m[2] = a[k][2];
+        }
+        double mu = m[0] * u[0] + m[1] * u[1] + m[2] * u[2];
+        double w[3] = {m[0] - mu * u[0], m[1] - mu * u[1], m[2] - mu * u[2]};
+        d[e] = w[0] * O[3 * e] + w[1] * O[3 * e + 1] + w[2] * O[3 * e + 2];
+        double w2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+        if (w2 < best) {
+            best = w2;
+            h = w[0] * n[0] + w[1] * n[1] + w[2] * n[2];
+        }
+    }
+    *h_out = h;
+    double habs = fabs(h), beta = 0.0;
+    if (habs <= tol && d[0] >= -tol && d[1] >= -tol && d[2] >= -tol) {
+        *om = 0.0;
+        return 1;
+    }
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        const double *u = ed + 3 * e;
+        double l_j = a[j][0] * u[0] + a[j][1] * u[1] + a[j][2] * u[2];
+        double l_k = a[k][0] * u[0] + a[k][1] * u[1] + a[k][2] * u[2], R0sq = d[e] * d[e] + h * h;
+        beta += edge_angle(d[e], l_j, l_k, R[j], R[k], R0sq, habs);
+    }
+    *om = h >= 0 ? beta : -beta;
+    return 0;
+}
+
+/* A point on face f (signed edge distances d (3)): its barycentric coordinates there (3,). */
+static inline void gc_on_alpha(const gc_tables *g, long f, const double *d, double *on_alpha) {
+    double sum = 0.0;
+    for (int i = 0; i < 3; ++i) {
+        double al = d[i] * g->ell[3 * f + i] / g->two_area[f];
+        on_alpha[i] = al > 0 ? al : 0.0;
+        sum += on_alpha[i];
+    }
+    for (int i = 0; i < 3; ++i) on_alpha[i] /= sum;
+}
+
 /* Doubles of workspace tc_gc_point needs. */
 size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g->E + 6 * (size_t)g->T; }
 
@@ -442,59 +500,18 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
             continue;
         }
         const int c3[3] = {t0[f], t1[f], t2[f]};
-        const double *ed = g->edir + 9 * f;
-        /* Near the plane, d_e and h again from each edge's perpendicular w_e (from its nearer end,
-         * or its midpoint when both are as near): the same bits for both faces of an edge (the two
-         * run it in opposite directions, u' = -u exactly), so that coplanar neighbours split their
-         * solid angle without a gap near it; h from the nearest edge's w (torch: _edge_perpendicular). */
-        double d[3], h = 0.0, best = INFINITY;
-        for (int e = 0; e < 3; ++e) {
-            int j = c3[(e + 1) % 3], k = c3[(e + 2) % 3];
-            const double *u = ed + 3 * e;
-            double m[3] = {0.5 * (Ax[j] + Ax[k]), 0.5 * (Ay[j] + Ay[k]), 0.5 * (Az[j] + Az[k])};
-            if (RA[j] < RA[k]) {
-                m[0] = Ax[j], m[1] = Ay[j], m[2] = Az[j];
-            } else if (RA[k] < RA[j]) {
-                m[0] = Ax[k], m[1] = Ay[k], m[2] = Az[k];
-            }
-            double mu = m[0] * u[0] + m[1] * u[1] + m[2] * u[2];
-            double w[3] = {m[0] - mu * u[0], m[1] - mu * u[1], m[2] - mu * u[2]};
-            d[e] = w[0] * O[(3 * e) * T + f] + w[1] * O[(3 * e + 1) * T + f] + w[2] * O[(3 * e + 2) * T + f];
-            double w2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
-            if (w2 < best) {
-                best = w2;
-                h = w[0] * Nx[f] + w[1] * Ny[f] + w[2] * Nz[f];
-            }
-        }
+        double a[3][3], R[3], d[3], h, om;
+        for (int i = 0; i < 3; ++i) a[i][0] = Ax[c3[i]], a[i][1] = Ay[c3[i]], a[i][2] = Az[c3[i]], R[i] = RA[c3[i]];
+        int on = gc_near_face(g, f, a, R, tol, d, &h, &om);
         D0[f] = d[0];
         D1[f] = d[1];
         D2[f] = d[2];
         H[f] = h;
-        double habs = fabs(h), beta = 0.0;
-        if (habs <= tol && d[0] >= -tol && d[1] >= -tol && d[2] >= -tol) {
-            /* on the face: principal value, no solid angle. (On its plane off the face, the solid
-             * angle is computed below: near an edge it is of order 1 even where h <= tol.) */
-            OM[f] = 0.0;
-            if (on_face < 0 || two_area[f] > two_area[on_face]) { /* the largest face: best conditioned */
-                on_face = f;
-                double sum = 0.0;
-                for (int i = 0; i < 3; ++i) {
-                    double al = d[i] * g->ell[3 * f + i] / two_area[f];
-                    on_alpha[i] = al > 0 ? al : 0.0;
-                    sum += on_alpha[i];
-                }
-                for (int i = 0; i < 3; ++i) on_alpha[i] /= sum;
-            }
-            continue;
+        OM[f] = om;
+        if (on && (on_face < 0 || two_area[f] > two_area[on_face])) { /* the largest face: best conditioned */
+            on_face = f;
+            gc_on_alpha(g, f, d, on_alpha);
         }
-        for (int e = 0; e < 3; ++e) { /* edge-sum solid angle: does not cancel near the plane */
-            int j = c3[(e + 1) % 3], k = c3[(e + 2) % 3];
-            const double *u = ed + 3 * e;
-            double l_j = Ax[j] * u[0] + Ay[j] * u[1] + Az[j] * u[2];
-            double l_k = Ax[k] * u[0] + Ay[k] * u[1] + Az[k] * u[2], R0sq = d[e] * d[e] + h * h;
-            beta += edge_angle(d[e], l_j, l_k, RA[j], RA[k], R0sq, habs);
-        }
-        OM[f] = h >= 0 ? beta : -beta;
     }
     /* psi and the corner terms; on a face's plane (|h| <= tol) h K is dropped, and a d_e = 0 (the
      * point on an edge line) drops that edge's integral. */
