@@ -7,6 +7,10 @@
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+#if defined(__x86_64__) && defined(__SSE2__)
+#include <emmintrin.h>
+#define GC_STREAM 1
+#endif
 
 #define FOUR_PI 12.566370614359172953850573533118
 #define GC_PERPENDICULAR_PLANE_RATIO 0.01 /* pairs closer to a face plane than this x min R: edge-sum solid angle */
@@ -603,12 +607,30 @@ static inline void gc_far_lanes(const gc_tables *g, long f, const double *x0, co
     }
 }
 
+/* dst[i] = src[stride * i] for i < n; with stream, past the caches (non-temporal stores: a large
+ * output, written once, is not first read in; the caller fences). */
+static inline void gc_copy_out(double *dst, const double *src, long stride, long n, int stream) {
+#ifdef GC_STREAM
+    if (stream) {
+        for (long i = 0; i < n; ++i) {
+            long long bits;
+            memcpy(&bits, src + stride * i, sizeof bits);
+            _mm_stream_si64((long long *)(dst + i), bits);
+        }
+        return;
+    }
+#else
+    (void)stream;
+#endif
+    for (long i = 0; i < n; ++i) dst[i] = src[stride * i];
+}
+
 /* The Green coordinates of cnt <= GL points X (cnt, 3): rows PHI (cnt, V) and PSI (cnt, T), with
  * tc_gc_point's forms (with ONF, AL (cnt,), (cnt, 3), or the jump added here). Each lane's results
  * depend on its point alone, whatever the others and cnt. thin: 1 for the faces in g->thin (T,).
  * ws: gc_block_workspace(g) doubles. */
 static void gc_block(const gc_tables *g, const unsigned char *thin, const double *X, int cnt, double tol, double *ws,
-                     double *PHI, double *PSI, int *ONF, double *AL) {
+                     int stream, double *PHI, double *PSI, int *ONF, double *AL) {
     const long V = g->V, T = g->T, E = g->E;
     const double *Pv = g->Pv, *eu = g->eu, *fc = g->fc, *two_area = g->two_area;
     const int *t0 = g->tri, *t1 = t0 + T, *t2 = t1 + T, *e0 = g->edges, *e1 = e0 + E;
@@ -760,8 +782,8 @@ static void gc_block(const gc_tables *g, const unsigned char *thin, const double
             for (int i = 0; i < 3; ++i) PH[GL * (long)g->tri[i * T + onf[l]] + l] += jump * oal[l][i];
         }
         double *phi = PHI + l * V, *psi = PSI + l * T;
-        for (long v = 0; v < V; ++v) phi[v] = PH[GL * v + l];
-        for (long f = 0; f < T; ++f) psi[f] = PS[GL * f + l];
+        gc_copy_out(phi, PH + l, GL, V, stream);
+        gc_copy_out(psi, PS + l, GL, T, stream);
     }
 }
 
@@ -776,6 +798,7 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
     unsigned char *thin = (unsigned char *)calloc((size_t)(T > 0 ? T : 1), 1);
     for (long q = 0; q < g.nthin; ++q) thin[g.thin[q]] = 1;
     const long nb = (n + GL - 1) / GL; /* blocks of GL points (the last one shorter) */
+    const int stream = (double)n * (double)(V + T) > (double)(1 << 22); /* outputs past 32 MiB: streamed */
 #pragma omp parallel num_threads(nthreads)
     {
         double *buf = (double *)malloc(sizeof(double) * gc_block_workspace(&g));
@@ -783,9 +806,12 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
         for (long b = 0; b < nb; ++b) {
             long p = GL * b;
             int cnt = n - p < GL ? (int)(n - p) : GL;
-            gc_block(&g, thin, X + 3 * p, cnt, tol, buf, PHI + p * V, PSI + p * T, ONF ? ONF + p : NULL,
+            gc_block(&g, thin, X + 3 * p, cnt, tol, buf, stream, PHI + p * V, PSI + p * T, ONF ? ONF + p : NULL,
                      ONF ? AL + 3 * p : NULL);
         }
+#ifdef GC_STREAM
+        _mm_sfence(); /* the streamed stores before this thread's part is read */
+#endif
         free(buf);
     }
     free(thin);
