@@ -64,3 +64,16 @@ def test_blocks_equal_points_alone_and_the_torch_kernel(make):
     a = F.green_coordinates(x, cage, backend="native")
     b = F.green_coordinates(x, cage, backend="torch")
     assert (a[0] - b[0]).abs().max() < 1e-12 and (a[1] - b[1]).abs().max() < 1e-12
+
+
+def test_large_outputs_streamed_equal_chunks():
+    """Past 32 MiB of output the kernel writes with non-temporal stores: the same values as in
+    chunks written the ordinary way."""
+    if not _native.available():
+        pytest.skip("native kernel unavailable")
+    cage = box_cage().triangulated()  # 8 vertices + 12 triangles: 20 values per point
+    g = torch.Generator().manual_seed(3)
+    x = 2.4 * torch.rand(220_003, 3, generator=g, dtype=torch.float64) - 1.2  # 4.4e6 values > 2**22
+    phi, psi = F.green_coordinates(x, cage, backend="native", exterior="none")
+    c = F.green_coordinates(x, cage, backend="native", exterior="none", chunk_size=50_000)
+    assert torch.equal(phi, c[0]) and torch.equal(psi, c[1])
