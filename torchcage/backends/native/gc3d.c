@@ -629,6 +629,9 @@ static inline void gc_copy_out(double *dst, const double *src, long stride, long
  * tc_gc_point's forms (with ONF, AL (cnt,), (cnt, 3), or the jump added here). Each lane's results
  * depend on its point alone, whatever the others and cnt. thin: 1 for the faces in g->thin (T,).
  * ws: gc_block_workspace(g) doubles. */
+#if defined(__x86_64__) && defined(__AVX2__) && defined(TC_LIBMVEC) && defined(__GNUC__) && !defined(__clang__)
+__attribute__((target_clones("avx512f", "default")))
+#endif
 static void gc_block(const gc_tables *g, const unsigned char *thin, const double *X, int cnt, double tol, double *ws,
                      int stream, double *PHI, double *PSI, int *ONF, double *AL) {
     const long V = g->V, T = g->T, E = g->E;
