@@ -1,7 +1,9 @@
 /*
  * Native CPU kernel of torchcage's 3D Green coordinates (float64): the same closed forms as
- * torchcage/families/green/kernel3d.py (see its module docstring), one point per iteration (tc_gc_point,
- * also used by the QGC kernel), OpenMP over points. The tests check it against the torch kernel.
+ * torchcage/families/green/kernel3d.py (see its module docstring). tc_gc_point computes one point
+ * (vectorised across faces; the QGC and derivative kernels use it); tc_gc3d computes blocks of
+ * GC_LANES points (gc_block: vectorised across the points, with tc_gc_point's careful forms for the
+ * pairs that need them), OpenMP over blocks. The tests check it against the torch kernel.
  */
 #define _GNU_SOURCE
 #include <math.h>
@@ -700,7 +702,7 @@ static void gc_block(const gc_tables *g, const unsigned char *thin, const double
         const double o5 = O[5 * T + f], o6 = O[6 * T + f], o7 = O[7 * T + f], o8 = O[8 * T + f];
         double hh[GL], d0[GL], d1[GL], d2[GL], om[GL], fl[GL], fa[GL], p0[GL], p1[GL], p2[GL], any = 0.0;
         const double *oa = OA + GL * f;
-#pragma omp simd reduction(+ : any)
+#pragma omp simd reduction(max : any)
         for (int l = 0; l < GL; ++l) {
             double a0x = AX[i0 + l], a0y = AY[i0 + l], a0z = AZ[i0 + l], a1x = AX[i1 + l], a1y = AY[i1 + l];
             double a1z = AZ[i1 + l], a2x = AX[i2 + l], a2y = AY[i2 + l], a2z = AZ[i2 + l];
@@ -718,7 +720,8 @@ static void gc_block(const gc_tables *g, const unsigned char *thin, const double
             double ha = h >= 0 ? h : -h;
             fl[l] = (ha < thr * rmin || ha <= tol || thr < 0 || rmin < GC_PERPENDICULAR_VERTEX_RATIO * rmax) ? 1.0 : 0.0;
             fa[l] = rmin * rmin >= far2 ? 1.0 : 0.0;
-            any += fl[l] + fa[l];
+            double flag = fl[l] + fa[l];
+            any = any > flag ? any : flag; /* (a max: no ordered sum across the lanes) */
         }
         if (any != 0.0) /* near the face's plane or a corner: tc_gc_point's fix-up */
             for (int l = 0; l < GL; ++l) {
