@@ -1,12 +1,18 @@
 /*
  * Native CPU kernel of torchcage's 3D Green coordinates (float64): the same closed forms as
- * torchcage/families/green/kernel3d.py (see its module docstring), one point per iteration (tc_gc_point,
- * also used by the QGC kernel), OpenMP over points. The tests check it against the torch kernel.
+ * torchcage/families/green/kernel3d.py (see its module docstring). tc_gc_point computes one point
+ * (vectorised across faces; the QGC and derivative kernels use it); tc_gc3d computes blocks of
+ * GC_LANES points (gc_block: vectorised across the points, with tc_gc_point's careful forms for the
+ * pairs that need them), OpenMP over blocks. The tests check it against the torch kernel.
  */
 #define _GNU_SOURCE
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+#if defined(__x86_64__) && defined(__SSE2__)
+#include <emmintrin.h>
+#define GC_STREAM 1
+#endif
 
 #define FOUR_PI 12.566370614359172953850573533118
 #define GC_PERPENDICULAR_PLANE_RATIO 0.01 /* pairs closer to a face plane than this x min R: edge-sum solid angle */
@@ -368,6 +374,64 @@ void tc_far_face(const gc_tables *g, long f, const double *x, double h, double *
     }
 }
 
+/* Face f (not degenerate) seen from a point near its plane or much nearer one corner than the
+ * others (corner offsets a, distances R): d (3) and h again from each edge's perpendicular w_e (from
+ * its nearer end, or its midpoint when both are as near): the same bits for both faces of an edge
+ * (the two run it in opposite directions, u' = -u exactly), so that coplanar neighbours split their
+ * solid angle without a gap near it; h from the nearest edge's w (torch: _edge_perpendicular). Sets
+ * the solid angle om by the edge sum (which does not cancel near the plane); on the face (returns 1)
+ * om = 0: the principal value (on its plane off the face the solid angle is kept: near an edge it is
+ * of order 1 even where |h| <= tol). */
+static inline int gc_near_face(const gc_tables *g, long f, const double a[3][3], const double *R, double tol,
+                               double *d, double *h_out, double *om) {
+    const double *ed = g->edir + 9 * f, *O = g->eout + 9 * f, *n = g->nrm + 3 * f;
+    double h = 0.0, best = INFINITY;
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        const double *u = ed + 3 * e;
+        double m[3] = {0.5 * (a[j][0] + a[k][0]), 0.5 * (a[j][1] + a[k][1]), 0.5 * (a[j][2] + a[k][2])};
+        if (R[j] < R[k]) {
+            m[0] = a[j][0], m[1] = a[j][1], m[2] = a[j][2];
+        } else if (R[k] < R[j]) {
+            m[0] = a[k][0], m[1] = a[k][1], m[2] = a[k][2];
+        }
+        double mu = m[0] * u[0] + m[1] * u[1] + m[2] * u[2];
+        double w[3] = {m[0] - mu * u[0], m[1] - mu * u[1], m[2] - mu * u[2]};
+        d[e] = w[0] * O[3 * e] + w[1] * O[3 * e + 1] + w[2] * O[3 * e + 2];
+        double w2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+        if (w2 < best) {
+            best = w2;
+            h = w[0] * n[0] + w[1] * n[1] + w[2] * n[2];
+        }
+    }
+    *h_out = h;
+    double habs = fabs(h), beta = 0.0;
+    if (habs <= tol && d[0] >= -tol && d[1] >= -tol && d[2] >= -tol) {
+        *om = 0.0;
+        return 1;
+    }
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        const double *u = ed + 3 * e;
+        double l_j = a[j][0] * u[0] + a[j][1] * u[1] + a[j][2] * u[2];
+        double l_k = a[k][0] * u[0] + a[k][1] * u[1] + a[k][2] * u[2], R0sq = d[e] * d[e] + h * h;
+        beta += edge_angle(d[e], l_j, l_k, R[j], R[k], R0sq, habs);
+    }
+    *om = h >= 0 ? beta : -beta;
+    return 0;
+}
+
+/* A point on face f (signed edge distances d (3)): its barycentric coordinates there (3,). */
+static inline void gc_on_alpha(const gc_tables *g, long f, const double *d, double *on_alpha) {
+    double sum = 0.0;
+    for (int i = 0; i < 3; ++i) {
+        double al = d[i] * g->ell[3 * f + i] / g->two_area[f];
+        on_alpha[i] = al > 0 ? al : 0.0;
+        sum += on_alpha[i];
+    }
+    for (int i = 0; i < 3; ++i) on_alpha[i] /= sum;
+}
+
 /* Doubles of workspace tc_gc_point needs. */
 size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g->E + 6 * (size_t)g->T; }
 
@@ -442,59 +506,18 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
             continue;
         }
         const int c3[3] = {t0[f], t1[f], t2[f]};
-        const double *ed = g->edir + 9 * f;
-        /* Near the plane, d_e and h again from each edge's perpendicular w_e (from its nearer end,
-         * or its midpoint when both are as near): the same bits for both faces of an edge (the two
-         * run it in opposite directions, u' = -u exactly), so that coplanar neighbours split their
-         * solid angle without a gap near it; h from the nearest edge's w (torch: _edge_perpendicular). */
-        double d[3], h = 0.0, best = INFINITY;
-        for (int e = 0; e < 3; ++e) {
-            int j = c3[(e + 1) % 3], k = c3[(e + 2) % 3];
-            const double *u = ed + 3 * e;
-            double m[3] = {0.5 * (Ax[j] + Ax[k]), 0.5 * (Ay[j] + Ay[k]), 0.5 * (Az[j] + Az[k])};
-            if (RA[j] < RA[k]) {
-                m[0] = Ax[j], m[1] = Ay[j], m[2] = Az[j];
-            } else if (RA[k] < RA[j]) {
-                m[0] = Ax[k], m[1] = Ay[k], m[2] = Az[k];
-            }
-            double mu = m[0] * u[0] + m[1] * u[1] + m[2] * u[2];
-            double w[3] = {m[0] - mu * u[0], m[1] - mu * u[1], m[2] - mu * u[2]};
-            d[e] = w[0] * O[(3 * e) * T + f] + w[1] * O[(3 * e + 1) * T + f] + w[2] * O[(3 * e + 2) * T + f];
-            double w2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
-            if (w2 < best) {
-                best = w2;
-                h = w[0] * Nx[f] + w[1] * Ny[f] + w[2] * Nz[f];
-            }
-        }
+        double a[3][3], R[3], d[3], h, om;
+        for (int i = 0; i < 3; ++i) a[i][0] = Ax[c3[i]], a[i][1] = Ay[c3[i]], a[i][2] = Az[c3[i]], R[i] = RA[c3[i]];
+        int on = gc_near_face(g, f, a, R, tol, d, &h, &om);
         D0[f] = d[0];
         D1[f] = d[1];
         D2[f] = d[2];
         H[f] = h;
-        double habs = fabs(h), beta = 0.0;
-        if (habs <= tol && d[0] >= -tol && d[1] >= -tol && d[2] >= -tol) {
-            /* on the face: principal value, no solid angle. (On its plane off the face, the solid
-             * angle is computed below: near an edge it is of order 1 even where h <= tol.) */
-            OM[f] = 0.0;
-            if (on_face < 0 || two_area[f] > two_area[on_face]) { /* the largest face: best conditioned */
-                on_face = f;
-                double sum = 0.0;
-                for (int i = 0; i < 3; ++i) {
-                    double al = d[i] * g->ell[3 * f + i] / two_area[f];
-                    on_alpha[i] = al > 0 ? al : 0.0;
-                    sum += on_alpha[i];
-                }
-                for (int i = 0; i < 3; ++i) on_alpha[i] /= sum;
-            }
-            continue;
+        OM[f] = om;
+        if (on && (on_face < 0 || two_area[f] > two_area[on_face])) { /* the largest face: best conditioned */
+            on_face = f;
+            gc_on_alpha(g, f, d, on_alpha);
         }
-        for (int e = 0; e < 3; ++e) { /* edge-sum solid angle: does not cancel near the plane */
-            int j = c3[(e + 1) % 3], k = c3[(e + 2) % 3];
-            const double *u = ed + 3 * e;
-            double l_j = Ax[j] * u[0] + Ay[j] * u[1] + Az[j] * u[2];
-            double l_k = Ax[k] * u[0] + Ay[k] * u[1] + Az[k] * u[2], R0sq = d[e] * d[e] + h * h;
-            beta += edge_angle(d[e], l_j, l_k, RA[j], RA[k], R0sq, habs);
-        }
-        OM[f] = h >= 0 ? beta : -beta;
     }
     /* psi and the corner terms; on a face's plane (|h| <= tol) h K is dropped, and a d_e = 0 (the
      * point on an edge line) drops that edge's integral. */
@@ -530,6 +553,246 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
     return on_face;
 }
 
+/*
+ * GC_LANES points at once (gc_block): the same forms as tc_gc_point, vectorised across the points
+ * rather than the faces, so that every load is contiguous (arrays [vertex | edge | face][lane]) and
+ * the per-face constants are broadcast: no gathers. Per face, one vector pass gives h, the d_e, the
+ * one-atan2 solid angle and which lanes need a careful form; those lanes (near the face's plane or
+ * a corner, on the face, degenerate faces, thin faces seen from a few widths, faces seen from far)
+ * take tc_gc_point's own code for that pair (gc_near_face, tc_thin_green, tc_far_face), then one
+ * vector pass gives psi and the corner terms, in tc_gc_point's order.
+ */
+#ifndef GC_LANES
+#define GC_LANES 8
+#endif
+#define GL GC_LANES
+
+/* Doubles of workspace gc_block needs: corner offsets and distances (4 V), phi (V), the edge
+ * integrals (E) and psi (T), each GL lanes wide. */
+static size_t gc_block_workspace(const gc_tables *g) {
+    return (size_t)GL * (5 * (size_t)g->V + (size_t)g->E + 3 * (size_t)g->T);
+}
+
+/* tc_far_face (phi, psi, omega) of face f for the lanes with fa[l] != 0 (points x0, x1, x2 (GL,),
+ * first corner's offsets a0x, a0y, a0z (GL,)): the same sums in the same order, across the lanes. */
+static inline void gc_far_lanes(const gc_tables *g, long f, const double *x0, const double *x1, const double *x2,
+                                const double *a0x, const double *a0y, const double *a0z, const double *fa,
+                                double *ps, double *om, double *p0, double *p1, double *p2) {
+    const long Q = g->Q;
+    const double *nodes = g->far_nodes + 3 * Q * f, *w = g->far_w + Q * f, *n = g->nrm + 3 * f;
+    double s1[GL], s3[GL], b0[GL], b1[GL], b2[GL];
+    for (int l = 0; l < GL; ++l) s1[l] = s3[l] = b0[l] = b1[l] = b2[l] = 0.0;
+    for (long q = 0; q < Q; ++q) {
+        const double nqx = nodes[3 * q], nqy = nodes[3 * q + 1], nqz = nodes[3 * q + 2], wq = w[q];
+        const double *bq = g->far_bary + 3 * q;
+        const double bq0 = bq[0], bq1 = bq[1], bq2 = bq[2];
+#pragma omp simd
+        for (int l = 0; l < GL; ++l) {
+            double ax = nqx - x0[l], ay = nqy - x1[l], az = nqz - x2[l];
+            double r2 = ax * ax + ay * ay + az * az, ir = 1.0 / sqrt(r2), w1 = wq * ir, w3 = w1 * ir * ir;
+            s1[l] += w1;
+            s3[l] += w3;
+            b0[l] += w3 * bq0;
+            b1[l] += w3 * bq1;
+            b2[l] += w3 * bq2;
+        }
+    }
+#pragma omp simd
+    for (int l = 0; l < GL; ++l) {
+        if (fa[l] == 0.0) continue;
+        double h = a0x[l] * n[0] + a0y[l] * n[1] + a0z[l] * n[2];
+        om[l] = h * s3[l];
+        ps[l] = s1[l] / FOUR_PI;
+        p0[l] = h * b0[l] / FOUR_PI;
+        p1[l] = h * b1[l] / FOUR_PI;
+        p2[l] = h * b2[l] / FOUR_PI;
+    }
+}
+
+/* dst[i] = src[stride * i] for i < n; with stream, past the caches (non-temporal stores: a large
+ * output, written once, is not first read in; the caller fences). */
+static inline void gc_copy_out(double *dst, const double *src, long stride, long n, int stream) {
+#ifdef GC_STREAM
+    if (stream) {
+        for (long i = 0; i < n; ++i) {
+            long long bits;
+            memcpy(&bits, src + stride * i, sizeof bits);
+            _mm_stream_si64((long long *)(dst + i), bits);
+        }
+        return;
+    }
+#else
+    (void)stream;
+#endif
+    for (long i = 0; i < n; ++i) dst[i] = src[stride * i];
+}
+
+/* The Green coordinates of cnt <= GL points X (cnt, 3): rows PHI (cnt, V) and PSI (cnt, T), with
+ * tc_gc_point's forms (with ONF, AL (cnt,), (cnt, 3), or the jump added here). Each lane's results
+ * depend on its point alone, whatever the others and cnt. thin: 1 for the faces in g->thin (T,).
+ * ws: gc_block_workspace(g) doubles. */
+#if defined(__x86_64__) && defined(__AVX2__) && defined(TC_LIBMVEC) && defined(__GNUC__) && !defined(__clang__)
+__attribute__((target_clones("avx512f", "default")))
+#endif
+static void gc_block(const gc_tables *g, const unsigned char *thin, const double *X, int cnt, double tol, double *ws,
+                     int stream, double *PHI, double *PSI, int *ONF, double *AL) {
+    const long V = g->V, T = g->T, E = g->E;
+    const double *Pv = g->Pv, *eu = g->eu, *fc = g->fc, *two_area = g->two_area;
+    const int *t0 = g->tri, *t1 = t0 + T, *t2 = t1 + T, *e0 = g->edges, *e1 = e0 + E;
+    const int *f0 = g->fe, *f1 = f0 + T, *f2 = f1 + T;
+    const double *Nx = fc + FC_N * T, *Ny = Nx + T, *Nz = Ny + T, *O = fc + FC_O * T, *Cc = fc + FC_C * T;
+    const double *M = fc + FC_M * T, *S = fc + FC_S * T, *THR = fc + FC_THR * T, *FAR2 = fc + FC_FAR * T;
+    const double inv4pi = 1.0 / FOUR_PI;
+    double *AX = ws, *AY = AX + GL * V, *AZ = AY + GL * V, *RA = AZ + GL * V, *PH = RA + GL * V;
+    double *IE = PH + GL * V, *PS = IE + GL * E, *OA = PS + GL * T, *DEN = OA + GL * T;
+    double x0[GL], x1[GL], x2[GL], osum[GL], oal[GL][3];
+    long onf[GL];
+    for (int l = 0; l < GL; ++l) {
+        const double *xl = X + 3 * (l < cnt ? l : cnt - 1); /* (lanes past cnt repeat the last point) */
+        x0[l] = xl[0], x1[l] = xl[1], x2[l] = xl[2];
+        osum[l] = 0.0, onf[l] = -1, oal[l][0] = oal[l][1] = oal[l][2] = 0.0;
+    }
+    for (long v = 0; v < V; ++v) {
+        const double px = Pv[v], py = Pv[V + v], pz = Pv[2 * V + v];
+        double *ax = AX + GL * v, *ay = AY + GL * v, *az = AZ + GL * v, *ra = RA + GL * v, *ph = PH + GL * v;
+#pragma omp simd
+        for (int l = 0; l < GL; ++l) {
+            double dx = px - x0[l], dy = py - x1[l], dz = pz - x2[l];
+            ax[l] = dx, ay[l] = dy, az[l] = dz, ph[l] = 0.0;
+            ra[l] = sqrt(dx * dx + dy * dy + dz * dz);
+        }
+    }
+    /* Edge integrals, shared by an edge's two faces. */
+    for (long q = 0; q < E; ++q) {
+        const long j = GL * (long)e0[q], k = GL * (long)e1[q];
+        const double ux = eu[q], uy = eu[E + q], uz = eu[2 * E + q];
+        double *ie = IE + GL * q;
+#pragma omp simd
+        for (int l = 0; l < GL; ++l) {
+            double ajx = AX[j + l], ajy = AY[j + l], ajz = AZ[j + l], akx = AX[k + l], aky = AY[k + l], akz = AZ[k + l];
+            double l_j = ajx * ux + ajy * uy + ajz * uz, l_k = akx * ux + aky * uy + akz * uz;
+            double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
+            ie[l] = tc_edge_log_arg(l_j, l_k, RA[j + l], RA[k + l], cx * cx + cy * cy + cz * cz);
+        }
+    }
+    /* (the logs and the atan2 below in loops of their own: long, contiguous, libmvec's vector forms) */
+#pragma omp simd
+    for (long q = 0; q < GL * E; ++q) IE[q] = log(IE[q]);
+    /* The one-atan2 solid angle's arguments, then the angles. */
+    for (long f = 0; f < T; ++f) {
+        const long i0 = GL * (long)t0[f], i1 = GL * (long)t1[f], i2 = GL * (long)t2[f];
+        double *num = OA + GL * f, *den = DEN + GL * f;
+#pragma omp simd
+        for (int l = 0; l < GL; ++l) {
+            double a0x = AX[i0 + l], a0y = AY[i0 + l], a0z = AZ[i0 + l], a1x = AX[i1 + l], a1y = AY[i1 + l];
+            double a1z = AZ[i1 + l], a2x = AX[i2 + l], a2y = AY[i2 + l], a2z = AZ[i2 + l];
+            double R0 = RA[i0 + l], R1 = RA[i1 + l], R2 = RA[i2 + l];
+            double c12x = a1y * a2z - a1z * a2y, c12y = a1z * a2x - a1x * a2z, c12z = a1x * a2y - a1y * a2x;
+            den[l] = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
+                     (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+            num[l] = a0x * c12x + a0y * c12y + a0z * c12z;
+        }
+    }
+#pragma omp simd
+    for (long q = 0; q < GL * T; ++q) OA[q] = 2.0 * atan2(OA[q], DEN[q]);
+    for (long f = 0; f < T; ++f) {
+        const long i0 = GL * (long)t0[f], i1 = GL * (long)t1[f], i2 = GL * (long)t2[f];
+        const double nx = Nx[f], ny = Ny[f], nz = Nz[f], thr = THR[f], far2 = FAR2[f];
+        const double o0 = O[f], o1 = O[T + f], o2 = O[2 * T + f], o3 = O[3 * T + f], o4 = O[4 * T + f];
+        const double o5 = O[5 * T + f], o6 = O[6 * T + f], o7 = O[7 * T + f], o8 = O[8 * T + f];
+        double hh[GL], d0[GL], d1[GL], d2[GL], om[GL], fl[GL], fa[GL], p0[GL], p1[GL], p2[GL], any = 0.0;
+        const double *oa = OA + GL * f;
+#pragma omp simd reduction(max : any)
+        for (int l = 0; l < GL; ++l) {
+            double a0x = AX[i0 + l], a0y = AY[i0 + l], a0z = AZ[i0 + l], a1x = AX[i1 + l], a1y = AY[i1 + l];
+            double a1z = AZ[i1 + l], a2x = AX[i2 + l], a2y = AY[i2 + l], a2z = AZ[i2 + l];
+            double R0 = RA[i0 + l], R1 = RA[i1 + l], R2 = RA[i2 + l];
+            double h = a0x * nx + a0y * ny + a0z * nz;
+            hh[l] = h;
+            d0[l] = a1x * o0 + a1y * o1 + a1z * o2;
+            d1[l] = a2x * o3 + a2y * o4 + a2z * o5;
+            d2[l] = a0x * o6 + a0y * o7 + a0z * o8;
+            om[l] = oa[l];
+            double rmin = R0 < R1 ? R0 : R1;
+            rmin = rmin < R2 ? rmin : R2;
+            double rmax = R0 > R1 ? R0 : R1;
+            rmax = rmax > R2 ? rmax : R2;
+            double ha = h >= 0 ? h : -h;
+            fl[l] = (ha < thr * rmin || ha <= tol || thr < 0 || rmin < GC_PERPENDICULAR_VERTEX_RATIO * rmax) ? 1.0 : 0.0;
+            fa[l] = rmin * rmin >= far2 ? 1.0 : 0.0;
+            double flag = fl[l] + fa[l];
+            any = any > flag ? any : flag; /* (a max: no ordered sum across the lanes) */
+        }
+        if (any != 0.0) /* near the face's plane or a corner: tc_gc_point's fix-up */
+            for (int l = 0; l < GL; ++l) {
+                if (fl[l] == 0.0) continue;
+                if (!(two_area[f] > 0)) {
+                    om[l] = 0.0;
+                    continue;
+                }
+                double a[3][3] = {{AX[i0 + l], AY[i0 + l], AZ[i0 + l]},
+                                  {AX[i1 + l], AY[i1 + l], AZ[i1 + l]},
+                                  {AX[i2 + l], AY[i2 + l], AZ[i2 + l]}};
+                double R[3] = {RA[i0 + l], RA[i1 + l], RA[i2 + l]}, d[3];
+                int on = gc_near_face(g, f, a, R, tol, d, hh + l, om + l);
+                d0[l] = d[0], d1[l] = d[1], d2[l] = d[2];
+                if (on && (onf[l] < 0 || two_area[f] > two_area[onf[l]])) {
+                    onf[l] = f;
+                    gc_on_alpha(g, f, d, oal[l]);
+                }
+            }
+        const double *I0v = IE + GL * (long)f0[f], *I1v = IE + GL * (long)f1[f], *I2v = IE + GL * (long)f2[f];
+        const double s = S[f], c0 = Cc[f], c1 = Cc[T + f], c2 = Cc[2 * T + f];
+        const double m0 = M[f], m1 = M[T + f], m2 = M[2 * T + f], m3 = M[3 * T + f], m4 = M[4 * T + f];
+        const double m5 = M[5 * T + f], m6 = M[6 * T + f], m7 = M[7 * T + f], m8 = M[8 * T + f];
+        double *ps = PS + GL * f;
+#pragma omp simd
+        for (int l = 0; l < GL; ++l) {
+            double I0 = I0v[l], I1 = I1v[l], I2 = I2v[l], h = hh[l], o = om[l];
+            double q0 = d0[l] * I0, q1 = d1[l] * I1, q2 = d2[l] * I2;
+            double dI = (d0[l] != 0 ? q0 : 0.0) + (d1[l] != 0 ? q1 : 0.0) + (d2[l] != 0 ? q2 : 0.0);
+            ps[l] = s * dI - h * o * inv4pi;
+            double ha = h >= 0 ? h : -h, hk = ha <= tol ? 0.0 : h;
+            p0[l] = c0 * d0[l] * o + hk * (m0 * I0 + m1 * I1 + m2 * I2);
+            p1[l] = c1 * d1[l] * o + hk * (m3 * I0 + m4 * I1 + m5 * I2);
+            p2[l] = c2 * d2[l] * o + hk * (m6 * I0 + m7 * I1 + m8 * I2);
+        }
+        if (thin[f]) /* a thin face seen from a few widths: the swept form */
+            for (int l = 0; l < GL; ++l) {
+                double a[3][3] = {{AX[i0 + l], AY[i0 + l], AZ[i0 + l]},
+                                  {AX[i1 + l], AY[i1 + l], AZ[i1 + l]},
+                                  {AX[i2 + l], AY[i2 + l], AZ[i2 + l]}}, ph[3];
+                if (!tc_thin_face(a, two_area[f])) continue;
+                tc_thin_green(a, hh[l], two_area[f], ph, ps + l, om + l);
+                p0[l] = ph[0], p1[l] = ph[1], p2[l] = ph[2];
+            }
+        if (any != 0.0 && g->Q > 0) { /* seen from far: the Gauss rule (tc_far_face's sums, lane by lane) */
+            double nfar = 0.0;
+            for (int l = 0; l < GL; ++l) nfar += fa[l];
+            if (nfar != 0.0) gc_far_lanes(g, f, x0, x1, x2, AX + i0, AY + i0, AZ + i0, fa, ps, om, p0, p1, p2);
+        }
+#pragma omp simd
+        for (int l = 0; l < GL; ++l) {
+            PH[i0 + l] += p0[l];
+            PH[i1 + l] += p1[l];
+            PH[i2 + l] += p2[l];
+            osum[l] += om[l];
+        }
+    }
+    for (int l = 0; l < cnt; ++l) {
+        if (ONF) {
+            ONF[l] = (int)onf[l];
+            for (int i = 0; i < 3; ++i) AL[3 * l + i] = oal[l][i];
+        } else if (onf[l] >= 0) { /* the limit from inside: hat values with the jump weight */
+            double jump = 1.0 - osum[l] / FOUR_PI;
+            for (int i = 0; i < 3; ++i) PH[GL * (long)g->tri[i * T + onf[l]] + l] += jump * oal[l][i];
+        }
+        double *phi = PHI + l * V, *psi = PSI + l * T;
+        gc_copy_out(phi, PH + l, GL, V, stream);
+        gc_copy_out(psi, PS + l, GL, T, stream);
+    }
+}
+
 void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges, long E, const double *eu,
              const int *fe, const double *nrm, const double *two_area, const double *ell, const double *edir,
              const double *eout, const double *gbary, const double *longest, const double *far_nodes,
@@ -538,31 +801,25 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
     gc_tables g = {Pv,   V,    tri,  T,       edges,     E,    eu,       fe, nrm, two_area, ell, edir, eout,
                    gbary, NULL, NULL, 0,       longest,   far_nodes, far_w, far_bary, Q, far_c};
     tc_gc_prepare(&g);
+    unsigned char *thin = (unsigned char *)calloc((size_t)(T > 0 ? T : 1), 1);
+    for (long q = 0; q < g.nthin; ++q) thin[g.thin[q]] = 1;
+    const long nb = (n + GL - 1) / GL; /* blocks of GL points (the last one shorter) */
+    const int stream = (double)n * (double)(V + T) > (double)(1 << 22); /* outputs past 32 MiB: streamed */
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = (double *)malloc(sizeof(double) * (tc_gc_workspace(&g) + 4 * (size_t)T));
-        double *P = buf + tc_gc_workspace(&g), *OM = P + 3 * T;
-#pragma omp for schedule(dynamic, 16)
-        for (long p = 0; p < n; ++p) {
-            double *phi = PHI + p * V, *psi = PSI + p * T, on_alpha[3];
-            long on_face = tc_gc_point(&g, X + 3 * p, tol, buf, psi, P, OM, on_alpha);
-            memset(phi, 0, sizeof(double) * (size_t)V);
-            double omega_sum = 0.0;
-            for (long f = 0; f < T; ++f) {
-                phi[tri[f]] += P[f];
-                phi[tri[T + f]] += P[T + f];
-                phi[tri[2 * T + f]] += P[2 * T + f];
-                omega_sum += OM[f];
-            }
-            if (ONF) {
-                ONF[p] = (int)on_face;
-                for (int i = 0; i < 3; ++i) AL[3 * p + i] = on_alpha[i];
-            } else if (on_face >= 0) { /* the limit from inside: hat values with the jump weight */
-                double jump = 1.0 - omega_sum / FOUR_PI;
-                for (int i = 0; i < 3; ++i) phi[tri[i * T + on_face]] += jump * on_alpha[i];
-            }
+        double *buf = (double *)malloc(sizeof(double) * gc_block_workspace(&g));
+#pragma omp for schedule(dynamic, 2)
+        for (long b = 0; b < nb; ++b) {
+            long p = GL * b;
+            int cnt = n - p < GL ? (int)(n - p) : GL;
+            gc_block(&g, thin, X + 3 * p, cnt, tol, buf, stream, PHI + p * V, PSI + p * T, ONF ? ONF + p : NULL,
+                     ONF ? AL + 3 * p : NULL);
         }
+#ifdef GC_STREAM
+        _mm_sfence(); /* the streamed stores before this thread's part is read */
+#endif
         free(buf);
     }
+    free(thin);
     tc_gc_free(&g);
 }
