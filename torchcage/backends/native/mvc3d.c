@@ -314,8 +314,9 @@ static void mvc3d_block_carve(double *buf, long V, long E, long T, mvc3d_block_s
 }
 
 /* The coordinates of the LN points X[0 .. LN) (rows of 3) against cage g, into the rows w[l * V ..)
- * with their flags on[l] (as mvc3d_point's return value). */
-static void mvc3d_block(const mvc3d_cage *g, long V, const int *tri, long T, const int *edges, long E, const int *fe,
+ * with their flags on[l] (as mvc3d_point's return value). Compiled twice below: for the library's
+ * target and, where the compiler and libmvec allow, for AVX-512 (chosen at run time). */
+static inline __attribute__((always_inline)) void mvc3d_block_body(const mvc3d_cage *g, long V, const int *tri, long T, const int *edges, long E, const int *fe,
                         const int *inc_ptr, const int *inc_idx, const double *fs, long Q, double far_c,
                         double cancel_c, double near_c, const double *X, int normalize, const mvc3d_scratch *sc,
                         const mvc3d_block_scratch *bs, double *w, unsigned char *on) {
@@ -515,6 +516,31 @@ static void mvc3d_block(const mvc3d_cage *g, long V, const int *tri, long T, con
     }
 }
 
+#define MVC3D_BLOCK_PARAMS                                                                                          \
+    const mvc3d_cage *g, long V, const int *tri, long T, const int *edges, long E, const int *fe, const int *inc_ptr, \
+        const int *inc_idx, const double *fs, long Q, double far_c, double cancel_c, double near_c, const double *X, \
+        int normalize, const mvc3d_scratch *sc, const mvc3d_block_scratch *bs, double *w, unsigned char *on
+#define MVC3D_BLOCK_ARGS \
+    g, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c, near_c, X, normalize, sc, bs, w, on
+
+static void mvc3d_block(MVC3D_BLOCK_PARAMS) { mvc3d_block_body(MVC3D_BLOCK_ARGS); }
+
+/* The AVX-512 instance: one 512-bit operation per lane loop, libmvec's 8-lane atan (_ZGVeN8v_atan).
+ * Only with gcc and glibc's vector math (TC_LIBMVEC) on x86-64; the CPU is asked at run time. */
+#if defined(TC_LIBMVEC) && defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 8 && \
+    !defined(TC_NO_AVX512)
+#define MVC3D_AVX512 1
+__attribute__((target("avx512f,avx512dq,avx512vl,avx2,fma,prefer-vector-width=512"))) static void mvc3d_block_avx512(
+    MVC3D_BLOCK_PARAMS) {
+    mvc3d_block_body(MVC3D_BLOCK_ARGS);
+}
+static int mvc3d_has_avx512(void) {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
+           __builtin_cpu_supports("avx512vl");
+}
+#endif
+
 void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,
               const int *inc_ptr, const int *inc_idx, const double *fs, const double *nrm, const double *two_area,
               const double *ell, const double *gram, const double *far_nodes, const double *far_coef,
@@ -550,6 +576,9 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
     }
     /* Work items: each cage's full blocks of LN points, then its last n % LN points one by one. */
     const long nb = n / LN, per = nb + (n - nb * LN);
+#ifdef MVC3D_AVX512
+    const int avx512 = nb > 0 && mvc3d_has_avx512();
+#endif
 #pragma omp parallel num_threads(nthreads)
     {
         double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + 8 * (size_t)E + 5 * (size_t)T));
@@ -571,6 +600,13 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
             const double *x = X + xs * b + 3 * p;
             const long o = b * n + p;
             if (m == LN && bbuf != NULL && near != NULL) {
+#ifdef MVC3D_AVX512
+                if (avx512) {
+                    mvc3d_block_avx512(cages + b, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c,
+                                       near_c, x, normalize, &sc, &bs, W + o * V, on + o);
+                    continue;
+                }
+#endif
                 mvc3d_block(cages + b, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c, near_c, x,
                             normalize, &sc, &bs, W + o * V, on + o);
                 continue;
