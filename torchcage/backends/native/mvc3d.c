@@ -3,7 +3,8 @@
  *
  * The same formulas as torchcage/families/mean_value/kernel3d.py (see its module docstring): the direct
  * vector form away from a face's support plane, the stable split form near it, and the
- * interpolating values for points on the cage. One point per iteration, OpenMP over points.
+ * interpolating values for points on the cage. Blocks of TC_MVC_LANES points at a time (mvc3d_block_body),
+ * one point at a time where a point needs it (mvc3d_point); OpenMP over blocks.
  * The tests check this kernel against the torch kernel and an mpmath reference.
  */
 #define _GNU_SOURCE
@@ -313,13 +314,22 @@ static void mvc3d_block_carve(double *buf, long V, long E, long T, mvc3d_block_s
     bs->Wc = bs->Gz + LN * E, bs->H = bs->Wc + 3 * LN * T, bs->RM = bs->H + LN * T;
 }
 
+#if defined(__GNUC__)
+#define TC_ALWAYS_INLINE inline __attribute__((always_inline))
+#else
+#define TC_ALWAYS_INLINE inline
+#endif
+#define MVC3D_BLOCK_PARAMS                                                                                          \
+    const mvc3d_cage *g, long V, const int *tri, long T, const int *edges, long E, const int *fe, const int *inc_ptr, \
+        const int *inc_idx, const double *fs, long Q, double far_c, double cancel_c, double near_c, const double *X, \
+        int normalize, const mvc3d_scratch *sc, const mvc3d_block_scratch *bs, double *w, unsigned char *on
+#define MVC3D_BLOCK_ARGS \
+    g, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c, near_c, X, normalize, sc, bs, w, on
+
 /* The coordinates of the LN points X[0 .. LN) (rows of 3) against cage g, into the rows w[l * V ..)
  * with their flags on[l] (as mvc3d_point's return value). Compiled twice below: for the library's
  * target and, where the compiler and libmvec allow, for AVX-512 (chosen at run time). */
-static inline __attribute__((always_inline)) void mvc3d_block_body(const mvc3d_cage *g, long V, const int *tri, long T, const int *edges, long E, const int *fe,
-                        const int *inc_ptr, const int *inc_idx, const double *fs, long Q, double far_c,
-                        double cancel_c, double near_c, const double *X, int normalize, const mvc3d_scratch *sc,
-                        const mvc3d_block_scratch *bs, double *w, unsigned char *on) {
+static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
     const double *P = g->P, *two_area = g->two_area, *ell = g->ell, *gram = g->gram, *longest = g->longest;
     const double tol = g->tol;
     const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
@@ -516,13 +526,6 @@ static inline __attribute__((always_inline)) void mvc3d_block_body(const mvc3d_c
     }
 }
 
-#define MVC3D_BLOCK_PARAMS                                                                                          \
-    const mvc3d_cage *g, long V, const int *tri, long T, const int *edges, long E, const int *fe, const int *inc_ptr, \
-        const int *inc_idx, const double *fs, long Q, double far_c, double cancel_c, double near_c, const double *X, \
-        int normalize, const mvc3d_scratch *sc, const mvc3d_block_scratch *bs, double *w, unsigned char *on
-#define MVC3D_BLOCK_ARGS \
-    g, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c, near_c, X, normalize, sc, bs, w, on
-
 static void mvc3d_block(MVC3D_BLOCK_PARAMS) { mvc3d_block_body(MVC3D_BLOCK_ARGS); }
 
 /* The AVX-512 instance: one 512-bit operation per lane loop, libmvec's 8-lane atan (_ZGVeN8v_atan).
@@ -588,10 +591,10 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
         sc.Gx = sc.D + E, sc.Gy = sc.Gx + E, sc.Gz = sc.Gy + E;
         sc.W0 = sc.Gz + E, sc.W1 = sc.W0 + T, sc.W2 = sc.W1 + T, sc.H = sc.W2 + T, sc.RM = sc.H + T;
         mvc3d_block_scratch bs = {0};
-        void *bbuf = NULL;
+        void *bbuf = NULL; /* (aligned by hand to 64 bytes: the lane rows start cache lines) */
         long *near = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1));
-        if (nb > 0 && posix_memalign(&bbuf, 64, sizeof(double) * mvc3d_block_doubles(V, E, T)) != 0) bbuf = NULL;
-        if (bbuf != NULL) mvc3d_block_carve((double *)bbuf, V, E, T, &bs);
+        if (nb > 0) bbuf = malloc(sizeof(double) * mvc3d_block_doubles(V, E, T) + 64);
+        if (bbuf != NULL) mvc3d_block_carve((double *)(((size_t)bbuf + 63) & ~(size_t)63), V, E, T, &bs);
         bs.near = near;
 #pragma omp for schedule(dynamic, 8)
         for (long i = 0; i < B * per; ++i) {
