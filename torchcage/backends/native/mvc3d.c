@@ -3,7 +3,8 @@
  *
  * The same formulas as torchcage/families/mean_value/kernel3d.py (see its module docstring): the direct
  * vector form away from a face's support plane, the stable split form near it, and the
- * interpolating values for points on the cage. One point per iteration, OpenMP over points.
+ * interpolating values for points on the cage. Blocks of TC_MVC_LANES points at a time (mvc3d_block_body),
+ * one point at a time where a point needs it (mvc3d_point); OpenMP over blocks.
  * The tests check this kernel against the torch kernel and an mpmath reference.
  */
 #define _GNU_SOURCE
@@ -278,6 +279,271 @@ static inline int mvc3d_point(const mvc3d_cage *g, long V, const int *tri, long 
     return isfinite(sum) ? 0 : 2;
 }
 
+/*
+ * Blocks of TC_MVC_LANES points at once: every per-vertex, per-edge and per-face quantity is stored
+ * [index][lane], so that each inner loop runs over the lanes with contiguous loads (one SIMD
+ * operation, or two, per step) and the index tables are read once per block rather than once per
+ * point. The formulas and their order of evaluation are mvc3d_point's, so that a point's values do
+ * not depend on the path that computed them beyond the last bits of libmvec's atan (which the
+ * per-point path's vector loops also call, but its scalar remainder does not). Pairs near a support
+ * plane take tc_stable_face and thin faces tc_thin_mvc lane by lane, as in mvc3d_point; a lane whose
+ * point is on the cage, or whose weights cancel (the far-field rule), is redone by mvc3d_point.
+ */
+#ifndef TC_MVC_LANES
+#define TC_MVC_LANES 8
+#endif
+#define LN TC_MVC_LANES
+
+/* Per-thread scratch of a block: vertex (5V: A, |A|, the gathered weights), edge (6E: N, g N) and
+ * face (5T: the corner weights, h, the nearest corner's distance) arrays of LN lanes each, and the
+ * list of faces that some lane sees near their support plane. */
+typedef struct {
+    double *Ax, *Ay, *Az, *RA, *acc, *Nx, *Ny, *Nz, *Gx, *Gy, *Gz, *Wc, *H, *RM;
+    long *near;
+} mvc3d_block_scratch;
+
+static size_t mvc3d_block_doubles(long V, long E, long T) {
+    return (size_t)LN * (5 * (size_t)V + 6 * (size_t)E + 5 * (size_t)T);
+}
+
+static void mvc3d_block_carve(double *buf, long V, long E, long T, mvc3d_block_scratch *bs) {
+    bs->Ax = buf, bs->Ay = bs->Ax + LN * V, bs->Az = bs->Ay + LN * V, bs->RA = bs->Az + LN * V;
+    bs->acc = bs->RA + LN * V;
+    bs->Nx = bs->acc + LN * V, bs->Ny = bs->Nx + LN * E, bs->Nz = bs->Ny + LN * E;
+    bs->Gx = bs->Nz + LN * E, bs->Gy = bs->Gx + LN * E, bs->Gz = bs->Gy + LN * E;
+    bs->Wc = bs->Gz + LN * E, bs->H = bs->Wc + 3 * LN * T, bs->RM = bs->H + LN * T;
+}
+
+#if defined(__GNUC__)
+#define TC_ALWAYS_INLINE inline __attribute__((always_inline))
+#else
+#define TC_ALWAYS_INLINE inline
+#endif
+#define MVC3D_BLOCK_PARAMS                                                                                          \
+    const mvc3d_cage *g, long V, const int *tri, long T, const int *edges, long E, const int *fe, const int *inc_ptr, \
+        const int *inc_idx, const double *fs, long Q, double far_c, double cancel_c, double near_c, const double *X, \
+        int normalize, const mvc3d_scratch *sc, const mvc3d_block_scratch *bs, double *w, unsigned char *on
+#define MVC3D_BLOCK_ARGS \
+    g, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c, near_c, X, normalize, sc, bs, w, on
+
+/* The coordinates of the LN points X[0 .. LN) (rows of 3) against cage g, into the rows w[l * V ..)
+ * with their flags on[l] (as mvc3d_point's return value). Compiled twice below: for the library's
+ * target and, where the compiler and libmvec allow, for AVX-512 (chosen at run time). */
+static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
+    const double *P = g->P, *two_area = g->two_area, *ell = g->ell, *gram = g->gram, *longest = g->longest;
+    const double tol = g->tol;
+    const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
+    const int *e0 = edges, *e1 = edges + E;
+    const int *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
+    const double *s0 = fs, *s1 = fs + T, *s2 = fs + 2 * T;
+    const double *nx = g->nrm, *ny = g->nrm + T, *nz = g->nrm + 2 * T;
+    double *Ax = bs->Ax, *Ay = bs->Ay, *Az = bs->Az, *RA = bs->RA, *acc = bs->acc, *Nx = bs->Nx, *Ny = bs->Ny,
+           *Nz = bs->Nz, *Gx = bs->Gx, *Gy = bs->Gy, *Gz = bs->Gz, *Wc = bs->Wc, *H = bs->H, *RM = bs->RM;
+    long *near = bs->near;
+    double x0[LN], x1[LN], x2[LN], total[LN], abs_sum[LN];
+    unsigned long long tiny[LN];
+    int redo[LN]; /* redo: the lane is left to mvc3d_point (on the cage, or the far-field rule) */
+    for (int l = 0; l < LN; ++l) {
+        x0[l] = X[3 * l], x1[l] = X[3 * l + 1], x2[l] = X[3 * l + 2];
+        tiny[l] = 0, redo[l] = 0;
+    }
+    for (long v = 0; v < V; ++v) {
+        const double p0 = P[v], p1 = P[V + v], p2 = P[2 * V + v];
+        double *ax = Ax + LN * v, *ay = Ay + LN * v, *az = Az + LN * v, *ra = RA + LN * v;
+#pragma omp simd
+        for (int l = 0; l < LN; ++l) {
+            double a0 = p0 - x0[l], a1 = p1 - x1[l], a2 = p2 - x2[l];
+            ax[l] = a0, ay[l] = a1, az[l] = a2;
+            ra[l] = sqrt(a0 * a0 + a1 * a1 + a2 * a2);
+        }
+    }
+    /* Edges: N = a_j x a_k, |N|, a_j . a_k and the half-angle tangent argument; then its atan and
+     * g N with g = theta / (2 |N|) (mvc3d_point's edge loops, the last two over all lanes at once). */
+    for (long q = 0; q < E; ++q) {
+        const long j = LN * (long)e0[q], k = LN * (long)e1[q];
+        double *nxq = Nx + LN * q, *nyq = Ny + LN * q, *nzq = Nz + LN * q;
+        double *gxq = Gx + LN * q, *gyq = Gy + LN * q, *gzq = Gz + LN * q;
+#pragma omp simd
+        for (int l = 0; l < LN; ++l) {
+            double ajx = Ax[j + l], ajy = Ay[j + l], ajz = Az[j + l], akx = Ax[k + l], aky = Ay[k + l],
+                   akz = Az[k + l];
+            double cx = ajy * akz - ajz * aky, cy = ajz * akx - ajx * akz, cz = ajx * aky - ajy * akx;
+            double nn = sqrt(cx * cx + cy * cy + cz * cz), d = ajx * akx + ajy * aky + ajz * akz;
+            double rr = RA[j + l] * RA[k + l];
+            nxq[l] = cx, nyq[l] = cy, nzq[l] = cz;
+            gxq[l] = nn / (rr + fabs(d)); /* (Gx, Gy, Gz hold the argument, |N| and a_j . a_k until below) */
+            gyq[l] = nn;
+            gzq[l] = d;
+        }
+    }
+#pragma omp simd
+    for (long i = 0; i < LN * E; ++i) Gx[i] = atan(Gx[i]);
+#pragma omp simd
+    for (long i = 0; i < LN * E; ++i) {
+        double at = Gx[i];
+        double nn = Gy[i], obtuse = Gz[i] < 0 ? 1.0 : 0.0;
+        double th = obtuse * M_PI + (1.0 - 2.0 * obtuse) * 2.0 * at;
+        double gq = 0.5 * th / (nn > 1e-300 ? nn : 1e-300);
+        Gx[i] = gq * Nx[i];
+        Gy[i] = gq * Ny[i];
+        Gz[i] = gq * Nz[i];
+    }
+    /* Faces, direct vector form; the faces that some lane sees near their support plane are listed
+     * (a bit per face and lane, 64 faces at a time, so that the lane loop needs no reduction). */
+    long nnear = 0;
+    for (long fc = 0; fc < T; fc += 64) {
+        const long fend = fc + 64 < T ? fc + 64 : T;
+        unsigned long long bits[LN];
+        for (int l = 0; l < LN; ++l) bits[l] = 0;
+        for (long f = fc; f < fend; ++f) {
+            const long a = LN * (long)f0[f], b = LN * (long)f1[f], c = LN * (long)f2[f], i0 = LN * (long)t0[f],
+                       i1 = LN * (long)t1[f], i2 = LN * (long)t2[f];
+            const double sa = s0[f], sb = s1[f], sc_ = s2[f], nxf = nx[f], nyf = ny[f], nzf = nz[f];
+            const double area = two_area[f], far_always = longest[f] * FAR_ALWAYS_RATIO;
+            const int shift = (int)(f - fc);
+            double *w0 = Wc + LN * f, *w1 = Wc + LN * (T + f), *w2 = Wc + LN * (2 * T + f);
+            double *hf = H + LN * f, *rm = RM + LN * f;
+#pragma omp simd
+            for (int l = 0; l < LN; ++l) {
+                double h = nxf * Ax[i0 + l] + nyf * Ay[i0 + l] + nzf * Az[i0 + l];
+                double mx = sa * Gx[a + l] + sb * Gx[b + l] + sc_ * Gx[c + l];
+                double my = sa * Gy[a + l] + sb * Gy[b + l] + sc_ * Gy[c + l];
+                double mz = sa * Gz[a + l] + sb * Gz[b + l] + sc_ * Gz[c + l];
+                double inv = 1.0 / (area * h);
+                w0[l] = sa * (Nx[a + l] * mx + Ny[a + l] * my + Nz[a + l] * mz) * inv;
+                w1[l] = sb * (Nx[b + l] * mx + Ny[b + l] * my + Nz[b + l] * mz) * inv;
+                w2[l] = sc_ * (Nx[c + l] * mx + Ny[c + l] * my + Nz[c + l] * mz) * inv;
+                hf[l] = h;
+                double r0 = RA[i0 + l], r1 = RA[i1 + l], r2 = RA[i2 + l];
+                double r01 = r0 < r1 ? r0 : r1;
+                double rmin = r01 < r2 ? r01 : r2;
+                rm[l] = rmin;
+                unsigned long long near_bit = !(fabs(h) >= near_c * rmin && rmin > tol);
+                bits[l] |= near_bit << shift;
+                tiny[l] |= far_always < rmin ? 1ULL : 0ULL;
+            }
+        }
+        unsigned long long any = 0;
+        for (int l = 0; l < LN; ++l) any |= bits[l];
+        for (; any; any &= any - 1) near[nnear++] = fc + __builtin_ctzll(any);
+    }
+    /* Pairs near a support plane: the stable split form, lane by lane; a lane on the cage is redone whole. */
+    for (long i = 0; i < nnear; ++i) {
+        const long f = near[i];
+        const int t[3] = {t0[f], t1[f], t2[f]};
+        const int fq[3] = {f0[f], f1[f], f2[f]};
+        const double sg[3] = {s0[f], s1[f], s2[f]};
+        const double *lf = ell + 3 * f;
+        for (int l = 0; l < LN; ++l) {
+            const double h = H[LN * f + l], rmin = RM[LN * f + l];
+            if (redo[l] || (fabs(h) >= near_c * rmin && rmin > tol)) continue;
+            double R[3], s[3], dots[3], wf[3];
+            for (int e = 0; e < 3; ++e) {
+                const long q = LN * (long)fq[e] + l, j = LN * (long)e0[fq[e]] + l, k = LN * (long)e1[fq[e]] + l;
+                R[e] = RA[LN * (long)t[e] + l];
+                s[e] = sg[e] * (Nx[q] * nx[f] + Ny[q] * ny[f] + Nz[q] * nz[f]);
+                dots[e] = Ax[j] * Ax[k] + Ay[j] * Ay[k] + Az[j] * Az[k];
+            }
+            if ((fabs(h) <= tol && s[0] >= -tol * lf[0] && s[1] >= -tol * lf[1] && s[2] >= -tol * lf[2]) ||
+                rmin <= tol) {
+                redo[l] = 1; /* on the cage: its interpolating values */
+                continue;
+            }
+            tc_stable_face(h, s, dots, R, lf, gram + 9 * f, two_area[f], wf);
+            Wc[LN * f + l] = wf[0];
+            Wc[LN * (T + f) + l] = wf[1];
+            Wc[LN * (2 * T + f) + l] = wf[2];
+        }
+    }
+    for (long q = 0; q < g->nthin; ++q) { /* thin faces seen from a few widths: the swept form */
+        const long f = g->thin[q];
+        const int t[3] = {t0[f], t1[f], t2[f]};
+        const double nf[3] = {nx[f], ny[f], nz[f]};
+        for (int l = 0; l < LN; ++l) {
+            if (redo[l]) continue;
+            double a[3][3], wf[3], gf[3][3], Hf[3][6];
+            for (int i = 0; i < 3; ++i) {
+                const long v = LN * (long)t[i] + l;
+                a[i][0] = Ax[v], a[i][1] = Ay[v], a[i][2] = Az[v];
+            }
+            if (!tc_thin_face((const double(*)[3])a, two_area[f])) continue;
+            tc_thin_mvc((const double(*)[3])a, nf, H[LN * f + l], two_area[f], wf, gf, Hf);
+            Wc[LN * f + l] = wf[0];
+            Wc[LN * (T + f) + l] = wf[1];
+            Wc[LN * (2 * T + f) + l] = wf[2];
+        }
+    }
+    /* Gather the face-corner weights into the vertices, corners in mvc3d_point's order. */
+    for (int l = 0; l < LN; ++l) total[l] = 0.0, abs_sum[l] = 0.0;
+    for (long v = 0; v < V; ++v) {
+        double *av = acc + LN * v;
+#pragma omp simd
+        for (int l = 0; l < LN; ++l) av[l] = 0.0;
+        for (int k = inc_ptr[v]; k < inc_ptr[v + 1]; ++k) {
+            const double *wk = Wc + LN * (long)inc_idx[k];
+#pragma omp simd
+            for (int l = 0; l < LN; ++l) av[l] += wk[l];
+        }
+#pragma omp simd
+        for (int l = 0; l < LN; ++l) total[l] += av[l];
+    }
+    for (long f = 0; f < T; ++f) {
+        const double *w0 = Wc + LN * f, *w1 = Wc + LN * (T + f), *w2 = Wc + LN * (2 * T + f);
+#pragma omp simd
+        for (int l = 0; l < LN; ++l) abs_sum[l] += fabs(w0[l] + w1[l] + w2[l]);
+    }
+    /* Lanes left to mvc3d_point: on the cage, or weights that cancel (the far-field rule). The others
+     * are normalised by tc_mv_total: the sum, total[l] (the same additions in the same order), or
+     * far from the cage the first moment. */
+    double inv[LN], sum[LN];
+    for (int l = 0; l < LN; ++l) {
+        redo[l] |= abs_sum[l] > cancel_c * fabs(total[l]) || tiny[l];
+        inv[l] = 1.0, sum[l] = 0.0; /* (raw weights: times 1, exactly) */
+        if (redo[l] || !normalize) continue;
+        const double xp[3] = {x0[l], x1[l], x2[l]};
+        double y2 = 0.0, norm = total[l];
+        for (int k = 0; k < 3; ++k) y2 += (xp[k] - g->centre[k]) * (xp[k] - g->centre[k]);
+        if (y2 > g->far2) {
+            double *wl = w + V * l;
+            for (long v = 0; v < V; ++v) wl[v] = acc[LN * v + l];
+            norm = tc_mv_total(wl, V, P, 1, V, 3, xp, g->centre, g->far2);
+        }
+        inv[l] = 1.0 / norm;
+    }
+    for (long v = 0; v < V; ++v) {
+        const double *av = acc + LN * v;
+        for (int l = 0; l < LN; ++l) {
+            double wv = av[l] * inv[l];
+            w[V * l + v] = wv;
+            sum[l] += wv; /* (only its finiteness is read) */
+        }
+    }
+    for (int l = 0; l < LN; ++l) {
+        if (!redo[l]) on[l] = normalize && !isfinite(sum[l]) ? 2 : 0;
+        else
+            on[l] = (unsigned char)mvc3d_point(g, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c,
+                                               near_c, x0[l], x1[l], x2[l], normalize, sc, w + V * l);
+    }
+}
+
+static void mvc3d_block(MVC3D_BLOCK_PARAMS) { mvc3d_block_body(MVC3D_BLOCK_ARGS); }
+
+/* The AVX-512 instance: one 512-bit operation per lane loop, libmvec's 8-lane atan (_ZGVeN8v_atan).
+ * Only with gcc and glibc's vector math (TC_LIBMVEC) on x86-64; the CPU is asked at run time. */
+#if defined(TC_LIBMVEC) && defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 8 && \
+    !defined(TC_NO_AVX512)
+#define MVC3D_AVX512 1
+__attribute__((target("avx512f,avx512dq,avx512vl,avx2,fma,prefer-vector-width=512"))) static void mvc3d_block_avx512(
+    MVC3D_BLOCK_PARAMS) {
+    mvc3d_block_body(MVC3D_BLOCK_ARGS);
+}
+static int mvc3d_has_avx512(void) {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
+           __builtin_cpu_supports("avx512vl");
+}
+#endif
+
 void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,
               const int *inc_ptr, const int *inc_idx, const double *fs, const double *nrm, const double *two_area,
               const double *ell, const double *gram, const double *far_nodes, const double *far_coef,
@@ -311,6 +577,11 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
         g->thin = tb;
         g->nthin = nthin;
     }
+    /* Work items: each cage's full blocks of LN points, then its last n % LN points one by one. */
+    const long nb = n / LN, per = nb + (n - nb * LN);
+#ifdef MVC3D_AVX512
+    const int avx512 = nb > 0 && mvc3d_has_avx512();
+#endif
 #pragma omp parallel num_threads(nthreads)
     {
         double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + 8 * (size_t)E + 5 * (size_t)T));
@@ -319,14 +590,37 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
         sc.Nx = sc.RA + V, sc.Ny = sc.Nx + E, sc.Nz = sc.Ny + E, sc.Nn = sc.Nz + E, sc.D = sc.Nn + E;
         sc.Gx = sc.D + E, sc.Gy = sc.Gx + E, sc.Gz = sc.Gy + E;
         sc.W0 = sc.Gz + E, sc.W1 = sc.W0 + T, sc.W2 = sc.W1 + T, sc.H = sc.W2 + T, sc.RM = sc.H + T;
-        /* One work item per (cage, point) pair, so that threads stay busy whatever B and n are. */
-#pragma omp for schedule(dynamic, 64)
-        for (long i = 0; i < B * n; ++i) {
-            const long b = i / n, p = i - b * n;
+        mvc3d_block_scratch bs = {0};
+        void *bbuf = NULL; /* (aligned by hand to 64 bytes: the lane rows start cache lines) */
+        long *near = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1));
+        if (nb > 0) bbuf = malloc(sizeof(double) * mvc3d_block_doubles(V, E, T) + 64);
+        if (bbuf != NULL) mvc3d_block_carve((double *)(((size_t)bbuf + 63) & ~(size_t)63), V, E, T, &bs);
+        bs.near = near;
+#pragma omp for schedule(dynamic, 8)
+        for (long i = 0; i < B * per; ++i) {
+            const long b = i / per, k = i - b * per;
+            const long p = k < nb ? LN * k : LN * nb + (k - nb), m = k < nb ? LN : 1;
             const double *x = X + xs * b + 3 * p;
-            on[i] = (unsigned char)mvc3d_point(cages + b, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c,
-                                               cancel_c, near_c, x[0], x[1], x[2], normalize, &sc, W + i * V);
+            const long o = b * n + p;
+            if (m == LN && bbuf != NULL && near != NULL) {
+#ifdef MVC3D_AVX512
+                if (avx512) {
+                    mvc3d_block_avx512(cages + b, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c,
+                                       near_c, x, normalize, &sc, &bs, W + o * V, on + o);
+                    continue;
+                }
+#endif
+                mvc3d_block(cages + b, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c, near_c, x,
+                            normalize, &sc, &bs, W + o * V, on + o);
+                continue;
+            }
+            for (long r = 0; r < m; ++r) /* (one point, or a block without its scratch) */
+                on[o + r] = (unsigned char)mvc3d_point(cages + b, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q,
+                                                       far_c, cancel_c, near_c, x[3 * r], x[3 * r + 1], x[3 * r + 2],
+                                                       normalize, &sc, W + (o + r) * V);
         }
+        free(near);
+        free(bbuf);
         free(buf);
     }
     free(thin);
