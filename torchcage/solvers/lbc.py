@@ -179,6 +179,86 @@ class _FactoredSolve:
         return torch.from_numpy(self.lu.solve(rhs.numpy()))
 
 
+class _NativeADMM:
+    """The iterations of :func:`solve_lbc`'s ADMM loop in the native library (``tc_lbc_admm`` in
+    ``torchcage/backends/native/lbc.c``; CPU, float64): the same steps, fused into four passes over
+    memory per iteration, with the ``Y`` step as forward and back substitution over all right-hand
+    sides at once (the sparse LU of ``G^T G + s^2 I``, factored once with a symmetric minimum-degree
+    ordering). It updates ``Y M`` (the ``(m, V)`` change of the interior values) in place of ``Y``:
+    ``Y M = A^{-1} Z M^T M`` with ``M^T M = I - Q Q^T``, ``Q`` the orthonormal basis of the columns
+    of ``K`` (the same iterates; three columns of ``Q`` instead of ``V - D - 1`` rows of ``M``).
+
+    The state ``P1, P2, u1, u2`` is held in tensors that the caller may rescale in place between
+    calls (the adaptive penalty); :meth:`run` advances it by a number of iterations and returns the
+    squared residuals of the last one."""
+
+    def __init__(
+        self,
+        lib: object,
+        G: torch.Tensor,
+        J: torch.Tensor,
+        H: torch.Tensor,
+        phiA: torch.Tensor,
+        Q: torch.Tensor,
+        ws: float,
+        alpha: float,
+    ) -> None:
+        from scipy.sparse import csr_matrix, identity, tril, triu
+        from scipy.sparse.linalg import splu
+
+        from torchcage.backends.native import abi
+
+        DC, m = G.shape
+        C, V = phiA.shape
+        D = DC // C
+        Gs = csr_matrix((G.values().numpy(), G.col_indices().numpy(), G.crow_indices().numpy()), shape=G.shape)
+        lu = splu(
+            (Gs.T @ Gs + ws * ws * identity(m)).tocsc(),
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
+        low, up = tril(lu.L, k=-1).tocsc(), triu(lu.U, k=1).tocsc()  # (L's diagonal is 1)
+        Gt = Gs.T.tocsr()
+        Gs = Gs.copy()
+        Gs.indices = lu.perm_c[Gs.indices]  # G's columns as the rows of the permuted solution
+
+        def i32(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.ascontiguousarray(a, dtype=np.int32))
+
+        def f64(a: np.ndarray | torch.Tensor) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(a, dtype=np.float64)).contiguous()
+
+        self.P1, self.P2 = J.clone().contiguous(), H.clone().contiguous()
+        self.u1, self.u2 = torch.zeros_like(self.P1), torch.zeros_like(self.P2)
+        self.res = torch.zeros(2, dtype=torch.float64)
+        kwargs = {
+            "D": D, "C": C, "m": m, "V": V,
+            "g_ptr": i32(Gs.indptr), "g_idx": i32(Gs.indices), "g_val": f64(Gs.data), "g_nnz": Gs.nnz,
+            "gt_ptr": i32(Gt.indptr), "gt_idx": i32(Gt.indices), "gt_val": f64(Gt.data), "gt_nnz": Gt.nnz,
+            "l_ptr": i32(low.indptr), "l_idx": i32(low.indices), "l_val": f64(low.data), "l_nnz": low.nnz,
+            "u_ptr": i32(up.indptr), "u_idx": i32(up.indices), "u_val": f64(up.data), "u_nnz": up.nnz,
+            "u_diag": f64(lu.U.diagonal()), "pr": i32(lu.perm_r), "pc": i32(lu.perm_c),
+            "J": J.contiguous(), "H": H.contiguous(), "phiA": phiA.contiguous(), "Q": Q.contiguous(),
+            "mu": 1.0, "alpha": alpha, "ws": ws, "iters": 0, "nthreads": torch.get_num_threads(),
+            "P1": self.P1, "P2": self.P2, "u1": self.u1, "u2": self.u2,
+            "work": torch.empty(2 * D * C * V + 2 * m * V, dtype=torch.float64), "res": self.res,
+        }  # fmt: skip
+        self._keep = kwargs  # (the arrays behind the pointers stay alive)
+        self._args = abi.check_arguments("tc_lbc_admm", kwargs)
+        names = [a.name for a in abi.SIGNATURES["tc_lbc_admm"]]
+        self._mu, self._iters = names.index("mu"), names.index("iters")
+        self._fn = lib.tc_lbc_admm
+
+    def run(self, iterations: int, mu: float) -> tuple[float, float]:
+        """Advance by ``iterations`` (>= 1) with penalty ``mu``; the last one's ``||X - P1'||^2 +
+        ||W - P2'||^2`` and ``||P1' - P1||^2 + ||P2' - P2||^2``."""
+        self._args[self._mu], self._args[self._iters] = float(mu), int(iterations)
+        self._fn(*self._args)
+        sp, sd = self.res.tolist()
+        return sp, sd
+
+
 def _single_threaded_blas() -> contextlib.AbstractContextManager:
     """Limit the BLAS libraries loaded by numpy/scipy to one thread (no-op without threadpoolctl)."""
     try:
@@ -377,9 +457,15 @@ def solve_lbc(
     ws = math.sqrt(float(G.values().square().sum()) / m) * w_scale if w_scale > 0 else 1.0
     if not (math.isfinite(ws) and ws > 0):  # (interior vertices in no cell only: no gradient rows)
         ws = 1.0
+    native: _NativeADMM | None = None
+    lib = None  # the native library: the whole iteration in C ("lu" and "auto")
+    if linear_solver != "cg":
+        from torchcage.backends import native as _native
+
+        lib = _native.library()
     if linear_solver == "cg":
         solve: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = _ConjugateGradient(G, ws * ws)
-    else:
+    elif lib is None:
         solve = _FactoredSolve(G, ws * ws)
 
     if mu is None:
@@ -412,10 +498,55 @@ def solve_lbc(
     mu_lo, mu_hi = mu * 1e-12, mu * 1e12  # (balancing never drives the penalty to 0 or inf)
     rp = rd = math.inf
     it = 0
+
+    def checkpoint(it: int, rp: float, rd: float) -> tuple[bool, int]:
+        """History and progress after a residual check; whether to stop, and the balancing step:
+        ``1`` (raise ``mu``), ``-1`` (lower it) or ``0``."""
+        if it % report_every == 0 or it == max_iter:
+            history.append((it, rp, rd, mu))
+            if bar is not None:
+                bar.update(it, (rp, rd))
+            elif callable(progress):
+                progress(it, rp, rd)
+        if rp <= tol_p and rd <= tol_d:
+            return True, 0
+        if adaptive and it % balance_every == 0 and it >= balance_after:
+            # Gentle balancing against the tolerances: raise the penalty only while the dual
+            # residual is far inside its tolerance and the primal one is not (products, not
+            # ratios: residuals and tolerances may be exactly 0).
+            if rd * bal_p < balance_ratio * rp * bal_d and rp > tol_p and mu * balance_step <= mu_hi:
+                return False, 1
+            if rp * bal_d < balance_ratio * rd * bal_p and rd > tol_d and mu / balance_step >= mu_lo:
+                return False, -1
+        return False, 0
+
+    if lib is not None:
+        # The native iterations (the same steps in C), run from one residual check to the next.
+        Q = U[:, : D + 1].T  # (D+1, V): orthonormal basis of K's columns, M^T M = I - Q^T Q
+        native = _NativeADMM(lib, G, J, H, phiA.contiguous(), Q, ws, alpha)
+        while it < max_iter:
+            nxt = min(max_iter, (it // report_every + 1) * report_every)
+            if adaptive:
+                nxt = min(nxt, (it // balance_every + 1) * balance_every)
+            sp, sd = native.run(nxt - it, mu)
+            it = nxt
+            rp, rd = math.sqrt(sp), mu * math.sqrt(sd)
+            stop, step = checkpoint(it, rp, rd)
+            if stop:
+                break
+            if step > 0:
+                mu = mu * balance_step
+                native.u1.div_(balance_step)
+                native.u2.div_(balance_step)
+            elif step < 0:
+                mu = mu / balance_step
+                native.u1.mul_(balance_step)
+                native.u2.mul_(balance_step)
+        P2 = native.P2
     # Every operation on the large (D C, V) block writes into a preallocated buffer: on a small CPU
     # these passes over memory, not the arithmetic, set the time per iteration.
     with _single_threaded_blas():
-        for it in range(1, max_iter + 1):
+        for it in range(1, max_iter + 1 if native is None else 1):  # (the native loop ran)
             # Step 1: group soft-thresholding of the gradients (Eq. 30), over-relaxed: q = X~ + u1.
             torch.sub(P1, u1, out=a)
             a3 = a.view(D, C, V)
@@ -443,22 +574,13 @@ def solve_lbc(
             P1, P1_new = P1_new, P1
             Y, P2 = Y_new, P2_new
             if check:
-                if it % report_every == 0 or it == max_iter:
-                    history.append((it, rp, rd, mu))
-                    if bar is not None:
-                        bar.update(it, (rp, rd))
-                    elif callable(progress):
-                        progress(it, rp, rd)
-                if rp <= tol_p and rd <= tol_d:
+                stop, step = checkpoint(it, rp, rd)
+                if stop:
                     break
-                if adaptive and it % balance_every == 0 and it >= balance_after:
-                    # Gentle balancing against the tolerances: raise the penalty only while the dual
-                    # residual is far inside its tolerance and the primal one is not (products, not
-                    # ratios: residuals and tolerances may be exactly 0).
-                    if rd * bal_p < balance_ratio * rp * bal_d and rp > tol_p and mu * balance_step <= mu_hi:
-                        mu, u1, u2 = mu * balance_step, u1 / balance_step, u2 / balance_step
-                    elif rp * bal_d < balance_ratio * rd * bal_p and rd > tol_d and mu / balance_step >= mu_lo:
-                        mu, u1, u2 = mu / balance_step, u1 * balance_step, u2 * balance_step
+                if step > 0:
+                    mu, u1, u2 = mu * balance_step, u1 / balance_step, u2 / balance_step
+                elif step < 0:
+                    mu, u1, u2 = mu / balance_step, u1 * balance_step, u2 * balance_step
     if bar is not None:
         bar.close()
     converged = rp <= tol_p and rd <= tol_d
