@@ -218,7 +218,7 @@ class _NativeADMM:
             diag_pivot_thresh=0.0,
             options={"SymmetricMode": True},
         )
-        low, up = tril(lu.L, k=-1).tocsc(), triu(lu.U, k=1).tocsc()  # (L's diagonal is 1)
+        low, up = tril(lu.L, k=-1).tocsr(), triu(lu.U, k=1).tocsr()  # (L's diagonal is 1)
         Gt = Gs.T.tocsr()
         Gs = Gs.copy()
         Gs.indices = lu.perm_c[Gs.indices]  # G's columns as the rows of the permuted solution
@@ -229,20 +229,27 @@ class _NativeADMM:
         def f64(a: np.ndarray | torch.Tensor) -> torch.Tensor:
             return torch.as_tensor(np.ascontiguousarray(a, dtype=np.float64)).contiguous()
 
-        self.P1, self.P2 = J.clone().contiguous(), H.clone().contiguous()
+        # (V padded with zero columns to a multiple of 4, which stay 0: the kernel's vector width)
+        Vp = -(-V // 4) * 4
+
+        def pad(t: torch.Tensor) -> torch.Tensor:
+            return torch.nn.functional.pad(t, (0, Vp - V)).contiguous()
+
+        self.V = V
+        self.P1, self.P2 = pad(J), pad(H)
         self.u1, self.u2 = torch.zeros_like(self.P1), torch.zeros_like(self.P2)
         self.res = torch.zeros(2, dtype=torch.float64)
         kwargs = {
-            "D": D, "C": C, "m": m, "V": V,
+            "D": D, "C": C, "m": m, "V": Vp,
             "g_ptr": i32(Gs.indptr), "g_idx": i32(Gs.indices), "g_val": f64(Gs.data), "g_nnz": Gs.nnz,
             "gt_ptr": i32(Gt.indptr), "gt_idx": i32(Gt.indices), "gt_val": f64(Gt.data), "gt_nnz": Gt.nnz,
             "l_ptr": i32(low.indptr), "l_idx": i32(low.indices), "l_val": f64(low.data), "l_nnz": low.nnz,
             "u_ptr": i32(up.indptr), "u_idx": i32(up.indices), "u_val": f64(up.data), "u_nnz": up.nnz,
             "u_diag": f64(lu.U.diagonal()), "pr": i32(lu.perm_r), "pc": i32(lu.perm_c),
-            "J": J.contiguous(), "H": H.contiguous(), "phiA": phiA.contiguous(), "Q": Q.contiguous(),
+            "J": pad(J), "H": pad(H), "phiA": pad(phiA), "Q": pad(Q),
             "mu": 1.0, "alpha": alpha, "ws": ws, "iters": 0, "nthreads": torch.get_num_threads(),
             "P1": self.P1, "P2": self.P2, "u1": self.u1, "u2": self.u2,
-            "work": torch.empty(2 * D * C * V + 2 * m * V, dtype=torch.float64), "res": self.res,
+            "work": torch.empty(2 * D * C * Vp + 2 * m * Vp, dtype=torch.float64), "res": self.res,
         }  # fmt: skip
         self._keep = kwargs  # (the arrays behind the pointers stay alive)
         self._args = abi.check_arguments("tc_lbc_admm", kwargs)
@@ -542,7 +549,7 @@ def solve_lbc(
                 mu = mu / balance_step
                 native.u1.mul_(balance_step)
                 native.u2.mul_(balance_step)
-        P2 = native.P2
+        P2 = native.P2[:, :V]
     # Every operation on the large (D C, V) block writes into a preallocated buffer: on a small CPU
     # these passes over memory, not the arithmetic, set the time per iteration.
     with _single_threaded_blas():

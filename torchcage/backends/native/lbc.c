@@ -1,97 +1,121 @@
 /*
  * Native CPU iterations of LBC's ADMM (float64): the loop of torchcage/solvers/lbc.py (solve_lbc),
- * the same steps and formulas, in four passes over memory per iteration.
+ * the same steps and formulas, in three passes over memory per iteration.
  *
- * Every block is row-major with the V cage vertices (the coordinate functions) contiguous, so that
- * each inner loop runs over them and vectorises: the gradient blocks P1, u1, J are (D C, V) with row
- * d C + s the d-th component on cell s, phiA is (C, V), the interior blocks P2, u2, H are (m, V).
+ * Every block is row-major with the cage vertices (the coordinate functions) contiguous, V of them
+ * padded with zero columns to a multiple of 4 (the caller pads; the padding stays exactly 0), so that
+ * every inner loop runs over whole groups of 4 and vectorises: the gradient blocks P1, u1, J are
+ * (D C, V) with row d C + s the d-th component on cell s, phiA is (C, V), the interior blocks P2,
+ * u2, H are (m, V).
  *
- * The Y step solves (G^T G + s^2 I) Yhat = Z (I - Q Q^T) for all V right-hand sides at once, with
- * Yhat = Y M the update of the interior values (M^T M = I - Q Q^T, Q (V, D+1) an orthonormal basis
- * of the columns of K, so that Yhat K = 0 and the constraints W K = B stay exact): forward and back
- * substitution with a sparse LU factorisation computed once (A = Pr^T L U Pc^T, L unit lower, as
- * scipy's splu returns it): the right-hand side of unknown i goes to row pr[i], its solution is
- * read from row pc[i] (G's column indices g_idx are given already mapped through pc).
+ * The Y step solves (G^T G + s^2 I) Yhat = Z (I - Q^T Q) for all V right-hand sides at once, with
+ * Yhat = Y M the update of the interior values (M^T M = I - Q^T Q, the rows of Q (D+1, V) an
+ * orthonormal basis of the columns of K, so that Yhat K = 0 and the constraints W K = B stay exact):
+ * forward and back substitution with a sparse LU factorisation computed once (A = Pr^T L U Pc^T, L
+ * unit lower, as scipy's splu returns it; here the strict triangles by rows, CSR): the right-hand
+ * side of unknown i goes to row pr[i], its solution is read from row pc[i] (G's column indices g_idx
+ * are given already mapped through pc).
  *
- * Pass 1 (per cell): group shrinkage of a = P1 - u1 (Eq. 30), over-relaxation; writes
- *   qJ = q - J (q = lerp(P1, X, alpha) + u1) and, on the last iteration, X.
- * Pass 2 (per interior vertex): Z = s^2 (w - H) + G^T qJ with w = lerp(P2, max(P2 - u2 / s, 0), alpha)
- *   + u2 / s; projected; scattered to the permuted rows. Then the two triangular solves.
- * Pass 3 (per interior vertex): P2' = H + Yhat, u2 = (w - P2') s.
- * Pass 4 (per gradient row): T = G Yhat, P1' = J + T, u1 = qJ - T.
- * On the last iteration res[0] = ||X - P1'||^2 + ||W - P2'||^2 and res[1] = ||P1' - P1||^2 +
- * ||P2' - P2||^2 (the squared primal residual and the squared dual residual over mu^2).
+ * One iteration:
+ *   A (per cell, D rows): group shrinkage of a = P1 - u1 (Eq. 30) and over-relaxation; keeps
+ *     qJ = q - J with q = lerp(P1, X, alpha) + u1.
+ *   B (per interior vertex): Z = s^2 (w - H) + G^T qJ, w = lerp(P2, W, alpha) + u2 / s with
+ *     W = max(P2 - u2 / s, 0) (Eq. 31); projected; scattered to the permuted rows. The two
+ *     triangular solves.
+ *   C (per interior vertex): P2' = H + Yhat, u2 = (w - P2') s.
+ *   D (per cell): T = G Yhat, P1' = J + T, u1 = qJ - T; then step A of the next iteration on the
+ *     same rows (P1' and u1 never leave the cache; they are stored only after the last iteration).
+ * After the last iteration res[0] = ||X - P1'||^2 + ||W - P2'||^2 and res[1] = ||P1' - P1||^2 +
+ * ||P2' - P2||^2 (the squared primal residual, and the squared dual residual over mu^2).
  *
- * Passes 1, 3 and 4 run in parallel over rows (OpenMP, nthreads); each row is computed alone, so
- * the iterates do not depend on the thread count. The triangular solves are sequential.
+ * Steps A, B (its first part), C and D run in parallel over rows (OpenMP, nthreads); each row is
+ * computed alone, so the iterates do not depend on the thread count. The triangular solves are
+ * sequential.
  */
 #include <math.h>
+#include <stddef.h>
 
-/* torch.lerp(a, b, t) for t >= 0.5, the branch the solver's relaxation (t in [1.5, 1.8]) takes:
- * b - (b - a) (1 - t); for t < 0.5, a + t (b - a). Written as torch does, for the same rounding. */
+/* torch.lerp(a, b, t), as torch computes it (the same rounding): b - (b - a) (1 - t) for t >= 0.5,
+ * the branch the solver's relaxation (t in [1.5, 1.8]) takes, else a + t (b - a). */
 static inline double lerp_(double a, double b, double t) { return t < 0.5 ? a + t * (b - a) : b - (b - a) * (1.0 - t); }
+
+/* Step A on cell s: from its rows p = P1, u = u1 (D rows of V, row stride V) to qJ (row stride V, at
+ * row d C + s) and, when X is not NULL, X. */
+static inline void shrink_cell(long D, long C, long V, long s, const double *p, long ps, const double *u, long us,
+                               const double *J, const double *phiA, double inv_mu, double alpha, double *qJ,
+                               double *X) {
+    double sh[V];
+    for (long v = 0; v < V; ++v) sh[v] = 0.0;
+    for (long d = 0; d < D; ++d)
+        for (long v = 0; v < V; ++v) {
+            double a = p[d * ps + v] - u[d * us + v];
+            sh[v] += a * a;
+        }
+    const double *phi = phiA + s * V;
+    for (long v = 0; v < V; ++v) {
+        double n = sqrt(sh[v]);
+        n = n > 1e-300 ? n : 1e-300;
+        double f = phi[v] / n * inv_mu + 1.0;
+        sh[v] = f > 0.0 ? f : 0.0;
+    }
+    for (long d = 0; d < D; ++d) {
+        const long o = (d * C + s) * V;
+        const double *pd = p + d * ps, *ud = u + d * us, *j = J + o;
+        double *out = qJ + o;
+        for (long v = 0; v < V; ++v) {
+            double x = (pd[v] - ud[v]) * sh[v];
+            out[v] = (lerp_(pd[v], x, alpha) + ud[v]) - j[v];
+        }
+        if (X)
+            for (long v = 0; v < V; ++v) X[o + v] = (pd[v] - ud[v]) * sh[v];
+    }
+}
+
+/* t (V) = sum over e in [e0, e1) of val[e] * rows[idx[e]] (rows of V), four columns at a time in
+ * a register. */
+static inline void gather_rows(long V, int e0, int e1, const int *idx, const double *val, const double *rows,
+                               double *t) {
+    for (long b = 0; b < V; b += 4) {
+        double acc[4] = {0.0, 0.0, 0.0, 0.0};
+        for (int e = e0; e < e1; ++e) {
+            const double g = val[e], *y = rows + (long)idx[e] * V + b;
+            for (int k = 0; k < 4; ++k) acc[k] += g * y[k];
+        }
+        for (int k = 0; k < 4; ++k) t[b + k] = acc[k];
+    }
+}
 
 void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_idx, const double *g_val, long g_nnz,
                  const int *gt_ptr, const int *gt_idx, const double *gt_val, long gt_nnz, const int *l_ptr,
                  const int *l_idx, const double *l_val, long l_nnz, const int *u_ptr, const int *u_idx,
-                 const double *u_val, long u_nnz, const double *u_diag, const int *pr, const int *pc, const double *J,
-                 const double *H, const double *phiA, const double *Q, double mu, double alpha, double ws,
-                 long iters, int nthreads, double *P1, double *P2, double *u1, double *u2, double *work,
+                 const double *u_val, long u_nnz, const double *u_diag, const int *pr, const int *pc,
+                 const double *J, const double *H, const double *phiA, const double *Q, double mu, double alpha,
+                 double ws, long iters, int nthreads, double *P1, double *P2, double *u1, double *u2, double *work,
                  double *res) {
     (void)g_nnz;
     (void)gt_nnz;
     (void)l_nnz;
     (void)u_nnz;
-    const long R = D * C;
-    const long K1 = D + 1;
-    double *qJ = work;              /* (D C, V) */
-    double *X = qJ + R * V;         /* (D C, V), last iteration only */
-    double *w = X + R * V;          /* (m, V) */
-    double *Y = w + m * V;          /* (m, V), permuted rows */
+    const long R = D * C, K1 = D + 1;
+    double *qJ = work;      /* (D C, V) */
+    double *X = qJ + R * V; /* (D C, V), the last iteration's */
+    double *w = X + R * V;  /* (m, V) */
+    double *Y = w + m * V;  /* (m, V), permuted rows */
     const double ws2 = ws * ws, inv_ws = 1.0 / ws, inv_mu = -1.0 / mu;
     double rp = 0.0, rd = 0.0;
+    if (iters < 1) return;
+    /* Step A of the first iteration, from the state. */
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+    for (long s = 0; s < C; ++s)
+        shrink_cell(D, C, V, s, P1 + s * V, C * V, u1 + s * V, C * V, J, phiA, inv_mu, alpha, qJ,
+                    iters == 1 ? X : NULL);
     for (long it = 0; it < iters; ++it) {
         const int last = it == iters - 1;
-        /* Pass 1: shrinkage and relaxation, one cell (D rows) at a time. */
-#pragma omp parallel for num_threads(nthreads) schedule(static)
-        for (long s = 0; s < C; ++s) {
-            double nrm[V > 0 ? V : 1];
-            for (long v = 0; v < V; ++v) nrm[v] = 0.0;
-            for (long d = 0; d < D; ++d) {
-                const double *p = P1 + (d * C + s) * V, *u = u1 + (d * C + s) * V;
-                for (long v = 0; v < V; ++v) {
-                    double a = p[v] - u[v];
-                    nrm[v] += a * a;
-                }
-            }
-            const double *phi = phiA + s * V;
-            for (long v = 0; v < V; ++v) {
-                double n = sqrt(nrm[v]);
-                n = n > 1e-300 ? n : 1e-300;
-                double sh = phi[v] / n * inv_mu + 1.0;
-                nrm[v] = sh > 0.0 ? sh : 0.0;
-            }
-            for (long d = 0; d < D; ++d) {
-                const long o = (d * C + s) * V;
-                const double *p = P1 + o, *u = u1 + o, *j = J + o;
-                double *out = qJ + o;
-                for (long v = 0; v < V; ++v) {
-                    double x = (p[v] - u[v]) * nrm[v];
-                    out[v] = (lerp_(p[v], x, alpha) + u[v]) - j[v];
-                }
-                if (last)
-                    for (long v = 0; v < V; ++v) X[o + v] = (p[v] - u[v]) * nrm[v];
-            }
-        }
-        /* Pass 2: right-hand sides, projected, to their permuted rows. */
+        /* Step B: right-hand sides, projected, to their permuted rows. */
 #pragma omp parallel for num_threads(nthreads) schedule(static)
         for (long i = 0; i < m; ++i) {
-            double z[V > 0 ? V : 1], c[8];
-            for (long v = 0; v < V; ++v) z[v] = 0.0;
-            for (int e = gt_ptr[i]; e < gt_ptr[i + 1]; ++e) {
-                const double g = gt_val[e], *q = qJ + (long)gt_idx[e] * V;
-                for (long v = 0; v < V; ++v) z[v] += g * q[v];
-            }
+            double z[V], c[8];
+            gather_rows(V, gt_ptr[i], gt_ptr[i + 1], gt_idx, gt_val, qJ, z);
             const double *p = P2 + i * V, *u = u2 + i * V, *h = H + i * V;
             double *wi = w + i * V;
             for (long v = 0; v < V; ++v) {
@@ -112,26 +136,32 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
                 y[v] = acc;
             }
         }
-        /* The triangular solves, column-oriented (CSC), all right-hand sides at once. */
-        for (long jc = 0; jc < m; ++jc) {
-            const double *yj = Y + jc * V;
-            for (int e = l_ptr[jc]; e < l_ptr[jc + 1]; ++e) {
-                const double l = l_val[e];
-                double *yi = Y + (long)l_idx[e] * V;
-                for (long v = 0; v < V; ++v) yi[v] -= l * yj[v];
+        /* The triangular solves by rows, all right-hand sides at once, four columns at a time in a
+         * register. */
+        for (long i = 0; i < m; ++i) {
+            double *yi = Y + i * V;
+            for (long b = 0; b < V; b += 4) {
+                double acc[4] = {yi[b], yi[b + 1], yi[b + 2], yi[b + 3]};
+                for (int e = l_ptr[i]; e < l_ptr[i + 1]; ++e) {
+                    const double l = l_val[e], *yj = Y + (long)l_idx[e] * V + b;
+                    for (int k = 0; k < 4; ++k) acc[k] -= l * yj[k];
+                }
+                for (int k = 0; k < 4; ++k) yi[b + k] = acc[k];
             }
         }
-        for (long jc = m - 1; jc >= 0; --jc) {
-            double *yj = Y + jc * V;
-            const double dg = u_diag[jc];
-            for (long v = 0; v < V; ++v) yj[v] /= dg;
-            for (int e = u_ptr[jc]; e < u_ptr[jc + 1]; ++e) {
-                const double uv = u_val[e];
-                double *yi = Y + (long)u_idx[e] * V;
-                for (long v = 0; v < V; ++v) yi[v] -= uv * yj[v];
+        for (long i = m - 1; i >= 0; --i) {
+            double *yi = Y + i * V;
+            const double dg = u_diag[i];
+            for (long b = 0; b < V; b += 4) {
+                double acc[4] = {yi[b], yi[b + 1], yi[b + 2], yi[b + 3]};
+                for (int e = u_ptr[i]; e < u_ptr[i + 1]; ++e) {
+                    const double uv = u_val[e], *yj = Y + (long)u_idx[e] * V + b;
+                    for (int k = 0; k < 4; ++k) acc[k] -= uv * yj[k];
+                }
+                for (int k = 0; k < 4; ++k) yi[b + k] = acc[k] / dg;
             }
         }
-        /* Pass 3: interior values and their multipliers. */
+        /* Step C: interior values and their multipliers. */
 #pragma omp parallel for num_threads(nthreads) schedule(static) reduction(+ : rp, rd)
         for (long i = 0; i < m; ++i) {
             const double *y = Y + (long)pc[i] * V, *h = H + i * V, *wi = w + i * V;
@@ -149,29 +179,37 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
                 p[v] = pn;
             }
         }
-        /* Pass 4: gradients of the new values and their multipliers. */
+        /* Step D, and step A of the next iteration (of which the last keeps X), one cell at a time;
+         * after the last iteration, the state. */
+        const int next_last = it == iters - 2;
 #pragma omp parallel for num_threads(nthreads) schedule(static) reduction(+ : rp, rd)
-        for (long r = 0; r < R; ++r) {
-            double t[V > 0 ? V : 1];
-            for (long v = 0; v < V; ++v) t[v] = 0.0;
-            for (int e = g_ptr[r]; e < g_ptr[r + 1]; ++e) {
-                const double g = g_val[e], *y = Y + (long)g_idx[e] * V;
-                for (long v = 0; v < V; ++v) t[v] += g * y[v];
-            }
-            const double *j = J + r * V, *q = qJ + r * V;
-            double *p = P1 + r * V, *u = u1 + r * V;
-            if (last) {
-                const double *x = X + r * V;
+        for (long s = 0; s < C; ++s) {
+            double pn[D * V], un[D * V];
+            for (long d = 0; d < D; ++d) {
+                const long r = d * C + s;
+                double *t = pn + d * V;
+                gather_rows(V, g_ptr[r], g_ptr[r + 1], g_idx, g_val, Y, t);
+                const double *j = J + r * V, *q = qJ + r * V;
+                double *ud = un + d * V;
                 for (long v = 0; v < V; ++v) {
-                    double pn = j[v] + t[v];
-                    rp += (x[v] - pn) * (x[v] - pn);
-                    rd += (pn - p[v]) * (pn - p[v]);
+                    ud[v] = q[v] - t[v];
+                    t[v] = j[v] + t[v];
+                }
+                if (last) {
+                    const double *x = X + r * V;
+                    double *p = P1 + r * V, *u = u1 + r * V;
+                    for (long v = 0; v < V; ++v) {
+                        rp += (x[v] - t[v]) * (x[v] - t[v]);
+                        rd += (t[v] - p[v]) * (t[v] - p[v]);
+                        p[v] = t[v];
+                        u[v] = ud[v];
+                    }
+                } else if (next_last) {
+                    double *p = P1 + r * V; /* (the last iteration's dual residual) */
+                    for (long v = 0; v < V; ++v) p[v] = t[v];
                 }
             }
-            for (long v = 0; v < V; ++v) {
-                p[v] = j[v] + t[v];
-                u[v] = q[v] - t[v];
-            }
+            if (!last) shrink_cell(D, C, V, s, pn, V, un, V, J, phiA, inv_mu, alpha, qJ, next_last ? X : NULL);
         }
     }
     res[0] = rp;
