@@ -71,18 +71,29 @@ static inline void shrink_cell(long D, long C, long V, long s, const double *p, 
     }
 }
 
-/* t (V) = sum over e in [e0, e1) of val[e] * rows[idx[e]] (rows of V), four columns at a time in
- * a register. */
-static inline void gather_rows(long V, int e0, int e1, const int *idx, const double *val, const double *rows,
-                               double *t) {
-    for (long b = 0; b < V; b += 4) {
-        double acc[4] = {0.0, 0.0, 0.0, 0.0};
-        for (int e = e0; e < e1; ++e) {
-            const double g = val[e], *y = rows + (long)idx[e] * V + b;
-            for (int k = 0; k < 4; ++k) acc[k] += g * y[k];
-        }
-        for (int k = 0; k < 4; ++k) t[b + k] = acc[k];
+/* out (V) = init - sum over e in [e0, e1) of val[e] * rows[idx[e]] (rows of V; init NULL: 0), with
+ * sixteen, eight or four columns at a time in registers: independent sums, so that the additions'
+ * latency overlaps. (The sum is formed first and subtracted once: the same rounding as init - sum.) */
+#define TC_LBC_BLOCK(W)                                                                                \
+    for (; b + (W) <= V; b += (W)) {                                                                   \
+        double acc[W];                                                                                 \
+        for (int k = 0; k < (W); ++k) acc[k] = 0.0;                                                    \
+        for (int e = e0; e < e1; ++e) {                                                                \
+            const double g = val[e], *y = rows + (long)idx[e] * V + b;                                 \
+            for (int k = 0; k < (W); ++k) acc[k] += g * y[k];                                          \
+        }                                                                                              \
+        if (init)                                                                                      \
+            for (int k = 0; k < (W); ++k) out[b + k] = init[b + k] - acc[k];                           \
+        else                                                                                           \
+            for (int k = 0; k < (W); ++k) out[b + k] = -acc[k];                                        \
     }
+
+static inline void sparse_row(long V, int e0, int e1, const int *idx, const double *val, const double *rows,
+                              const double *init, double *out) {
+    long b = 0;
+    TC_LBC_BLOCK(16)
+    TC_LBC_BLOCK(8)
+    TC_LBC_BLOCK(4)
 }
 
 void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_idx, const double *g_val, long g_nnz,
@@ -115,14 +126,14 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
 #pragma omp parallel for num_threads(nthreads) schedule(static)
         for (long i = 0; i < m; ++i) {
             double z[V], c[8];
-            gather_rows(V, gt_ptr[i], gt_ptr[i + 1], gt_idx, gt_val, qJ, z);
+            sparse_row(V, gt_ptr[i], gt_ptr[i + 1], gt_idx, gt_val, qJ, NULL, z); /* -G^T qJ */
             const double *p = P2 + i * V, *u = u2 + i * V, *h = H + i * V;
             double *wi = w + i * V;
             for (long v = 0; v < V; ++v) {
                 double W = p[v] - u[v] / ws;
                 W = W > 0.0 ? W : 0.0;
                 wi[v] = lerp_(p[v], W, alpha) + u[v] * inv_ws;
-                z[v] += ws2 * (wi[v] - h[v]);
+                z[v] = ws2 * (wi[v] - h[v]) - z[v];
             }
             for (long k = 0; k < K1; ++k) {
                 double acc = 0.0;
@@ -138,28 +149,12 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
         }
         /* The triangular solves by rows, all right-hand sides at once, four columns at a time in a
          * register. */
-        for (long i = 0; i < m; ++i) {
-            double *yi = Y + i * V;
-            for (long b = 0; b < V; b += 4) {
-                double acc[4] = {yi[b], yi[b + 1], yi[b + 2], yi[b + 3]};
-                for (int e = l_ptr[i]; e < l_ptr[i + 1]; ++e) {
-                    const double l = l_val[e], *yj = Y + (long)l_idx[e] * V + b;
-                    for (int k = 0; k < 4; ++k) acc[k] -= l * yj[k];
-                }
-                for (int k = 0; k < 4; ++k) yi[b + k] = acc[k];
-            }
-        }
+        for (long i = 0; i < m; ++i) sparse_row(V, l_ptr[i], l_ptr[i + 1], l_idx, l_val, Y, Y + i * V, Y + i * V);
         for (long i = m - 1; i >= 0; --i) {
             double *yi = Y + i * V;
             const double dg = u_diag[i];
-            for (long b = 0; b < V; b += 4) {
-                double acc[4] = {yi[b], yi[b + 1], yi[b + 2], yi[b + 3]};
-                for (int e = u_ptr[i]; e < u_ptr[i + 1]; ++e) {
-                    const double uv = u_val[e], *yj = Y + (long)u_idx[e] * V + b;
-                    for (int k = 0; k < 4; ++k) acc[k] -= uv * yj[k];
-                }
-                for (int k = 0; k < 4; ++k) yi[b + k] = acc[k] / dg;
-            }
+            sparse_row(V, u_ptr[i], u_ptr[i + 1], u_idx, u_val, Y, yi, yi);
+            for (long v = 0; v < V; ++v) yi[v] /= dg;
         }
         /* Step C: interior values and their multipliers. */
 #pragma omp parallel for num_threads(nthreads) schedule(static) reduction(+ : rp, rd)
@@ -188,12 +183,12 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
             for (long d = 0; d < D; ++d) {
                 const long r = d * C + s;
                 double *t = pn + d * V;
-                gather_rows(V, g_ptr[r], g_ptr[r + 1], g_idx, g_val, Y, t);
+                sparse_row(V, g_ptr[r], g_ptr[r + 1], g_idx, g_val, Y, NULL, t); /* -T */
                 const double *j = J + r * V, *q = qJ + r * V;
                 double *ud = un + d * V;
                 for (long v = 0; v < V; ++v) {
-                    ud[v] = q[v] - t[v];
-                    t[v] = j[v] + t[v];
+                    ud[v] = q[v] + t[v];
+                    t[v] = j[v] - t[v];
                 }
                 if (last) {
                     const double *x = X + r * V;
