@@ -181,21 +181,28 @@ class _FactoredSolve:
 
 class _NativeADMM:
     """The iterations of :func:`solve_lbc`'s ADMM loop in the native library (``tc_lbc_admm`` in
-    ``torchcage/backends/native/lbc.c``; CPU, float64): the same steps, fused into four passes over
-    memory per iteration, with the ``Y`` step as forward and back substitution over all right-hand
-    sides at once (the sparse LU of ``G^T G + s^2 I``, factored once with a symmetric minimum-degree
+    ``torchcage/backends/native/lbc.c``; CPU, float64): the same steps in three passes over memory
+    per iteration, with the ``Y`` step as forward and back substitution over all right-hand sides at
+    once (the sparse LU of ``G^T G + s^2 I``, factored once with a symmetric minimum-degree
     ordering). It updates ``Y M`` (the ``(m, V)`` change of the interior values) in place of ``Y``:
-    ``Y M = A^{-1} Z M^T M`` with ``M^T M = I - Q Q^T``, ``Q`` the orthonormal basis of the columns
-    of ``K`` (the same iterates; three columns of ``Q`` instead of ``V - D - 1`` rows of ``M``).
+    ``Y M = A^{-1} Z M^T M`` with ``M^T M = I - Q^T Q``, the rows of ``Q`` an orthonormal basis of
+    the columns of ``K`` (the same iterates; ``D + 1`` rows of ``Q`` instead of ``V - D - 1`` of
+    ``M``), and the gradients ``G P2 + E`` as one product with the gradient operator of all the
+    mesh's vertices.
 
-    The state ``P1, P2, u1, u2`` is held in tensors that the caller may rescale in place between
-    calls (the adaptive penalty); :meth:`run` advances it by a number of iterations and returns the
-    squared residuals of the last one."""
+    The state ``P1 (D C, V)``, ``P2 (m, V)``, ``u1``, ``u2`` lives in padded tensors (:attr:`u1` and
+    :attr:`u2` may be rescaled in place between calls: the adaptive penalty); :meth:`run` advances it
+    by a number of iterations and returns the squared residuals of the last one."""
 
     def __init__(
         self,
         lib: object,
         G: torch.Tensor,
+        Gfull: torch.Tensor,
+        interior: torch.Tensor,
+        boundary: torch.Tensor,
+        boundary_values: torch.Tensor,
+        GtJ: torch.Tensor,
         J: torch.Tensor,
         H: torch.Tensor,
         phiA: torch.Tensor,
@@ -210,7 +217,7 @@ class _NativeADMM:
 
         DC, m = G.shape
         C, V = phiA.shape
-        D = DC // C
+        D, nb = DC // C, boundary.shape[0]
         Gs = csr_matrix((G.values().numpy(), G.col_indices().numpy(), G.crow_indices().numpy()), shape=G.shape)
         lu = splu(
             (Gs.T @ Gs + ws * ws * identity(m)).tocsc(),
@@ -220,33 +227,37 @@ class _NativeADMM:
         )
         low, up = tril(lu.L, k=-1).tocsr(), triu(lu.U, k=1).tocsr()  # (L's diagonal is 1)
         Gt = Gs.T.tocsr()
-        Gs = Gs.copy()
-        Gs.indices = lu.perm_c[Gs.indices]  # G's columns as the rows of the permuted solution
-
-        def i32(a: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(np.ascontiguousarray(a, dtype=np.int32))
-
-        def f64(a: np.ndarray | torch.Tensor) -> torch.Tensor:
-            return torch.as_tensor(np.ascontiguousarray(a, dtype=np.float64)).contiguous()
+        # all the mesh's vertices, interior first, then boundary: the rows of the padded P2
+        order = torch.empty(Gfull.shape[1], dtype=torch.int64)
+        order[interior] = torch.arange(m)
+        order[boundary] = torch.arange(m, m + nb)
+        gf_idx = order[Gfull.col_indices()]
 
         # (V padded with zero columns to a multiple of 4, which stay 0: the kernel's vector width)
         Vp = -(-V // 4) * 4
 
         def pad(t: torch.Tensor) -> torch.Tensor:
-            return torch.nn.functional.pad(t, (0, Vp - V)).contiguous()
+            return torch.nn.functional.pad(t.to(torch.float64), (0, Vp - V)).contiguous()
 
-        self.V = V
-        self.P1, self.P2 = pad(J), pad(H)
-        self.u1, self.u2 = torch.zeros_like(self.P1), torch.zeros_like(self.P2)
+        def i32(a: np.ndarray | torch.Tensor) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(a, dtype=np.int32))
+
+        def f64(a: np.ndarray | torch.Tensor) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(a, dtype=np.float64))
+
+        self.P1, self.P2 = pad(J), pad(torch.cat([H, boundary_values]))
+        self.u1, self.u2 = torch.zeros_like(self.P1), torch.zeros((m, Vp), dtype=torch.float64)
+        self.V, self.m = V, m
         self.res = torch.zeros(2, dtype=torch.float64)
         kwargs = {
             "D": D, "C": C, "m": m, "V": Vp,
-            "g_ptr": i32(Gs.indptr), "g_idx": i32(Gs.indices), "g_val": f64(Gs.data), "g_nnz": Gs.nnz,
+            "g_ptr": i32(Gfull.crow_indices()), "g_idx": i32(gf_idx), "g_val": f64(Gfull.values()),
+            "g_nnz": Gfull.values().shape[0],
             "gt_ptr": i32(Gt.indptr), "gt_idx": i32(Gt.indices), "gt_val": f64(Gt.data), "gt_nnz": Gt.nnz,
             "l_ptr": i32(low.indptr), "l_idx": i32(low.indices), "l_val": f64(low.data), "l_nnz": low.nnz,
             "u_ptr": i32(up.indptr), "u_idx": i32(up.indices), "u_val": f64(up.data), "u_nnz": up.nnz,
             "u_diag": f64(lu.U.diagonal()), "pr": i32(lu.perm_r), "pc": i32(lu.perm_c),
-            "J": pad(J), "H": pad(H), "phiA": pad(phiA), "Q": pad(Q),
+            "nb": nb, "GtJ": pad(GtJ), "H": pad(H), "phiA": pad(phiA), "Q": pad(Q),
             "mu": 1.0, "alpha": alpha, "ws": ws, "iters": 0, "nthreads": torch.get_num_threads(),
             "P1": self.P1, "P2": self.P2, "u1": self.u1, "u2": self.u2,
             "work": torch.empty(2 * D * C * Vp + 2 * m * Vp, dtype=torch.float64), "res": self.res,
@@ -255,7 +266,12 @@ class _NativeADMM:
         self._args = abi.check_arguments("tc_lbc_admm", kwargs)
         names = [a.name for a in abi.SIGNATURES["tc_lbc_admm"]]
         self._mu, self._iters = names.index("mu"), names.index("iters")
-        self._fn = lib.tc_lbc_admm
+        self._fn = lib.tc_lbc_admm  # type: ignore[attr-defined]
+
+    @property
+    def interior_values(self) -> torch.Tensor:
+        """``(m, V)`` the current ``P2`` (a view)."""
+        return self.P2[: self.m, : self.V]
 
     def run(self, iterations: int, mu: float) -> tuple[float, float]:
         """Advance by ``iterations`` (>= 1) with penalty ``mu``; the last one's ``||X - P1'||^2 +
@@ -530,7 +546,9 @@ def solve_lbc(
     if lib is not None:
         # The native iterations (the same steps in C), run from one residual check to the next.
         Q = U[:, : D + 1].T  # (D+1, V): orthonormal basis of K's columns, M^T M = I - Q^T Q
-        native = _NativeADMM(lib, G, J, H, phiA.contiguous(), Q, ws, alpha)
+        native = _NativeADMM(
+            lib, G, Gfull, interior, boundary, domain.boundary_values.to(dt), GtJ, J, H, phiA, Q, ws, alpha
+        )
         while it < max_iter:
             nxt = min(max_iter, (it // report_every + 1) * report_every)
             if adaptive:
@@ -549,7 +567,7 @@ def solve_lbc(
                 mu = mu / balance_step
                 native.u1.mul_(balance_step)
                 native.u2.mul_(balance_step)
-        P2 = native.P2[:, :V]
+        P2 = native.interior_values
     # Every operation on the large (D C, V) block writes into a preallocated buffer: on a small CPU
     # these passes over memory, not the arithmetic, set the time per iteration.
     with _single_threaded_blas():

@@ -4,27 +4,28 @@
  *
  * Every block is row-major with the cage vertices (the coordinate functions) contiguous, V of them
  * padded with zero columns to a multiple of 4 (the caller pads; the padding stays exactly 0), so that
- * every inner loop runs over whole groups of 4 and vectorises: the gradient blocks P1, u1, J are
- * (D C, V) with row d C + s the d-th component on cell s, phiA is (C, V), the interior blocks P2,
- * u2, H are (m, V).
+ * every inner loop runs over whole groups of 4 and vectorises: the gradient blocks P1, u1 are
+ * (D C, V) with row d C + s the d-th component on cell s, phiA is (C, V), the interior blocks u2,
+ * H, GtJ = G^T J are (m, V), and P2 is (m + nb, V): the m interior values, then the nb boundary
+ * values (constant), so that the gradients G P1 + E = Gf P2 are one sparse product (Gf: the
+ * gradient operator of all the mesh's vertices, its columns renumbered in this order).
  *
  * The Y step solves (G^T G + s^2 I) Yhat = Z (I - Q^T Q) for all V right-hand sides at once, with
  * Yhat = Y M the update of the interior values (M^T M = I - Q^T Q, the rows of Q (D+1, V) an
  * orthonormal basis of the columns of K, so that Yhat K = 0 and the constraints W K = B stay exact):
  * forward and back substitution with a sparse LU factorisation computed once (A = Pr^T L U Pc^T, L
  * unit lower, as scipy's splu returns it; here the strict triangles by rows, CSR): the right-hand
- * side of unknown i goes to row pr[i], its solution is read from row pc[i] (G's column indices g_idx
- * are given already mapped through pc).
+ * side of unknown i goes to row pr[i], its solution is read from row pc[i].
  *
  * One iteration:
- *   A (per cell, D rows): group shrinkage of a = P1 - u1 (Eq. 30) and over-relaxation; keeps
- *     qJ = q - J with q = lerp(P1, X, alpha) + u1.
- *   B (per interior vertex): Z = s^2 (w - H) + G^T qJ, w = lerp(P2, W, alpha) + u2 / s with
+ *   A (per cell, D rows): group shrinkage of a = P1 - u1 (Eq. 30) and over-relaxation,
+ *     q = lerp(P1, X, alpha) + u1.
+ *   B (per interior vertex): Z = s^2 (w - H) + G^T q - G^T J, w = lerp(P2, W, alpha) + u2 / s with
  *     W = max(P2 - u2 / s, 0) (Eq. 31); projected; scattered to the permuted rows. The two
  *     triangular solves.
  *   C (per interior vertex): P2' = H + Yhat, u2 = (w - P2') s.
- *   D (per cell): T = G Yhat, P1' = J + T, u1 = qJ - T; then step A of the next iteration on the
- *     same rows (P1' and u1 never leave the cache; they are stored only after the last iteration).
+ *   D (per cell): P1' = Gf P2', u1 = q - P1'; then step A of the next iteration on the same rows
+ *     (P1' and u1 never leave the cache; they are stored only after the last iteration).
  * After the last iteration res[0] = ||X - P1'||^2 + ||W - P2'||^2 and res[1] = ||P1' - P1||^2 +
  * ||P2' - P2||^2 (the squared primal residual, and the squared dual residual over mu^2).
  *
@@ -39,11 +40,10 @@
  * the branch the solver's relaxation (t in [1.5, 1.8]) takes, else a + t (b - a). */
 static inline double lerp_(double a, double b, double t) { return t < 0.5 ? a + t * (b - a) : b - (b - a) * (1.0 - t); }
 
-/* Step A on cell s: from its rows p = P1, u = u1 (D rows of V, row stride V) to qJ (row stride V, at
- * row d C + s) and, when X is not NULL, X. */
+/* Step A on cell s: from its rows p = P1, u = u1 (D rows of V, row strides ps, us) to q (at rows
+ * d C + s) and, when X is not NULL, X. */
 static inline void shrink_cell(long D, long C, long V, long s, const double *p, long ps, const double *u, long us,
-                               const double *J, const double *phiA, double inv_mu, double alpha, double *qJ,
-                               double *X) {
+                               const double *phiA, double inv_mu, double alpha, double *q, double *X) {
     double sh[V];
     for (long v = 0; v < V; ++v) sh[v] = 0.0;
     for (long d = 0; d < D; ++d)
@@ -60,11 +60,11 @@ static inline void shrink_cell(long D, long C, long V, long s, const double *p, 
     }
     for (long d = 0; d < D; ++d) {
         const long o = (d * C + s) * V;
-        const double *pd = p + d * ps, *ud = u + d * us, *j = J + o;
-        double *out = qJ + o;
+        const double *pd = p + d * ps, *ud = u + d * us;
+        double *out = q + o;
         for (long v = 0; v < V; ++v) {
             double x = (pd[v] - ud[v]) * sh[v];
-            out[v] = (lerp_(pd[v], x, alpha) + ud[v]) - j[v];
+            out[v] = lerp_(pd[v], x, alpha) + ud[v];
         }
         if (X)
             for (long v = 0; v < V; ++v) X[o + v] = (pd[v] - ud[v]) * sh[v];
@@ -100,16 +100,18 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
                  const int *gt_ptr, const int *gt_idx, const double *gt_val, long gt_nnz, const int *l_ptr,
                  const int *l_idx, const double *l_val, long l_nnz, const int *u_ptr, const int *u_idx,
                  const double *u_val, long u_nnz, const double *u_diag, const int *pr, const int *pc,
-                 const double *J, const double *H, const double *phiA, const double *Q, double mu, double alpha,
+                 long nb, const double *GtJ, const double *H, const double *phiA, const double *Q, double mu,
+                 double alpha,
                  double ws, long iters, int nthreads, double *P1, double *P2, double *u1, double *u2, double *work,
                  double *res) {
     (void)g_nnz;
     (void)gt_nnz;
     (void)l_nnz;
     (void)u_nnz;
+    (void)nb;
     const long R = D * C, K1 = D + 1;
-    double *qJ = work;      /* (D C, V) */
-    double *X = qJ + R * V; /* (D C, V), the last iteration's */
+    double *q = work;      /* (D C, V) */
+    double *X = q + R * V; /* (D C, V), the last iteration's */
     double *w = X + R * V;  /* (m, V) */
     double *Y = w + m * V;  /* (m, V), permuted rows */
     const double ws2 = ws * ws, inv_ws = 1.0 / ws, inv_mu = -1.0 / mu;
@@ -118,15 +120,14 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
     /* Step A of the first iteration, from the state. */
 #pragma omp parallel for num_threads(nthreads) schedule(static)
     for (long s = 0; s < C; ++s)
-        shrink_cell(D, C, V, s, P1 + s * V, C * V, u1 + s * V, C * V, J, phiA, inv_mu, alpha, qJ,
-                    iters == 1 ? X : NULL);
+        shrink_cell(D, C, V, s, P1 + s * V, C * V, u1 + s * V, C * V, phiA, inv_mu, alpha, q, iters == 1 ? X : NULL);
     for (long it = 0; it < iters; ++it) {
         const int last = it == iters - 1;
         /* Step B: right-hand sides, projected, to their permuted rows. */
 #pragma omp parallel for num_threads(nthreads) schedule(static)
         for (long i = 0; i < m; ++i) {
             double z[V], c[8];
-            sparse_row(V, gt_ptr[i], gt_ptr[i + 1], gt_idx, gt_val, qJ, NULL, z); /* -G^T qJ */
+            sparse_row(V, gt_ptr[i], gt_ptr[i + 1], gt_idx, gt_val, q, GtJ + i * V, z); /* G^T J - G^T q */
             const double *p = P2 + i * V, *u = u2 + i * V, *h = H + i * V;
             double *wi = w + i * V;
             for (long v = 0; v < V; ++v) {
@@ -183,12 +184,12 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
             for (long d = 0; d < D; ++d) {
                 const long r = d * C + s;
                 double *t = pn + d * V;
-                sparse_row(V, g_ptr[r], g_ptr[r + 1], g_idx, g_val, Y, NULL, t); /* -T */
-                const double *j = J + r * V, *q = qJ + r * V;
+                sparse_row(V, g_ptr[r], g_ptr[r + 1], g_idx, g_val, P2, NULL, t); /* -P1' */
+                const double *qr = q + r * V;
                 double *ud = un + d * V;
                 for (long v = 0; v < V; ++v) {
-                    ud[v] = q[v] + t[v];
-                    t[v] = j[v] - t[v];
+                    t[v] = -t[v];
+                    ud[v] = qr[v] - t[v];
                 }
                 if (last) {
                     const double *x = X + r * V;
@@ -204,7 +205,7 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
                     for (long v = 0; v < V; ++v) p[v] = t[v];
                 }
             }
-            if (!last) shrink_cell(D, C, V, s, pn, V, un, V, J, phiA, inv_mu, alpha, qJ, next_last ? X : NULL);
+            if (!last) shrink_cell(D, C, V, s, pn, V, un, V, phiA, inv_mu, alpha, q, next_last ? X : NULL);
         }
     }
     res[0] = rp;
