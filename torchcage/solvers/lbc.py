@@ -179,6 +179,10 @@ class _FactoredSolve:
         return torch.from_numpy(self.lu.solve(rhs.numpy()))
 
 
+#: The smallest ``(D C, V)`` block for which the native iterations run on more than one thread.
+_NATIVE_PARALLEL_MIN = 1 << 21
+
+
 class _NativeADMM:
     """The iterations of :func:`solve_lbc`'s ADMM loop in the native library (``tc_lbc_admm`` in
     ``torchcage/backends/native/lbc.c``; CPU, float64): the same steps in three passes over memory
@@ -249,6 +253,9 @@ class _NativeADMM:
         self.u1, self.u2 = torch.zeros_like(self.P1), torch.zeros((m, Vp), dtype=torch.float64)
         self.V, self.m = V, m
         self.res = torch.zeros(2, dtype=torch.float64)
+        # threads (torch's count) only for large blocks: each iteration opens four parallel regions,
+        # whose cost (and, on a busy machine, the waits of spinning threads) outweighs small passes
+        threads = torch.get_num_threads() if D * C * Vp >= _NATIVE_PARALLEL_MIN else 1
         kwargs = {
             "D": D, "C": C, "m": m, "V": Vp,
             "g_ptr": i32(Gfull.crow_indices()), "g_idx": i32(gf_idx), "g_val": f64(Gfull.values()),
@@ -258,7 +265,7 @@ class _NativeADMM:
             "u_ptr": i32(up.indptr), "u_idx": i32(up.indices), "u_val": f64(up.data), "u_nnz": up.nnz,
             "u_diag": f64(lu.U.diagonal()), "pr": i32(lu.perm_r), "pc": i32(lu.perm_c),
             "nb": nb, "GtJ": pad(GtJ), "H": pad(H), "phiA": pad(phiA), "Q": pad(Q),
-            "mu": 1.0, "alpha": alpha, "ws": ws, "iters": 0, "nthreads": torch.get_num_threads(),
+            "mu": 1.0, "alpha": alpha, "ws": ws, "iters": 0, "nthreads": threads,
             "P1": self.P1, "P2": self.P2, "u1": self.u1, "u2": self.u2,
             "work": torch.empty(2 * D * C * Vp + 2 * m * Vp, dtype=torch.float64), "res": self.res,
         }  # fmt: skip
