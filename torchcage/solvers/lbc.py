@@ -13,7 +13,10 @@ over the values ``W (m, V)`` at the ``m`` interior mesh vertices. Writing ``W = 
 construction. ADMM (Appendix B) alternates group soft-thresholding of the gradient variables,
 projection onto ``W >= 0``, over-relaxation, and the ``Y`` step, an SPD solve with the fixed matrix
 ``G^T G + I`` for all right-hand sides at once (a sparse LU factorisation computed once, or a
-warm-started Jacobi-preconditioned conjugate gradient).
+warm-started Jacobi-preconditioned conjugate gradient). With the native library (CPU), the whole
+iteration runs in C (``torchcage/backends/native/lbc.c``): the same steps fused into three passes
+over memory, and the ``Y`` step as forward and back substitution over all right-hand sides at once;
+its iterates equal the torch loop's to rounding (``TORCHCAGE_NATIVE=0`` selects the torch loop).
 
 **Adaptive penalty.** The ``Y`` step's matrix does not depend on the penalty ``mu``, so residual
 balancing (Boyd et al. 2011, 3.4.1) is free: every ``balance_every`` iterations, ``mu`` is doubled
@@ -203,6 +206,7 @@ class _NativeADMM:
         lib: object,
         G: torch.Tensor,
         Gfull: torch.Tensor,
+        cells: torch.Tensor,
         interior: torch.Tensor,
         boundary: torch.Tensor,
         boundary_values: torch.Tensor,
@@ -230,12 +234,22 @@ class _NativeADMM:
             options={"SymmetricMode": True},
         )
         low, up = tril(lu.L, k=-1).tocsr(), triu(lu.U, k=1).tocsr()  # (L's diagonal is 1)
-        Gt = Gs.T.tocsr()
         # all the mesh's vertices, interior first, then boundary: the rows of the padded P2
         order = torch.empty(Gfull.shape[1], dtype=torch.int64)
         order[interior] = torch.arange(m)
         order[boundary] = torch.arange(m, m + nb)
-        gf_idx = order[Gfull.col_indices()]
+        # The cells (the rows of P1, u1, phiA), internal to the kernel, sorted by their first
+        # vertex in that order: the rows that one vertex's step reads lie close together (a
+        # mesher's cells come in any order; 12% per iteration on the LBC paper's cactus)
+        ranked = order[cells]
+        cell_order = torch.argsort(ranked.amin(dim=1) * (m + nb) + ranked.amax(dim=1), stable=True)
+        rows = (torch.arange(D)[:, None] * C + cell_order[None, :]).reshape(-1).numpy()
+        Gt = Gs[rows].T.tocsr()
+        Gf = csr_matrix(
+            (Gfull.values().numpy(), order[Gfull.col_indices()].numpy(), Gfull.crow_indices().numpy()),
+            shape=Gfull.shape,
+        )[rows]
+        phiA, J = phiA[cell_order], J[torch.from_numpy(rows)]
 
         # (V padded with zero columns to a multiple of 4, which stay 0: the kernel's vector width)
         Vp = -(-V // 4) * 4
@@ -258,8 +272,7 @@ class _NativeADMM:
         threads = torch.get_num_threads() if D * C * Vp >= _NATIVE_PARALLEL_MIN else 1
         kwargs = {
             "D": D, "C": C, "m": m, "V": Vp,
-            "g_ptr": i32(Gfull.crow_indices()), "g_idx": i32(gf_idx), "g_val": f64(Gfull.values()),
-            "g_nnz": Gfull.values().shape[0],
+            "g_ptr": i32(Gf.indptr), "g_idx": i32(Gf.indices), "g_val": f64(Gf.data), "g_nnz": Gf.nnz,
             "gt_ptr": i32(Gt.indptr), "gt_idx": i32(Gt.indices), "gt_val": f64(Gt.data), "gt_nnz": Gt.nnz,
             "l_ptr": i32(low.indptr), "l_idx": i32(low.indices), "l_val": f64(low.data), "l_nnz": low.nnz,
             "u_ptr": i32(up.indptr), "u_idx": i32(up.indices), "u_val": f64(up.data), "u_nnz": up.nnz,
@@ -380,8 +393,9 @@ def solve_lbc(
         max_iter: iteration limit; stopping there warns and reports ``converged=False``.
         adaptive: residual balancing of ``mu`` (see the module docstring); ``False`` keeps ``mu``.
         balance_every: iterations between balancing steps.
-        linear_solver: ``"lu"`` (scipy sparse LU, factored once; CPU), ``"cg"`` (warm-started
-            preconditioned conjugate gradient in torch; any device) or ``"auto"`` (lu on the CPU).
+        linear_solver: ``"lu"`` (scipy sparse LU, factored once; CPU; with the native library,
+            the whole iteration runs in C), ``"cg"`` (warm-started preconditioned conjugate
+            gradient in torch; any device) or ``"auto"`` (lu on the CPU).
         report_every: iterations between residual checks (and history entries).
         progress: ``True`` for a progress bar (:class:`~torchcage.solvers.progress.ToleranceProgress`:
             how far, on a log scale, the residuals have come towards their tolerances, with their
@@ -554,8 +568,9 @@ def solve_lbc(
         # The native iterations (the same steps in C), run from one residual check to the next.
         Q = U[:, : D + 1].T  # (D+1, V): orthonormal basis of K's columns, M^T M = I - Q^T Q
         native = _NativeADMM(
-            lib, G, Gfull, interior, boundary, domain.boundary_values.to(dt), GtJ, J, H, phiA, Q, ws, alpha
-        )
+            lib, G, Gfull, domain.cells, interior, boundary, domain.boundary_values.to(dt), GtJ, J, H, phiA, Q,
+            ws, alpha,
+        )  # fmt: skip
         while it < max_iter:
             nxt = min(max_iter, (it // report_every + 1) * report_every)
             if adaptive:
