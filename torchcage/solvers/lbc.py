@@ -234,6 +234,8 @@ class _NativeADMM:
             options={"SymmetricMode": True},
         )
         low, up = tril(lu.L, k=-1).tocsr(), triu(lu.U, k=1).tocsr()  # (L's diagonal is 1)
+        if max(low.nnz, up.nnz, Gfull.values().shape[0]) >= 2**31:
+            raise OverflowError("the native LBC iterations index sparse matrices with int32")
         # all the mesh's vertices, interior first, then boundary: the rows of the padded P2
         order = torch.empty(Gfull.shape[1], dtype=torch.int64)
         order[interior] = torch.arange(m)
@@ -502,14 +504,20 @@ def solve_lbc(
     if not (math.isfinite(ws) and ws > 0):  # (interior vertices in no cell only: no gradient rows)
         ws = 1.0
     native: _NativeADMM | None = None
-    lib = None  # the native library: the whole iteration in C ("lu" and "auto")
     if linear_solver != "cg":
         from torchcage.backends import native as _native
 
         lib = _native.library()
+        if lib is not None:  # the whole iteration in C ("lu" and "auto" with the native library)
+            Q = U[:, : D + 1].T  # (D+1, V): orthonormal basis of K's columns, M^T M = I - Q^T Q
+            with contextlib.suppress(OverflowError):  # (int32 indices overflow: the torch loop)
+                native = _NativeADMM(
+                    lib, G, Gfull, domain.cells, interior, boundary, domain.boundary_values.to(dt), Gt @ J, J, H,
+                    phiA, Q, ws, alpha,
+                )  # fmt: skip
     if linear_solver == "cg":
         solve: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = _ConjugateGradient(G, ws * ws)
-    elif lib is None:
+    elif native is None:
         solve = _FactoredSolve(G, ws * ws)
 
     if mu is None:
@@ -564,13 +572,8 @@ def solve_lbc(
                 return False, -1
         return False, 0
 
-    if lib is not None:
+    if native is not None:
         # The native iterations (the same steps in C), run from one residual check to the next.
-        Q = U[:, : D + 1].T  # (D+1, V): orthonormal basis of K's columns, M^T M = I - Q^T Q
-        native = _NativeADMM(
-            lib, G, Gfull, domain.cells, interior, boundary, domain.boundary_values.to(dt), GtJ, J, H, phiA, Q,
-            ws, alpha,
-        )  # fmt: skip
         while it < max_iter:
             nxt = min(max_iter, (it // report_every + 1) * report_every)
             if adaptive:
