@@ -197,9 +197,10 @@ class _NativeADMM:
     ``M``), and the gradients ``G P2 + E`` as one product with the gradient operator of all the
     mesh's vertices.
 
-    The state ``P1 (D C, V)``, ``P2 (m, V)``, ``u1``, ``u2`` lives in padded tensors (:attr:`u1` and
-    :attr:`u2` may be rescaled in place between calls: the adaptive penalty); :meth:`run` advances it
-    by a number of iterations and returns the squared residuals of the last one."""
+    The state ``P1 (D C, V)`` (its cells in the kernel's order), ``P2 (m, V)``, ``u1``, ``u2`` lives
+    in padded tensors (:attr:`u1` and :attr:`u2` may be rescaled in place between calls: the
+    adaptive penalty); :meth:`run` advances it by a number of iterations and returns the squared
+    residuals of the last one; :attr:`interior_values` is ``P2``."""
 
     def __init__(
         self,
