@@ -18,7 +18,7 @@ from torchcage.solvers.domain import mesh_domain
 from torchcage.solvers.lbc import LBCResult, solve_lbc
 
 pytest.importorskip("scipy")
-pytestmark = pytest.mark.skipif(not native.available(), reason="the native library is unavailable")
+pytestmark = pytest.mark.native  # (skipped where no native library loads)
 
 
 def _lbc2d(name: str) -> torchcage.Cage:

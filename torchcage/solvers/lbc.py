@@ -283,7 +283,8 @@ class _NativeADMM:
             "nb": nb, "GtJ": pad(GtJ), "H": pad(H), "phiA": pad(phiA), "Q": pad(Q),
             "mu": 1.0, "alpha": alpha, "ws": ws, "iters": 0, "nthreads": threads,
             "P1": self.P1, "P2": self.P2, "u1": self.u1, "u2": self.u2,
-            "work": torch.empty(2 * D * C * Vp + 2 * m * Vp, dtype=torch.float64), "res": self.res,
+            "work": torch.empty((2 * D * C + 2 * m + threads * (2 * D + 2)) * Vp, dtype=torch.float64),
+            "res": self.res,
         }  # fmt: skip
         self._keep = kwargs  # (the arrays behind the pointers stay alive)
         self._args = abi.check_arguments("tc_lbc_admm", kwargs)

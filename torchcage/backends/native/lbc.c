@@ -35,16 +35,21 @@
  */
 #include <math.h>
 #include <stddef.h>
+#ifdef _OPENMP
+#include <omp.h>
+#define TC_LBC_THREAD omp_get_thread_num()
+#else
+#define TC_LBC_THREAD 0
+#endif
 
 /* torch.lerp(a, b, t), as torch computes it (the same rounding): b - (b - a) (1 - t) for t >= 0.5,
  * the branch the solver's relaxation (t in [1.5, 1.8]) takes, else a + t (b - a). */
 static inline double lerp_(double a, double b, double t) { return t < 0.5 ? a + t * (b - a) : b - (b - a) * (1.0 - t); }
 
 /* Step A on cell s: from its rows p = P1, u = u1 (D rows of V, row strides ps, us) to q (at rows
- * d C + s) and, when X is not NULL, X. */
+ * d C + s) and, when X is not NULL, X; sh: V of scratch. */
 static inline void shrink_cell(long D, long C, long V, long s, const double *p, long ps, const double *u, long us,
-                               const double *phiA, double inv_mu, double alpha, double *q, double *X) {
-    double sh[V];
+                               const double *phiA, double inv_mu, double alpha, double *q, double *X, double *sh) {
     for (long v = 0; v < V; ++v) sh[v] = 0.0;
     for (long d = 0; d < D; ++d)
         for (long v = 0; v < V; ++v) {
@@ -110,42 +115,52 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
     (void)u_nnz;
     (void)nb;
     const long R = D * C, K1 = D + 1;
-    double *q = work;      /* (D C, V) */
-    double *X = q + R * V; /* (D C, V), the last iteration's */
-    double *w = X + R * V;  /* (m, V) */
-    double *Y = w + m * V;  /* (m, V), permuted rows */
+    (void)nthreads; /* (unused without OpenMP) */
+    double *q = work;            /* (D C, V) */
+    double *X = q + R * V;       /* (D C, V), the last iteration's */
+    double *w = X + R * V;       /* (m, V) */
+    double *Y = w + m * V;       /* (m, V), permuted rows */
+    double *scratch = Y + m * V; /* (2 D + 2) V per thread (no variable-length arrays: MSVC has none) */
     const double ws2 = ws * ws, inv_ws = 1.0 / ws, inv_mu = -1.0 / mu;
     double rp = 0.0, rd = 0.0;
     if (iters < 1) return;
     /* Step A of the first iteration, from the state. */
-#pragma omp parallel for num_threads(nthreads) schedule(static)
-    for (long s = 0; s < C; ++s)
-        shrink_cell(D, C, V, s, P1 + s * V, C * V, u1 + s * V, C * V, phiA, inv_mu, alpha, q, iters == 1 ? X : NULL);
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *mine = scratch + TC_LBC_THREAD * (2 * D + 2) * V;
+#pragma omp for schedule(static)
+        for (long s = 0; s < C; ++s)
+            shrink_cell(D, C, V, s, P1 + s * V, C * V, u1 + s * V, C * V, phiA, inv_mu, alpha, q,
+                        iters == 1 ? X : NULL, mine);
+    }
     for (long it = 0; it < iters; ++it) {
         const int last = it == iters - 1;
         /* Step B: right-hand sides, projected, to their permuted rows. */
-#pragma omp parallel for num_threads(nthreads) schedule(static)
-        for (long i = 0; i < m; ++i) {
-            double z[V], c[8];
-            sparse_row(V, gt_ptr[i], gt_ptr[i + 1], gt_idx, gt_val, q, GtJ + i * V, z); /* G^T J - G^T q */
-            const double *p = P2 + i * V, *u = u2 + i * V, *h = H + i * V;
-            double *wi = w + i * V;
-            for (long v = 0; v < V; ++v) {
-                double W = p[v] - u[v] / ws;
-                W = W > 0.0 ? W : 0.0;
-                wi[v] = lerp_(p[v], W, alpha) + u[v] * inv_ws;
-                z[v] = ws2 * (wi[v] - h[v]) - z[v];
-            }
-            for (long k = 0; k < K1; ++k) {
-                double acc = 0.0;
-                for (long v = 0; v < V; ++v) acc += z[v] * Q[k * V + v];
-                c[k] = acc;
-            }
-            double *y = Y + (long)pr[i] * V;
-            for (long v = 0; v < V; ++v) {
-                double acc = z[v];
-                for (long k = 0; k < K1; ++k) acc -= c[k] * Q[k * V + v];
-                y[v] = acc;
+#pragma omp parallel num_threads(nthreads)
+        {
+            double *z = scratch + TC_LBC_THREAD * (2 * D + 2) * V, *c = z + V; /* (V >= D + 1) */
+#pragma omp for schedule(static)
+            for (long i = 0; i < m; ++i) {
+                sparse_row(V, gt_ptr[i], gt_ptr[i + 1], gt_idx, gt_val, q, GtJ + i * V, z); /* G^T J - G^T q */
+                const double *p = P2 + i * V, *u = u2 + i * V, *h = H + i * V;
+                double *wi = w + i * V;
+                for (long v = 0; v < V; ++v) {
+                    double W = p[v] - u[v] / ws;
+                    W = W > 0.0 ? W : 0.0;
+                    wi[v] = lerp_(p[v], W, alpha) + u[v] * inv_ws;
+                    z[v] = ws2 * (wi[v] - h[v]) - z[v];
+                }
+                for (long k = 0; k < K1; ++k) {
+                    double acc = 0.0;
+                    for (long v = 0; v < V; ++v) acc += z[v] * Q[k * V + v];
+                    c[k] = acc;
+                }
+                double *y = Y + (long)pr[i] * V;
+                for (long v = 0; v < V; ++v) {
+                    double acc = z[v];
+                    for (long k = 0; k < K1; ++k) acc -= c[k] * Q[k * V + v];
+                    y[v] = acc;
+                }
             }
         }
         /* The triangular solves by rows, all right-hand sides at once, four columns at a time in a
@@ -178,34 +193,38 @@ void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_
         /* Step D, and step A of the next iteration (of which the last keeps X), one cell at a time;
          * after the last iteration, the state. */
         const int next_last = it == iters - 2;
-#pragma omp parallel for num_threads(nthreads) schedule(static) reduction(+ : rp, rd)
-        for (long s = 0; s < C; ++s) {
-            double pn[D * V], un[D * V];
-            for (long d = 0; d < D; ++d) {
-                const long r = d * C + s;
-                double *t = pn + d * V;
-                sparse_row(V, g_ptr[r], g_ptr[r + 1], g_idx, g_val, P2, NULL, t); /* -P1' */
-                const double *qr = q + r * V;
-                double *ud = un + d * V;
-                for (long v = 0; v < V; ++v) {
-                    t[v] = -t[v];
-                    ud[v] = qr[v] - t[v];
-                }
-                if (last) {
-                    const double *x = X + r * V;
-                    double *p = P1 + r * V, *u = u1 + r * V;
+#pragma omp parallel num_threads(nthreads)
+        {
+            double *pn = scratch + TC_LBC_THREAD * (2 * D + 2) * V, *un = pn + D * V;
+#pragma omp for schedule(static) reduction(+ : rp, rd)
+            for (long s = 0; s < C; ++s) {
+                for (long d = 0; d < D; ++d) {
+                    const long r = d * C + s;
+                    double *t = pn + d * V;
+                    sparse_row(V, g_ptr[r], g_ptr[r + 1], g_idx, g_val, P2, NULL, t); /* -P1' */
+                    const double *qr = q + r * V;
+                    double *ud = un + d * V;
                     for (long v = 0; v < V; ++v) {
-                        rp += (x[v] - t[v]) * (x[v] - t[v]);
-                        rd += (t[v] - p[v]) * (t[v] - p[v]);
-                        p[v] = t[v];
-                        u[v] = ud[v];
+                        t[v] = -t[v];
+                        ud[v] = qr[v] - t[v];
                     }
-                } else if (next_last) {
-                    double *p = P1 + r * V; /* (the last iteration's dual residual) */
-                    for (long v = 0; v < V; ++v) p[v] = t[v];
+                    if (last) {
+                        const double *x = X + r * V;
+                        double *p = P1 + r * V, *u = u1 + r * V;
+                        for (long v = 0; v < V; ++v) {
+                            rp += (x[v] - t[v]) * (x[v] - t[v]);
+                            rd += (t[v] - p[v]) * (t[v] - p[v]);
+                            p[v] = t[v];
+                            u[v] = ud[v];
+                        }
+                    } else if (next_last) {
+                        double *p = P1 + r * V; /* (the last iteration's dual residual) */
+                        for (long v = 0; v < V; ++v) p[v] = t[v];
+                    }
                 }
+                if (!last)
+                    shrink_cell(D, C, V, s, pn, V, un, V, phiA, inv_mu, alpha, q, next_last ? X : NULL, un + D * V);
             }
-            if (!last) shrink_cell(D, C, V, s, pn, V, un, V, phiA, inv_mu, alpha, q, next_last ? X : NULL);
         }
     }
     res[0] = rp;
