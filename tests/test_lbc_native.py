@@ -54,7 +54,8 @@ def _assert_same(fast: LBCResult, slow: LBCResult, tol: float) -> None:
     assert len(fast.history) == len(slow.history)
     for a, b in zip(fast.history, slow.history, strict=True):
         assert a[0] == b[0] and a[3] == b[3]  # iteration, penalty
-        assert a[1] == pytest.approx(b[1], rel=1e-9, abs=1e-300) and a[2] == pytest.approx(b[2], rel=1e-9)
+        # (the residuals are norms of differences: near convergence, rounding is a larger part of them)
+        assert a[1] == pytest.approx(b[1], rel=1e-9, abs=1e-10) and a[2] == pytest.approx(b[2], rel=1e-9, abs=1e-10)
     assert float((fast.weights - slow.weights).abs().max()) <= tol
     assert fast.objective == pytest.approx(slow.objective, rel=1e-10)
 
@@ -88,7 +89,6 @@ def test_native_iterations_with_the_adaptive_penalty(name, monkeypatch) -> None:
     _assert_same(fast, slow, 1e-10)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", ["cactus", "l_shape"])
 def test_native_iterations_equal_the_torch_loop_after_1000(name, monkeypatch) -> None:
     cage, cells = CASES[name]()
