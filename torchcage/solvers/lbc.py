@@ -13,7 +13,10 @@ over the values ``W (m, V)`` at the ``m`` interior mesh vertices. Writing ``W = 
 construction. ADMM (Appendix B) alternates group soft-thresholding of the gradient variables,
 projection onto ``W >= 0``, over-relaxation, and the ``Y`` step, an SPD solve with the fixed matrix
 ``G^T G + I`` for all right-hand sides at once (a sparse LU factorisation computed once, or a
-warm-started Jacobi-preconditioned conjugate gradient).
+warm-started Jacobi-preconditioned conjugate gradient). With the native library (CPU), the whole
+iteration runs in C (``torchcage/backends/native/lbc.c``): the same steps fused into three passes
+over memory, and the ``Y`` step as forward and back substitution over all right-hand sides at once;
+its iterates equal the torch loop's to rounding (``TORCHCAGE_NATIVE=0`` selects the torch loop).
 
 **Adaptive penalty.** The ``Y`` step's matrix does not depend on the penalty ``mu``, so residual
 balancing (Boyd et al. 2011, 3.4.1) is free: every ``balance_every`` iterations, ``mu`` is doubled
@@ -179,6 +182,130 @@ class _FactoredSolve:
         return torch.from_numpy(self.lu.solve(rhs.numpy()))
 
 
+#: The smallest ``(D C, V)`` block for which the native iterations run on more than one thread.
+_NATIVE_PARALLEL_MIN = 1 << 21
+
+
+class _NativeADMM:
+    """The iterations of :func:`solve_lbc`'s ADMM loop in the native library (``tc_lbc_admm`` in
+    ``torchcage/backends/native/lbc.c``; CPU, float64): the same steps in three passes over memory
+    per iteration, with the ``Y`` step as forward and back substitution over all right-hand sides at
+    once (the sparse LU of ``G^T G + s^2 I``, factored once with a symmetric minimum-degree
+    ordering). It updates ``Y M`` (the ``(m, V)`` change of the interior values) in place of ``Y``:
+    ``Y M = A^{-1} Z M^T M`` with ``M^T M = I - Q^T Q``, the rows of ``Q`` an orthonormal basis of
+    the columns of ``K`` (the same iterates; ``D + 1`` rows of ``Q`` instead of ``V - D - 1`` of
+    ``M``), and the gradients ``G P2 + E`` as one product with the gradient operator of all the
+    mesh's vertices.
+
+    The state ``P1 (D C, V)`` (its cells in the kernel's order), ``P2 (m, V)``, ``u1``, ``u2`` lives
+    in padded tensors (:attr:`u1` and :attr:`u2` may be rescaled in place between calls: the
+    adaptive penalty); :meth:`run` advances it by a number of iterations and returns the squared
+    residuals of the last one; :attr:`interior_values` is ``P2``."""
+
+    def __init__(
+        self,
+        lib: object,
+        G: torch.Tensor,
+        Gfull: torch.Tensor,
+        cells: torch.Tensor,
+        interior: torch.Tensor,
+        boundary: torch.Tensor,
+        boundary_values: torch.Tensor,
+        GtJ: torch.Tensor,
+        J: torch.Tensor,
+        H: torch.Tensor,
+        phiA: torch.Tensor,
+        Q: torch.Tensor,
+        ws: float,
+        alpha: float,
+    ) -> None:
+        from scipy.sparse import csr_matrix, identity, tril, triu
+        from scipy.sparse.linalg import splu
+
+        from torchcage.backends.native import abi
+
+        DC, m = G.shape
+        C, V = phiA.shape
+        D, nb = DC // C, boundary.shape[0]
+        Gs = csr_matrix((G.values().numpy(), G.col_indices().numpy(), G.crow_indices().numpy()), shape=G.shape)
+        lu = splu(
+            (Gs.T @ Gs + ws * ws * identity(m)).tocsc(),
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
+        low, up = tril(lu.L, k=-1).tocsr(), triu(lu.U, k=1).tocsr()  # (L's diagonal is 1)
+        if max(low.nnz, up.nnz, Gfull.values().shape[0]) >= 2**31:
+            raise OverflowError("the native LBC iterations index sparse matrices with int32")
+        # all the mesh's vertices, interior first, then boundary: the rows of the padded P2
+        order = torch.empty(Gfull.shape[1], dtype=torch.int64)
+        order[interior] = torch.arange(m)
+        order[boundary] = torch.arange(m, m + nb)
+        # The cells (the rows of P1, u1, phiA), internal to the kernel, sorted by their first
+        # vertex in that order: the rows that one vertex's step reads lie close together (a
+        # mesher's cells come in any order; 12% per iteration on the LBC paper's cactus)
+        ranked = order[cells]
+        cell_order = torch.argsort(ranked.amin(dim=1) * (m + nb) + ranked.amax(dim=1), stable=True)
+        rows = (torch.arange(D)[:, None] * C + cell_order[None, :]).reshape(-1).numpy()
+        Gt = Gs[rows].T.tocsr()
+        Gf = csr_matrix(
+            (Gfull.values().numpy(), order[Gfull.col_indices()].numpy(), Gfull.crow_indices().numpy()),
+            shape=Gfull.shape,
+        )[rows]
+        phiA, J = phiA[cell_order], J[torch.from_numpy(rows)]
+
+        # (V padded with zero columns to a multiple of 4, which stay 0: the kernel's vector width)
+        Vp = -(-V // 4) * 4
+
+        def pad(t: torch.Tensor) -> torch.Tensor:
+            return torch.nn.functional.pad(t.to(torch.float64), (0, Vp - V)).contiguous()
+
+        def i32(a: np.ndarray | torch.Tensor) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(a, dtype=np.int32))
+
+        def f64(a: np.ndarray | torch.Tensor) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(a, dtype=np.float64))
+
+        self.P1, self.P2 = pad(J), pad(torch.cat([H, boundary_values]))
+        self.u1, self.u2 = torch.zeros_like(self.P1), torch.zeros((m, Vp), dtype=torch.float64)
+        self.V, self.m = V, m
+        self.res = torch.zeros(2, dtype=torch.float64)
+        # threads (torch's count) only for large blocks: each iteration opens four parallel regions,
+        # whose cost (and, on a busy machine, the waits of spinning threads) outweighs small passes
+        threads = torch.get_num_threads() if D * C * Vp >= _NATIVE_PARALLEL_MIN else 1
+        kwargs = {
+            "D": D, "C": C, "m": m, "V": Vp,
+            "g_ptr": i32(Gf.indptr), "g_idx": i32(Gf.indices), "g_val": f64(Gf.data), "g_nnz": Gf.nnz,
+            "gt_ptr": i32(Gt.indptr), "gt_idx": i32(Gt.indices), "gt_val": f64(Gt.data), "gt_nnz": Gt.nnz,
+            "l_ptr": i32(low.indptr), "l_idx": i32(low.indices), "l_val": f64(low.data), "l_nnz": low.nnz,
+            "u_ptr": i32(up.indptr), "u_idx": i32(up.indices), "u_val": f64(up.data), "u_nnz": up.nnz,
+            "u_diag": f64(lu.U.diagonal()), "pr": i32(lu.perm_r), "pc": i32(lu.perm_c),
+            "nb": nb, "GtJ": pad(GtJ), "H": pad(H), "phiA": pad(phiA), "Q": pad(Q),
+            "mu": 1.0, "alpha": alpha, "ws": ws, "iters": 0, "nthreads": threads,
+            "P1": self.P1, "P2": self.P2, "u1": self.u1, "u2": self.u2,
+            "work": torch.empty((2 * D * C + 2 * m + threads * (2 * D + 2)) * Vp, dtype=torch.float64),
+            "res": self.res,
+        }  # fmt: skip
+        self._keep = kwargs  # (the arrays behind the pointers stay alive)
+        self._args = abi.check_arguments("tc_lbc_admm", kwargs)
+        names = [a.name for a in abi.SIGNATURES["tc_lbc_admm"]]
+        self._mu, self._iters = names.index("mu"), names.index("iters")
+        self._fn = lib.tc_lbc_admm  # type: ignore[attr-defined]
+
+    @property
+    def interior_values(self) -> torch.Tensor:
+        """``(m, V)`` the current ``P2`` (a view)."""
+        return self.P2[: self.m, : self.V]
+
+    def run(self, iterations: int, mu: float) -> tuple[float, float]:
+        """Advance by ``iterations`` (>= 1) with penalty ``mu``; the last one's ``||X - P1'||^2 +
+        ||W - P2'||^2`` and ``||P1' - P1||^2 + ||P2' - P2||^2``."""
+        self._args[self._mu], self._args[self._iters] = float(mu), int(iterations)
+        self._fn(*self._args)
+        sp, sd = self.res.tolist()
+        return sp, sd
+
+
 def _single_threaded_blas() -> contextlib.AbstractContextManager:
     """Limit the BLAS libraries loaded by numpy/scipy to one thread (no-op without threadpoolctl)."""
     try:
@@ -270,8 +397,9 @@ def solve_lbc(
         max_iter: iteration limit; stopping there warns and reports ``converged=False``.
         adaptive: residual balancing of ``mu`` (see the module docstring); ``False`` keeps ``mu``.
         balance_every: iterations between balancing steps.
-        linear_solver: ``"lu"`` (scipy sparse LU, factored once; CPU), ``"cg"`` (warm-started
-            preconditioned conjugate gradient in torch; any device) or ``"auto"`` (lu on the CPU).
+        linear_solver: ``"lu"`` (scipy sparse LU, factored once; CPU; with the native library,
+            the whole iteration runs in C), ``"cg"`` (warm-started preconditioned conjugate
+            gradient in torch; any device) or ``"auto"`` (lu on the CPU).
         report_every: iterations between residual checks (and history entries).
         progress: ``True`` for a progress bar (:class:`~torchcage.solvers.progress.ToleranceProgress`:
             how far, on a log scale, the residuals have come towards their tolerances, with their
@@ -377,9 +505,21 @@ def solve_lbc(
     ws = math.sqrt(float(G.values().square().sum()) / m) * w_scale if w_scale > 0 else 1.0
     if not (math.isfinite(ws) and ws > 0):  # (interior vertices in no cell only: no gradient rows)
         ws = 1.0
+    native: _NativeADMM | None = None
+    if linear_solver != "cg":
+        from torchcage.backends import native as _native
+
+        lib = _native.library()
+        if lib is not None:  # the whole iteration in C ("lu" and "auto" with the native library)
+            Q = U[:, : D + 1].T  # (D+1, V): orthonormal basis of K's columns, M^T M = I - Q^T Q
+            with contextlib.suppress(OverflowError):  # (int32 indices overflow: the torch loop)
+                native = _NativeADMM(
+                    lib, G, Gfull, domain.cells, interior, boundary, domain.boundary_values.to(dt), Gt @ J, J, H,
+                    phiA, Q, ws, alpha,
+                )  # fmt: skip
     if linear_solver == "cg":
         solve: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = _ConjugateGradient(G, ws * ws)
-    else:
+    elif native is None:
         solve = _FactoredSolve(G, ws * ws)
 
     if mu is None:
@@ -412,10 +552,53 @@ def solve_lbc(
     mu_lo, mu_hi = mu * 1e-12, mu * 1e12  # (balancing never drives the penalty to 0 or inf)
     rp = rd = math.inf
     it = 0
+
+    def checkpoint(it: int, rp: float, rd: float) -> tuple[bool, int]:
+        """History and progress after a residual check; whether to stop, and the balancing step:
+        ``1`` (raise ``mu``), ``-1`` (lower it) or ``0``."""
+        if it % report_every == 0 or it == max_iter:
+            history.append((it, rp, rd, mu))
+            if bar is not None:
+                bar.update(it, (rp, rd))
+            elif callable(progress):
+                progress(it, rp, rd)
+        if rp <= tol_p and rd <= tol_d:
+            return True, 0
+        if adaptive and it % balance_every == 0 and it >= balance_after:
+            # Gentle balancing against the tolerances: raise the penalty only while the dual
+            # residual is far inside its tolerance and the primal one is not (products, not
+            # ratios: residuals and tolerances may be exactly 0).
+            if rd * bal_p < balance_ratio * rp * bal_d and rp > tol_p and mu * balance_step <= mu_hi:
+                return False, 1
+            if rp * bal_d < balance_ratio * rd * bal_p and rd > tol_d and mu / balance_step >= mu_lo:
+                return False, -1
+        return False, 0
+
+    if native is not None:
+        # The native iterations (the same steps in C), run from one residual check to the next.
+        while it < max_iter:
+            nxt = min(max_iter, (it // report_every + 1) * report_every)
+            if adaptive:
+                nxt = min(nxt, (it // balance_every + 1) * balance_every)
+            sp, sd = native.run(nxt - it, mu)
+            it = nxt
+            rp, rd = math.sqrt(sp), mu * math.sqrt(sd)
+            stop, step = checkpoint(it, rp, rd)
+            if stop:
+                break
+            if step > 0:
+                mu = mu * balance_step
+                native.u1.div_(balance_step)
+                native.u2.div_(balance_step)
+            elif step < 0:
+                mu = mu / balance_step
+                native.u1.mul_(balance_step)
+                native.u2.mul_(balance_step)
+        P2 = native.interior_values
     # Every operation on the large (D C, V) block writes into a preallocated buffer: on a small CPU
     # these passes over memory, not the arithmetic, set the time per iteration.
     with _single_threaded_blas():
-        for it in range(1, max_iter + 1):
+        for it in range(1, max_iter + 1 if native is None else 1):  # (the native loop ran)
             # Step 1: group soft-thresholding of the gradients (Eq. 30), over-relaxed: q = X~ + u1.
             torch.sub(P1, u1, out=a)
             a3 = a.view(D, C, V)
@@ -443,22 +626,13 @@ def solve_lbc(
             P1, P1_new = P1_new, P1
             Y, P2 = Y_new, P2_new
             if check:
-                if it % report_every == 0 or it == max_iter:
-                    history.append((it, rp, rd, mu))
-                    if bar is not None:
-                        bar.update(it, (rp, rd))
-                    elif callable(progress):
-                        progress(it, rp, rd)
-                if rp <= tol_p and rd <= tol_d:
+                stop, step = checkpoint(it, rp, rd)
+                if stop:
                     break
-                if adaptive and it % balance_every == 0 and it >= balance_after:
-                    # Gentle balancing against the tolerances: raise the penalty only while the dual
-                    # residual is far inside its tolerance and the primal one is not (products, not
-                    # ratios: residuals and tolerances may be exactly 0).
-                    if rd * bal_p < balance_ratio * rp * bal_d and rp > tol_p and mu * balance_step <= mu_hi:
-                        mu, u1, u2 = mu * balance_step, u1 / balance_step, u2 / balance_step
-                    elif rp * bal_d < balance_ratio * rd * bal_p and rd > tol_d and mu / balance_step >= mu_lo:
-                        mu, u1, u2 = mu / balance_step, u1 * balance_step, u2 * balance_step
+                if step > 0:
+                    mu, u1, u2 = mu * balance_step, u1 / balance_step, u2 / balance_step
+                elif step < 0:
+                    mu, u1, u2 = mu / balance_step, u1 * balance_step, u2 * balance_step
     if bar is not None:
         bar.close()
     converged = rp <= tol_p and rd <= tol_d

@@ -118,6 +118,14 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
     ),
     "tc_winding3d": _parse("P:f64*[T,3,3] T:i64 X:f64*[n,3] n:i64 nthreads:i32 W:f64*![n]"),
     "tc_nearest3d": _parse("P:f64*[T,3,3] T:i64 S:f64*?[T] X:f64*[n,3] n:i64 nthreads:i32 D:f64*![n] I:i32*![n]"),
+    "tc_lbc_admm": _parse(
+        "D:i64 C:i64 m:i64 V:i64 g_ptr:i32*[D*C+1] g_idx:i32*[g_nnz] g_val:f64*[g_nnz] g_nnz:i64 gt_ptr:i32*[m+1] "
+        "gt_idx:i32*[gt_nnz] gt_val:f64*[gt_nnz] gt_nnz:i64 l_ptr:i32*[m+1] l_idx:i32*[l_nnz] l_val:f64*[l_nnz] "
+        "l_nnz:i64 u_ptr:i32*[m+1] u_idx:i32*[u_nnz] u_val:f64*[u_nnz] u_nnz:i64 u_diag:f64*[m] pr:i32*[m] "
+        "pc:i32*[m] nb:i64 GtJ:f64*[m,V] H:f64*[m,V] phiA:f64*[C,V] Q:f64*[D+1,V] mu:f64 alpha:f64 ws:f64 "
+        "iters:i64 nthreads:i32 P1:f64*![D*C,V] P2:f64*![m+nb,V] u1:f64*![D*C,V] u2:f64*![m,V] "
+        "work:f64*![2*D*C*V+2*m*V+2*nthreads*D*V+2*nthreads*V] res:f64*![2]"
+    ),
     "tc_raster2d": _parse(
         "P:f64*[B,Nv,2] B:i64 Nv:i64 tri:i32*[T,3] T:i64 H:i64 W:i64 S:f64*[Nv,C] C:i64 nthreads:i32 "
         "out:i32*![B,H,W] val:f64*![B,H,W,C]"
