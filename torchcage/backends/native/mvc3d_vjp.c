@@ -20,7 +20,8 @@
 #include "native.h"
 
 /* Per-face scratch of the forward pass, reused by the reverse pass. */
-enum { S_A = 0, S_N = 9, S_NN = 18, S_D = 21, S_TH = 24, S_G = 27, S_M = 30, S_DET = 33, S_W = 34, S_SIZE = 37 };
+enum { S_A = TC_FA_A, S_N = TC_FA_N, S_NN = TC_FA_NN, S_D = TC_FA_D, S_TH = TC_FA_TH, S_G = TC_FA_G, S_M = TC_FA_M,
+       S_DET = TC_FA_DET, S_W = TC_FA_W, S_SIZE = TC_FA_SIZE };
 
 void tc_mvc3d_vjp(const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
                   double tol, double near_c, double cancel_c, double far_always, int nthreads, double *GX,
@@ -95,43 +96,7 @@ void tc_mvc3d_vjp(const double *P, long V, const int *tri, long T, const double 
             for (long v = 0; v < V; ++v) sg += g[v] * Wv[v];
             sg /= total;
             for (long v = 0; v < V; ++v) wbar[v] = (g[v] - sg) / total;
-            for (long f = 0; f < T; ++f) {
-                const double *s = S + (size_t)S_SIZE * f, *a = s + S_A, *N = s + S_N, *m = s + S_M, *w = s + S_W;
-                const double inv_det = 1.0 / s[S_DET];
-                double wb[3], mbar[3] = {0, 0, 0}, Nbar[9], abar[9], det_bar = 0.0;
-                for (int i = 0; i < 3; ++i) {
-                    wb[i] = wbar[tri[3 * f + i]] * inv_det;
-                    det_bar -= wb[i] * w[i];
-                    for (int c = 0; c < 3; ++c) {
-                        mbar[c] += wb[i] * N[3 * i + c];
-                        Nbar[3 * i + c] = wb[i] * m[c];
-                    }
-                }
-                for (int i = 0; i < 3; ++i)
-                    for (int c = 0; c < 3; ++c) abar[3 * i + c] = det_bar * N[3 * i + c];
-                for (int e = 0; e < 3; ++e) {
-                    int j = (e + 1) % 3, k = (e + 2) % 3;
-                    double nn = s[S_NN + e], d = s[S_D + e], safe_nn = nn > 0 ? nn : 1.0;
-                    double gbar = dot3(N + 3 * e, mbar), th_bar = gbar / (2.0 * safe_nn);
-                    double r2 = nn * nn + d * d, safe_r2 = r2 > 0 ? r2 : 1.0;
-                    double n_bar = -gbar * s[S_TH + e] / (2.0 * safe_nn * safe_nn) + th_bar * d / safe_r2;
-                    double d_bar = -th_bar * nn / safe_r2, coef = n_bar / safe_nn, *Nb = Nbar + 3 * e, cj[3], ck[3];
-                    for (int c = 0; c < 3; ++c) Nb[c] += s[S_G + e] * mbar[c] + coef * N[3 * e + c];
-                    cross3(a + 3 * k, Nb, cj);
-                    cross3(Nb, a + 3 * j, ck);
-                    for (int c = 0; c < 3; ++c) {
-                        abar[3 * j + c] += d_bar * a[3 * k + c] + cj[c];
-                        abar[3 * k + c] += d_bar * a[3 * j + c] + ck[c];
-                    }
-                }
-                for (int i = 0; i < 3; ++i) {
-                    double *dst = gp + 3 * tri[3 * f + i];
-                    for (int c = 0; c < 3; ++c) {
-                        dst[c] += abar[3 * i + c];
-                        gx[c] -= abar[3 * i + c];
-                    }
-                }
-            }
+            for (long f = 0; f < T; ++f) tc_mvc_face_adjoint(S + (size_t)S_SIZE * f, tri + 3 * f, wbar, gp, gx);
         }
 #pragma omp critical
         for (long k = 0; k < 3 * V; ++k) GP[k] += gp[k];

@@ -43,8 +43,8 @@
 #define NEAR_TWO_PI 6.283185307179586476925286766559
 
 /* Per-face scratch: a (9), N (9), |N| (3), d (3), theta (3), g (3), m (3), det, w (3), h, kind. */
-enum { Q_A = 0, Q_N = 9, Q_NN = 18, Q_D = 21, Q_TH = 24, Q_G = 27, Q_M = 30, Q_DET = 33, Q_W = 34, Q_H = 37,
-       Q_KIND = 38, Q_SIZE = 39 };
+enum { Q_A = TC_FA_A, Q_N = TC_FA_N, Q_NN = TC_FA_NN, Q_D = TC_FA_D, Q_TH = TC_FA_TH, Q_G = TC_FA_G, Q_M = TC_FA_M,
+       Q_DET = TC_FA_DET, Q_W = TC_FA_W, Q_H = TC_FA_SIZE, Q_KIND = TC_FA_SIZE + 1, Q_SIZE = TC_FA_SIZE + 2 };
 
 /* Per-face constants: unit normal (3), edge lengths ell (3, opposite each corner), gram (9), twice
  * the area, the longest edge. */
@@ -368,48 +368,14 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
             gx[0] = gx[1] = gx[2] = 0.0;
             double sn = 0.0;
             for (long f = 0; f < T; ++f) {
-                const double *s = S + (size_t)Q_SIZE * f, *a = s + Q_A, *N = s + Q_N, *m = s + Q_M, *w = s + Q_W;
+                const double *s = S + (size_t)Q_SIZE * f, *w = s + Q_W;
                 if (f != fstar)
                     for (int i = 0; i < 3; ++i) sn += wbar[tri[3 * f + i]] * w[i];
                 if (s[Q_KIND] != 0.0) {
                     pair[f] = (unsigned char)s[Q_KIND];
                     continue;
                 }
-                /* the adjoint of the direct form (mvc3d_vjp.c) */
-                const double inv_det = 1.0 / s[Q_DET];
-                double wb[3], mbar[3] = {0, 0, 0}, Nbar[9], abar[9], det_bar = 0.0;
-                for (int i = 0; i < 3; ++i) {
-                    wb[i] = wbar[tri[3 * f + i]] * inv_det;
-                    det_bar -= wb[i] * w[i];
-                    for (int c = 0; c < 3; ++c) {
-                        mbar[c] += wb[i] * N[3 * i + c];
-                        Nbar[3 * i + c] = wb[i] * m[c];
-                    }
-                }
-                for (int i = 0; i < 3; ++i)
-                    for (int c = 0; c < 3; ++c) abar[3 * i + c] = det_bar * N[3 * i + c];
-                for (int e = 0; e < 3; ++e) {
-                    int j = (e + 1) % 3, k = (e + 2) % 3;
-                    double nn = s[Q_NN + e], d = s[Q_D + e], safe_nn = nn > 0 ? nn : 1.0;
-                    double gbar = dot3(N + 3 * e, mbar), th_bar = gbar / (2.0 * safe_nn);
-                    double r2 = nn * nn + d * d, safe_r2 = r2 > 0 ? r2 : 1.0;
-                    double n_bar = -gbar * s[Q_TH + e] / (2.0 * safe_nn * safe_nn) + th_bar * d / safe_r2;
-                    double d_bar = -th_bar * nn / safe_r2, coef = n_bar / safe_nn, *Nb = Nbar + 3 * e, cj[3], ck[3];
-                    for (int c = 0; c < 3; ++c) Nb[c] += s[Q_G + e] * mbar[c] + coef * N[3 * e + c];
-                    cross3(a + 3 * k, Nb, cj);
-                    cross3(Nb, a + 3 * j, ck);
-                    for (int c = 0; c < 3; ++c) {
-                        abar[3 * j + c] += d_bar * a[3 * k + c] + cj[c];
-                        abar[3 * k + c] += d_bar * a[3 * j + c] + ck[c];
-                    }
-                }
-                for (int i = 0; i < 3; ++i) {
-                    double *dst = gp + 3 * tri[3 * f + i];
-                    for (int c = 0; c < 3; ++c) {
-                        dst[c] += abar[3 * i + c];
-                        gx[c] -= abar[3 * i + c];
-                    }
-                }
+                tc_mvc_face_adjoint(s, tri + 3 * f, wbar, gp, gx); /* the direct form's adjoint */
             }
             /* the careful pairs: forward-mode derivatives of their split form. Where the face
              * holds the foot point (f*), w = r + c / h: the coefficient of dh, -(wbar . c) / h^2,

@@ -12,6 +12,54 @@ static inline void cross3(const double *a, const double *b, double *c) {
 
 static inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
+/* Per-face scratch of the direct vector form of 3D mean value weights, as the VJP kernels store it
+ * (mvc3d_vjp.c, mvc3d_vjp_near.c): a_i = p_i - x (9), N_e = a_{e+1} x a_{e+2} (9), |N_e| (3),
+ * d_e = a_{e+1} . a_{e+2} (3), theta_e (3), g_e = theta_e / (2 |N_e|) (3), m = sum_e g_e N_e (3),
+ * det = a_1 . N_1, and the corner weights w_i (3). */
+enum { TC_FA_A = 0, TC_FA_N = 9, TC_FA_NN = 18, TC_FA_D = 21, TC_FA_TH = 24, TC_FA_G = 27, TC_FA_M = 30,
+       TC_FA_DET = 33, TC_FA_W = 34, TC_FA_SIZE = 37 };
+
+/* Reverse mode of one face's direct-form weights (derivation: families/mean_value/vjp3d.py): with s
+ * the face's scratch (layout above), t its corners and wbar (V,) the cotangent of the raw weights,
+ * adds dL/dp_{t_i} to gp (V, 3) and dL/dx = -sum_i abar_i to gx (3). */
+static inline void tc_mvc_face_adjoint(const double *s, const int *t, const double *wbar, double *gp, double *gx) {
+    const double *a = s + TC_FA_A, *N = s + TC_FA_N, *m = s + TC_FA_M, *w = s + TC_FA_W;
+    const double inv_det = 1.0 / s[TC_FA_DET];
+    double wb[3], mbar[3] = {0, 0, 0}, Nbar[9], abar[9], det_bar = 0.0;
+    for (int i = 0; i < 3; ++i) {
+        wb[i] = wbar[t[i]] * inv_det;
+        det_bar -= wb[i] * w[i];
+        for (int c = 0; c < 3; ++c) {
+            mbar[c] += wb[i] * N[3 * i + c];
+            Nbar[3 * i + c] = wb[i] * m[c];
+        }
+    }
+    for (int i = 0; i < 3; ++i)
+        for (int c = 0; c < 3; ++c) abar[3 * i + c] = det_bar * N[3 * i + c];
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        double nn = s[TC_FA_NN + e], d = s[TC_FA_D + e], safe_nn = nn > 0 ? nn : 1.0;
+        double gbar = dot3(N + 3 * e, mbar), th_bar = gbar / (2.0 * safe_nn);
+        double r2 = nn * nn + d * d, safe_r2 = r2 > 0 ? r2 : 1.0;
+        double n_bar = -gbar * s[TC_FA_TH + e] / (2.0 * safe_nn * safe_nn) + th_bar * d / safe_r2;
+        double d_bar = -th_bar * nn / safe_r2, coef = n_bar / safe_nn, *Nb = Nbar + 3 * e, cj[3], ck[3];
+        for (int c = 0; c < 3; ++c) Nb[c] += s[TC_FA_G + e] * mbar[c] + coef * N[3 * e + c];
+        cross3(a + 3 * k, Nb, cj);
+        cross3(Nb, a + 3 * j, ck);
+        for (int c = 0; c < 3; ++c) {
+            abar[3 * j + c] += d_bar * a[3 * k + c] + cj[c];
+            abar[3 * k + c] += d_bar * a[3 * j + c] + ck[c];
+        }
+    }
+    for (int i = 0; i < 3; ++i) {
+        double *dst = gp + 3 * t[i];
+        for (int c = 0; c < 3; ++c) {
+            dst[c] += abar[3 * i + c];
+            gx[c] -= abar[3 * i + c];
+        }
+    }
+}
+
 /* The argument of the log in int_e dl / r = log(arg) along an edge from p_j to p_k: l_j, l_k the
  * endpoints' positions along the edge's direction from the point's foot, R_j, R_k their distances,
  * c2 the squared distance from the point to the edge's line. Three forms, each free of cancellation
