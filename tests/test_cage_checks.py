@@ -196,3 +196,30 @@ def test_cli_refuses_a_cage_with_coincident_vertices(tmp_path, capsys) -> None:
         assert "coincide" in text.err + text.out + message
         written = list(out.glob("*.obj")) if out.exists() else []
         assert not written, f"{method}: wrote {written} for an invalid cage"
+
+
+def test_topology_checked_once_never_hides_an_error() -> None:
+    """Faces whose topology passed are not checked again (a training step builds a Cage on the same
+    faces every call), yet faces that differ in any index, or in the vertex count, still are; the
+    unique edges served from the check equal a fresh computation and a caller's change to them
+    changes nothing."""
+    from torchcage.cage import _TOPOLOGY_SEEN
+    from torchcage.errors import CageOrientationError, CageTopologyError
+
+    ico = icosphere()
+    V, faces = ico.vertices.to(D64), ico.triangles.clone()
+    first = Cage(V, faces, validate="topology")
+    assert any(k[0] == V.shape[0] and k[1] == faces.numpy().tobytes() for k in _TOPOLOGY_SEEN)
+    edges = first.unique_edges()
+    assert torch.equal(edges, first._unique_edges())
+    edges[0] = -1  # (a caller changing the returned edges)
+    assert torch.equal(Cage(V, faces, validate="topology").unique_edges(), first._unique_edges())
+    flipped = faces.clone()
+    flipped[3] = flipped[3, [0, 2, 1]]  # one face reversed: inconsistent orientation
+    with pytest.raises(CageOrientationError):
+        Cage(V, flipped, validate="topology")
+    dropped = faces[1:]  # an open surface
+    with pytest.raises(CageTopologyError):
+        Cage(V, dropped, validate="topology")
+    with pytest.raises(CageError):  # the same faces over one vertex fewer: an index out of range
+        Cage(V[:-1], faces, validate="topology")

@@ -29,6 +29,13 @@ INTERSECTION_CHECK_FACES = 2048
 #: products, up to sixth powers in the far-field rule) would overflow float64.
 _MAX_COORDINATE = 1e50
 
+#: Topologies already validated, with their unique edges: ``(V, triangles, quads)`` (their bytes) ->
+#: ``(E, 2)`` edges. A training step builds a ``Cage`` on the same faces at every call; the
+#: topology (a pure function of the faces) is then checked once. CPU index tensors only; at most
+#: ``_TOPOLOGY_CACHE_SIZE`` entries, the oldest dropped first.
+_TOPOLOGY_SEEN: dict[tuple[int, bytes, bytes], torch.Tensor] = {}
+_TOPOLOGY_CACHE_SIZE = 64
+
 
 def _as_vertices(vertices: Any) -> torch.Tensor:
     if isinstance(vertices, torch.Tensor) or hasattr(vertices, "__array__"):
@@ -405,6 +412,19 @@ class Cage:
         with ``E[:, 0] < E[:, 1]``; in 2D, the polygon edges as directed."""
         if self.dim == 2:
             return self.edges
+        key = self._topology_key()
+        if key is not None and key in _TOPOLOGY_SEEN:
+            return _TOPOLOGY_SEEN[key].clone()  # (a copy: the cache is never changed by a caller)
+        return self._unique_edges()
+
+    def _topology_key(self) -> tuple[int, bytes, bytes] | None:
+        """The key of this cage's faces in ``_TOPOLOGY_SEEN`` (``None`` off the CPU)."""
+        tri, quads = self.triangles, self.quads
+        if tri.device.type != "cpu" or quads.device.type != "cpu":
+            return None
+        return self.num_vertices, tri.numpy().tobytes(), quads.numpy().tobytes()
+
+    def _unique_edges(self) -> torch.Tensor:
         parts = [f for f in (self.triangles, self.quads) if f.shape[0]]
         e = torch.cat([torch.stack([f, f.roll(-1, dims=1)], dim=-1).reshape(-1, 2) for f in parts])
         return torch.unique(e.sort(dim=1).values, dim=0)
@@ -729,6 +749,16 @@ class Cage:
                 )
 
     def _validate_topology_3d(self) -> None:
+        key = self._topology_key()
+        if key is not None and key in _TOPOLOGY_SEEN:
+            return  # (these faces passed before: the checks below depend on nothing else)
+        self._check_topology_3d()
+        if key is not None:
+            if len(_TOPOLOGY_SEEN) >= _TOPOLOGY_CACHE_SIZE:
+                _TOPOLOGY_SEEN.pop(next(iter(_TOPOLOGY_SEEN)))
+            _TOPOLOGY_SEEN[key] = self._unique_edges()
+
+    def _check_topology_3d(self) -> None:
         tri, quads = self.triangles, self.quads
         # Directed half-edges: face k contributes (f[i], f[i+1]).
         polys = [tri, quads]

@@ -67,7 +67,7 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
     "tc_mvc3d": _parse(
         "B:i64 P:f64*[B,3,V] V:i64 tri:i32*[3,T] T:i64 edges:i32*[2,E] E:i64 fe:i32*[3,T] inc_ptr:i32*[V+1] "
         "inc_idx:i32*[3*T] fs:f64*[3,T] nrm:f64*[B,3,T] two_area:f64*[B,T] ell:f64*[B,T,3] gram:f64*[B,T,3,3] "
-        "far_nodes:f64*[B,T,Q,3] far_coef:f64*[B,T,Q,3] longest:f64*[B,T] Q:i64 far_c:f64 cancel_c:f64 "
+        "far_bary:f64*[Q,3] far_qw:f64*[Q] longest:f64*[B,T] Q:i64 far_c:f64 cancel_c:f64 "
         "X:f64*[XB,n,3] XB:i64 n:i64 tol:f64*[B] near_c:f64 nthreads:i32 W:f64*![B,n,V] on:u8*![B,n] normalize:i32"
     ),
     "tc_mvc2d": _parse(

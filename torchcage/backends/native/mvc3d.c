@@ -75,11 +75,12 @@ void tc_stable_face(double h, const double *s, const double *dots, const double 
  * P: (3, V) vertices; tri: (3, T) corners; edges: (2, E) unique edges; fe: (3, T) index of the
  * edge opposite each corner, stored as (t[i+1], t[i+2]) when fs = +1 and reversed when -1;
  * nrm: (3, T) unit normals; two_area: (T,); ell: (T, 3) length of the edge opposite each corner;
- * gram: (T, 3, 3) E_i . E_e; far_nodes (T, Q, 3) and far_coef (T, Q, 3): the far-field rule, used
+ * gram: (T, 3, 3) E_i . E_e; far_bary (Q, 3) and far_qw (Q,): the far-field rule on the unit triangle
+ * (node q of face f at sum_i far_bary[q, i] p_i, weight 2A far_qw[q] far_bary[q, i] for corner i), used
  * for points whose face weights sum in absolute value to more than cancel_c times their total, on
  * faces whose longest edge (longest: (T,)) is below far_c times the distance.
  * Batches (tc_mvc3d): B cages with one topology; the topology tables (tri, edges, fe, inc_ptr,
- * inc_idx, fs) are shared, the geometric ones (P, nrm, two_area, ell, gram, far_nodes, far_coef,
+ * inc_idx, fs) and the far-field rule are shared, the geometric ones (P, nrm, two_area, ell, gram,
  * longest) and the on-cage tolerance tol carry a leading batch axis (B, ...).
  * X: (XB, n, 3) points, XB = 1 (one point set shared by every cage) or B.
  * Output W: (B, n, V) coordinates, normalised when normalize != 0, else the raw weights (on[b, p] = 1
@@ -90,7 +91,7 @@ void tc_stable_face(double h, const double *s, const double *dots, const double 
 /* One cage's tables (the batch element's slices of tc_mvc3d's arguments) and what is derived from
  * them once: the far-field centre and radius, and the thin faces. */
 typedef struct {
-    const double *P, *nrm, *two_area, *ell, *gram, *far_nodes, *far_coef, *longest;
+    const double *P, *nrm, *two_area, *ell, *gram, *far_bary, *far_qw, *longest;
     double tol, centre[3], far2;
     const long *thin;
     long nthin;
@@ -109,7 +110,7 @@ static inline int mvc3d_point(const mvc3d_cage *g, long V, const int *tri, long 
                               double far_c, double cancel_c, double near_c, double x0, double x1, double x2,
                               int normalize, const mvc3d_scratch *sc, double *w) {
     const double *P = g->P, *two_area = g->two_area, *ell = g->ell, *gram = g->gram, *longest = g->longest;
-    const double *far_nodes = g->far_nodes, *far_coef = g->far_coef;
+    const double *far_bary = g->far_bary, *far_qw = g->far_qw;
     const double tol = g->tol;
     const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
     const int *e0 = edges, *e1 = edges + E;
@@ -247,15 +248,20 @@ static inline int mvc3d_point(const mvc3d_cage *g, long V, const int *tri, long 
          * by quadrature, w_i = h * sum_q c_qi / |p_q - x|^4, and gather again. */
         for (long f = 0; f < T; ++f) {
             if (!(longest[f] < far_c * RM[f])) continue;
-            const double *nq = far_nodes + 3 * Q * f, *cq = far_coef + 3 * Q * f;
+            /* the nodes from the corners (no (T, Q, 3) tables to build for every cage and call) */
+            const int i0 = t0[f], i1 = t1[f], i2 = t2[f];
+            const double p00 = P[i0], p01 = P[V + i0], p02 = P[2 * V + i0], p10 = P[i1], p11 = P[V + i1];
+            const double p12 = P[2 * V + i1], p20 = P[i2], p21 = P[V + i2], p22 = P[2 * V + i2], A2 = two_area[f];
             double acc0 = 0.0, acc1 = 0.0, acc2 = 0.0;
 #pragma omp simd reduction(+ : acc0, acc1, acc2)
             for (long k = 0; k < Q; ++k) {
-                double d0 = nq[3 * k] - x0, d1 = nq[3 * k + 1] - x1, d2 = nq[3 * k + 2] - x2;
-                double r2 = d0 * d0 + d1 * d1 + d2 * d2, inv = 1.0 / (r2 * r2);
-                acc0 += cq[3 * k] * inv;
-                acc1 += cq[3 * k + 1] * inv;
-                acc2 += cq[3 * k + 2] * inv;
+                const double b0 = far_bary[3 * k], b1 = far_bary[3 * k + 1], b2 = far_bary[3 * k + 2];
+                double d0 = b0 * p00 + b1 * p10 + b2 * p20 - x0, d1 = b0 * p01 + b1 * p11 + b2 * p21 - x1;
+                double d2 = b0 * p02 + b1 * p12 + b2 * p22 - x2;
+                double r2 = d0 * d0 + d1 * d1 + d2 * d2, inv = 1.0 / (r2 * r2), c = A2 * far_qw[k];
+                acc0 += c * b0 * inv;
+                acc1 += c * b1 * inv;
+                acc2 += c * b2 * inv;
             }
             double h = H[f];
             W0[f] = h * acc0;
@@ -546,7 +552,7 @@ static int mvc3d_has_avx512(void) {
 
 void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,
               const int *inc_ptr, const int *inc_idx, const double *fs, const double *nrm, const double *two_area,
-              const double *ell, const double *gram, const double *far_nodes, const double *far_coef,
+              const double *ell, const double *gram, const double *far_bary, const double *far_qw,
               const double *longest, long Q, double far_c, double cancel_c, const double *X, long XB, long n,
               const double *tol, double near_c, int nthreads, double *W, unsigned char *on, int normalize) {
     if (B <= 0 || n <= 0) return;
@@ -566,8 +572,8 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
         g->two_area = two_area + T * b;
         g->ell = ell + 3 * T * b;
         g->gram = gram + 9 * T * b;
-        g->far_nodes = far_nodes + 3 * Q * T * b;
-        g->far_coef = far_coef + 3 * Q * T * b;
+        g->far_bary = far_bary;
+        g->far_qw = far_qw;
         g->longest = longest + T * b;
         g->tol = tol[b];
         g->far2 = tc_far_centre(g->P, V, 1, V, 3, g->centre);

@@ -148,7 +148,8 @@ def coordinates_batch(
     compute, out_dtype = result_dtype(pts, cage, dtype, backend)
     if pts.device.type == "cpu" and backend != "triton" and compute != torch.float64:
         return None
-    if not bool(torch.isfinite(pts).all()):
+    # (a NaN or an inf anywhere shows in the points' box: one pass, and the full test only then)
+    if pts.shape[-2] and not bool(torch.isfinite(torch.stack(torch.aminmax(pts, dim=-2))).all()):
         bad = ~torch.isfinite(pts).all(dim=-1)  # (1 or B, N)
         b = int(torch.nonzero(bad.any(dim=1))[0])
         idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
@@ -249,5 +250,6 @@ def _may_be_far(x: torch.Tensor, v: torch.Tensor) -> bool:
         return False
     c = (v.amax(dim=1) + v.amin(dim=1)) / 2  # (B, 3), as far_region
     r2 = ((v - c[:, None]) ** 2).sum(dim=-1).amax(dim=-1)  # (B,)
-    corner = torch.maximum((x.amax(dim=1) - c).abs(), (x.amin(dim=1) - c).abs())  # (B, 3): the farthest box corner
+    lo, hi = torch.aminmax(x, dim=1)  # (one pass over the points)
+    corner = torch.maximum((hi - c).abs(), (lo - c).abs())  # (B, 3): the farthest box corner
     return bool(((corner**2).sum(dim=-1) > 0.25 * FAR_MOMENT**2 * r2).any())

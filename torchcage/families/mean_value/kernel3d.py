@@ -123,7 +123,7 @@ def triangle_data(v: torch.Tensor, tri: torch.Tensor, tol: float) -> TriangleCag
     )
 
 
-def face_constants(p: torch.Tensor) -> dict[str, torch.Tensor]:
+def face_constants(p: torch.Tensor, far: bool = True) -> dict[str, torch.Tensor]:
     """Per-face constants of triangles with corners ``p`` ``(*B, T, 3, 3)`` (``*B``: none, or a batch
     of cages with one topology, computed at once with the same operations element by element).
 
@@ -132,23 +132,26 @@ def face_constants(p: torch.Tensor) -> dict[str, torch.Tensor]:
         edge ``E_e = p_{e+1} - p_{e+2}`` opposite each corner), ``edge_len`` ``(*B, T, 3)``,
         ``gram`` ``(*B, T, 3, 3)`` (``E_i . E_e``), ``longest`` ``(*B, T)``, and the far-field rule's
         nodes ``far_nodes`` and their weights times the corners' hat functions (area included)
-        ``far_coef``, both ``(*B, T, Q, 3)``.
+        ``far_coef``, both ``(*B, T, Q, 3)`` (left out with ``far=False``: the native kernel places
+        the nodes itself).
     """
     cross = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
     two_area = cross.norm(dim=-1)
     edges = p.roll(-1, dims=-2) - p.roll(-2, dims=-2)  # E_e = p_{e+1} - p_{e+2}, (*B, T, 3, 3)
     edge_len = edges.norm(dim=-1)
-    bary, qw = collapsed_gauss(FAR_FIELD_ORDER, p.dtype, p.device)
-    return {
+    out = {
         "two_area": two_area,
         "normal": cross / two_area[..., None],
         "edges": edges,
         "edge_len": edge_len,
         "gram": edges @ edges.transpose(-1, -2),
         "longest": edge_len.amax(dim=-1),  # (amax: max(dim).values cost milliseconds on 2 busy cores)
-        "far_nodes": bary @ p,  # (*B, T, Q, 3), sum_i bary[q, i] p[t, i]: contiguous (an einsum's was not)
-        "far_coef": (two_area[..., None, None] * qw[:, None]) * bary,
     }
+    if far:
+        bary, qw = collapsed_gauss(FAR_FIELD_ORDER, p.dtype, p.device)
+        out["far_nodes"] = bary @ p  # (*B, T, Q, 3), sum_i bary[q, i] p[t, i]: contiguous (an einsum's was not)
+        out["far_coef"] = (two_area[..., None, None] * qw[:, None]) * bary
+    return out
 
 
 def _cross(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:

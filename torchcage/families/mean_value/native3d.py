@@ -9,10 +9,11 @@ import ctypes
 
 import torch
 
-from torchcage._core.common import unique_face_edges
+from torchcage._core.common import collapsed_gauss, unique_face_edges
 from torchcage.backends import native as _native
 from torchcage.families.mean_value.kernel3d import (
     CANCELLATION_RATIO,
+    FAR_FIELD_ORDER,
     FAR_FIELD_RATIO,
     SPLIT_FORM_RATIO,
     TriangleCageData,
@@ -67,6 +68,14 @@ def _topology_tables(tri: torch.Tensor, V: int) -> dict[str, object]:
     }
 
 
+def _far_rule() -> dict[str, object]:
+    """The far-field rule on the unit triangle (``collapsed_gauss``: ``far_bary`` ``(Q, 3)``,
+    ``far_qw`` ``(Q,)``), shared by every face and cage: the kernel places the nodes on each face
+    itself (the torch kernel's ``far_nodes``, ``far_coef``)."""
+    bary, qw = collapsed_gauss(FAR_FIELD_ORDER, torch.float64, torch.device("cpu"))
+    return {"far_bary": bary.contiguous(), "far_qw": qw.contiguous(), "Q": bary.shape[0]}
+
+
 def native_tables(data: TriangleCageData) -> dict[str, object]:
     """``tc_mvc3d``'s arguments for one cage (a batch of one), built once from its constants."""
     tables = topology_tables(data.tri, data.vertices.shape[1])
@@ -78,10 +87,8 @@ def native_tables(data: TriangleCageData) -> dict[str, object]:
             "two_area": data.two_area[:, 0].contiguous()[None],
             "ell": data.edge_len[:, :, 0].T.contiguous()[None],
             "gram": data.gram.contiguous()[None],
-            "far_nodes": data.far_nodes.contiguous()[None],
-            "far_coef": data.far_coef.contiguous()[None],
+            **_far_rule(),
             "longest": data.longest[:, 0].contiguous()[None],
-            "Q": data.far_nodes.shape[1],
             "tol": torch.tensor([data.tol], dtype=torch.float64),
         }
     )
@@ -99,7 +106,7 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
         tol: ``(B,)`` float64 absolute on-cage tolerances.
     """
     B, V = vertices.shape[0], vertices.shape[1]
-    c = face_constants(vertices[:, tri])
+    c = face_constants(vertices[:, tri], far=False)
     tables = topology_tables(tri, V)
     tables.update(
         {
@@ -109,10 +116,8 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
             "two_area": c["two_area"].contiguous(),
             "ell": c["edge_len"].contiguous(),
             "gram": c["gram"].contiguous(),
-            "far_nodes": c["far_nodes"].contiguous(),
-            "far_coef": c["far_coef"].contiguous(),
+            **_far_rule(),
             "longest": c["longest"].contiguous(),
-            "Q": c["far_nodes"].shape[2],
             "tol": tol.to(torch.float64).contiguous(),
         }
     )
