@@ -119,7 +119,12 @@ def _build() -> ctypes.CDLL:
                 cmd = [cc, *flags, *cflags, *map(str, sources), "-o", str(out), *libs, "-lm"]
                 res = subprocess.run(cmd, capture_output=True, text=True)
                 if res.returncode == 0:
-                    break
+                    try:  # a library that links may still not load (libmvec symbols of a newer glibc)
+                        ctypes.CDLL(str(out))
+                        break
+                    except OSError as err:
+                        errors.append(f"{' '.join(cmd)}: built, but does not load: {err}")
+                        continue
                 errors.append(f"{' '.join(cmd)}:\n{res.stderr[-1000:]}")
             else:
                 raise RuntimeError("\n".join(errors))

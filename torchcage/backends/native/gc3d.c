@@ -802,16 +802,22 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
                    gbary, NULL, NULL, 0,       longest,   far_nodes, far_w, far_bary, Q, far_c};
     tc_gc_prepare(&g);
     unsigned char *thin = (unsigned char *)calloc((size_t)(T > 0 ? T : 1), 1);
-    for (long q = 0; q < g.nthin; ++q) thin[g.thin[q]] = 1;
+    for (long q = 0; thin != NULL && q < g.nthin; ++q) thin[g.thin[q]] = 1;
     const long nb = (n + GL - 1) / GL; /* blocks of GL points (the last one shorter) */
     const int stream = (double)n * (double)(V + T) > (double)(1 << 22); /* outputs past 32 MiB: streamed */
+    int failed = thin == NULL; /* a workspace that could not be allocated: every output NaN (the glue raises) */
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = (double *)malloc(sizeof(double) * gc_block_workspace(&g));
+        double *buf = failed ? NULL : (double *)malloc(sizeof(double) * gc_block_workspace(&g));
+        if (buf == NULL) {
+#pragma omp atomic write
+            failed = 1;
+        }
 #pragma omp for schedule(dynamic, 2)
         for (long b = 0; b < nb; ++b) {
             long p = GL * b;
             int cnt = n - p < GL ? (int)(n - p) : GL;
+            if (buf == NULL) continue;
             gc_block(&g, thin, X + 3 * p, cnt, tol, buf, stream, PHI + p * V, PSI + p * T, ONF ? ONF + p : NULL,
                      ONF ? AL + 3 * p : NULL);
         }
@@ -819,6 +825,10 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
         _mm_sfence(); /* the streamed stores before this thread's part is read */
 #endif
         free(buf);
+    }
+    if (failed) {
+        for (long i = 0; i < n * V; ++i) PHI[i] = NAN;
+        for (long i = 0; i < n * T; ++i) PSI[i] = NAN;
     }
     free(thin);
     tc_gc_free(&g);

@@ -99,6 +99,7 @@ static inline void sparse_row(long V, int e0, int e1, const int *idx, const doub
     TC_LBC_BLOCK(16)
     TC_LBC_BLOCK(8)
     TC_LBC_BLOCK(4)
+    TC_LBC_BLOCK(1) /* (the caller pads V to a multiple of 4; any other V is served whole all the same) */
 }
 
 void tc_lbc_admm(long D, long C, long m, long V, const int *g_ptr, const int *g_idx, const double *g_val, long g_nnz,

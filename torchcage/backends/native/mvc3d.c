@@ -431,7 +431,7 @@ static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
         }
         unsigned long long any = 0;
         for (int l = 0; l < LN; ++l) any |= bits[l];
-        for (; any; any &= any - 1) near[nnear++] = fc + __builtin_ctzll(any);
+        for (; any; any &= any - 1) near[nnear++] = fc + tc_ctz64(any);
     }
     /* Pairs near a support plane: the stable split form, lane by lane; a lane on the cage is redone whole. */
     for (long i = 0; i < nnear; ++i) {

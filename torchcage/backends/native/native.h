@@ -12,6 +12,17 @@ static inline void cross3(const double *a, const double *b, double *c) {
 
 static inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
+/* The index of the lowest set bit of v != 0 (a compiler builtin where there is one). */
+static inline int tc_ctz64(unsigned long long v) {
+#if defined(__GNUC__) || defined(__clang__)
+    return __builtin_ctzll(v);
+#else
+    int k = 0;
+    for (; !(v & 1ULL); v >>= 1) ++k;
+    return k;
+#endif
+}
+
 /* Per-face scratch of the direct vector form of 3D mean value weights, as the VJP kernels store it
  * (mvc3d_vjp.c, mvc3d_vjp_near.c): a_i = p_i - x (9), N_e = a_{e+1} x a_{e+2} (9), |N_e| (3),
  * d_e = a_{e+1} . a_{e+2} (3), theta_e (3), g_e = theta_e / (2 |N_e|) (3), m = sum_e g_e N_e (3),
