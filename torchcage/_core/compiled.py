@@ -134,6 +134,12 @@ def _lead(points: Tensor, vertices: Tensor) -> list[int]:
 class CompiledOp:
     """The pair of opaque ops of one family (``torchcage::<name>`` and ``torchcage::<name>_vjp``).
 
+    Their schemas are a compatibility surface: ``torch.compile``'s on-disk caches keep compiled
+    backward graphs that call ``torchcage::<name>_vjp`` with these arguments, found again by the
+    forward graph (which does not show the VJP op's schema). A changed argument list breaks every
+    graph an earlier version cached (seen: a cached backward called the op without two arguments
+    added since); give a changed op a new name instead.
+
     Args:
         name: the op's name in the ``torchcage`` namespace.
         eager: the family's eager public function, as ``eager(points, cage, options)`` returning
@@ -179,24 +185,19 @@ class CompiledOp:
             backend: str,
             n: int,
             tol: float,
-            need_points: bool,
-            need_vertices: bool,
-        ) -> List[Tensor]:  # noqa: UP006 (the two gradients; zeros for one not needed)
+        ) -> List[Tensor]:  # noqa: UP006 (the two gradients)
             options = outer._options(chunk_size, backend, n, tol)
 
             def run() -> tuple[Tensor | None, Tensor | None]:
-                # only what the backward needs records a graph (the eager backward then spares
-                # the other: no point gradients for a cage-only loss)
-                x = points.detach().requires_grad_(need_points)
-                P = vertices.detach().requires_grad_(need_vertices)
+                x = points.detach().requires_grad_()
+                P = vertices.detach().requires_grad_()
                 outs = outer.eager(x, _cage(P, triangles, quads, edges), options)
                 cot = [
                     torch.zeros_like(o) if g.dim() == 0 else g.to(o.dtype)  # (0-dim: an output not used)
                     for g, o in zip(grads, outs, strict=True)
                 ]
-                wrt = [t for t in (x, P) if t.requires_grad]
-                got = iter(torch.autograd.grad(outs, wrt, cot, allow_unused=True))
-                return (next(got) if need_points else None), (next(got) if need_vertices else None)
+                gx, gP = torch.autograd.grad(outs, (x, P), cot, allow_unused=True)
+                return gx, gP
 
             with _autograd_inside_an_op():
                 gx, gP = run()
@@ -205,9 +206,7 @@ class CompiledOp:
             return [gx, gP]
 
         @vjp.register_fake
-        def _(
-            points, vertices, triangles, quads, edges, grads, chunk_size, backend, n, tol, need_points, need_vertices
-        ):
+        def _(points, vertices, triangles, quads, edges, grads, chunk_size, backend, n, tol):
             return [torch.empty_like(points), torch.empty_like(vertices)]
 
         def setup(ctx, inputs, output) -> None:
@@ -223,9 +222,8 @@ class CompiledOp:
                 )
             points, vertices, triangles, quads, edges = ctx.saved_tensors
             grads = [g if g is not None else torch.zeros(()) for g in grads]
-            need_x, need_P = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-            gx, gP = vjp(points, vertices, triangles, quads, edges, list(grads), *ctx.options, need_x, need_P)
-            return (gx if need_x else None), (gP if need_P else None), None, None, None, None, None, None, None
+            gx, gP = vjp(points, vertices, triangles, quads, edges, list(grads), *ctx.options)
+            return gx, gP, None, None, None, None, None, None, None
 
         values.register_autograd(backward, setup_context=setup)
 
