@@ -178,13 +178,7 @@ def coordinates_batch(
             flags[:, sl] = _mvc3d_native.native_chunk(x[:, sl], tables, lib, part)
             out[:, sl] = part
     bad = flags == 2  # (B, N): rows whose sum is not finite (the kernel checks them, sparing a pass here)
-    if bool(bad.any()):
-        b = int(torch.nonzero(bad.any(dim=1))[0])
-        idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
-        raise PointsError(
-            f"mean value coordinates are undefined at points {idx}{_batch_name(torch.tensor(b), batch)} (the total "
-            "weight vanishes there, which happens only outside the cage); move these points"
-        )
+    _refuse_undefined(bad, batch)
     if _may_be_far(x, v):  # (else far_unity leaves every row as it is: a pass over the points spared)
         out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
     return out.to(out_dtype).reshape(*batch, N, V)
@@ -230,6 +224,19 @@ def _triton_batch(
             Wr, onr = mvc3d_chunk(cr, data)
             out[b, idx] = normalise_weights(Wr.T, onr, v[b], cr)
     bad = ~torch.isfinite(out.sum(dim=-1))  # (B, N): a row sum is finite iff every entry is
+    _refuse_undefined(bad, batch)
+    if _may_be_far(x, v):  # (else far_unity leaves every row as it is)
+        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
+    return out
+
+
+def _refuse_undefined(bad: torch.Tensor, batch: torch.Size) -> None:
+    """Raise for the rows ``bad`` ``(B, N)`` whose coordinates are undefined, naming the first batch
+    element that has some.
+
+    Raises:
+        PointsError: the points (first ten) and the batch element.
+    """
     if bool(bad.any()):
         b = int(torch.nonzero(bad.any(dim=1))[0])
         idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
@@ -237,9 +244,6 @@ def _triton_batch(
             f"mean value coordinates are undefined at points {idx}{_batch_name(torch.tensor(b), batch)} (the total "
             "weight vanishes there, which happens only outside the cage); move these points"
         )
-    if _may_be_far(x, v):  # (else far_unity leaves every row as it is)
-        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
-    return out
 
 
 def _may_be_far(x: torch.Tensor, v: torch.Tensor) -> bool:
