@@ -19,6 +19,7 @@ __all__ = [
     "HANDMADE",
     "QMVC_MODELS",
     "REPO",
+    "TRITON_DEVICE",
     "bent_box",
     "box_cage",
     "box_points",
@@ -30,6 +31,7 @@ __all__ = [
     "model_points",
     "notched",
     "quad_adversarial_points",
+    "require_triton",
     "sheet",
     "sheet_normal",
     "triquad",
@@ -37,6 +39,17 @@ __all__ = [
 ]  # fmt: skip
 
 REPO = Path(__file__).resolve().parents[1]
+
+#: Where the Triton tests run their kernels: the GPU, or CPU tensors under Triton's interpreter.
+TRITON_DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def require_triton() -> None:
+    """Skip the calling test module unless the Triton kernels can run: triton installed, and a GPU
+    or Triton's interpreter (``TRITON_INTERPRET=1``, CI's own step: ``pytest -m triton``)."""
+    pytest.importorskip("triton", reason="triton is not installed (pip install torchcage[triton])")
+    if not torch.cuda.is_available() and os.environ.get("TRITON_INTERPRET", "0") in ("", "0"):
+        pytest.skip("no GPU, and TRITON_INTERPRET=1 is not set: the Triton kernels cannot run", allow_module_level=True)
 
 
 def _find_data() -> Path:

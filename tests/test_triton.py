@@ -13,6 +13,7 @@ import os
 
 import pytest
 import torch
+from support import TRITON_DEVICE, require_triton
 
 import torchcage as tc
 from torchcage import functional as F
@@ -20,11 +21,9 @@ from torchcage.testing import QMVC_MODELS, adversarial_points, hard_cages, slive
 
 pytestmark = pytest.mark.triton
 
-triton = pytest.importorskip("triton", reason="triton is not installed (pip install torchcage[triton])")
-if not torch.cuda.is_available() and os.environ.get("TRITON_INTERPRET", "0") in ("", "0"):
-    pytest.skip("no GPU, and TRITON_INTERPRET=1 is not set: the Triton kernels cannot run", allow_module_level=True)
+require_triton()
 
-DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+DEVICE = TRITON_DEVICE
 D64 = torch.float64
 
 

@@ -6,10 +6,9 @@ shared by every cage or one set per cage. Run by Triton's interpreter on CPU ten
 
 from __future__ import annotations
 
-import os
-
 import pytest
 import torch
+from support import TRITON_DEVICE, require_triton
 
 import torchcage
 from torchcage import functional as F
@@ -18,13 +17,11 @@ from torchcage.testing import sliver_cube
 
 pytestmark = pytest.mark.triton
 
-triton = pytest.importorskip("triton", reason="triton is not installed (pip install torchcage[triton])")
-if not torch.cuda.is_available() and os.environ.get("TRITON_INTERPRET", "0") in ("", "0"):
-    pytest.skip("no GPU, and TRITON_INTERPRET=1 is not set: the Triton kernels cannot run", allow_module_level=True)
+require_triton()
 
 from torchcage.families.mean_value.triton import mvc3d as _mvc3d  # noqa: E402
 
-DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+DEVICE = TRITON_DEVICE
 D64 = torch.float64
 
 

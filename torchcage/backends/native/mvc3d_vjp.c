@@ -56,23 +56,7 @@ void tc_mvc3d_vjp(const double *P, long V, const int *tri, long T, const double 
             double abs_sum = 0.0;
             for (long f = 0; f < T && ok; ++f) {
                 double *s = S + (size_t)S_SIZE * f, *a = s + S_A, *N = s + S_N, *m = s + S_M, *w = s + S_W;
-                double rmin = INFINITY;
-                for (int i = 0; i < 3; ++i) {
-                    const double *pi = P + 3 * tri[3 * f + i];
-                    for (int k = 0; k < 3; ++k) a[3 * i + k] = pi[k] - x[k];
-                    rmin = fmin(rmin, sqrt(dot3(a + 3 * i, a + 3 * i)));
-                }
-                m[0] = m[1] = m[2] = 0.0;
-                for (int e = 0; e < 3; ++e) {
-                    int j = (e + 1) % 3, k = (e + 2) % 3;
-                    cross3(a + 3 * j, a + 3 * k, N + 3 * e);
-                    double nn = sqrt(dot3(N + 3 * e, N + 3 * e)), d = dot3(a + 3 * j, a + 3 * k);
-                    double th = atan2(nn, d), ge = th / (2.0 * (nn > 0 ? nn : 1.0));
-                    s[S_NN + e] = nn, s[S_D + e] = d, s[S_TH + e] = th, s[S_G + e] = ge;
-                    for (int c = 0; c < 3; ++c) m[c] += ge * N[3 * e + c];
-                }
-                double det = dot3(a, N);
-                s[S_DET] = det;
+                double R[3], rmin = tc_mvc_face_direct(P, tri + 3 * f, x, s, R), det = s[S_DET];
                 if (!(fabs(det) >= near_c * rmin * two_area[f] && rmin > tol && longest[f] * far_always >= rmin) ||
                     (any_thin && longest[f] * longest[f] > TC_THIN_ASPECT * two_area[f] &&
                      tc_thin_face((const double(*)[3])a, two_area[f]))) {

@@ -229,25 +229,8 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
             for (long f = 0; f < T && ok; ++f) {
                 const double *c = fc + F_SIZE * f;
                 double *s = S + (size_t)Q_SIZE * f, *a = s + Q_A, *N = s + Q_N, *m = s + Q_M, *w = s + Q_W;
-                double R[3], rmin = INFINITY;
-                for (int i = 0; i < 3; ++i) {
-                    const double *pi = P + 3 * tri[3 * f + i];
-                    for (int k = 0; k < 3; ++k) a[3 * i + k] = pi[k] - x[k];
-                    R[i] = sqrt(dot3(a + 3 * i, a + 3 * i));
-                    rmin = fmin(rmin, R[i]);
-                }
-                m[0] = m[1] = m[2] = 0.0;
-                for (int e = 0; e < 3; ++e) {
-                    int j = (e + 1) % 3, k = (e + 2) % 3;
-                    cross3(a + 3 * j, a + 3 * k, N + 3 * e);
-                    double nn = sqrt(dot3(N + 3 * e, N + 3 * e)), d = dot3(a + 3 * j, a + 3 * k);
-                    double th = atan2(nn, d), ge = th / (2.0 * (nn > 0 ? nn : 1.0));
-                    s[Q_NN + e] = nn, s[Q_D + e] = d, s[Q_TH + e] = th, s[Q_G + e] = ge;
-                    for (int q = 0; q < 3; ++q) m[q] += ge * N[3 * e + q];
-                }
+                double R[3], rmin = tc_mvc_face_direct(P, tri + 3 * f, x, s, R), det = s[Q_DET];
                 const double two_area = c[F_TWO_AREA];
-                double det = dot3(a, N);
-                s[Q_DET] = det;
                 /* on the cage, as tc_mvcd3d (whose values and derivatives the general path takes
                  * there): the first face, in order, whose corner is within tol, or which holds
                  * the point within tol (its near-plane test, far faces skipped) */

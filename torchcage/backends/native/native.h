@@ -2,6 +2,7 @@
 #ifndef TORCHCAGE_NATIVE_H
 #define TORCHCAGE_NATIVE_H
 
+#include <math.h>
 #include <stddef.h>
 
 static inline void cross3(const double *a, const double *b, double *c) {
@@ -29,6 +30,29 @@ static inline int tc_ctz64(unsigned long long v) {
  * det = a_1 . N_1, and the corner weights w_i (3). */
 enum { TC_FA_A = 0, TC_FA_N = 9, TC_FA_NN = 18, TC_FA_D = 21, TC_FA_TH = 24, TC_FA_G = 27, TC_FA_M = 30,
        TC_FA_DET = 33, TC_FA_W = 34, TC_FA_SIZE = 37 };
+
+/* Fills one face's scratch s (layout above, all but the weights w) for the point x: t its corners
+ * in P (V, 3); R (3) gets the corners' distances |a_i|. Returns the smallest of them. */
+static inline double tc_mvc_face_direct(const double *P, const int *t, const double *x, double *s, double *R) {
+    double *a = s + TC_FA_A, *N = s + TC_FA_N, *m = s + TC_FA_M, rmin = INFINITY;
+    for (int i = 0; i < 3; ++i) {
+        const double *pi = P + 3 * t[i];
+        for (int k = 0; k < 3; ++k) a[3 * i + k] = pi[k] - x[k];
+        R[i] = sqrt(dot3(a + 3 * i, a + 3 * i));
+        rmin = fmin(rmin, R[i]);
+    }
+    m[0] = m[1] = m[2] = 0.0;
+    for (int e = 0; e < 3; ++e) {
+        int j = (e + 1) % 3, k = (e + 2) % 3;
+        cross3(a + 3 * j, a + 3 * k, N + 3 * e);
+        double nn = sqrt(dot3(N + 3 * e, N + 3 * e)), d = dot3(a + 3 * j, a + 3 * k);
+        double th = atan2(nn, d), ge = th / (2.0 * (nn > 0 ? nn : 1.0));
+        s[TC_FA_NN + e] = nn, s[TC_FA_D + e] = d, s[TC_FA_TH + e] = th, s[TC_FA_G + e] = ge;
+        for (int c = 0; c < 3; ++c) m[c] += ge * N[3 * e + c];
+    }
+    s[TC_FA_DET] = dot3(a, N);
+    return rmin;
+}
 
 /* Reverse mode of one face's direct-form weights (derivation: families/mean_value/vjp3d.py): with s
  * the face's scratch (layout above), t its corners and wbar (V,) the cotangent of the raw weights,

@@ -15,6 +15,25 @@ from torchcage.families.mean_value.kernel3d import CANCELLATION_RATIO, FAR_ALWAY
 __all__ = ["native_vjp", "native_vjp_near"]
 
 
+def _shared_arguments(
+    x: torch.Tensor, vertices: torch.Tensor, tri: torch.Tensor, gbar: torch.Tensor, tol: float
+) -> dict[str, object]:
+    """The inputs and thresholds both VJP kernels take, by their ABI names."""
+    return {
+        "P": vertices.contiguous(),
+        "V": vertices.shape[0],
+        "tri": tri.to(torch.int32).contiguous(),
+        "T": tri.shape[0],
+        "X": x.contiguous(),
+        "n": x.shape[0],
+        "G": gbar.contiguous(),
+        "tol": tol,
+        "near_c": SPLIT_FORM_RATIO,
+        "cancel_c": CANCELLATION_RATIO,
+        "far_always": FAR_ALWAYS_RATIO,
+    }
+
+
 def native_vjp(
     lib: ctypes.CDLL, x: torch.Tensor, vertices: torch.Tensor, tri: torch.Tensor, gbar: torch.Tensor, tol: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -27,17 +46,7 @@ def native_vjp(
     _native.call(
         lib,
         "tc_mvc3d_vjp",
-        P=vertices.contiguous(),
-        V=V,
-        tri=tri.to(torch.int32).contiguous(),
-        T=tri.shape[0],
-        X=x.contiguous(),
-        n=n,
-        G=gbar.contiguous(),
-        tol=tol,
-        near_c=SPLIT_FORM_RATIO,
-        cancel_c=CANCELLATION_RATIO,
-        far_always=FAR_ALWAYS_RATIO,
+        **_shared_arguments(x, vertices, tri, gbar, tol),
         GX=gx,
         GP=gP,
         reg=reg,
@@ -86,17 +95,7 @@ def native_vjp_near(
     _native.call(
         lib,
         "tc_mvc3d_vjp_near",
-        P=vertices.contiguous(),
-        V=V,
-        tri=tri.to(torch.int32).contiguous(),
-        T=T,
-        X=x.contiguous(),
-        n=n,
-        G=gbar.contiguous(),
-        tol=tol,
-        near_c=SPLIT_FORM_RATIO,
-        cancel_c=CANCELLATION_RATIO,
-        far_always=FAR_ALWAYS_RATIO,
+        **_shared_arguments(x, vertices, tri, gbar, tol),
         band=EDGE_LINE_BAND,
         near_d=DERIVATIVE_SPLIT_FORM_RATIO,
         far_d=DERIVATIVE_FAR_FIELD_RATIO,
