@@ -435,6 +435,16 @@ static inline void gc_on_alpha(const gc_tables *g, long f, const double *d, doub
 /* Doubles of workspace tc_gc_point needs. */
 size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g->E + 6 * (size_t)g->T; }
 
+/* The views of the tables g that tc_gc_point and gc_block read (sizes, vertex and face columns). */
+#define GC_TABLE_VIEWS(g)                                                                                       \
+    const long V = (g)->V, T = (g)->T, E = (g)->E;                                                               \
+    const double *Pv = (g)->Pv, *eu = (g)->eu, *fc = (g)->fc, *two_area = (g)->two_area;                        \
+    const int *t0 = (g)->tri, *t1 = t0 + T, *t2 = t1 + T, *e0 = (g)->edges, *e1 = e0 + E;                        \
+    const int *f0 = (g)->fe, *f1 = f0 + T, *f2 = f1 + T;                                                         \
+    const double *Nx = fc + FC_N * T, *Ny = Nx + T, *Nz = Ny + T, *O = fc + FC_O * T, *Cc = fc + FC_C * T;        \
+    const double *M = fc + FC_M * T, *S = fc + FC_S * T, *THR = fc + FC_THR * T, *FAR2 = fc + FC_FAR * T;        \
+    const double inv4pi = 1.0 / FOUR_PI
+
 /*
  * The Green integrals of all faces seen from the point x: psi (T,) and each face's corner terms
  * P (3, T) (index [i * T + f]: corner i's share of phi, principal values on the cage) and solid
@@ -443,13 +453,7 @@ size_t tc_gc_workspace(const gc_tables *g) { return 4 * (size_t)g->V + (size_t)g
  */
 long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, double *psi, double *P, double *OM,
                  double *on_alpha) {
-    const long V = g->V, T = g->T, E = g->E;
-    const double *Pv = g->Pv, *eu = g->eu, *fc = g->fc, *two_area = g->two_area;
-    const int *t0 = g->tri, *t1 = t0 + T, *t2 = t1 + T, *e0 = g->edges, *e1 = e0 + E;
-    const int *f0 = g->fe, *f1 = f0 + T, *f2 = f1 + T;
-    const double *Nx = fc + FC_N * T, *Ny = Nx + T, *Nz = Ny + T, *O = fc + FC_O * T, *Cc = fc + FC_C * T;
-    const double *M = fc + FC_M * T, *S = fc + FC_S * T, *THR = fc + FC_THR * T, *FAR2 = fc + FC_FAR * T;
-    const double inv4pi = 1.0 / FOUR_PI;
+    GC_TABLE_VIEWS(g);
     double *Ax = ws, *Ay = Ax + V, *Az = Ay + V, *RA = Az + V, *IE = RA + V;
     double *H = IE + E, *D0 = H + T, *D1 = D0 + T, *D2 = D1 + T, *FL = D2 + T, *FA = FL + T;
     double *P0 = P, *P1 = P + T, *P2 = P + 2 * T;
@@ -636,13 +640,7 @@ __attribute__((target_clones("avx512f", "default")))
 #endif
 static void gc_block(const gc_tables *g, const unsigned char *thin, const double *X, int cnt, double tol, double *ws,
                      int stream, double *PHI, double *PSI, int *ONF, double *AL) {
-    const long V = g->V, T = g->T, E = g->E;
-    const double *Pv = g->Pv, *eu = g->eu, *fc = g->fc, *two_area = g->two_area;
-    const int *t0 = g->tri, *t1 = t0 + T, *t2 = t1 + T, *e0 = g->edges, *e1 = e0 + E;
-    const int *f0 = g->fe, *f1 = f0 + T, *f2 = f1 + T;
-    const double *Nx = fc + FC_N * T, *Ny = Nx + T, *Nz = Ny + T, *O = fc + FC_O * T, *Cc = fc + FC_C * T;
-    const double *M = fc + FC_M * T, *S = fc + FC_S * T, *THR = fc + FC_THR * T, *FAR2 = fc + FC_FAR * T;
-    const double inv4pi = 1.0 / FOUR_PI;
+    GC_TABLE_VIEWS(g);
     double *AX = ws, *AY = AX + GL * V, *AZ = AY + GL * V, *RA = AZ + GL * V, *PH = RA + GL * V;
     double *IE = PH + GL * V, *PS = IE + GL * E, *OA = PS + GL * T, *DEN = OA + GL * T;
     double x0[GL], x1[GL], x2[GL], osum[GL], oal[GL][3];

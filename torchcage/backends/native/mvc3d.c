@@ -102,6 +102,18 @@ typedef struct {
     double *Ax, *Ay, *Az, *RA, *Nx, *Ny, *Nz, *Nn, *D, *Gx, *Gy, *Gz, *W0, *W1, *W2, *H, *RM;
 } mvc3d_scratch;
 
+/* The views of cage g and the topology tables (tri (3, T), edges (2, E), fe (3, T), fs (3, T))
+ * that mvc3d_point and the block read. */
+#define MVC3D_CAGE_VIEWS(g)                                                                                     \
+    const double *P = (g)->P, *two_area = (g)->two_area, *ell = (g)->ell, *gram = (g)->gram,                     \
+                 *longest = (g)->longest;                                                                        \
+    const double tol = (g)->tol;                                                                                 \
+    const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;                                                       \
+    const int *e0 = edges, *e1 = edges + E;                                                                      \
+    const int *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;                                                          \
+    const double *s0 = fs, *s1 = fs + T, *s2 = fs + 2 * T;                                                       \
+    const double *nx = (g)->nrm, *ny = (g)->nrm + T, *nz = (g)->nrm + 2 * T
+
 /* The coordinates (raw weights unless normalize) of the point x0, x1, x2 against cage g, written to
  * w (V,); returns 1 when the point is on the cage (w holds the interpolating values), 2 when the
  * normalised coordinates are undefined (their sum is not finite: the total weight vanishes), else 0. */
@@ -109,14 +121,8 @@ static inline int mvc3d_point(const mvc3d_cage *g, long V, const int *tri, long 
                               const int *fe, const int *inc_ptr, const int *inc_idx, const double *fs, long Q,
                               double far_c, double cancel_c, double near_c, double x0, double x1, double x2,
                               int normalize, const mvc3d_scratch *sc, double *w) {
-    const double *P = g->P, *two_area = g->two_area, *ell = g->ell, *gram = g->gram, *longest = g->longest;
+    MVC3D_CAGE_VIEWS(g);
     const double *far_bary = g->far_bary, *far_qw = g->far_qw;
-    const double tol = g->tol;
-    const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
-    const int *e0 = edges, *e1 = edges + E;
-    const int *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
-    const double *s0 = fs, *s1 = fs + T, *s2 = fs + 2 * T;
-    const double *nx = g->nrm, *ny = g->nrm + T, *nz = g->nrm + 2 * T;
     double *Ax = sc->Ax, *Ay = sc->Ay, *Az = sc->Az, *RA = sc->RA, *Nx = sc->Nx, *Ny = sc->Ny, *Nz = sc->Nz,
            *Nn = sc->Nn, *D = sc->D, *Gx = sc->Gx, *Gy = sc->Gy, *Gz = sc->Gz, *W0 = sc->W0, *W1 = sc->W1,
            *W2 = sc->W2, *H = sc->H, *RM = sc->RM;
@@ -336,13 +342,7 @@ static void mvc3d_block_carve(double *buf, long V, long E, long T, mvc3d_block_s
  * with their flags on[l] (as mvc3d_point's return value). Compiled twice below: for the library's
  * target and, where the compiler and libmvec allow, for AVX-512 (chosen at run time). */
 static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
-    const double *P = g->P, *two_area = g->two_area, *ell = g->ell, *gram = g->gram, *longest = g->longest;
-    const double tol = g->tol;
-    const int *t0 = tri, *t1 = tri + T, *t2 = tri + 2 * T;
-    const int *e0 = edges, *e1 = edges + E;
-    const int *f0 = fe, *f1 = fe + T, *f2 = fe + 2 * T;
-    const double *s0 = fs, *s1 = fs + T, *s2 = fs + 2 * T;
-    const double *nx = g->nrm, *ny = g->nrm + T, *nz = g->nrm + 2 * T;
+    MVC3D_CAGE_VIEWS(g);
     double *Ax = bs->Ax, *Ay = bs->Ay, *Az = bs->Az, *RA = bs->RA, *acc = bs->acc, *Nx = bs->Nx, *Ny = bs->Ny,
            *Nz = bs->Nz, *Gx = bs->Gx, *Gy = bs->Gy, *Gz = bs->Gz, *Wc = bs->Wc, *H = bs->H, *RM = bs->RM;
     long *near = bs->near;
