@@ -141,20 +141,13 @@ static double kernel_and_pinv(const double p[4][3], double c[4][4][3], double *k
     k[1] = -dot3(p[2], c[3][0]);
     k[2] = dot3(p[3], c[0][1]);
     k[3] = -dot3(p[0], c[1][2]);
-    for (int i = 0; i < 4; ++i) {
-        rows[i][0] = rows[i][1] = rows[i][2] = 0.0;
-        for (int j = 0; j < 4; ++j) {
-            if (j == i) continue;
-            int cols[3], t = 0, pos = 0;
-            for (int q = 0; q < 4; ++q)
-                if (q != j) {
-                    if (q == i) pos = t;
-                    cols[t++] = q;
-                }
-            int y = cols[(pos + 1) % 3], z = cols[(pos + 2) % 3];
-            double s = (j & 1) ? -k[j] : k[j];
-            for (int d = 0; d < 3; ++d) rows[i][d] += s * c[y][z][d];
-        }
+    /* rows[i] = sum over j != i of (-1)^j k[j] c[y][z], (y, z) the cyclic successors of i among the
+     * columns other than j (the table written out). */
+    for (int d = 0; d < 3; ++d) {
+        rows[0][d] = -k[1] * c[2][3][d] + k[2] * c[1][3][d] - k[3] * c[1][2][d];
+        rows[1][d] = k[0] * c[2][3][d] + k[2] * c[3][0][d] - k[3] * c[2][0][d];
+        rows[2][d] = k[0] * c[3][1][d] - k[1] * c[3][0][d] - k[3] * c[0][1][d];
+        rows[3][d] = k[0] * c[1][2][d] - k[1] * c[0][2][d] + k[2] * c[0][1][d];
     }
     return k[0] * k[0] + k[1] * k[1] + k[2] * k[2] + k[3] * k[3];
 }
@@ -254,8 +247,48 @@ static void riemann_sums(const double *p0, const double *b, const double *cc, co
  * parametrisation, and the smooth projection (u, v) of Algorithm 1 (see project in _qmvc3d.py).
  * Without project, (u, v) is the centre (or the corner the point sits on) and on means on a corner:
  * for pairs whose quadrature never splits the quad, which are far from it. */
+void tc_quad_const(const double *P, const int *qi, quad_const *qc) {
+    /* (from the corners, not from p: differences of p lose eps |x - q| / size far away) */
+    const double *q0 = P + 3 * qi[0], *q1 = P + 3 * qi[1], *q2 = P + 3 * qi[2], *q3 = P + 3 * qi[3];
+    for (int c = 0; c < 3; ++c) {
+        qc->b[c] = q1[c] - q0[c];
+        qc->cc[c] = q3[c] - q0[c];
+        qc->dd[c] = q0[c] - q1[c] + q2[c] - q3[c];
+    }
+    cross3(qc->b, qc->cc, qc->N0);
+    cross3(qc->b, qc->dd, qc->Nu);
+    cross3(qc->dd, qc->cc, qc->Nv);
+    for (int c = 0; c < 3; ++c) qc->nq[c] = qc->N0[c] + 0.5 * (qc->Nu[c] + qc->Nv[c]);
+    double area2 = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        const double *a1 = P + 3 * qi[(i + 1) & 3], *a2 = P + 3 * qi[(i + 2) & 3], *a3 = P + 3 * qi[(i + 3) & 3];
+        double e1[3] = {a2[0] - a1[0], a2[1] - a1[1], a2[2] - a1[2]}, e2[3] = {a3[0] - a1[0], a3[1] - a1[1], a3[2] - a1[2]};
+        double cr[3];
+        cross3(e1, e2, cr);
+        area2 += sqrt(dot3(cr, cr));
+    }
+    qc->area2 = area2;
+    /* Twice the hull faces' areas (from the corners: the point-relative corners gave the same at
+     * rounding level). */
+    for (int f = 0; f < 4; ++f) {
+        const double *a0 = P + 3 * qi[HULL[f][0]], *a1 = P + 3 * qi[HULL[f][1]], *a2 = P + 3 * qi[HULL[f][2]];
+        double e1[3] = {a1[0] - a0[0], a1[1] - a0[1], a1[2] - a0[2]}, e2[3] = {a2[0] - a0[0], a2[1] - a0[1], a2[2] - a0[2]};
+        double cr[3];
+        cross3(e1, e2, cr);
+        qc->hull_two_area[f] = sqrt(dot3(cr, cr));
+    }
+}
+
 void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, int project,
                   quad_pair *qp) {
+    quad_const qc;
+    (void)size;
+    tc_quad_const(P, qi, &qc);
+    tc_quad_pair_c(P, qi, &qc, x, tol, project, qp);
+}
+
+void tc_quad_pair_c(const double *P, const int *qi, const quad_const *qc, const double *x, double tol, int project,
+                    quad_pair *qp) {
     double p[4][3], R2[4];
     int vertex = -1;
     for (int i = 0; i < 4; ++i) {
@@ -285,16 +318,7 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     double kabs = fabs(k[0]) + fabs(k[1]) + fabs(k[2]) + fabs(k[3]);
     /* kappa vanishes only for a planar quad and a point on its plane: |kappa|_1 = |h| sum_i 2 A_i
      * there (A_i the corner triangles' areas), so the test below is |h| <= tol (as in _qmvc3d.py). */
-    double area2 = 0.0;
-    for (int i = 0; i < 4; ++i) {
-        const double *a1 = P + 3 * qi[(i + 1) & 3], *a2 = P + 3 * qi[(i + 2) & 3], *a3 = P + 3 * qi[(i + 3) & 3];
-        double e1[3] = {a2[0] - a1[0], a2[1] - a1[1], a2[2] - a1[2]}, e2[3] = {a3[0] - a1[0], a3[1] - a1[1], a3[2] - a1[2]};
-        double cr[3];
-        cross3(e1, e2, cr);
-        area2 += sqrt(dot3(cr, cr));
-    }
-    int flat = kabs <= tol * area2;
-    (void)size;
+    int flat = kabs <= tol * qc->area2;
     double alpha = k[0] + k[1] + k[2] + k[3], sgn = alpha >= 0 ? 1.0 : -1.0;
     int inside = alpha != 0;
     for (int i = 0; i < 4; ++i) inside = inside && (k[i] * sgn >= -1e-13 * kabs);
@@ -302,26 +326,14 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
      * the plane of a nearly planar quad, off it): not inside then (as in _qmvc3d.py). */
     double noise = 16.0 * DBL_EPSILON * (R[1] * R[2] * R[3] + R[0] * R[2] * R[3] + R[0] * R[1] * R[3] + R[0] * R[1] * R[2]);
     inside = inside && kabs > noise;
-    /* (from the corners, not from p: differences of p lose eps |x - q| / size far away) */
-    double b[3], cc[3], dd[3];
-    const double *q0 = P + 3 * qi[0], *q1 = P + 3 * qi[1], *q2 = P + 3 * qi[2], *q3 = P + 3 * qi[3];
-    for (int c = 0; c < 3; ++c) {
-        b[c] = q1[c] - q0[c];
-        cc[c] = q3[c] - q0[c];
-        dd[c] = q0[c] - q1[c] + q2[c] - q3[c];
-    }
-    double N0[3], Nu[3], Nv[3], nq[3];
-    cross3(b, cc, N0);
-    cross3(b, dd, Nu);
-    cross3(dd, cc, Nv);
-    for (int c = 0; c < 3; ++c) nq[c] = N0[c] + 0.5 * (Nu[c] + Nv[c]);
+    const double *b = qc->b, *cc = qc->cc, *dd = qc->dd;
     /* Projection (Algorithm 1). */
     double pp[4][3], d[3], u = 0.5, v = 0.5;
     memcpy(pp, p, sizeof(pp));
     if (!project) {
         /* the centre, or the corner below */
     } else if (flat) {
-        memcpy(d, nq, sizeof(d));
+        memcpy(d, qc->nq, sizeof(d));
     } else if (inside || vertex >= 0) {
         memcpy(d, m, sizeof(d));
     } else {
@@ -331,13 +343,7 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
             double wt[3];
             /* The face's determinant is +-kappa of the corner it leaves out. */
             double det = dot3(p[h[0]], c[h[1]][h[2]]);
-            double e1[3], e2[3], cr[3];
-            for (int d = 0; d < 3; ++d) {
-                e1[d] = p[h[1]][d] - p[h[0]][d];
-                e2[d] = p[h[2]][d] - p[h[0]][d];
-            }
-            cross3(e1, e2, cr);
-            double two_area = sqrt(dot3(cr, cr));
+            double two_area = qc->hull_two_area[f];
             double rmin = fmin(R[h[0]], fmin(R[h[1]], R[h[2]]));
             if (fabs(det) < SPLIT_FORM_RATIO * rmin * two_area) {
                 triangle_weights(p[h[0]], p[h[1]], p[h[2]], wt); /* stable form near the plane */
@@ -374,12 +380,9 @@ void tc_quad_pair(const double *P, const int *qi, const double *x, double size, 
     memcpy(qp->m, m, sizeof(m));
     memcpy(qp->k, k, sizeof(k));
     memcpy(qp->rows, rows, sizeof(rows));
-    memcpy(qp->b, b, sizeof(b));
-    memcpy(qp->cc, cc, sizeof(cc));
-    memcpy(qp->dd, dd, sizeof(dd));
-    memcpy(qp->N0, N0, sizeof(N0));
-    memcpy(qp->Nu, Nu, sizeof(Nu));
-    memcpy(qp->Nv, Nv, sizeof(Nv));
+    memcpy(qp->b, b, sizeof(qp->b));
+    memcpy(qp->cc, cc, sizeof(qp->cc));
+    memcpy(qp->dd, dd, sizeof(qp->dd));
     qp->D = D;
     qp->kabs = kabs;
     qp->flat = flat;
@@ -407,6 +410,10 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
     const int K = 2 * n + 1;
     double centre[3];
     const double far2 = tc_far_centre(P, V, 3, 1, 3, centre);
+    /* The quads' point-independent constants, once (without the table, per pair). */
+    quad_const *QC = (quad_const *)malloc(sizeof(quad_const) * (size_t)(Q > 0 ? Q : 1));
+    if (QC)
+        for (long q = 0; q < Q; ++q) tc_quad_const(P, quads + 4 * q, QC + q);
 #pragma omp parallel num_threads(nthreads)
     {
         double *un = (double *)malloc(sizeof(double) * 4 * (size_t)K);
@@ -418,10 +425,12 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
             for (long q = 0; q < Q && !on[pt]; ++q) {
                 const int *qi = quads + 4 * q;
                 quad_pair qp;
+                quad_const qloc;
+                const quad_const *qc = QC ? QC + q : (tc_quad_const(P, qi, &qloc), &qloc);
                 /* The projection serves only the first split of the quadrature and the on-quad
                  * test: a quad integrated whole is far from the point (see tc_quad_whole). */
                 int project = !(qtol > 0) || !tc_quad_whole(P, qi, x, qtol);
-                tc_quad_pair(P, qi, x, size[q], tol, project, &qp);
+                tc_quad_pair_c(P, qi, qc, x, tol, project, &qp);
                 if (qp.vertex >= 0) {
                     memset(w, 0, sizeof(double) * (size_t)V);
                     w[qi[qp.vertex]] = 1.0;
@@ -429,7 +438,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                     break;
                 }
                 double(*p)[3] = qp.p, (*rows)[3] = qp.rows, *m = qp.m, *k = qp.k, *R = qp.R;
-                double *b = qp.b, *cc = qp.cc, *dd = qp.dd, *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
+                const double *b = qp.b, *cc = qp.cc, *dd = qp.dd, *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
                 double D = qp.D, kabs = qp.kabs, u = qp.u, v = qp.v;
                 int flat = qp.flat, inside = qp.inside;
                 if (qp.on) {
@@ -519,4 +528,5 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
         }
         free(un);
     }
+    free(QC);
 }
