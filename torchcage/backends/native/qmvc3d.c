@@ -15,6 +15,15 @@
 
 #include "native.h"
 
+#ifdef TC_LIBMVEC
+/* Let the compiler call glibc's vector atan (libmvec, max error 4 ulp) in angles4 / angles8. */
+__attribute__((simd("notinbranch"))) double atan(double);
+#endif
+
+/* min and max of numbers that are not NaN (fmin and fmax are library calls). */
+#define MIN2(a, b) ((a) < (b) ? (a) : (b))
+#define MAX2(a, b) ((a) > (b) ? (a) : (b))
+
 #define SPLIT_FORM_RATIO 0.01
 #define REFINE 3       /* as REFINE in _qmvc3d.py */
 #define NEAR_FLAT 1e-3 /* as NEAR_FLAT in _qmvc3d.py */
@@ -31,9 +40,11 @@ static const double GAUSS_W[4] = {0.17392742256872679, 0.3260725774312732, 0.326
 
 /* Weight of the Gauss rule: a smoothstep in log10(min_i |p_i| / size) from FAR_QUAD_LO to FAR_QUAD_HI. */
 static double far_blend(const double *R, double size) {
-    double rmin = fmin(fmin(R[0], R[1]), fmin(R[2], R[3]));
+    double rmin = MIN2(MIN2(R[0], R[1]), MIN2(R[2], R[3]));
     double ratio = rmin / size;
-    if (!(ratio > 1.0)) return 0.0;
+    /* (31.6 < 10^FAR_QUAD_LO, 316.3 > 10^FAR_QUAD_HI: the clamps below, without the log) */
+    if (!(ratio > 31.6)) return 0.0;
+    if (ratio > 316.3) return 1.0;
     double s = (log10(ratio) - FAR_QUAD_LO) / (FAR_QUAD_HI - FAR_QUAD_LO);
     s = s < 0 ? 0 : (s > 1 ? 1 : s);
     return s * s * (3 - 2 * s);
@@ -69,19 +80,41 @@ static inline double angle3(double cn, double d, double rr) {
     return d < 0 ? M_PI - 2 * atan(t) : 2 * atan(t);
 }
 
+/* angle3 of four (eight) lanes side by side (vector atan where libmvec serves). */
+static inline void angles4(const double *cn, const double *d, const double *rr, double *out) {
+#pragma omp simd
+    for (int e = 0; e < 4; ++e) {
+        double t = cn[e] / (rr[e] + fabs(d[e])), at = atan(t);
+        out[e] = d[e] < 0 ? M_PI - 2 * at : 2 * at;
+    }
+}
+static inline void angles8(const double *cn, const double *d, const double *rr, double *out) {
+#pragma omp simd
+    for (int e = 0; e < 8; ++e) {
+        double t = cn[e] / (rr[e] + fabs(d[e])), at = atan(t);
+        out[e] = d[e] < 0 ? M_PI - 2 * at : 2 * at;
+    }
+}
+
 /* Mean vector of the quad seen from the origin of p (Eq. 16); edges through it count nothing. */
 static void mean_vector(const double p[4][3], double *m) {
-    m[0] = m[1] = m[2] = 0.0;
+    double c[4][3], c2[4], cn[4], dt[4], rr[4], ang[4];
     for (int i = 0; i < 4; ++i) {
         const double *a = p[i], *b = p[(i + 1) & 3];
-        double c[3];
-        cross3(a, b, c);
-        double c2 = dot3(c, c);
-        if (!(c2 > 0)) continue;
-        double cn = sqrt(c2), g = 0.5 * angle3(cn, dot3(a, b), sqrt(dot3(a, a) * dot3(b, b))) / cn;
-        m[0] += g * c[0];
-        m[1] += g * c[1];
-        m[2] += g * c[2];
+        cross3(a, b, c[i]);
+        c2[i] = dot3(c[i], c[i]);
+        cn[i] = sqrt(c2[i]);
+        dt[i] = dot3(a, b);
+        rr[i] = sqrt(dot3(a, a) * dot3(b, b));
+    }
+    angles4(cn, dt, rr, ang);
+    m[0] = m[1] = m[2] = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        if (!(c2[i] > 0)) continue;
+        double g = 0.5 * ang[i] / cn[i];
+        m[0] += g * c[i][0];
+        m[1] += g * c[i][1];
+        m[2] += g * c[i][2];
     }
 }
 
@@ -301,15 +334,28 @@ void tc_quad_pair_c(const double *P, const int *qi, const quad_const *qc, const 
     /* Edge terms theta_ab / (2 |p_a x p_b|) of the tetrahedron's six edges, shared by the
      * quad's mean vector (its four boundary edges) and the hull faces' weights. */
     for (int i = 0; i < 4; ++i) R[i] = sqrt(R2[i]);
-    for (int a = 0; a < 4; ++a)
-        for (int bb = a + 1; bb < 4; ++bb) {
-            if (!project && bb == a + 2) { /* a diagonal: the hull faces' alone */
-                g[a][bb] = g[bb][a] = 0.0;
-                continue;
-            }
-            double c2 = dot3(c[a][bb], c[a][bb]), cn = sqrt(c2);
-            g[a][bb] = g[bb][a] = c2 > 0 ? 0.5 * angle3(cn, dot3(p[a], p[bb]), R[a] * R[bb]) / cn : 0.0;
+    {
+        /* (the six angles side by side: one or two vector atan calls; lanes 6, 7 unused) */
+        static const int EA[8] = {0, 1, 2, 0, 0, 1, 0, 0}, EB[8] = {1, 2, 3, 3, 2, 3, 1, 1};
+        double c2[8], cn[8], dt[8], rr[8], ang[8];
+        for (int e = 0; e < 6; ++e) {
+            const int a = EA[e], bb = EB[e];
+            c2[e] = dot3(c[a][bb], c[a][bb]);
+            cn[e] = sqrt(c2[e]);
+            dt[e] = dot3(p[a], p[bb]);
+            rr[e] = R[a] * R[bb];
         }
+        for (int e = 6; e < 8; ++e) {
+            c2[e] = cn[e] = 0.0;
+            dt[e] = rr[e] = 1.0;
+        }
+        angles8(cn, dt, rr, ang);
+        for (int e = 0; e < 6; ++e) {
+            const int a = EA[e], bb = EB[e];
+            /* (without project, a diagonal (e = 4, 5) serves the hull faces alone: none) */
+            g[a][bb] = g[bb][a] = (e >= 4 && !project) ? 0.0 : (c2[e] > 0 ? 0.5 * ang[e] / cn[e] : 0.0);
+        }
+    }
     for (int d = 0; d < 3; ++d) m[d] = 0.0;
     for (int i = 0; i < 4; ++i) {
         int j = (i + 1) & 3;
@@ -344,7 +390,7 @@ void tc_quad_pair_c(const double *P, const int *qi, const quad_const *qc, const 
             /* The face's determinant is +-kappa of the corner it leaves out. */
             double det = dot3(p[h[0]], c[h[1]][h[2]]);
             double two_area = qc->hull_two_area[f];
-            double rmin = fmin(R[h[0]], fmin(R[h[1]], R[h[2]]));
+            double rmin = MIN2(R[h[0]], MIN2(R[h[1]], R[h[2]]));
             if (fabs(det) < SPLIT_FORM_RATIO * rmin * two_area) {
                 triangle_weights(p[h[0]], p[h[1]], p[h[2]], wt); /* stable form near the plane */
             } else {
@@ -478,7 +524,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                 double lam = qtol > 0 ? ok * invD : (ow != 0 ? ok * invD * ww / ow : 0.0);
                 double wq[4];
                 for (int i = 0; i < 4; ++i) wq[i] = wb[i] + lam * k[i];
-                double Rmax = fmax(fmax(R[0], R[1]), fmax(R[2], R[3]));
+                double Rmax = MAX2(MAX2(R[0], R[1]), MAX2(R[2], R[3]));
                 int near_flat = !inside && kabs < NEAR_FLAT * size[q] * size[q] * Rmax;
                 if (near_flat) {
                     /* Near a flat quad's plane: least-norm solution from the split triangles' stable
