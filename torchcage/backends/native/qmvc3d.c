@@ -226,23 +226,31 @@ static void intersect(const double p[4][3], const double *d, double *u_out, doub
     *v_out = v;
 }
 
-static void grid(double t, int n, double *nodes, double *len) {
+/* sk[k] = k / n (k < 2 n + 1), from the caller. */
+static void grid(double t, int n, const double *sk, double *nodes, double *len) {
     int K = 2 * n + 1;
     for (int k = 0; k < K; ++k) {
-        double s = (double)k / n;
+        double s = sk[k];
         nodes[k] = s <= 1 ? s * t : t + (s - 1) * (1 - t);
     }
     for (int k = 0; k < K; ++k) len[k] = (nodes[k + 1 < K ? k + 1 : K - 1] - nodes[k > 0 ? k - 1 : 0]) / 2;
 }
 
 /* The Riemann estimate Omega (Eqs. 22-23) of the four corner integrals on the adaptive grid around
- * (u, v), separable in the bilinear basis (as riemann_sums in _qmvc3d.py); un..va: 4 (2n+1) scratch. */
+ * (u, v), separable in the bilinear basis (as riemann_sums in _qmvc3d.py); un: 4 KP scratch (KP: 2 n + 1
+ * rounded up to a multiple of 4), sk: k / n. The rows' samples go four at a time: the lanes past
+ * 2 n + 1 repeat the last node with weight zero. */
 static void riemann_sums(const double *p0, const double *b, const double *cc, const double *dd, const double *N0,
-                         const double *Nu, const double *Nv, double u, double v, int n, double *un, double *om) {
-    const int K = 2 * n + 1;
-    double *ua = un + K, *vn = ua + K, *va = vn + K;
-    grid(u, n, un, ua);
-    grid(v, n, vn, va);
+                         const double *Nu, const double *Nv, double u, double v, int n, const double *sk, double *un,
+                         double *om) {
+    const int K = 2 * n + 1, KP = (K + 3) & ~3;
+    double *ua = un + KP, *vn = ua + KP, *va = vn + KP;
+    grid(u, n, sk, un, ua);
+    grid(v, n, sk, vn, va);
+    for (int l = K; l < KP; ++l) {
+        vn[l] = vn[K - 1];
+        va[l] = 0.0;
+    }
     double S = 0, Su = 0, Sv = 0, Suv = 0;
     for (int a = 0; a < K; ++a) {
         double Pu[3], Qu[3], Ru[3];
@@ -251,19 +259,20 @@ static void riemann_sums(const double *p0, const double *b, const double *cc, co
             Qu[c] = cc[c] + un[a] * dd[c];
             Ru[c] = N0[c] + un[a] * Nu[c];
         }
-        double acc0 = 0, acc1 = 0;
-#pragma omp simd reduction(+ : acc0, acc1)
-        for (int l = 0; l < K; ++l) {
-            double vv = vn[l];
-            double d0 = Pu[0] + vv * Qu[0], d1 = Pu[1] + vv * Qu[1], d2 = Pu[2] + vv * Qu[2];
-            double r2 = d0 * d0 + d1 * d1 + d2 * d2;
-            double Nd = (Ru[0] + vv * Nv[0]) * d0 + (Ru[1] + vv * Nv[1]) * d1 + (Ru[2] + vv * Nv[2]) * d2;
-            double f = Nd * va[l] / (r2 * r2);
-            acc0 += f;
-            acc1 += f * vv;
+        double s0[4] = {0, 0, 0, 0}, s1[4] = {0, 0, 0, 0};
+        for (int l0 = 0; l0 < KP; l0 += 4) {
+#pragma omp simd
+            for (int j = 0; j < 4; ++j) {
+                double vv = vn[l0 + j];
+                double d0 = Pu[0] + vv * Qu[0], d1 = Pu[1] + vv * Qu[1], d2 = Pu[2] + vv * Qu[2];
+                double r2 = d0 * d0 + d1 * d1 + d2 * d2;
+                double Nd = (Ru[0] + vv * Nv[0]) * d0 + (Ru[1] + vv * Nv[1]) * d1 + (Ru[2] + vv * Nv[2]) * d2;
+                double f = Nd * va[l0 + j] / (r2 * r2);
+                s0[j] += f;
+                s1[j] += f * vv;
+            }
         }
-        acc0 *= ua[a];
-        acc1 *= ua[a];
+        double acc0 = ((s0[0] + s0[1]) + (s0[2] + s0[3])) * ua[a], acc1 = ((s1[0] + s1[1]) + (s1[2] + s1[3])) * ua[a];
         S += acc0;
         Sv += acc1;
         Su += un[a] * acc0;
@@ -453,7 +462,7 @@ void tc_quad_pair_c(const double *P, const int *qi, const quad_const *qc, const 
  */
 void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *X, long npts,
                double tol, int n, double qtol, const double *gl, int nthreads, double *W, unsigned char *on) {
-    const int K = 2 * n + 1;
+    const int K = 2 * n + 1, KP = (K + 3) & ~3;
     double centre[3];
     const double far2 = tc_far_centre(P, V, 3, 1, 3, centre);
     /* The quads' point-independent constants, once (without the table, per pair). */
@@ -462,7 +471,8 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
         for (long q = 0; q < Q; ++q) tc_quad_const(P, quads + 4 * q, QC + q);
 #pragma omp parallel num_threads(nthreads)
     {
-        double *un = (double *)malloc(sizeof(double) * 4 * (size_t)K);
+        double *un = (double *)malloc(sizeof(double) * (4 * (size_t)KP + (size_t)K)), *sk = un + 4 * KP;
+        for (int k = 0; k < K; ++k) sk[k] = (double)k / n;
 #pragma omp for schedule(dynamic, 16)
         for (long pt = 0; pt < npts; ++pt) {
             double *w = W + pt * V;
@@ -514,7 +524,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                 for (int c = 0; c < 3; ++c)
                     res[c] = m[c] - (wb[0] * p[0][c] + wb[1] * p[1][c] + wb[2] * p[2][c] + wb[3] * p[3][c]);
                 for (int i = 0; i < 4; ++i) wb[i] += dot3(rows[i], res) * invD;
-                if (qtol <= 0) riemann_sums(p[0], b, cc, dd, N0, Nu, Nv, u, v, n, un, om);
+                if (qtol <= 0) riemann_sums(p[0], b, cc, dd, N0, Nu, Nv, u, v, n, sk, un, om);
                 double ok = 0, ow = 0, ww = 0;
                 for (int i = 0; i < 4; ++i) {
                     ok += om[i] * k[i];
