@@ -185,7 +185,7 @@ static double kernel_and_pinv(const double p[4][3], double c[4][4][3], double *k
     return k[0] * k[0] + k[1] * k[1] + k[2] * k[2] + k[3] * k[3];
 }
 
-static double badness(double r) { return (r < 0 ? -r : 0) + (r > 1 ? r - 1 : 0) + 1e-3 * fabs(r - 0.5); }
+static inline double badness(double r) { return (r < 0 ? -r : 0) + (r > 1 ? r - 1 : 0) + 1e-3 * fabs(r - 0.5); }
 
 /* (u, v) where the line through the origin of p along d meets the bilinear sheet (Appendix B). */
 static void intersect(const double p[4][3], const double *d, double *u_out, double *v_out) {
@@ -452,6 +452,313 @@ void tc_quad_pair_c(const double *P, const int *qi, const quad_const *qc, const 
     qp->on = vertex >= 0 || (project && dot3(xi, xi) <= (flat ? 2.0 : ON_QUAD_BAND * ON_QUAD_BAND) * tol * tol);
 }
 
+/* Four points for one quad side by side (the Riemann form: project on): tc_quad_pair_c's steps, the
+ * same operations in the same order lane by lane (so the same bits, the vector atan included), each
+ * step a loop over the lanes. The lanes on a corner, on a flat quad's plane, or outside the
+ * tetrahedron with a hull face near its plane (the split form) are left to tc_quad_pair_c (redo). */
+#define QL 4
+#define LANES _Pragma("omp simd") for (int j = 0; j < QL; ++j)
+typedef struct {
+    double p[4][3][QL], R[4][QL], m[3][QL], k[4][QL], rows[4][3][QL], D[QL], kabs[QL], u[QL], v[QL];
+    int inside[QL], on[QL], redo[QL];
+} quad_lanes;
+
+static void quad_pair_lanes(const double *P, const int *qi, const quad_const *qc, const double *X, int nl, double tol,
+                            quad_lanes *L) {
+    const double *q[4] = {P + 3 * qi[0], P + 3 * qi[1], P + 3 * qi[2], P + 3 * qi[3]};
+    const double *b = qc->b, *cc = qc->cc, *dd = qc->dd;
+    const double area2 = qc->area2, tol2 = tol * tol;
+    double xs[3][QL], R2[4][QL], C[4][4][3][QL], G[4][4][QL], T[6][QL], AT[6][QL], C2[6][QL], CN[6][QL], DT[6][QL];
+    double (*p)[3][QL] = L->p, (*R)[QL] = L->R, (*k)[QL] = L->k;
+    int vert[QL], flat[QL], split[QL];
+    for (int j = 0; j < QL; ++j)
+        for (int c = 0; c < 3; ++c) xs[c][j] = X[3 * (j < nl ? j : 0) + c];
+    for (int i = 0; i < 4; ++i)
+        for (int c = 0; c < 3; ++c) {
+            const double qic = q[i][c];
+            LANES p[i][c][j] = qic - xs[c][j];
+        }
+    for (int i = 0; i < 4; ++i) {
+        LANES {
+            R2[i][j] = p[i][0][j] * p[i][0][j] + p[i][1][j] * p[i][1][j] + p[i][2][j] * p[i][2][j];
+            R[i][j] = sqrt(R2[i][j]);
+        }
+    }
+    LANES vert[j] = (R2[0][j] <= tol2) | (R2[1][j] <= tol2) | (R2[2][j] <= tol2) | (R2[3][j] <= tol2);
+    /* c[a][b] = p_a x p_b, kappa, |kappa|^2 A^+ rows (kernel_and_pinv) */
+    static const int EA[6] = {0, 1, 2, 0, 0, 1}, EB[6] = {1, 2, 3, 3, 2, 3};
+    for (int e = 0; e < 6; ++e) {
+        const int a = EA[e], bb = EB[e];
+        LANES {
+            double c0 = p[a][1][j] * p[bb][2][j] - p[a][2][j] * p[bb][1][j];
+            double c1 = p[a][2][j] * p[bb][0][j] - p[a][0][j] * p[bb][2][j];
+            double c2 = p[a][0][j] * p[bb][1][j] - p[a][1][j] * p[bb][0][j];
+            C[a][bb][0][j] = c0, C[a][bb][1][j] = c1, C[a][bb][2][j] = c2;
+            C[bb][a][0][j] = -c0, C[bb][a][1][j] = -c1, C[bb][a][2][j] = -c2;
+        }
+    }
+#define LDOT(A, B) (A[0][j] * B[0][j] + A[1][j] * B[1][j] + A[2][j] * B[2][j])
+    LANES {
+        k[0][j] = LDOT(p[1], C[2][3]);
+        k[1][j] = -LDOT(p[2], C[3][0]);
+        k[2][j] = LDOT(p[3], C[0][1]);
+        k[3][j] = -LDOT(p[0], C[1][2]);
+    }
+    for (int d = 0; d < 3; ++d) {
+        LANES {
+            L->rows[0][d][j] = -k[1][j] * C[2][3][d][j] + k[2][j] * C[1][3][d][j] - k[3][j] * C[1][2][d][j];
+            L->rows[1][d][j] = k[0][j] * C[2][3][d][j] + k[2][j] * C[3][0][d][j] - k[3][j] * C[2][0][d][j];
+            L->rows[2][d][j] = k[0][j] * C[3][1][d][j] - k[1][j] * C[3][0][d][j] - k[3][j] * C[0][1][d][j];
+            L->rows[3][d][j] = k[0][j] * C[1][2][d][j] - k[1][j] * C[0][2][d][j] + k[2][j] * C[0][1][d][j];
+        }
+    }
+    LANES L->D[j] = k[0][j] * k[0][j] + k[1][j] * k[1][j] + k[2][j] * k[2][j] + k[3][j] * k[3][j];
+    /* the six edge terms g (theta / (2 |p_a x p_b|)) */
+    for (int e = 0; e < 6; ++e) {
+        const int a = EA[e], bb = EB[e];
+        LANES {
+            double c2 = LDOT(C[a][bb], C[a][bb]), cn = sqrt(c2), dt = LDOT(p[a], p[bb]), rr = R[a][j] * R[bb][j];
+            C2[e][j] = c2, CN[e][j] = cn, DT[e][j] = dt;
+            T[e][j] = cn / (rr + fabs(dt));
+        }
+    }
+    for (int e = 0; e < 6; ++e) LANES AT[e][j] = atan(T[e][j]);
+    for (int e = 0; e < 6; ++e) {
+        const int a = EA[e], bb = EB[e];
+        LANES {
+            double ang = DT[e][j] < 0 ? M_PI - 2 * AT[e][j] : 2 * AT[e][j];
+            double g = C2[e][j] > 0 ? 0.5 * ang / CN[e][j] : 0.0;
+            G[a][bb][j] = g, G[bb][a][j] = g;
+        }
+    }
+    for (int d = 0; d < 3; ++d) {
+        LANES {
+            double s = 0.0;
+            s += G[0][1][j] * C[0][1][d][j];
+            s += G[1][2][j] * C[1][2][d][j];
+            s += G[2][3][j] * C[2][3][d][j];
+            s += G[3][0][j] * C[3][0][d][j];
+            L->m[d][j] = s;
+        }
+    }
+    LANES {
+        double k0 = k[0][j], k1 = k[1][j], k2 = k[2][j], k3 = k[3][j];
+        double kabs = fabs(k0) + fabs(k1) + fabs(k2) + fabs(k3);
+        flat[j] = kabs <= tol * area2;
+        double alpha = k0 + k1 + k2 + k3, sgn = alpha >= 0 ? 1.0 : -1.0;
+        double lim = -1e-13 * kabs;
+        int inside = (alpha != 0) & (k0 * sgn >= lim) & (k1 * sgn >= lim) & (k2 * sgn >= lim) & (k3 * sgn >= lim);
+        double r0 = R[0][j], r1 = R[1][j], r2 = R[2][j], r3 = R[3][j];
+        double noise = 16.0 * DBL_EPSILON * (r1 * r2 * r3 + r0 * r2 * r3 + r0 * r1 * r3 + r0 * r1 * r2);
+        L->inside[j] = inside & (kabs > noise);
+        L->kabs[j] = kabs;
+        split[j] = 0;
+    }
+    /* The hull faces' weights (outside lanes): the projection's centre num / den. */
+    double num[3][QL], den[QL], PP[4][3][QL], DIR[3][QL];
+    LANES num[0][j] = num[1][j] = num[2][j] = den[j] = 0.0;
+    for (int f = 0; f < 4; ++f) {
+        const int h0 = HULL[f][0], h1 = HULL[f][1], h2 = HULL[f][2];
+        const double ta = qc->hull_two_area[f];
+        const double *q0 = q[h0], *q1 = q[h1], *q2 = q[h2];
+        LANES {
+            double det = LDOT(p[h0], C[h1][h2]);
+            double rmin = MIN2(R[h0][j], MIN2(R[h1][j], R[h2][j]));
+            split[j] |= fabs(det) < SPLIT_FORM_RATIO * rmin * ta;
+            double g12 = G[h1][h2][j], g20 = G[h2][h0][j], g01 = G[h0][h1][j], mt[3];
+#define MT(d) (((0.0 + g12 * C[h1][h2][d][j]) + g20 * C[h2][h0][d][j]) + g01 * C[h0][h1][d][j])
+            mt[0] = MT(0);
+            mt[1] = MT(1);
+            mt[2] = MT(2);
+#undef MT
+            double w0 = (C[h1][h2][0][j] * mt[0] + C[h1][h2][1][j] * mt[1] + C[h1][h2][2][j] * mt[2]) / det;
+            double w1 = (C[h2][h0][0][j] * mt[0] + C[h2][h0][1][j] * mt[1] + C[h2][h0][2][j] * mt[2]) / det;
+            double w2 = (C[h0][h1][0][j] * mt[0] + C[h0][h1][1][j] * mt[1] + C[h0][h1][2][j] * mt[2]) / det;
+            double a0 = fabs(w0), a1 = fabs(w1), a2 = fabs(w2);
+            a0 = a0 <= DBL_MAX ? a0 : 0.0; /* (not finite: none) */
+            a1 = a1 <= DBL_MAX ? a1 : 0.0;
+            a2 = a2 <= DBL_MAX ? a2 : 0.0;
+            double dn = den[j], n0 = num[0][j], n1 = num[1][j], n2 = num[2][j];
+            dn += a0, n0 += a0 * q0[0], n1 += a0 * q0[1], n2 += a0 * q0[2];
+            dn += a1, n0 += a1 * q1[0], n1 += a1 * q1[1], n2 += a1 * q1[2];
+            dn += a2, n0 += a2 * q2[0], n1 += a2 * q2[1], n2 += a2 * q2[2];
+            den[j] = dn, num[0][j] = n0, num[1][j] = n1, num[2][j] = n2;
+        }
+    }
+    for (int i = 0; i < 4; ++i)
+        for (int c = 0; c < 3; ++c) {
+            const double qic = q[i][c];
+            LANES PP[i][c][j] = den[j] > 0 ? qic - num[c][j] / den[j] : p[i][c][j];
+        }
+    /* their mean vector (mean_vector) */
+    double CV[4][3][QL], T4[4][QL], AT4[4][QL], C24[4][QL], CN4[4][QL], DT4[4][QL];
+    for (int i = 0; i < 4; ++i) {
+        const int i1 = (i + 1) & 3;
+        LANES {
+            double c0 = PP[i][1][j] * PP[i1][2][j] - PP[i][2][j] * PP[i1][1][j];
+            double c1 = PP[i][2][j] * PP[i1][0][j] - PP[i][0][j] * PP[i1][2][j];
+            double c2v = PP[i][0][j] * PP[i1][1][j] - PP[i][1][j] * PP[i1][0][j];
+            CV[i][0][j] = c0, CV[i][1][j] = c1, CV[i][2][j] = c2v;
+            double c2 = c0 * c0 + c1 * c1 + c2v * c2v, cn = sqrt(c2), dt = LDOT(PP[i], PP[i1]);
+            double rr = sqrt(LDOT(PP[i], PP[i]) * LDOT(PP[i1], PP[i1]));
+            C24[i][j] = c2, CN4[i][j] = cn, DT4[i][j] = dt;
+            T4[i][j] = cn / (rr + fabs(dt));
+        }
+    }
+    for (int i = 0; i < 4; ++i) LANES AT4[i][j] = atan(T4[i][j]);
+    for (int i = 0; i < 4; ++i) {
+        LANES {
+            double ang = DT4[i][j] < 0 ? M_PI - 2 * AT4[i][j] : 2 * AT4[i][j];
+            T4[i][j] = C24[i][j] > 0 ? 0.5 * ang / CN4[i][j] : 0.0; /* (g) */
+        }
+    }
+    for (int d = 0; d < 3; ++d) {
+        LANES {
+            double s = 0.0;
+            s += C24[0][j] > 0 ? T4[0][j] * CV[0][d][j] : 0.0;
+            s += C24[1][j] > 0 ? T4[1][j] * CV[1][d][j] : 0.0;
+            s += C24[2][j] > 0 ? T4[2][j] * CV[2][d][j] : 0.0;
+            s += C24[3][j] > 0 ? T4[3][j] * CV[3][d][j] : 0.0;
+            DIR[d][j] = L->inside[j] ? L->m[d][j] : s;
+        }
+    }
+    for (int i = 0; i < 4; ++i)
+        for (int c = 0; c < 3; ++c) LANES PP[i][c][j] = L->inside[j] ? p[i][c][j] : PP[i][c][j];
+    /* (u, v) where the line along DIR meets the sheet (intersect), and the on-quad test */
+    LANES {
+        const double A00 = PP[0][0][j], A01 = PP[0][1][j], A02 = PP[0][2][j];
+        const double A10 = PP[3][0][j] - PP[0][0][j], A11 = PP[3][1][j] - PP[0][1][j], A12 = PP[3][2][j] - PP[0][2][j];
+        const double B00 = PP[1][0][j], B01 = PP[1][1][j], B02 = PP[1][2][j];
+        const double B10 = PP[2][0][j] - PP[1][0][j], B11 = PP[2][1][j] - PP[1][1][j], B12 = PP[2][2][j] - PP[1][2][j];
+        const double d0 = DIR[0][j], d1 = DIR[1][j], d2v = DIR[2][j];
+        /* (cross3 and dot3 written out: the vectoriser takes no small arrays here) */
+#define CRD(ax, ay, az, bx, by, bz) \
+    ((ay * bz - az * by) * d0 + (az * bx - ax * bz) * d1 + (ax * by - ay * bx) * d2v)
+        double c0 = CRD(A00, A01, A02, B00, B01, B02);
+        double c1 = CRD(A00, A01, A02, B10, B11, B12) + CRD(A10, A11, A12, B00, B01, B02);
+        double c2 = CRD(A10, A11, A12, B10, B11, B12);
+#undef CRD
+        double disc = c1 * c1 - 4 * c0 * c2;
+        double sq = disc > 0 ? sqrt(disc) : 0.0;
+        double qq = -0.5 * (c1 + (c1 >= 0 ? sq : -sq));
+        double r1 = c2 != 0 ? qq / c2 : 1e300, r2 = qq != 0 ? c0 / qq : 1e300;
+        double v = badness(r1) <= badness(r2) ? r1 : r2;
+        v = v < 0 ? 0 : (v > 1 ? 1 : v);
+        double a0 = A00 + v * A10, a1 = A01 + v * A11, a2 = A02 + v * A12;
+        double e0 = B00 + v * B10 - a0, e1 = B01 + v * B11 - a1, e2 = B02 + v * B12 - a2;
+        double dd2 = d0 * d0 + d1 * d1 + d2v * d2v, inv = dd2 > 0 ? 1.0 / dd2 : 0.0;
+        double ed = (e0 * d0 + e1 * d1 + e2 * d2v) * inv, ad = (a0 * d0 + a1 * d1 + a2 * d2v) * inv;
+        double ep0 = e0 - ed * d0, ep1 = e1 - ed * d1, ep2 = e2 - ed * d2v;
+        double ap0 = a0 - ad * d0, ap1 = a1 - ad * d1, ap2 = a2 - ad * d2v;
+        double ee = ep0 * ep0 + ep1 * ep1 + ep2 * ep2;
+        double u = ee > 0 ? -(ap0 * ep0 + ap1 * ep1 + ap2 * ep2) / ee : 0.5;
+        u = u < 0 ? 0 : (u > 1 ? 1 : u);
+        double xi0 = p[0][0][j] + u * b[0] + v * cc[0] + u * v * dd[0];
+        double xi1 = p[0][1][j] + u * b[1] + v * cc[1] + u * v * dd[1];
+        double xi2 = p[0][2][j] + u * b[2] + v * cc[2] + u * v * dd[2];
+        L->u[j] = u;
+        L->v[j] = v;
+        L->on[j] = xi0 * xi0 + xi1 * xi1 + xi2 * xi2 <= ON_QUAD_BAND * ON_QUAD_BAND * tol * tol;
+        L->redo[j] = vert[j] | flat[j] | (split[j] & !L->inside[j]);
+    }
+#undef LDOT
+}
+
+/* One pair's contribution to the point's raw weights w (the body of tc_qmvc3d's pair loop): 1 when the
+ * point is on the quad (w then final), else 0. */
+static inline int pair_weights(long V, const int *qi, const quad_const *qc, const quad_pair *qp, double sizeq,
+                               double qtol, const double *gl, int n, const double *sk, double *un, double *w) {
+    if (qp->vertex >= 0) {
+        memset(w, 0, sizeof(double) * (size_t)V);
+        w[qi[qp->vertex]] = 1.0;
+        return 1;
+    }
+    const double(*p)[3] = qp->p, (*rows)[3] = qp->rows, *m = qp->m, *k = qp->k, *R = qp->R;
+    const double *b = qp->b, *cc = qp->cc, *dd = qp->dd, *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
+    double D = qp->D, kabs = qp->kabs, u = qp->u, v = qp->v;
+    int flat = qp->flat, inside = qp->inside;
+    if (qp->on) {
+        memset(w, 0, sizeof(double) * (size_t)V);
+        w[qi[0]] += (1 - u) * (1 - v);
+        w[qi[1]] += u * (1 - v);
+        w[qi[2]] += u * v;
+        w[qi[3]] += (1 - u) * v;
+        return 1;
+    }
+    if (flat) return 0; /* a planar quad seen edge-on: no weight */
+    double beta = far_blend(R, sizeq), wg[4], om[4];
+    if (qtol > 0) {
+        tc_quad_integrals(p[0], b, cc, dd, u, v, 0, qtol, gl, 0, om);
+        for (int i = 0; i < 4; ++i) wg[i] = om[i];
+    } else if (beta > 0) {
+        gauss_weights(p[0], b, cc, dd, N0, Nu, Nv, wg);
+    }
+    if (beta >= 1) { /* seen small: the Gauss rule alone */
+        for (int i = 0; i < 4; ++i) w[qi[i]] += wg[i];
+        return 0;
+    }
+    /* Least-norm solution, one refinement step (Eqs. 20, 28). */
+    double invD = 1.0 / D, wb[4], res[3];
+    for (int i = 0; i < 4; ++i) wb[i] = dot3(rows[i], m) * invD;
+    for (int c = 0; c < 3; ++c)
+        res[c] = m[c] - (wb[0] * p[0][c] + wb[1] * p[1][c] + wb[2] * p[2][c] + wb[3] * p[3][c]);
+    for (int i = 0; i < 4; ++i) wb[i] += dot3(rows[i], res) * invD;
+    if (qtol <= 0) riemann_sums(p[0], b, cc, dd, N0, Nu, Nv, u, v, n, sk, un, om);
+    double ok = 0, ow = 0, ww = 0;
+    for (int i = 0; i < 4; ++i) {
+        ok += om[i] * k[i];
+        ow += om[i] * wb[i];
+        ww += wb[i] * wb[i];
+    }
+    double lam = qtol > 0 ? ok * invD : (ow != 0 ? ok * invD * ww / ow : 0.0);
+    double wq[4];
+    for (int i = 0; i < 4; ++i) wq[i] = wb[i] + lam * k[i];
+    double Rmax = MAX2(MAX2(R[0], R[1]), MAX2(R[2], R[3]));
+    int near_flat = !inside && kabs < NEAR_FLAT * sizeq * sizeq * Rmax;
+    if (near_flat) {
+        /* Near a flat quad's plane: least-norm solution from the split triangles' stable
+         * weights (see _near_flat_weights in _qmvc3d.py). */
+        double t1[3], t2[3], wp[4];
+        triangle_weights(p[0], p[1], p[2], t1);
+        triangle_weights(p[0], p[2], p[3], t2);
+        wp[0] = t1[0] + t2[0];
+        wp[1] = t1[1];
+        wp[2] = t1[2] + t2[1];
+        wp[3] = t2[2];
+        if (isfinite(wp[0] + wp[1] + wp[2] + wp[3])) {
+            double invn = 1.0 / sqrt(D), kh[4], pk = 0, okh = 0, ow2 = 0, ww2 = 0, wb2[4];
+            for (int i = 0; i < 4; ++i) {
+                kh[i] = k[i] * invn;
+                pk += wp[i] * kh[i];
+            }
+            for (int i = 0; i < 4; ++i) {
+                wb2[i] = wp[i] - pk * kh[i];
+                okh += om[i] * kh[i];
+                ow2 += om[i] * wb2[i];
+                ww2 += wb2[i] * wb2[i];
+            }
+            double lam2 = qtol > 0 ? okh : (ow2 != 0 ? okh * ww2 / ow2 : 0.0);
+            for (int i = 0; i < 4; ++i) wq[i] = wb2[i] + lam2 * kh[i];
+            for (int it = 0; it < REFINE; ++it) {
+                for (int c = 0; c < 3; ++c)
+                    res[c] = (wp[0] - wq[0]) * p[0][c] + (wp[1] - wq[1]) * p[1][c] +
+                             (wp[2] - wq[2]) * p[2][c] + (wp[3] - wq[3]) * p[3][c];
+                for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
+            }
+            for (int i = 0; i < 4; ++i) w[qi[i]] += beta > 0 ? (1 - beta) * wq[i] + beta * wg[i] : wq[i];
+            return 0;
+        }
+    }
+    /* Restore A w = m (kappa's rounding error is amplified by a large lambda). */
+    for (int it = 0; it < REFINE; ++it) {
+        for (int c = 0; c < 3; ++c)
+            res[c] = m[c] - (wq[0] * p[0][c] + wq[1] * p[1][c] + wq[2] * p[2][c] + wq[3] * p[3][c]);
+        for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
+    }
+    for (int i = 0; i < 4; ++i) w[qi[i]] += beta > 0 ? (1 - beta) * wq[i] + beta * wg[i] : wq[i];
+    return 0;
+}
+
 /*
  * P: (V, 3) vertices; quads: (Q, 4) int32; size: (Q,) longest edge or diagonal; X: (npts, 3) points;
  * tol: absolute on-cage tolerance; n: grid parameter; qtol > 0: the defining integrals to this relative
@@ -473,114 +780,93 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
     {
         double *un = (double *)malloc(sizeof(double) * (4 * (size_t)KP + (size_t)K)), *sk = un + 4 * KP;
         for (int k = 0; k < K; ++k) sk[k] = (double)k / n;
+        if (qtol > 0 || !QC) {
 #pragma omp for schedule(dynamic, 16)
-        for (long pt = 0; pt < npts; ++pt) {
-            double *w = W + pt * V;
-            if (on[pt]) continue;
-            const double *x = X + 3 * pt;
-            for (long q = 0; q < Q && !on[pt]; ++q) {
-                const int *qi = quads + 4 * q;
-                quad_pair qp;
-                quad_const qloc;
-                const quad_const *qc = QC ? QC + q : (tc_quad_const(P, qi, &qloc), &qloc);
-                /* The projection serves only the first split of the quadrature and the on-quad
-                 * test: a quad integrated whole is far from the point (see tc_quad_whole). */
-                int project = !(qtol > 0) || !tc_quad_whole(P, qi, x, qtol);
-                tc_quad_pair_c(P, qi, qc, x, tol, project, &qp);
-                if (qp.vertex >= 0) {
-                    memset(w, 0, sizeof(double) * (size_t)V);
-                    w[qi[qp.vertex]] = 1.0;
-                    on[pt] = 1;
-                    break;
-                }
-                double(*p)[3] = qp.p, (*rows)[3] = qp.rows, *m = qp.m, *k = qp.k, *R = qp.R;
-                const double *b = qp.b, *cc = qp.cc, *dd = qp.dd, *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
-                double D = qp.D, kabs = qp.kabs, u = qp.u, v = qp.v;
-                int flat = qp.flat, inside = qp.inside;
-                if (qp.on) {
-                    memset(w, 0, sizeof(double) * (size_t)V);
-                    w[qi[0]] += (1 - u) * (1 - v);
-                    w[qi[1]] += u * (1 - v);
-                    w[qi[2]] += u * v;
-                    w[qi[3]] += (1 - u) * v;
-                    on[pt] = 1;
-                    break;
-                }
-                if (flat) continue; /* a planar quad seen edge-on: no weight */
-                double beta = far_blend(R, size[q]), wg[4], om[4];
-                if (qtol > 0) {
-                    tc_quad_integrals(p[0], b, cc, dd, u, v, 0, qtol, gl, 0, om);
-                    for (int i = 0; i < 4; ++i) wg[i] = om[i];
-                } else if (beta > 0) {
-                    gauss_weights(p[0], b, cc, dd, N0, Nu, Nv, wg);
-                }
-                if (beta >= 1) { /* seen small: the Gauss rule alone */
-                    for (int i = 0; i < 4; ++i) w[qi[i]] += wg[i];
-                    continue;
-                }
-                /* Least-norm solution, one refinement step (Eqs. 20, 28). */
-                double invD = 1.0 / D, wb[4], res[3];
-                for (int i = 0; i < 4; ++i) wb[i] = dot3(rows[i], m) * invD;
-                for (int c = 0; c < 3; ++c)
-                    res[c] = m[c] - (wb[0] * p[0][c] + wb[1] * p[1][c] + wb[2] * p[2][c] + wb[3] * p[3][c]);
-                for (int i = 0; i < 4; ++i) wb[i] += dot3(rows[i], res) * invD;
-                if (qtol <= 0) riemann_sums(p[0], b, cc, dd, N0, Nu, Nv, u, v, n, sk, un, om);
-                double ok = 0, ow = 0, ww = 0;
-                for (int i = 0; i < 4; ++i) {
-                    ok += om[i] * k[i];
-                    ow += om[i] * wb[i];
-                    ww += wb[i] * wb[i];
-                }
-                double lam = qtol > 0 ? ok * invD : (ow != 0 ? ok * invD * ww / ow : 0.0);
-                double wq[4];
-                for (int i = 0; i < 4; ++i) wq[i] = wb[i] + lam * k[i];
-                double Rmax = MAX2(MAX2(R[0], R[1]), MAX2(R[2], R[3]));
-                int near_flat = !inside && kabs < NEAR_FLAT * size[q] * size[q] * Rmax;
-                if (near_flat) {
-                    /* Near a flat quad's plane: least-norm solution from the split triangles' stable
-                     * weights (see _near_flat_weights in _qmvc3d.py). */
-                    double t1[3], t2[3], wp[4];
-                    triangle_weights(p[0], p[1], p[2], t1);
-                    triangle_weights(p[0], p[2], p[3], t2);
-                    wp[0] = t1[0] + t2[0];
-                    wp[1] = t1[1];
-                    wp[2] = t1[2] + t2[1];
-                    wp[3] = t2[2];
-                    if (isfinite(wp[0] + wp[1] + wp[2] + wp[3])) {
-                        double invn = 1.0 / sqrt(D), kh[4], pk = 0, okh = 0, ow2 = 0, ww2 = 0, wb2[4];
-                        for (int i = 0; i < 4; ++i) {
-                            kh[i] = k[i] * invn;
-                            pk += wp[i] * kh[i];
-                        }
-                        for (int i = 0; i < 4; ++i) {
-                            wb2[i] = wp[i] - pk * kh[i];
-                            okh += om[i] * kh[i];
-                            ow2 += om[i] * wb2[i];
-                            ww2 += wb2[i] * wb2[i];
-                        }
-                        double lam2 = qtol > 0 ? okh : (ow2 != 0 ? okh * ww2 / ow2 : 0.0);
-                        for (int i = 0; i < 4; ++i) wq[i] = wb2[i] + lam2 * kh[i];
-                        for (int it = 0; it < REFINE; ++it) {
-                            for (int c = 0; c < 3; ++c)
-                                res[c] = (wp[0] - wq[0]) * p[0][c] + (wp[1] - wq[1]) * p[1][c] +
-                                         (wp[2] - wq[2]) * p[2][c] + (wp[3] - wq[3]) * p[3][c];
-                            for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
-                        }
-                        for (int i = 0; i < 4; ++i) w[qi[i]] += beta > 0 ? (1 - beta) * wq[i] + beta * wg[i] : wq[i];
-                        continue;
+            for (long pt = 0; pt < npts; ++pt) {
+                double *w = W + pt * V;
+                if (on[pt]) continue;
+                const double *x = X + 3 * pt;
+                for (long q = 0; q < Q && !on[pt]; ++q) {
+                    const int *qi = quads + 4 * q;
+                    quad_pair qp;
+                    quad_const qloc;
+                    const quad_const *qc = QC ? QC + q : (tc_quad_const(P, qi, &qloc), &qloc);
+                    /* The projection serves only the first split of the quadrature and the on-quad
+                     * test: a quad integrated whole is far from the point (see tc_quad_whole). */
+                    int project = !(qtol > 0) || !tc_quad_whole(P, qi, x, qtol);
+                    tc_quad_pair_c(P, qi, qc, x, tol, project, &qp);
+                    if (pair_weights(V, qi, qc, &qp, size[q], qtol, gl, n, sk, un, w)) {
+                        on[pt] = 1;
+                        break;
                     }
                 }
-                /* Restore A w = m (kappa's rounding error is amplified by a large lambda). */
-                for (int it = 0; it < REFINE; ++it) {
-                    for (int c = 0; c < 3; ++c)
-                        res[c] = m[c] - (wq[0] * p[0][c] + wq[1] * p[1][c] + wq[2] * p[2][c] + wq[3] * p[3][c]);
-                    for (int i = 0; i < 4; ++i) wq[i] += dot3(rows[i], res) * invD;
-                }
-                for (int i = 0; i < 4; ++i) w[qi[i]] += beta > 0 ? (1 - beta) * wq[i] + beta * wg[i] : wq[i];
+                if (on[pt]) continue;
+                double inv = 1.0 / tc_mv_total(w, V, P, 3, 1, 3, x, centre, far2);
+                for (long c = 0; c < V; ++c) w[c] *= inv;
             }
-            if (on[pt]) continue;
-            double inv = 1.0 / tc_mv_total(w, V, P, 3, 1, 3, x, centre, far2);
-            for (long c = 0; c < V; ++c) w[c] *= inv;
+        } else {
+            /* The Riemann form: QL points for one quad side by side (quad_pair_lanes), then each
+             * lane's pair as above. */
+            const long nblk = (npts + QL - 1) / QL;
+#pragma omp for schedule(dynamic, 4)
+            for (long blk = 0; blk < nblk; ++blk) {
+                const long p0 = blk * QL;
+                const int nl = npts - p0 < QL ? (int)(npts - p0) : QL;
+                int act[QL], nact = 0;
+                for (int j = 0; j < QL; ++j) {
+                    act[j] = j < nl && !on[p0 + j];
+                    nact += act[j];
+                }
+                quad_lanes L;
+                for (long q = 0; q < Q && nact > 0; ++q) {
+                    const int *qi = quads + 4 * q;
+                    const quad_const *qc = QC + q;
+                    quad_pair_lanes(P, qi, qc, X + 3 * p0, nl, tol, &L);
+                    for (int j = 0; j < nl; ++j) {
+                        if (!act[j]) continue;
+                        const long pt = p0 + j;
+                        quad_pair qp;
+                        if (L.redo[j]) {
+                            tc_quad_pair_c(P, qi, qc, X + 3 * pt, tol, 1, &qp);
+                        } else {
+                            for (int i = 0; i < 4; ++i) {
+                                for (int c = 0; c < 3; ++c) {
+                                    qp.p[i][c] = L.p[i][c][j];
+                                    qp.rows[i][c] = L.rows[i][c][j];
+                                }
+                                qp.R[i] = L.R[i][j];
+                                qp.k[i] = L.k[i][j];
+                            }
+                            for (int c = 0; c < 3; ++c) {
+                                qp.m[c] = L.m[c][j];
+                                qp.b[c] = qc->b[c];
+                                qp.cc[c] = qc->cc[c];
+                                qp.dd[c] = qc->dd[c];
+                            }
+                            qp.D = L.D[j];
+                            qp.kabs = L.kabs[j];
+                            qp.u = L.u[j];
+                            qp.v = L.v[j];
+                            qp.flat = 0;
+                            qp.inside = L.inside[j];
+                            qp.vertex = -1;
+                            qp.on = L.on[j];
+                        }
+                        if (pair_weights(V, qi, qc, &qp, size[q], qtol, gl, n, sk, un, W + pt * V)) {
+                            on[pt] = 1;
+                            act[j] = 0;
+                            --nact;
+                        }
+                    }
+                }
+                for (int j = 0; j < nl; ++j) {
+                    const long pt = p0 + j;
+                    if (on[pt]) continue;
+                    double *w = W + pt * V;
+                    double inv = 1.0 / tc_mv_total(w, V, P, 3, 1, 3, X + 3 * pt, centre, far2);
+                    for (long c = 0; c < V; ++c) w[c] *= inv;
+                }
+            }
         }
         free(un);
     }
