@@ -664,10 +664,80 @@ static void quad_pair_lanes(const double *P, const int *qi, const quad_const *qc
 #undef LDOT
 }
 
+/* riemann_sums for the QL lanes of quad_pair_lanes (their p0, u, v) side by side, the same sums in the
+ * same order lane by lane (the zero-weight lanes of riemann_sums add nothing). ln: 4 (2 n + 1) QL
+ * scratch; om: (4, QL). */
+static void riemann_lanes(const quad_const *qc, const quad_lanes *L, int n, const double *sk, double *ln,
+                          double om[4][QL]) {
+    const int K = 2 * n + 1;
+    double(*un)[QL] = (double(*)[QL])ln, (*ua)[QL] = un + K, (*vn)[QL] = ua + K, (*va)[QL] = vn + K;
+    const double *b = qc->b, *cc = qc->cc, *dd = qc->dd, *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
+    for (int k = 0; k < K; ++k) {
+        const double s = sk[k];
+        LANES {
+            un[k][j] = s <= 1 ? s * L->u[j] : L->u[j] + (s - 1) * (1 - L->u[j]);
+            vn[k][j] = s <= 1 ? s * L->v[j] : L->v[j] + (s - 1) * (1 - L->v[j]);
+        }
+    }
+    for (int k = 0; k < K; ++k) {
+        const int hi = k + 1 < K ? k + 1 : K - 1, lo = k > 0 ? k - 1 : 0;
+        LANES {
+            ua[k][j] = (un[hi][j] - un[lo][j]) / 2;
+            va[k][j] = (vn[hi][j] - vn[lo][j]) / 2;
+        }
+    }
+    double S[QL], Su[QL], Sv[QL], Suv[QL];
+    LANES S[j] = Su[j] = Sv[j] = Suv[j] = 0.0;
+    for (int a = 0; a < K; ++a) {
+        double Px[QL], Py[QL], Pz[QL], Qx[QL], Qy[QL], Qz[QL], Rx[QL], Ry[QL], Rz[QL], s0[4][QL], s1[4][QL];
+        LANES {
+            const double uu = un[a][j];
+            Px[j] = L->p[0][0][j] + uu * b[0];
+            Py[j] = L->p[0][1][j] + uu * b[1];
+            Pz[j] = L->p[0][2][j] + uu * b[2];
+            Qx[j] = cc[0] + uu * dd[0];
+            Qy[j] = cc[1] + uu * dd[1];
+            Qz[j] = cc[2] + uu * dd[2];
+            Rx[j] = N0[0] + uu * Nu[0];
+            Ry[j] = N0[1] + uu * Nu[1];
+            Rz[j] = N0[2] + uu * Nu[2];
+            s0[0][j] = s0[1][j] = s0[2][j] = s0[3][j] = 0.0;
+            s1[0][j] = s1[1][j] = s1[2][j] = s1[3][j] = 0.0;
+        }
+        for (int l = 0; l < K; ++l) {
+            double *t0 = s0[l & 3], *t1 = s1[l & 3];
+            LANES {
+                double vv = vn[l][j];
+                double d0 = Px[j] + vv * Qx[j], d1 = Py[j] + vv * Qy[j], d2 = Pz[j] + vv * Qz[j];
+                double r2 = d0 * d0 + d1 * d1 + d2 * d2;
+                double Nd = (Rx[j] + vv * Nv[0]) * d0 + (Ry[j] + vv * Nv[1]) * d1 + (Rz[j] + vv * Nv[2]) * d2;
+                double f = Nd * va[l][j] / (r2 * r2);
+                t0[j] += f;
+                t1[j] += f * vv;
+            }
+        }
+        LANES {
+            double acc0 = ((s0[0][j] + s0[1][j]) + (s0[2][j] + s0[3][j])) * ua[a][j];
+            double acc1 = ((s1[0][j] + s1[1][j]) + (s1[2][j] + s1[3][j])) * ua[a][j];
+            S[j] += acc0;
+            Sv[j] += acc1;
+            Su[j] += un[a][j] * acc0;
+            Suv[j] += un[a][j] * acc1;
+        }
+    }
+    LANES {
+        om[0][j] = S[j] - Su[j] - Sv[j] + Suv[j];
+        om[1][j] = Su[j] - Suv[j];
+        om[2][j] = Suv[j];
+        om[3][j] = Sv[j] - Suv[j];
+    }
+}
+
 /* One pair's contribution to the point's raw weights w (the body of tc_qmvc3d's pair loop): 1 when the
  * point is on the quad (w then final), else 0. */
 static inline int pair_weights(long V, const int *qi, const quad_const *qc, const quad_pair *qp, double sizeq,
-                               double qtol, const double *gl, int n, const double *sk, double *un, double *w) {
+                               double qtol, const double *gl, int n, const double *sk, double *un, const double *om_in,
+                               double *w) {
     if (qp->vertex >= 0) {
         memset(w, 0, sizeof(double) * (size_t)V);
         w[qi[qp->vertex]] = 1.0;
@@ -703,7 +773,12 @@ static inline int pair_weights(long V, const int *qi, const quad_const *qc, cons
     for (int c = 0; c < 3; ++c)
         res[c] = m[c] - (wb[0] * p[0][c] + wb[1] * p[1][c] + wb[2] * p[2][c] + wb[3] * p[3][c]);
     for (int i = 0; i < 4; ++i) wb[i] += dot3(rows[i], res) * invD;
-    if (qtol <= 0) riemann_sums(p[0], b, cc, dd, N0, Nu, Nv, u, v, n, sk, un, om);
+    if (qtol <= 0) {
+        if (om_in)
+            for (int i = 0; i < 4; ++i) om[i] = om_in[i];
+        else
+            riemann_sums(p[0], b, cc, dd, N0, Nu, Nv, u, v, n, sk, un, om);
+    }
     double ok = 0, ow = 0, ww = 0;
     for (int i = 0; i < 4; ++i) {
         ok += om[i] * k[i];
@@ -778,7 +853,8 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
         for (long q = 0; q < Q; ++q) tc_quad_const(P, quads + 4 * q, QC + q);
 #pragma omp parallel num_threads(nthreads)
     {
-        double *un = (double *)malloc(sizeof(double) * (4 * (size_t)KP + (size_t)K)), *sk = un + 4 * KP;
+        double *un = (double *)malloc(sizeof(double) * (4 * (size_t)KP + (size_t)K + 4 * (size_t)K * QL));
+        double *sk = un + 4 * KP, *ln = sk + K;
         for (int k = 0; k < K; ++k) sk[k] = (double)k / n;
         if (qtol > 0 || !QC) {
 #pragma omp for schedule(dynamic, 16)
@@ -795,7 +871,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                      * test: a quad integrated whole is far from the point (see tc_quad_whole). */
                     int project = !(qtol > 0) || !tc_quad_whole(P, qi, x, qtol);
                     tc_quad_pair_c(P, qi, qc, x, tol, project, &qp);
-                    if (pair_weights(V, qi, qc, &qp, size[q], qtol, gl, n, sk, un, w)) {
+                    if (pair_weights(V, qi, qc, &qp, size[q], qtol, gl, n, sk, un, NULL, w)) {
                         on[pt] = 1;
                         break;
                     }
@@ -822,6 +898,10 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                     const int *qi = quads + 4 * q;
                     const quad_const *qc = QC + q;
                     quad_pair_lanes(P, qi, qc, X + 3 * p0, nl, tol, &L);
+                    double om4[4][QL], omr[QL][4];
+                    riemann_lanes(qc, &L, n, sk, ln, om4);
+                    for (int j = 0; j < QL; ++j)
+                        for (int i = 0; i < 4; ++i) omr[j][i] = om4[i][j];
                     for (int j = 0; j < nl; ++j) {
                         if (!act[j]) continue;
                         const long pt = p0 + j;
@@ -852,7 +932,7 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                             qp.vertex = -1;
                             qp.on = L.on[j];
                         }
-                        if (pair_weights(V, qi, qc, &qp, size[q], qtol, gl, n, sk, un, W + pt * V)) {
+                        if (pair_weights(V, qi, qc, &qp, size[q], qtol, gl, n, sk, un, L.redo[j] ? NULL : omr[j], W + pt * V)) {
                             on[pt] = 1;
                             act[j] = 0;
                             --nact;
