@@ -736,6 +736,58 @@ static void riemann_lanes(const quad_const *qc, const quad_lanes *L, int n, cons
     }
 }
 
+/* pair_weights' common case for the lanes of quad_pair_lanes and riemann_lanes (the same operations
+ * in the same order lane by lane): off the quad, not flat, the quad not seen small (no Gauss blend)
+ * and not near its plane. WQ: (4, QL) the quad's weights of the lanes with simple set; the others are
+ * left to pair_weights. */
+static void pair_lanes(const quad_lanes *L, double om[4][QL], double sizeq, double WQ[4][QL], int *simple) {
+    LANES {
+        const double invD = 1.0 / L->D[j];
+        double wb[4], res[3], wq[4];
+#define ROWDOT(i, v0, v1, v2) (L->rows[i][0][j] * (v0) + L->rows[i][1][j] * (v1) + L->rows[i][2][j] * (v2))
+#define AW(w, c) (w[0] * L->p[0][c][j] + w[1] * L->p[1][c][j] + w[2] * L->p[2][c][j] + w[3] * L->p[3][c][j])
+        const double m0 = L->m[0][j], m1 = L->m[1][j], m2 = L->m[2][j];
+        wb[0] = ROWDOT(0, m0, m1, m2) * invD;
+        wb[1] = ROWDOT(1, m0, m1, m2) * invD;
+        wb[2] = ROWDOT(2, m0, m1, m2) * invD;
+        wb[3] = ROWDOT(3, m0, m1, m2) * invD;
+        res[0] = m0 - AW(wb, 0);
+        res[1] = m1 - AW(wb, 1);
+        res[2] = m2 - AW(wb, 2);
+        wb[0] += ROWDOT(0, res[0], res[1], res[2]) * invD;
+        wb[1] += ROWDOT(1, res[0], res[1], res[2]) * invD;
+        wb[2] += ROWDOT(2, res[0], res[1], res[2]) * invD;
+        wb[3] += ROWDOT(3, res[0], res[1], res[2]) * invD;
+        const double k0 = L->k[0][j], k1 = L->k[1][j], k2 = L->k[2][j], k3 = L->k[3][j];
+        double ok = 0, ow = 0, ww = 0;
+        ok += om[0][j] * k0, ow += om[0][j] * wb[0], ww += wb[0] * wb[0];
+        ok += om[1][j] * k1, ow += om[1][j] * wb[1], ww += wb[1] * wb[1];
+        ok += om[2][j] * k2, ow += om[2][j] * wb[2], ww += wb[2] * wb[2];
+        ok += om[3][j] * k3, ow += om[3][j] * wb[3], ww += wb[3] * wb[3];
+        const double lam = ow != 0 ? ok * invD * ww / ow : 0.0;
+        wq[0] = wb[0] + lam * k0;
+        wq[1] = wb[1] + lam * k1;
+        wq[2] = wb[2] + lam * k2;
+        wq[3] = wb[3] + lam * k3;
+        const double R0 = L->R[0][j], R1 = L->R[1][j], R2 = L->R[2][j], R3 = L->R[3][j];
+        const double Rmax = MAX2(MAX2(R0, R1), MAX2(R2, R3)), rmin = MIN2(MIN2(R0, R1), MIN2(R2, R3));
+        const int near_flat = !L->inside[j] && L->kabs[j] < NEAR_FLAT * sizeq * sizeq * Rmax;
+        simple[j] = !L->redo[j] & !L->on[j] & !near_flat & !(rmin / sizeq > 31.6); /* (far_blend: 0) */
+        for (int it = 0; it < REFINE; ++it) {
+            res[0] = m0 - AW(wq, 0);
+            res[1] = m1 - AW(wq, 1);
+            res[2] = m2 - AW(wq, 2);
+            wq[0] += ROWDOT(0, res[0], res[1], res[2]) * invD;
+            wq[1] += ROWDOT(1, res[0], res[1], res[2]) * invD;
+            wq[2] += ROWDOT(2, res[0], res[1], res[2]) * invD;
+            wq[3] += ROWDOT(3, res[0], res[1], res[2]) * invD;
+        }
+        WQ[0][j] = wq[0], WQ[1][j] = wq[1], WQ[2][j] = wq[2], WQ[3][j] = wq[3];
+#undef ROWDOT
+#undef AW
+    }
+}
+
 /* One pair's contribution to the point's raw weights w (the body of tc_qmvc3d's pair loop): 1 when the
  * point is on the quad (w then final), else 0. */
 static inline int pair_weights(long V, const int *qi, const quad_const *qc, const quad_pair *qp, double sizeq,
@@ -905,9 +957,17 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                     riemann_lanes(qc, &L, n, sk, ln, om4);
                     for (int j = 0; j < QL; ++j)
                         for (int i = 0; i < 4; ++i) omr[j][i] = om4[i][j];
+                    double WQ[4][QL];
+                    int simple[QL];
+                    pair_lanes(&L, om4, size[q], WQ, simple);
                     for (int j = 0; j < nl; ++j) {
                         if (!act[j]) continue;
                         const long pt = p0 + j;
+                        if (simple[j]) {
+                            double *w = W + pt * V;
+                            for (int i = 0; i < 4; ++i) w[qi[i]] += WQ[i][j];
+                            continue;
+                        }
                         quad_pair qp;
                         if (L.redo[j]) {
                             tc_quad_pair_c(P, qi, qc, X + 3 * pt, tol, 1, &qp);
