@@ -219,12 +219,20 @@ long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, do
 
 /* Per point-quad quantities of quad mean value and quad Green coordinates (qmvc3d.c). */
 typedef struct {
-    double p[4][3], R[4], m[3], k[4], rows[4][3], b[3], cc[3], dd[3], N0[3], Nu[3], Nv[3];
+    double p[4][3], R[4], m[3], k[4], rows[4][3], b[3], cc[3], dd[3];
     double D, kabs, u, v;
     int flat, inside, vertex, on;
 } quad_pair;
 void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, int project,
                   quad_pair *qp);
+/* The per-quad part of tc_quad_pair (independent of the point): compute once per quad, then
+ * tc_quad_pair_c per point. */
+typedef struct {
+    double b[3], cc[3], dd[3], N0[3], Nu[3], Nv[3], nq[3], area2, hull_two_area[4];
+} quad_const;
+void tc_quad_const(const double *P, const int *qi, quad_const *qc);
+void tc_quad_pair_c(const double *P, const int *qi, const quad_const *qc, const double *x, double tol, int project,
+                    quad_pair *qp);
 
 /* The four corner integrals of a bilinear quad (xi - x = p0 + u b + v cc + u v dd) to the relative
  * tolerance tol (quadrature.c), or with green the eight of quad Green coordinates (without 1 / 4 pi);

@@ -162,6 +162,10 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         free(ga);
     }
     const double inv4pi = 1.0 / FOUR_PI;
+    /* The quads' point-independent constants, once (without the table, per pair). */
+    quad_const *QC = (quad_const *)malloc(sizeof(quad_const) * (size_t)(Q > 0 ? Q : 1));
+    if (QC)
+        for (long q = 0; q < Q; ++q) tc_quad_const(P, quads + 4 * q, QC + q);
 #pragma omp parallel num_threads(nthreads)
     {
         double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)G * G + 2 * (size_t)NE));
@@ -179,7 +183,9 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             for (long q = 0; q < Q; ++q) {
                 const int *qi = quads + 4 * q;
                 quad_pair qp;
-                tc_quad_pair(P, qi, x, size[q], tol, 1, &qp);
+                quad_const qloc;
+                const quad_const *qc = QC ? QC + q : (tc_quad_const(P, qi, &qloc), &qloc);
+                tc_quad_pair_c(P, qi, qc, x, tol, 1, &qp);
                 double u = qp.u, v = qp.v;
                 if (qp.on && ONQ[pt] < 0) { /* (a corner: its Lagrange values) */
                     ONQ[pt] = (int)q;
@@ -269,7 +275,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                         Sz[g] = sz;
                         SR[g] = sqrt(sx * sx + sy * sy + sz * sz);
                     }
-                    const double *N0 = qp.N0, *Nu = qp.Nu, *Nv = qp.Nv;
+                    const double *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
                     /* Edges: int dl / r (tc_edge_log_arg, then the logs in a loop of their own, vectorised
                      * with libmvec) and 1 / length. */
 #pragma omp simd
@@ -368,6 +374,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         free(sbuf);
     }
     tc_gc_free(&sg);
+    free(QC);
     free(node);
     free(EJ);
     free(UA);
