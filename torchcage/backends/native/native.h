@@ -223,10 +223,8 @@ typedef struct {
     double D, kabs, u, v;
     int flat, inside, vertex, on;
 } quad_pair;
-void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, int project,
-                  quad_pair *qp);
-/* The per-quad part of tc_quad_pair (independent of the point): compute once per quad, then
- * tc_quad_pair_c per point. */
+/* The per-quad part of the pair quantities (independent of the point): tc_quad_const once per quad,
+ * then tc_quad_pair_c per point. */
 typedef struct {
     double b[3], cc[3], dd[3], N0[3], Nu[3], Nv[3], nq[3], area2, hull_two_area[4];
 } quad_const;

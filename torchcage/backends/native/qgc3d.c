@@ -2,7 +2,7 @@
  * Native CPU kernel of the quad part of torchcage's Green coordinates for triquad cages (float64).
  *
  * The same steps as torchcage/families/quad_green/kernel.py (see its docstring): per point and quad, the
- * smooth projection (tc_quad_pair, shared with QMVC), the invariants from exact triangle Green
+ * smooth projection (tc_quad_pair_c, shared with QMVC), the invariants from exact triangle Green
  * integrals (outside the quad's tetrahedron on its split triangles, computed for all quads at once
  * per point by tc_gc_point; inside it on the fan of four triangles from the projection to the
  * edges, tc_tri_green), the least-norm solution through the precomputed pseudo-inverse of A_q, and
@@ -87,6 +87,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
               const double *s_two_area, const double *s_ell, const double *s_edir, const double *s_eout,
               const double *s_gbary) {
     const int G = 2 * K + 1;
+    (void)size; /* (in the ABI; the per-quad table holds what the pairs need) */
     /* The split triangles (q0 q1 q2), (q0 q2 q3) of every quad (2q, 2q + 1), as a set for the
      * Green kernel: per point, their integrals in one vectorised pass (tc_gc_point). */
     const long T2 = 2 * Q;

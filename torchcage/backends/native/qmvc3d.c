@@ -324,14 +324,6 @@ void tc_quad_const(const double *P, const int *qi, quad_const *qc) {
     }
 }
 
-void tc_quad_pair(const double *P, const int *qi, const double *x, double size, double tol, int project,
-                  quad_pair *qp) {
-    quad_const qc;
-    (void)size;
-    tc_quad_const(P, qi, &qc);
-    tc_quad_pair_c(P, qi, &qc, x, tol, project, qp);
-}
-
 void tc_quad_pair_c(const double *P, const int *qi, const quad_const *qc, const double *x, double tol, int project,
                     quad_pair *qp) {
     double p[4][3], R2[4];
