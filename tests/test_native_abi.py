@@ -110,3 +110,14 @@ def test_a_missing_argument_is_named() -> None:
 def test_optional_outputs_may_be_null() -> None:
     sig = {a.name: a for a in abi.SIGNATURES["tc_gc3d"]}
     assert sig["ONF"].optional and sig["AL"].optional and not sig["PHI"].optional
+
+
+def test_a_failed_workspace_becomes_a_memory_error() -> None:
+    """The kernels mark a failed allocation by NaN outputs; the glue turns it into a MemoryError that
+    names the kernel and the remedies, and lets filled outputs (and empty ones) through."""
+    from torchcage.backends.native import check_workspace
+
+    check_workspace(torch.zeros(3, 4), "quad mean value")
+    check_workspace(torch.empty(0, 4), "quad mean value")
+    with pytest.raises(MemoryError, match=r"quad Green kernel .*\(about 2 MB per thread\).*set_num_threads"):
+        check_workspace(torch.full((3, 4), float("nan")), "quad Green", "about 2 MB per thread")

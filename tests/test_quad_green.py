@@ -261,5 +261,7 @@ def test_module_batches_state_dict_and_errors():
         torchcage.QuadGreenCoordinates(cage, x, correction="lipman")
     with pytest.raises(ValueError, match="positive integer"):
         F.quad_green_coordinates(x, cage, n=0)
+    with pytest.raises(ValueError, match=r"past 10000.*tol="):  # (the kernels' C ints and scratch stay bounded)
+        F.quad_green_coordinates(x, cage, n=10_001)
     with pytest.raises(ValueError, match="shape"):
         m(poses[..., :2])

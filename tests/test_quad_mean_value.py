@@ -233,6 +233,8 @@ def test_errors_and_inputs_untouched():
     assert torch.equal(x, before)
     with pytest.raises(ValueError, match="positive integer"):
         F.quad_mean_value_coordinates(x, cage, n=0)
+    with pytest.raises(ValueError, match=r"past 10000.*tol="):  # (the kernels' C ints and scratch stay bounded)
+        F.quad_mean_value_coordinates(x, cage, n=10_001)
     with pytest.raises(ValueError, match="backend must be one of 'auto', 'native', 'torch', 'triton'"):
         F.quad_mean_value_coordinates(x, cage, backend="cuda")
     with pytest.raises(torchcage.PointsError, match="NaN"):

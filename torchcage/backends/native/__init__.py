@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import shutil
 import subprocess
@@ -30,7 +31,7 @@ import torch
 from torchcage.backends.native import _buildspec as build_spec
 from torchcage.backends.native import abi
 
-__all__ = ["available", "call", "failure_reason", "library", "variant"]
+__all__ = ["available", "call", "check_workspace", "failure_reason", "library", "variant"]
 
 _SOURCES = build_spec.SOURCES
 _HEADERS = build_spec.HEADERS
@@ -188,3 +189,19 @@ def call(lib: ctypes.CDLL, name: str, **arguments: object) -> None:
     """
     arguments.setdefault("nthreads", torch.get_num_threads())
     getattr(lib, name)(*abi.check_arguments(name, arguments))
+
+
+def check_workspace(out: torch.Tensor, kernel: str, size: str = "") -> None:
+    """Raise ``MemoryError`` when the kernel named ``kernel`` could not allocate its workspace: the
+    kernels say so by a NaN in the first entry of ``out`` (every entry NaN), a value they never
+    give otherwise. ``size``: the workspace's size, for the message (e.g. ``"about 3 MB per thread"``).
+
+    Example:
+        >>> check_workspace(torch.zeros(2, 3), "quad mean value")  # a filled output: no error
+    """
+    if out.numel() and math.isnan(float(out.reshape(-1)[0])):
+        raise MemoryError(
+            f"the native {kernel} kernel could not allocate its per-thread workspace"
+            f"{f' ({size})' if size else ''}; use fewer threads (torch.set_num_threads), fewer points per "
+            "chunk (chunk_size) or backend='torch'"
+        )

@@ -102,6 +102,14 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     int *node = (int *)malloc(sizeof(int) * 12 * (size_t)Pn), *iu = node + 3 * Pn, *iv = iu + 3 * Pn;
     int *TE = iv + 3 * Pn, *EJ = (int *)malloc(sizeof(int) * 6 * (size_t)Pn), *EK = EJ + 3 * Pn;
     int *seen = (int *)malloc(sizeof(int) * 25 * (size_t)G * G); /* (node, offset to the other node) */
+    double *UA = (double *)malloc(sizeof(double) * (4 * (size_t)Pn + 4 * (size_t)G * G));
+    double *ga = (double *)malloc(sizeof(double) * 2 * (size_t)G);
+    if (!node || !EJ || !seen || !UA || !ga) { /* the glue's sign of a failed allocation (MemoryError) */
+        for (long k = 0; k < n * V; ++k) PHI[k] = NAN;
+        free(node), free(EJ), free(seen), free(UA), free(ga);
+        tc_gc_free(&sg);
+        return;
+    }
     for (long i = 0; i < 25 * (long)G * G; ++i) seen[i] = -1;
     long NE = 0;
     for (long t = 0; t < Pn; ++t)
@@ -133,10 +141,9 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     /* Eq. 19's nodes are affine in the centre t (node i = ga[i] + gb[i] t): so are the grid node
      * g = (i, j) = i G + j, (u_i, v_j) = (GA[g] + GB[g] u, GA[G^2 + g] + GB[G^2 + g] v), and a
      * sub-triangle's centroid (uc, vc) = (UA + UB u, VA + VB v): no per-point grid, no gathers. */
-    double *UA = (double *)malloc(sizeof(double) * (4 * (size_t)Pn + 4 * (size_t)G * G)), *UB = UA + Pn;
-    double *VA = UB + Pn, *VB = VA + Pn, *GA = VB + Pn, *GB = GA + 2 * G * G;
+    double *UB = UA + Pn, *VA = UB + Pn, *VB = VA + Pn, *GA = VB + Pn, *GB = GA + 2 * G * G;
     {
-        double *ga = (double *)malloc(sizeof(double) * 2 * (size_t)G), *gb = ga + G;
+        double *gb = ga + G;
         grid19(0.0, K, ga);
         grid19(1.0, K, gb);
         for (int i = 0; i < G; ++i) gb[i] -= ga[i];
@@ -167,10 +174,17 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     quad_const *QC = (quad_const *)malloc(sizeof(quad_const) * (size_t)(Q > 0 ? Q : 1));
     if (QC)
         for (long q = 0; q < Q; ++q) tc_quad_const(P, quads + 4 * q, QC + q);
+    int failed = 0; /* a thread could not allocate its scratch */
 #pragma omp parallel num_threads(nthreads)
     {
         double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)G * G + 2 * (size_t)NE));
         double *sbuf = (double *)malloc(sizeof(double) * (sws + 5 * (size_t)T2));
+        if (!buf || !sbuf) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp barrier
+        if (failed) goto done; /* (every thread: none enters the worksharing loop) */
         double *SPSI = sbuf + sws, *SP = SPSI + T2, *SOM = SP + 3 * T2;
         double *Sx = buf, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
         double *IE = SR + G * G, *EINV = IE + NE;
@@ -371,9 +385,12 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 }
             }
         }
+    done:
         free(buf);
         free(sbuf);
     }
+    if (failed)
+        for (long k = 0; k < n * V; ++k) PHI[k] = NAN;
     tc_gc_free(&sg);
     free(QC);
     free(node);

@@ -898,9 +898,16 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
     quad_const *QC = (quad_const *)malloc(sizeof(quad_const) * (size_t)(Q > 0 ? Q : 1));
     if (QC)
         for (long q = 0; q < Q; ++q) tc_quad_const(P, quads + 4 * q, QC + q);
+    int failed = 0; /* a thread could not allocate its scratch */
 #pragma omp parallel num_threads(nthreads)
     {
         double *un = (double *)malloc(sizeof(double) * (4 * (size_t)KP + (size_t)K + 4 * (size_t)K * QL));
+        if (!un) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp barrier
+        if (failed) goto done; /* (every thread: none enters a worksharing loop) */
         double *sk = un + 4 * KP, *ln = sk + K;
         for (int k = 0; k < K; ++k) sk[k] = (double)k / n;
         if (qtol > 0 || !QC) {
@@ -1003,7 +1010,10 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
                 }
             }
         }
+    done:
         free(un);
     }
+    if (failed) /* the glue's sign of a failed allocation (it raises MemoryError) */
+        for (long k = 0; k < npts * V; ++k) W[k] = NAN;
     free(QC);
 }

@@ -5,7 +5,6 @@ call on a chunk of points."""
 from __future__ import annotations
 
 import ctypes
-import math
 
 import torch
 
@@ -76,9 +75,5 @@ def native_chunk(
     the principal values and those receive the first face each point lies on (-1: none) and the
     point's barycentric coordinates there, for the caller's jump term."""
     _native.call(lib, "tc_gc3d", **tables, X=x.contiguous(), n=x.shape[0], PHI=phi, PSI=psi, ONF=on_face, AL=alpha)
-    if x.shape[0] and phi.shape[1] and math.isnan(float(phi[0, 0])):  # (the kernel's sign of a failed allocation)
-        raise MemoryError(
-            "the native Green kernel could not allocate its per-thread workspace (about "
-            f"{8 * 8 * (5 * phi.shape[1] + 4 * psi.shape[1]) / 2**20:.0f} MB per thread); use fewer threads "
-            "(torch.set_num_threads) or backend='torch'"
-        )
+    mb = 8 * 8 * (5 * phi.shape[1] + 4 * psi.shape[1]) / 2**20
+    _native.check_workspace(phi, "Green", f"about {mb:.0f} MB per thread")

@@ -59,6 +59,7 @@ def native_quad_part(
     onq = torch.empty(m, dtype=torch.int32)
     uv = torch.zeros(m, 2, dtype=x.dtype)
     _native.call(lib, "tc_qgc3d", **tables, X=x, n=m, PHI=phi, PSIQ=psi, ONQ=onq, UV=uv)
+    _native.check_workspace(phi, "quad Green")
     onq = onq.long()
     u, v = uv[:, 0:1], uv[:, 1:2]
     b = torch.cat([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], dim=1)

@@ -33,6 +33,11 @@ from torchcage.families.quad_mean_value.native import native_kernel
 __all__ = ["quad_mean_value_coordinates"]
 
 
+#: The largest grid parameter ``n`` the quad functions take (their kernels index ``(2n+1)^2`` samples
+#: with C ints; past it, ``tol=`` is the way to accuracy).
+MAX_GRID = 10_000
+
+
 def check_quads(cage: Cage, allow_invalid: bool, what: str = "quad mean value coordinates") -> None:
     """Refuse (or, with ``allow_invalid``, warn about) quads that fail the validity predicate.
 
@@ -93,6 +98,11 @@ def prepare_quad_call(
     """
     if not isinstance(n, int) or isinstance(n, bool) or n < 1:
         raise ValueError(f"n must be a positive integer, got {n!r}")
+    if n > MAX_GRID:
+        raise ValueError(
+            f"n = {n} is past {MAX_GRID}: the cost grows like n^2 per point and quad while the error falls "
+            "slowly (docs/qmvc.md); for accuracy pass tol= (the integrals to a tolerance) instead"
+        )
     if cage.dim != 3:
         check_quads(cage, allow_invalid, what)
     flat = check_points(points, cage)

@@ -64,6 +64,7 @@ def native_kernel(
             on = torch.zeros(m, dtype=torch.uint8)
         if quad_tables is not None:
             _native.call(lib, "tc_qmvc3d", **quad_tables, X=x, npts=m, W=out, on=on)
+            _native.check_workspace(out, "quad mean value")
         return out
 
     return kernel
