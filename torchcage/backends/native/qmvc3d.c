@@ -743,13 +743,15 @@ static void pair_lanes(const quad_lanes *L, double om[4][QL], double sizeq, doub
         wb[1] = ROWDOT(1, m0, m1, m2) * invD;
         wb[2] = ROWDOT(2, m0, m1, m2) * invD;
         wb[3] = ROWDOT(3, m0, m1, m2) * invD;
-        res[0] = m0 - AW(wb, 0);
-        res[1] = m1 - AW(wb, 1);
-        res[2] = m2 - AW(wb, 2);
-        wb[0] += ROWDOT(0, res[0], res[1], res[2]) * invD;
-        wb[1] += ROWDOT(1, res[0], res[1], res[2]) * invD;
-        wb[2] += ROWDOT(2, res[0], res[1], res[2]) * invD;
-        wb[3] += ROWDOT(3, res[0], res[1], res[2]) * invD;
+/* One refinement step of A w = m: w += A^+ (m - A w). */
+#define REFINE_STEP(w)                                                                                          \
+    do {                                                                                                        \
+        res[0] = m0 - AW(w, 0);                                                                                 \
+        res[1] = m1 - AW(w, 1);                                                                                 \
+        res[2] = m2 - AW(w, 2);                                                                                 \
+        for (int i = 0; i < 4; ++i) w[i] += ROWDOT(i, res[0], res[1], res[2]) * invD;                          \
+    } while (0)
+        REFINE_STEP(wb);
         const double k0 = L->k[0][j], k1 = L->k[1][j], k2 = L->k[2][j], k3 = L->k[3][j];
         double ok = 0, ow = 0, ww = 0;
         ok += om[0][j] * k0, ow += om[0][j] * wb[0], ww += wb[0] * wb[0];
@@ -765,16 +767,9 @@ static void pair_lanes(const quad_lanes *L, double om[4][QL], double sizeq, doub
         const double Rmax = MAX2(MAX2(R0, R1), MAX2(R2, R3)), rmin = MIN2(MIN2(R0, R1), MIN2(R2, R3));
         const int near_flat = !L->inside[j] && L->kabs[j] < NEAR_FLAT * sizeq * sizeq * Rmax;
         simple[j] = !L->redo[j] & !L->on[j] & !near_flat & !(rmin / sizeq > 31.6); /* (far_blend: 0) */
-        for (int it = 0; it < REFINE; ++it) {
-            res[0] = m0 - AW(wq, 0);
-            res[1] = m1 - AW(wq, 1);
-            res[2] = m2 - AW(wq, 2);
-            wq[0] += ROWDOT(0, res[0], res[1], res[2]) * invD;
-            wq[1] += ROWDOT(1, res[0], res[1], res[2]) * invD;
-            wq[2] += ROWDOT(2, res[0], res[1], res[2]) * invD;
-            wq[3] += ROWDOT(3, res[0], res[1], res[2]) * invD;
-        }
+        for (int it = 0; it < REFINE; ++it) REFINE_STEP(wq);
         WQ[0][j] = wq[0], WQ[1][j] = wq[1], WQ[2][j] = wq[2], WQ[3][j] = wq[3];
+#undef REFINE_STEP
 #undef ROWDOT
 #undef AW
     }
