@@ -196,7 +196,7 @@ def check_workspace(out: torch.Tensor, kernel: str, size: str = "") -> None:
     kernels say so by a NaN in the first entry of ``out`` (every entry NaN), a value they never
     give otherwise. ``size``: the workspace's size, for the message (e.g. ``"about 3 MB per thread"``).
 
-    Example:
+    Examples:
         >>> check_workspace(torch.zeros(2, 3), "quad mean value")  # a filled output: no error
     """
     if out.numel() and math.isnan(float(out.reshape(-1)[0])):
