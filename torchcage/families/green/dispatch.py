@@ -8,6 +8,7 @@ from collections.abc import Callable
 
 import torch
 
+from torchcage._core.alloc import empty_output
 from torchcage._core.common import chunks, default_chunk, records_graph
 from torchcage.backends import Op, select
 from torchcage.cage import Cage
@@ -58,8 +59,8 @@ def green_flat(
     # The native kernel needs no temporaries beyond its outputs: chunks only pace the progress bar.
     target = 1 << 23 if lib is not None or use_triton else 1 << 17
     size = chunk_size if chunk_size is not None else default_chunk(T, target)
-    phi = torch.empty(x.shape[0], cage.num_vertices, dtype=compute, device=x.device)
-    psi = torch.empty(x.shape[0], T, dtype=compute, device=x.device)
+    phi = empty_output(x.shape[0], cage.num_vertices, dtype=compute, device=x.device)
+    psi = empty_output(x.shape[0], T, dtype=compute, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="Green coordinates"):
         if lib is not None:  # writes straight into the row blocks (contiguous): no copies
             native_chunk(x[sl], tables, lib, phi[sl], psi[sl])

@@ -11,6 +11,7 @@ from typing import cast
 
 import torch
 
+from torchcage._core.alloc import empty_output
 from torchcage._core.batch import broadcast_batch
 from torchcage._core.centre import centred_batch
 from torchcage._core.common import (
@@ -101,7 +102,7 @@ def coordinates_flat(
     # overhead while the temporaries stay in cache.
     target = 1 << 23 if lib is not None or use_triton else (1 << 17 if cage.dim == 3 else 1 << 18)
     size = chunk_size if chunk_size is not None else default_chunk(nf, target)
-    out = torch.empty((x.shape[0], cage.num_vertices), dtype=x.dtype, device=x.device)
+    out = empty_output(x.shape[0], cage.num_vertices, dtype=x.dtype, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="mean value coordinates"):
         kernel(x[sl], out[sl])
         bad = ~torch.isfinite(out[sl].sum(dim=1))  # a row sum is finite iff every entry is
@@ -168,7 +169,7 @@ def coordinates_batch(
     tables = _mvc3d_native.batch_tables(v, cage.triangles, on_cage_tolerances(v))
     # The kernel needs no temporaries beyond its output: chunks only pace the progress bar.
     size = chunk_size if chunk_size is not None else default_chunk(B * cage.triangles.shape[0], 1 << 23)
-    out = torch.empty((B, N, V), dtype=torch.float64)
+    out = empty_output(B, N, V, dtype=torch.float64)
     flags = torch.empty((B, N), dtype=torch.uint8)
     for sl in chunks(N, size, progress, desc="mean value coordinates"):
         if sl.start == 0 and sl.stop == N:

@@ -7,6 +7,7 @@ from collections.abc import Callable
 
 import torch
 
+from torchcage._core.alloc import cat_output
 from torchcage._core.batch import over_cage_batch
 from torchcage._core.common import ON_CAGE_TOLERANCE, VERTEX_SNAP, as_inputs, chunks, snap_to_vertices, unit_sum
 from torchcage._core.compiled import CompiledOp, through_op
@@ -247,9 +248,9 @@ def quad_green_coordinates(
         ph, ps = _chunk(x[sl], tri_part, quad_part, V)
         phis.append(ph)
         psis.append(ps)
-    phi = unit_sum(torch.cat(phis), x0, verts0) if phis else x.new_zeros((0, V))
+    phi = unit_sum(cat_output(phis), x0, verts0) if phis else x.new_zeros((0, V))
     if phis:  # (as QuadGreenCoordinates and deform: quad Green coordinates are defined inside the cage)
         warn_outside(phi.detach().sum(dim=-1), "quad Green coordinates")
-    psi = torch.cat(psis) if psis else x.new_zeros((0, T + 4 * Q))
+    psi = cat_output(psis) if psis else x.new_zeros((0, T + 4 * Q))
     lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, V), psi.to(out_dtype).reshape(*lead, T + 4 * Q)

@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 import torch
 
+from torchcage._core.alloc import cat_output
 from torchcage._core.batch import over_cage_batch
 from torchcage._core.centre import centre_of
 from torchcage._core.common import (
@@ -241,7 +242,7 @@ def quad_mean_value_coordinates(
         samples = (2 * n + 1) ** 2 if quad_tol is None else 256
         size = chunk_size or max(16, (1 << 19) // (max(Q, 1) * samples) + 1)
     parts = [kernel(x[sl]) for sl in chunks(x.shape[0], size, progress, desc="quad mean value coordinates")]
-    out = torch.cat(parts) if parts else x.new_zeros((0, cage.num_vertices))
+    out = cat_output(parts) if parts else x.new_zeros((0, cage.num_vertices))
     bad = ~torch.isfinite(out.detach().sum(dim=1))
     if bool(bad.any()):
         idx = torch.nonzero(bad).flatten()[:10].tolist()
