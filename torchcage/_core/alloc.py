@@ -22,7 +22,7 @@ import sys
 import torch
 from torch._C._functorch import is_functorch_wrapped_tensor
 
-__all__ = ["HUGE_PAGE_MIN_BYTES", "advise_huge_pages", "cat_output", "empty_output"]
+__all__ = ["HUGE_PAGE_MIN_BYTES", "advise_huge_pages", "cat_output", "empty_output", "zeros_output"]
 
 #: Tensors at least this large are advised (NumPy's threshold).
 HUGE_PAGE_MIN_BYTES = 4 << 20
@@ -71,6 +71,16 @@ def empty_output(*shape: int, dtype: torch.dtype, device: torch.device | str | N
     t = torch.empty(shape, dtype=dtype, device=device)
     advise_huge_pages(t)
     return t
+
+
+def zeros_output(*shape: int, dtype: torch.dtype, device: torch.device | str | None = None) -> torch.Tensor:
+    """``torch.zeros`` on :func:`empty_output`'s memory: for outputs that a kernel writes in part.
+
+    Examples:
+        >>> float(zeros_output(3, 2, dtype=torch.float64).abs().sum())
+        0.0
+    """
+    return empty_output(*shape, dtype=dtype, device=device).zero_()
 
 
 def cat_output(parts: list[torch.Tensor], dim: int = 0) -> torch.Tensor:

@@ -100,12 +100,8 @@ def green_derivatives(
     if out_rows.numel():
         phi[out_rows], psi[out_rows] = green_coordinates(x.index_select(0, out_rows), cage, exterior="extend")
     V, T, D = phi.shape[1], psi.shape[1], cage.dim
-    gphi = torch.zeros(x.shape[0], V, D, dtype=compute, device=x.device)
-    gpsi = torch.zeros(x.shape[0], T, D, dtype=compute, device=x.device)
-    hshape = (x.shape[0], D, D) if order == 2 else None
-    hphi = torch.zeros(hshape[0], V, D, D, dtype=compute, device=x.device) if hshape else x.new_empty((0,))
-    hpsi = torch.zeros(hshape[0], T, D, D, dtype=compute, device=x.device) if hshape else x.new_empty((0,))
-    exact = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+    # (closed_form's outputs are fresh tensors: scaled and centred in place below, sparing a pass
+    # of allocation over the Hessians' N x V x 9 entries per step)
     if x.shape[0]:
         xc, cage_c = centred(x, cage, compute)  # (about the cage's centre, as green_coordinates)
         gphi, gpsi, hphi, hpsi, exact = closed_form(xc, cage_c, order, chunk_size, backend)
@@ -113,9 +109,14 @@ def green_derivatives(
         # (inside, the coordinates are divided by their sum, 1 to rounding, whose derivatives are 0)
         s = phi.sum(dim=1)
         scale = torch.where((s - 1).abs() <= 1e-8, 1.0 / s, 1.0)
-        gphi = gphi * scale[:, None, None]
+        gphi.mul_(scale[:, None, None])
         if order == 2:
-            hphi = hphi * scale[:, None, None, None]
+            hphi.mul_(scale[:, None, None, None])
+    else:  # (no points)
+        gphi, gpsi = x.new_zeros(0, V, D), x.new_zeros(0, T, D)
+        hphi = x.new_zeros(0, V, D, D) if order == 2 else x.new_empty((0,))
+        hpsi = x.new_zeros(0, T, D, D) if order == 2 else x.new_empty((0,))
+        exact = torch.zeros(0, dtype=torch.bool, device=x.device)
     rest = torch.nonzero(~exact).flatten()
     if rest.numel():
         gp, gs, hp, hs = _autograd_rows(x.index_select(0, rest), cage.to(compute), exterior, order)
@@ -127,9 +128,9 @@ def green_derivatives(
     # are ~1 / distance and their rounding left eps / distance in the sum (outside a needle's edge,
     # 1e-4 of the largest gradient at 1e-14 of the size), which a cage far from the origin
     # multiplies by its distance in the Jacobian sum_i P_i grad phi_i^T.
-    gphi = gphi - gphi.mean(dim=1, keepdim=True)
+    gphi.sub_(gphi.mean(dim=1, keepdim=True))
     if order == 2:
-        hphi = hphi - hphi.mean(dim=1, keepdim=True)
+        hphi.sub_(hphi.mean(dim=1, keepdim=True))
     result = (
         phi.to(out).reshape(*lead, V),
         psi.to(out).reshape(*lead, T),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import torch
 
+from torchcage._core.alloc import zeros_output
 from torchcage._core.common import chunks, default_chunk, jacobian_rows
 from torchcage.backends import Op, select
 from torchcage.cage import Cage
@@ -37,10 +38,10 @@ def closed_form(
     n, V = x.shape[0], cage.num_vertices
     data = triangle_green_data(cage, x.dtype)
     T = data.tri.shape[0]
-    gphi = torch.zeros(n, V, 3, dtype=x.dtype, device=x.device)
-    gpsi = torch.zeros(n, T, 3, dtype=x.dtype, device=x.device)
-    hphi = torch.zeros(n, V, 3, 3, dtype=x.dtype, device=x.device) if order == 2 else x.new_empty((0,))
-    hpsi = torch.zeros(n, T, 3, 3, dtype=x.dtype, device=x.device) if order == 2 else x.new_empty((0,))
+    gphi = zeros_output(n, V, 3, dtype=x.dtype, device=x.device)
+    gpsi = zeros_output(n, T, 3, dtype=x.dtype, device=x.device)
+    hphi = zeros_output(n, V, 3, 3, dtype=x.dtype, device=x.device) if order == 2 else x.new_empty((0,))
+    hpsi = zeros_output(n, T, 3, 3, dtype=x.dtype, device=x.device) if order == 2 else x.new_empty((0,))
     exact = torch.zeros(n, dtype=torch.bool, device=x.device)
     if n == 0:
         return gphi, gpsi, hphi, hpsi, exact

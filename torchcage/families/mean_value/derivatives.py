@@ -37,7 +37,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
+from torch._C._functorch import is_functorch_wrapped_tensor
 
+from torchcage._core.alloc import empty_output
 from torchcage._core.batch import over_cage_batch
 from torchcage._core.centre import centred, extent_of, keep_extent
 from torchcage._core.common import as_inputs, check_points, chunks, far_unity, triangle_geometry
@@ -80,9 +82,14 @@ def derivatives_flat(
         PointsError: points where the coordinates are undefined (the total weight vanishes).
     """
     lam, grad, hess, on = _derivatives_flat(x, cage, order, chunk_size, progress, backend)
-    grad = grad - grad.mean(dim=1, keepdim=True)
-    if order == 2:
-        hess = hess - hess.mean(dim=1, keepdim=True)
+    if is_functorch_wrapped_tensor(grad):
+        grad = grad - grad.mean(dim=1, keepdim=True)
+        if order == 2:
+            hess = hess - hess.mean(dim=1, keepdim=True)
+    else:  # (the kernels' fresh outputs, without a graph: in place, sparing an allocation of each)
+        grad.sub_(grad.mean(dim=1, keepdim=True))
+        if order == 2:
+            hess.sub_(hess.mean(dim=1, keepdim=True))
     return lam, grad, hess, on
 
 
@@ -104,9 +111,9 @@ def _derivatives_flat(
     D, V = cage.dim, cage.num_vertices
     x = x.detach().to("cpu", torch.float64)
     n = x.shape[0]
-    lam = torch.empty((n, V), dtype=torch.float64)
-    grad = torch.empty((n, V, D), dtype=torch.float64)
-    hess = torch.empty((n, V, D, D) if order == 2 else (0,), dtype=torch.float64)
+    lam = empty_output(n, V, dtype=torch.float64)
+    grad = empty_output(n, V, D, dtype=torch.float64)
+    hess = empty_output(*((n, V, D, D) if order == 2 else (0,)), dtype=torch.float64)
     tables = _mvcd_native.native_tables(cage)
     flags = torch.empty(n, dtype=torch.uint8)
     size = chunk_size if chunk_size is not None else 4096
