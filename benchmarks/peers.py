@@ -315,17 +315,18 @@ def peer_call(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchca
 
 
 def torchcage_call(method: str, points: torch.Tensor, cage: torchcage.Cage) -> Callable[[], np.ndarray]:
-    """The same as :func:`peer_call`, computed by torchcage (default backend, float64)."""
+    """The same as :func:`peer_call`, computed by torchcage (default backend, float64); ``phi`` and
+    ``psi`` joined by the same ``np.concatenate`` as the peer's."""
     if method == "mvc":
         tri = cage.triangulated()
         return lambda: F.mean_value_coordinates(points, tri).numpy()
     if method == "gc":
         tri = cage.triangulated()
-        return lambda: torch.cat(F.green_coordinates(points, tri, exterior="none"), 1).numpy()
+        return lambda: np.concatenate([t.numpy() for t in F.green_coordinates(points, tri, exterior="none")], 1)
     if method == "qmvc":
         return lambda: F.quad_mean_value_coordinates(points, cage, n=4).numpy()
     if method == "qgc":
-        return lambda: torch.cat(F.quad_green_coordinates(points, cage, n=2), 1).numpy()
+        return lambda: np.concatenate([t.numpy() for t in F.quad_green_coordinates(points, cage, n=2)], 1)
     raise ValueError(f"unknown method {method!r}; expected one of {sorted(GOALS)}")
 
 
