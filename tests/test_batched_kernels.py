@@ -186,3 +186,20 @@ def test_undefined_points_are_named_by_element(monkeypatch):
     monkeypatch.setattr(_mvc3d_native, "native_chunk", chunk)
     with pytest.raises(torchcage.PointsError, match=r"undefined at points \[4\] in batch element \(1,\)"):
         F.mean_value_coordinates(torch.zeros(5, 3, dtype=D64), torchcage.Cage(V, tri))
+
+
+@pytest.mark.native
+def test_undefined_points_of_one_cage_are_named_from_the_kernel_flags(monkeypatch):
+    """One cage: the rows the native kernel marks not finite (flag 2) are refused by index, with no
+    pass of its own over the output."""
+    V, tri = _cages(1)
+    real = _mvc3d_native.native_chunk
+
+    def chunk(x, tables, lib, W, normalize=True):
+        flags = real(x, tables, lib, W, normalize)
+        flags[4] = 2  # as the kernel marks a row whose total weight vanishes
+        return flags
+
+    monkeypatch.setattr(_mvc3d_native, "native_chunk", chunk)
+    with pytest.raises(torchcage.PointsError, match=r"undefined at points \[4\] \(the total weight"):
+        F.mean_value_coordinates(torch.zeros(6, 3, dtype=D64), torchcage.Cage(V[0], tri), backend="native")

@@ -72,15 +72,17 @@ def coordinates_flat(
 
             tables = triton_tables(cage, x.dtype)
 
-    def kernel(c: torch.Tensor, out: torch.Tensor) -> None:
+    def kernel(c: torch.Tensor, out: torch.Tensor) -> torch.Tensor | None:
+        """Writes the chunk's coordinates into ``out``; returns the rows that are not finite
+        where the kernel marks them (3D native: flag 2), else ``None`` (the caller checks)."""
         if lib is not None:
-            glue.native_chunk(c, tables, lib, out)
-            return
+            flags = glue.native_chunk(c, tables, lib, out)
+            return flags == 2 if cage.dim == 3 else None
         if use_triton and cage.dim == 2:
             from torchcage.families.mean_value.triton.mvc2d import mvc2d_triton
 
             out.copy_(mvc2d_triton(c, tables)[0])
-            return
+            return None
         if use_triton:
             from torchcage.families.mean_value.triton.mvc3d import mvc3d_triton
 
@@ -91,11 +93,12 @@ def coordinates_flat(
                 Wr, onr = torch_chunk(cr, data)
                 W = W.index_copy(0, redo, normalise_weights(Wr.T, onr, verts, cr))
             out.copy_(W)
-            return
+            return None
         # With a graph, the weights' 1/h next to a face (an edge in 2D) is divided out before
         # autograd sees it (see mvc3d_chunk); the values are the same once normalised.
         Wc, onc = torch_chunk(c, data, scaled=graph)
         out.copy_(normalise_weights(Wc.T, onc, verts, c))
+        return None
 
     # The native kernel needs no temporaries beyond its output: chunks only pace the progress bar.
     # Pairs per chunk, measured on 2 cores: ~130k (3D torch) and ~250k (2D) amortise the per-op
@@ -104,8 +107,9 @@ def coordinates_flat(
     size = chunk_size if chunk_size is not None else default_chunk(nf, target)
     out = empty_output(x.shape[0], cage.num_vertices, dtype=x.dtype, device=x.device)
     for sl in chunks(x.shape[0], size, progress, desc="mean value coordinates"):
-        kernel(x[sl], out[sl])
-        bad = ~torch.isfinite(out[sl].sum(dim=1))  # a row sum is finite iff every entry is
+        bad = kernel(x[sl], out[sl])
+        if bad is None:
+            bad = ~torch.isfinite(out[sl].sum(dim=1))  # a row sum is finite iff every entry is
         if bool(bad.any()):
             idx = (torch.nonzero(bad).flatten()[:10] + sl.start).tolist()
             raise PointsError(
