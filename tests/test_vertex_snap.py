@@ -1,0 +1,46 @@
+"""Points within the snap radius of a cage vertex are moved onto it (torchcage._core.common
+.snap_to_vertices): the result agrees with a brute-force search over every pair, including points
+that share one or two coordinates with a vertex (which pass the per-axis screen) and points just
+inside and just outside the radius."""
+
+from __future__ import annotations
+
+import torch
+
+from torchcage._core.common import snap_to_vertices
+
+
+def _brute(x: torch.Tensor, V: torch.Tensor, radius: float) -> torch.Tensor:
+    d2 = ((x[:, None, :] - V[None, :, :]) ** 2).sum(-1)
+    m, j = d2.min(dim=1)
+    return torch.where((m <= radius * radius)[:, None], V[j], x)
+
+
+def test_snap_agrees_with_brute_force() -> None:
+    g = torch.Generator().manual_seed(3)
+    V = torch.rand(40, 3, generator=g, dtype=torch.float64)
+    radius = 1e-9
+    x = [torch.rand(2000, 3, generator=g, dtype=torch.float64)]
+    pick = torch.randint(0, 40, (300,), generator=g)
+    direction = torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=torch.float64), dim=1)
+    scale = torch.rand(300, 1, generator=g, dtype=torch.float64) * 2  # 0 .. 2 radii from a vertex
+    x.append(V[pick] + direction * scale * radius)
+    one_axis = torch.rand(300, 3, generator=g, dtype=torch.float64)
+    one_axis[:, 0] = V[pick, 0]  # the same x as a vertex, elsewhere otherwise
+    two_axes = V[pick].clone()
+    two_axes[:, 2] += 10 * radius  # two coordinates of a vertex, the third a little off
+    x += [one_axis, two_axes, V.clone()]
+    pts = torch.cat(x)
+    out = snap_to_vertices(pts, V, radius)
+    assert torch.equal(out, _brute(pts, V, radius))
+    moved = (out != pts).any(dim=1)
+    assert 100 < int(moved.sum()) < 300 + 1  # (about half of the points within 2 radii, none of the others)
+
+
+def test_snap_with_one_vertex_and_in_2d() -> None:
+    V = torch.tensor([[0.5, 0.25]], dtype=torch.float64)
+    pts = torch.tensor([[0.5, 0.25 + 1e-10], [0.5, 0.3], [0.7, 0.25]], dtype=torch.float64)
+    assert torch.equal(snap_to_vertices(pts, V, 1e-9), _brute(pts, V, 1e-9))
+    V2 = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
+    pts2 = torch.tensor([[1.0, 1e-12], [1.0, 0.5], [1e-12, 1e-12]], dtype=torch.float64)
+    assert torch.equal(snap_to_vertices(pts2, V2, 1e-9), _brute(pts2, V2, 1e-9))
