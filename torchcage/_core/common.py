@@ -172,6 +172,28 @@ def far_region(vertices: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, t
     return c, (y * y).sum(dim=-1) > far2[..., None]
 
 
+def may_be_far(vertices: torch.Tensor, x: torch.Tensor) -> bool:
+    """Whether some point of ``x`` ``(*B, n, D)`` may lie in the far region (:func:`far_region`) of
+    its cage ``vertices`` ``(*B, V, D)`` (``*B``: a shared batch shape, or a point set broadcast
+    over it): False when the points' bounding box lies within half the far radius of the centre
+    (a margin no rounding can cross). One min/max pass over the points, a third of the time of
+    :func:`far_region`'s squared distances on 39,000 points.
+
+    Examples:
+        >>> V = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+        >>> may_be_far(V, torch.tensor([[0.2, 0.3]])), may_be_far(V, torch.tensor([[5e3, 0.0]]))
+        (False, True)
+    """
+    if x.shape[-2] == 0:
+        return False
+    v = vertices.detach()
+    c = (v.amax(dim=-2) + v.amin(dim=-2)) / 2  # (*B, D), as far_region
+    r2 = ((v - c[..., None, :]) ** 2).sum(dim=-1).amax(dim=-1)  # (*B,)
+    lo, hi = torch.aminmax(x.detach().to(c.dtype), dim=-2)  # (one pass over the points)
+    corner = torch.maximum((hi - c).abs(), (lo - c).abs())  # (*B, D): the farthest box corner
+    return bool(((corner**2).sum(dim=-1) > 0.25 * FAR_MOMENT**2 * r2).any())
+
+
 def far_unity(
     w: torch.Tensor, x: torch.Tensor, vertices: torch.Tensor, *derivatives: torch.Tensor | None
 ) -> tuple[torch.Tensor | None, ...]:
@@ -195,8 +217,11 @@ def far_unity(
         >>> round(float(w.sum() - 1), 12), abs(float(far_unity(w, x, V)[0].sum() - 1)) < 1e-12
         (1e-09, True)
     """
+    wrapped = is_functorch_wrapped_tensor(x)  # (no data-dependent branch under vmap)
+    if not wrapped and not may_be_far(vertices, x):  # (the common case: no pass over the points' distances)
+        return (w, *derivatives)
     _, far = far_region(vertices, x)
-    if not is_functorch_wrapped_tensor(x) and not bool(far.any()):  # (no data-dependent branch under vmap)
+    if not wrapped and not bool(far.any()):
         return (w, *derivatives)
     k = far.dim()  # the vertex axis of w and of the derivatives
     defect = torch.where(far, 1 - w.sum(dim=k), 0.0)[..., None] / w.shape[k]
@@ -358,6 +383,12 @@ def check_points(points: torch.Tensor, cage: Cage) -> torch.Tensor:
 
 def check_finite(flat: torch.Tensor) -> None:
     """Raise a PointsError naming the rows of ``flat`` ``(N, D)`` that hold NaN or inf."""
+    if flat.shape[0] == 0:
+        return
+    # (a NaN or an inf anywhere shows in the columns' min or max: one pass, a quarter of the time
+    # of isfinite's; the rows are looked for only then)
+    if bool(torch.isfinite(torch.stack(torch.aminmax(flat.detach(), dim=0))).all()):
+        return
     step = 1 << 20  # check in slices: no temporary grows with the number of points
     for start in range(0, flat.shape[0], step):
         bad = ~torch.isfinite(flat[start : start + step]).all(dim=1)

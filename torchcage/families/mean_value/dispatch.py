@@ -15,10 +15,10 @@ from torchcage._core.alloc import empty_output
 from torchcage._core.batch import broadcast_batch
 from torchcage._core.centre import centred_batch
 from torchcage._core.common import (
-    FAR_MOMENT,
     chunks,
     default_chunk,
     far_unity,
+    may_be_far,
     normalise_weights,
     on_cage_tolerances,
     records_graph,
@@ -184,7 +184,7 @@ def coordinates_batch(
             out[:, sl] = part
     bad = flags == 2  # (B, N): rows whose sum is not finite (the kernel checks them, sparing a pass here)
     _refuse_undefined(bad, batch)
-    if _may_be_far(x, v):  # (else far_unity leaves every row as it is: a pass over the points spared)
+    if may_be_far(v, x):  # (else far_unity leaves every row as it is: a pass over the points spared)
         out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
     return out.to(out_dtype).reshape(*batch, N, V)
 
@@ -230,7 +230,7 @@ def _triton_batch(
             out[b, idx] = normalise_weights(Wr.T, onr, v[b], cr)
     bad = ~torch.isfinite(out.sum(dim=-1))  # (B, N): a row sum is finite iff every entry is
     _refuse_undefined(bad, batch)
-    if _may_be_far(x, v):  # (else far_unity leaves every row as it is)
+    if may_be_far(v, x):  # (else far_unity leaves every row as it is)
         out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
     return out
 
@@ -249,16 +249,3 @@ def _refuse_undefined(bad: torch.Tensor, batch: torch.Size) -> None:
             f"mean value coordinates are undefined at points {idx}{_batch_name(torch.tensor(b), batch)} (the total "
             "weight vanishes there, which happens only outside the cage); move these points"
         )
-
-
-def _may_be_far(x: torch.Tensor, v: torch.Tensor) -> bool:
-    """Whether some point of ``x`` ``(B or 1, N, 3)`` may lie in the far region of its cage ``v``
-    ``(B, V, 3)`` (``_common.far_region``): False when the points' bounding box lies within half
-    the far radius of every cage's centre (a bound that no rounding can cross)."""
-    if x.shape[1] == 0:
-        return False
-    c = (v.amax(dim=1) + v.amin(dim=1)) / 2  # (B, 3), as far_region
-    r2 = ((v - c[:, None]) ** 2).sum(dim=-1).amax(dim=-1)  # (B,)
-    lo, hi = torch.aminmax(x, dim=1)  # (one pass over the points)
-    corner = torch.maximum((hi - c).abs(), (lo - c).abs())  # (B, 3): the farthest box corner
-    return bool(((corner**2).sum(dim=-1) > 0.25 * FAR_MOMENT**2 * r2).any())

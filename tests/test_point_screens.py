@@ -1,7 +1,8 @@
-"""Points within the snap radius of a cage vertex are moved onto it (torchcage._core.common
-.snap_to_vertices): the result agrees with a brute-force search over every pair, including points
-that share one or two coordinates with a vertex (which pass the per-axis screen) and points just
-inside and just outside the radius."""
+"""The cheap screens over points agree with the exact tests they stand in front of: the vertex
+snap (torchcage._core.common.snap_to_vertices: points within the snap radius of a cage vertex are
+moved onto it) against a brute-force search over every pair, including points that share one or
+two coordinates with a vertex and points just inside and just outside the radius; the far-region
+bound (may_be_far) against far_region."""
 
 from __future__ import annotations
 
@@ -44,3 +45,25 @@ def test_snap_with_one_vertex_and_in_2d() -> None:
     V2 = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
     pts2 = torch.tensor([[1.0, 1e-12], [1.0, 0.5], [1e-12, 1e-12]], dtype=torch.float64)
     assert torch.equal(snap_to_vertices(pts2, V2, 1e-9), _brute(pts2, V2, 1e-9))
+
+
+def test_far_screen_never_misses_a_far_point() -> None:
+    """may_be_far (a bounding-box bound) is True wherever far_region finds a far point, for single
+    cages and batches, points just inside and just outside the far radius included."""
+    from torchcage._core.common import FAR_MOMENT, far_region, may_be_far
+
+    g = torch.Generator().manual_seed(5)
+    for trial in range(200):
+        B = 1 + trial % 3
+        V = torch.rand(B, 8, 3, generator=g, dtype=torch.float64) * (1 + 10 * trial)
+        c = (V.amax(dim=1) + V.amin(dim=1)) / 2
+        r = ((V - c[:, None]) ** 2).sum(-1).amax(-1).sqrt()
+        direction = torch.nn.functional.normalize(torch.randn(B, 5, 3, generator=g, dtype=torch.float64), dim=-1)
+        dist = FAR_MOMENT * r[:, None, None] * (0.99 + 0.02 * torch.rand(B, 5, 1, generator=g, dtype=torch.float64))
+        x = c[:, None] + direction * dist * (trial % 2)  # (every other trial: all points at the centre)
+        _, far = far_region(V, x)
+        if bool(far.any()):
+            assert may_be_far(V, x)
+        if trial % 2 == 0:
+            assert not may_be_far(V, x)
+        assert may_be_far(V[0], x[0]) or not bool(far_region(V[0], x[0])[1].any())
