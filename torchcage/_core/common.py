@@ -61,9 +61,13 @@ def unit_sum(phi: torch.Tensor, x: torch.Tensor, vertices: torch.Tensor, band: f
         (True, [0.0, 0.0])
     """
     c = (vertices.detach().amax(dim=0) + vertices.detach().amin(dim=0)) / 2
+    closer = (x.detach() - c).norm(dim=-1, keepdim=True) < c.norm()
+    plain = not phi.requires_grad and not is_functorch_wrapped_tensor(phi)
+    if plain and not bool(closer.any()):  # (a cage about the origin: no row to scale, no pass over phi)
+        return phi
     s = phi.sum(dim=-1, keepdim=True)
-    near = ((s - 1).abs() <= band) & ((x.detach() - c).norm(dim=-1, keepdim=True) < c.norm())
-    if not phi.requires_grad and not is_functorch_wrapped_tensor(phi):
+    near = ((s - 1).abs() <= band) & closer
+    if plain:
         # (a kernel's fresh output: scaled in place, which spared 30 ms of allocation per 10^6 entries)
         return phi.mul_(torch.where(near, 1.0 / torch.where(near, s, 1.0), 1.0))
     return torch.where(near, phi / torch.where(near, s, 1.0), phi)
@@ -95,26 +99,28 @@ def snap_to_vertices(x: torch.Tensor, vertices: torch.Tensor, radius: float) -> 
     with torch.no_grad():
         # A screen first: a point within radius of a vertex is within radius of some vertex's
         # coordinate along every axis (the nearest one, by searchsorted on the sorted coordinates,
-        # N log V: a third of the time of the matrix product |x|^2 + |v|^2 - 2 x.v it replaced on
-        # 28,000 points and 152 vertices, 2.5 ms). The differences are those the test below squares:
+        # N log V; each axis only over the rows the previous one kept: 0.9 ms on 28,000 points and
+        # 152 vertices, an eighth of the matrix product |x|^2 + |v|^2 - 2 x.v it replaced). The
+        # differences are those the test below squares:
         # its sum of squares <= radius^2 implies each |x_k - v_k| <= radius (1 + eps), so the screen
         # keeps every row the test would snap. Only the rows it keeps are measured (few: none away
         # from vertices).
         xd = x.detach()
-        maybe = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
         reach = radius * (1 + 1e-12)
+        rows = None  # (the rows still in: all, then the first axis's survivors, then the second's)
         for k in range(x.shape[1]):
             coord = Vd[:, k].sort().values
-            xk = xd[:, k].contiguous()
+            xk = xd[:, k].contiguous() if rows is None else xd[rows, k]
             i = torch.searchsorted(coord, xk).clamp_(1, coord.shape[0] - 1) if coord.shape[0] > 1 else None
             if i is None:
                 gap = (xk - coord[0]).abs()
             else:
                 gap = torch.minimum((xk - coord[i - 1]).abs(), (xk - coord[i]).abs())
-            maybe &= gap <= reach
-        rows = torch.nonzero(maybe).flatten()
-        if rows.numel() == 0:
-            return x
+            keep = torch.nonzero(gap <= reach).flatten()
+            rows = keep if rows is None else rows[keep]
+            if rows.numel() == 0:
+                return x
+        assert rows is not None
         step = max(1, (1 << 22) // max(1, V.shape[0]))
         for s in range(0, rows.numel(), step):
             rs = rows[s : s + step]
