@@ -16,6 +16,7 @@ parses the C prototypes and fails on any drift from these tables.
 from __future__ import annotations
 
 import ctypes
+import functools
 import re
 from dataclasses import dataclass
 
@@ -138,15 +139,24 @@ def argtypes(name: str) -> list[type]:
     return [ctypes.c_void_p if a.pointer else _SCALARS[a.kind] for a in SIGNATURES[name]]
 
 
+@functools.cache
+def _terms(expr: str) -> tuple[tuple[int | str, ...], ...]:
+    """A shape expression (``"3*T+1"``) parsed once: its terms, each a tuple of factors (numbers
+    or scalar names)."""
+    return tuple(
+        tuple(int(f) if f.isdigit() else f for f in (factor.strip() for factor in term.split("*")))
+        for term in expr.split("+")
+    )
+
+
 def _dim(expr: str, scalars: dict[str, int]) -> int | None:
     if expr == "...":
         return None
     total = 0
-    for term in expr.split("+"):
+    for term in _terms(expr):
         prod = 1
-        for factor in term.split("*"):
-            factor = factor.strip()
-            prod *= int(factor) if factor.isdigit() else int(scalars[factor])
+        for factor in term:
+            prod *= factor if isinstance(factor, int) else int(scalars[factor])
         total += prod
     return total
 
