@@ -9,7 +9,11 @@
  * the null-space part from the adaptive Riemann sum of Algorithm 1 (edge integrals once per unique
  * pattern edge, then one vectorised loop over the sub-triangles). On the Riemann sub-triangles the
  * solid angle is taken in Van Oosterom and Strackee's one-atan2 form (the estimate needs no more);
- * the tests check this kernel against the torch kernel. One point per iteration, OpenMP over points.
+ * the tests check this kernel against the torch kernel. The Riemann form takes QL (8) points per quad
+ * side by side (tc_quad_pair_lanes, shared with QMVC, and riemann_lanes: each lane's operations as the
+ * one-point code's, with the node and edge tables stored [node][lane], so the sub-triangle loop loads
+ * contiguous lanes instead of gathering), the lanes tc_quad_pair_lanes cannot serve going to the
+ * one-point code (pair_one); the tolerance form one point at a time. OpenMP over points (blocks).
  */
 #define _GNU_SOURCE
 #include <math.h>
@@ -69,6 +73,339 @@ static void grid19(double t, int K, double *x) {
             x[i] = t;
         }
     }
+}
+
+/* What the pairs share: the cage, the quads' tables, the split triangles' tables and the Riemann
+ * pattern (see tc_qgc3d). */
+typedef struct {
+    const double *P, *pinv, *null, *origin, *s_nrm, *s_ell, *s_edir;
+    const int *quads, *s_tri;
+    long T2, Pn, NE;
+    int G;
+    double tol;
+    const int *node, *TE, *EJ, *EK;
+    const double *UA, *UB, *VA, *VB, *GA, *GB;
+} qgc_ctx;
+
+#define LANES _Pragma("omp simd") for (int j = 0; j < QL; ++j)
+
+/* The invariants rhs of quad q seen from x (corners minus the point p, projection (u, v)); SP, SPSI:
+ * the point's split-triangle tables (tc_gc_point). */
+static void pair_rhs(const qgc_ctx *C, long q, const double *x, const double p[4][3], double u, double v, int inside,
+                     int on, const double *SP, const double *SPSI, double rhs[4]) {
+    const double *P = C->P, *origin = C->origin;
+    const int *qi = C->quads + 4 * q;
+    const long T2 = C->T2;
+    rhs[0] = rhs[1] = rhs[2] = rhs[3] = 0;
+    /* Outside the quad's tetrahedron the point cannot lie between the sheet and the split
+     * (q0 q1 q2), (q0 q2 q3): those two triangles give the same invariants, already
+     * computed for all quads above. Within 1.1 times the quad's bounding radius of its
+     * centre, the fan instead, as for the quads around: near an edge, two quads must see
+     * it in the same form (split and fan treat the point's side of the edge with
+     * different bits, and their errors of eps / distance did not cancel). */
+    if (!inside && !on && !near_quad(p)) {
+        for (long t = 2 * q; t < 2 * q + 2; ++t) {
+            for (int i = 0; i < 3; ++i) {
+                double ph = SP[i * T2 + t];
+                const double *c3 = P + 3 * C->s_tri[i * T2 + t];
+                for (int c = 0; c < 3; ++c) rhs[c] += ph * (c3[c] - origin[c]);
+                rhs[3] += ph;
+            }
+            for (int c = 0; c < 3; ++c) rhs[c] += SPSI[t] * C->s_nrm[3 * t + c];
+        }
+        return;
+    }
+    /* On the fan from the projection (apex) to the four edges. The fan's frames from the corners
+     * themselves (a quad edge then has the bits of the neighbouring quad's fan or triangle face:
+     * consistent sides near it). */
+    double apex[3], ua = u, va = v;
+    if (!on) fan_apex(u, v, &ua, &va);
+    const double wq[4] = {(1 - ua) * (1 - va), ua * (1 - va), ua * va, (1 - ua) * va};
+    for (int c = 0; c < 3; ++c)
+        apex[c] = wq[0] * P[3 * qi[0] + c] + wq[1] * P[3 * qi[1] + c] + wq[2] * P[3 * qi[2] + c] +
+                  wq[3] * P[3 * qi[3] + c];
+    for (int e = 0; e < 4; ++e) {
+        double ab[3][3], a[3][3], nf[3], ell[3], edir[9], eout[9], gbary[9], ph[3], ps, om, al[3];
+        memcpy(ab[0], P + 3 * qi[e], sizeof(ab[0]));
+        memcpy(ab[1], P + 3 * qi[(e + 1) & 3], sizeof(ab[1]));
+        memcpy(ab[2], apex, sizeof(ab[2]));
+        for (int i = 0; i < 3; ++i)
+            for (int c = 0; c < 3; ++c) a[i][c] = ab[i][c] - x[c];
+        double two_area = tc_tri_frame(ab, nf, ell, edir, eout, gbary);
+        /* The quad edge (opposite the apex) with the bits Python gave it in the split
+         * triangles' tables, the function that made the cage faces' (a triangle face
+         * across the edge then sees the point on the same side: PU was off by 7e-6 at
+         * 4e-14 from such an edge of Beast, the C and torch norms differing by an ulp). */
+        {
+            const long t = e < 2 ? 2 * q : 2 * q + 1;
+            const int ci = e == 0 ? 2 : (e == 3 ? 1 : 0);
+            for (int c = 0; c < 3; ++c) edir[6 + c] = C->s_edir[9 * t + 3 * ci + c];
+            ell[2] = C->s_ell[3 * t + ci];
+            cross3(edir + 6, nf, eout + 6);
+            for (int c = 0; c < 3; ++c) gbary[6 + c] = two_area > 0 ? -eout[6 + c] * ell[2] / two_area : 0.0;
+        }
+        /* The apex on this edge (a point on the quad's boundary): the triangle is
+         * empty, up to rounding that would make it a sliver seen from its own edge. */
+        if (two_area <= C->tol * ell[2]) continue;
+        tc_tri_green(a, nf, two_area, ell, edir, eout, gbary, C->tol, ph, &ps, &om, al);
+        for (int i = 0; i < 3; ++i) {
+            for (int c = 0; c < 3; ++c) rhs[c] += ph[i] * (ab[i][c] - origin[c]);
+            rhs[3] += ph[i];
+        }
+        for (int c = 0; c < 3; ++c) rhs[c] += ps * nf[c];
+    }
+}
+
+/* The least-norm solution bar = A_q^+ rhs, plus the null-space part from est (with the norm
+ * correction when norm), into the point's phi and psiq. */
+static void pair_finish(const qgc_ctx *C, long q, const double rhs[4], const double est[8], int norm, double *phi,
+                        double *psiq) {
+    const double *Ap = C->pinv + 32 * q, *Nl = C->null + 32 * q;
+    const int *qi = C->quads + 4 * q;
+    double bar[8];
+    for (int i = 0; i < 8; ++i)
+        bar[i] = Ap[4 * i] * rhs[0] + Ap[4 * i + 1] * rhs[1] + Ap[4 * i + 2] * rhs[2] + Ap[4 * i + 3] * rhs[3];
+    /* Phi = Phi_bar + sum_i lambda_i kappa_i with the norm correction (none with qtol). */
+    double eb = 0, bb = 0, coef[4];
+    for (int i = 0; i < 8; ++i) {
+        eb += est[i] * bar[i];
+        bb += bar[i] * bar[i];
+    }
+    double scale = !norm ? 1.0 : (eb != 0 ? bb / eb : 0.0);
+    for (int j = 0; j < 4; ++j) {
+        coef[j] = 0;
+        for (int i = 0; i < 8; ++i) coef[j] += Nl[4 * i + j] * est[i];
+        coef[j] *= scale;
+    }
+    for (int i = 0; i < 8; ++i) {
+        double val = bar[i];
+        for (int j = 0; j < 4; ++j) val += Nl[4 * i + j] * coef[j];
+        if (i < 4)
+            phi[qi[i]] += val;
+        else
+            psiq[4 * q + i - 4] = val;
+    }
+}
+
+/* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18) of one pair: p0 the
+ * first corner minus the point, (u, v) the projection; buf: 4 G^2 + 2 NE scratch. */
+static void riemann_one(const qgc_ctx *C, const quad_const *qc, const double *p0, double u, double v, double *buf,
+                        double est[8]) {
+    const int G = C->G;
+    const long Pn = C->Pn, NE = C->NE;
+    const int *node = C->node, *TE = C->TE, *EJ = C->EJ, *EK = C->EK;
+    const double *UA = C->UA, *UB = C->UB, *VA = C->VA, *VB = C->VB, *GA = C->GA, *GB = C->GB;
+    const double tol = C->tol, inv4pi = 1.0 / FOUR_PI;
+    const double *b = qc->b, *cc = qc->cc, *dd = qc->dd;
+    double *Sx = buf, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
+    double *IE = SR + G * G, *EINV = IE + NE;
+    const double p0x = p0[0], p0y = p0[1], p0z = p0[2];
+#pragma omp simd
+    for (long g = 0; g < G * G; ++g) { /* grid nodes on the quad, minus the point */
+        double uu = GA[g] + GB[g] * u, vv = GA[G * G + g] + GB[G * G + g] * v, uv = uu * vv;
+        double sx = p0x + uu * b[0] + vv * cc[0] + uv * dd[0];
+        double sy = p0y + uu * b[1] + vv * cc[1] + uv * dd[1];
+        double sz = p0z + uu * b[2] + vv * cc[2] + uv * dd[2];
+        Sx[g] = sx;
+        Sy[g] = sy;
+        Sz[g] = sz;
+        SR[g] = sqrt(sx * sx + sy * sy + sz * sz);
+    }
+    const double *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
+    /* Edges: int dl / r (tc_edge_log_arg, then the logs in a loop of their own, vectorised
+     * with libmvec) and 1 / length. */
+#pragma omp simd
+    for (long e = 0; e < NE; ++e) {
+        int j = EJ[e], k = EK[e];
+        double ajx = Sx[j], ajy = Sy[j], ajz = Sz[j], Rj = SR[j], Rk = SR[k];
+        double Ex = Sx[k] - ajx, Ey = Sy[k] - ajy, Ez = Sz[k] - ajz;
+        double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
+        double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
+        double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
+        double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
+        double arg = tc_edge_log_arg(lj, lk, Rj, Rk, cx * cx + cy * cy + cz * cz);
+        IE[e] = arg > 1e-300 ? arg : 1e-300;
+        EINV[e] = invl; /* 1 / length (0 for a degenerate edge) */
+    }
+#pragma omp simd
+    for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
+    /* Sub-triangles: Van Oosterom-Strackee solid angle (tan(omega / 2) = det / den,
+     * det = h 2A), psi = (sum_e d_e I_e - h omega) / 4 pi with d_e the signed distance
+     * of the foot point to edge e's line, and the bilinear basis at the centroid. */
+    double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
+#pragma omp simd reduction(+ : e0, e1, e2, e3, e4, e5, e6, e7)
+    for (long t = 0; t < Pn; ++t) {
+        int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
+        double a0x = Sx[i0], a0y = Sy[i0], a0z = Sz[i0], R0 = SR[i0];
+        double a1x = Sx[i1], a1y = Sy[i1], a1z = Sz[i1], R1 = SR[i1];
+        double a2x = Sx[i2], a2y = Sy[i2], a2z = Sz[i2], R2 = SR[i2];
+        double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
+        double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
+        double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
+        double two_area = sqrt(crx * crx + cry * cry + crz * crz);
+        double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
+        double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
+        double h = det * inv2A, ha = h >= 0 ? h : -h;
+        double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
+                     (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+        double omv = 2.0 * atan2(det, den);
+        double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
+        /* d_e = a_j . (E_e x cr) / (|E_e| 2A), E_e from corner j to corner k. */
+        double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z; /* edge opposite corner 0 */
+        double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
+        double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z; /* opposite corner 1 */
+        double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
+        double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
+        int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
+        double d0 = m0 * inv2A * EINV[k0], d1 = m1 * inv2A * EINV[k1], d2 = m2 * inv2A * EINV[k2];
+        double q0 = d0 * IE[k0], q1 = d1 * IE[k1], q2 = d2 * IE[k2];
+        double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
+        double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
+        double uc = UA[t] + UB[t] * u, vc = VA[t] + VB[t] * v;
+        double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
+        double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
+        double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
+        double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
+        e0 += b0 * so;
+        e1 += b1 * so;
+        e2 += b2 * so;
+        e3 += b3 * so;
+        e4 += b0 * sp;
+        e5 += b1 * sp;
+        e6 += b2 * sp;
+        e7 += b3 * sp;
+    }
+    est[0] = e0;
+    est[1] = e1;
+    est[2] = e2;
+    est[3] = e3;
+    est[4] = e4;
+    est[5] = e5;
+    est[6] = e6;
+    est[7] = e7;
+}
+
+/* riemann_one for the QL lanes of tc_quad_pair_lanes (their p0, u, v) side by side, each lane's
+ * operations as riemann_one's (the sums over the sub-triangles in order, not in the vector
+ * reduction's order): nodes stored [node][lane], edges [edge][lane], so the sub-triangle loop loads
+ * its corners' lanes contiguously (riemann_one gathers ~18 values per triangle). lbuf: QL (4 G^2 +
+ * 2 NE) scratch; est: (8, QL). */
+static void riemann_lanes(const qgc_ctx *C, const quad_const *qc, const quad_lanes *L, double *lbuf,
+                          double est[8][QL]) {
+    const int G = C->G;
+    const long Pn = C->Pn, NE = C->NE, GG = (long)G * G;
+    const int *node = C->node, *TE = C->TE, *EJ = C->EJ, *EK = C->EK;
+    const double *UA = C->UA, *UB = C->UB, *VA = C->VA, *VB = C->VB, *GA = C->GA, *GB = C->GB;
+    const double tol = C->tol, inv4pi = 1.0 / FOUR_PI;
+    const double *b = qc->b, *cc = qc->cc, *dd = qc->dd, *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
+    double(*Sx)[QL] = (double(*)[QL])lbuf, (*Sy)[QL] = Sx + GG, (*Sz)[QL] = Sy + GG, (*SR)[QL] = Sz + GG;
+    double(*IE)[QL] = SR + GG, (*EINV)[QL] = IE + NE;
+    const double *u = L->u, *v = L->v, *p0x = L->p[0][0], *p0y = L->p[0][1], *p0z = L->p[0][2];
+    for (long g = 0; g < GG; ++g) { /* grid nodes on the quad, minus the points */
+        const double gau = GA[g], gbu = GB[g], gav = GA[GG + g], gbv = GB[GG + g];
+        LANES {
+            double uu = gau + gbu * u[j], vv = gav + gbv * v[j], uv = uu * vv;
+            double sx = p0x[j] + uu * b[0] + vv * cc[0] + uv * dd[0];
+            double sy = p0y[j] + uu * b[1] + vv * cc[1] + uv * dd[1];
+            double sz = p0z[j] + uu * b[2] + vv * cc[2] + uv * dd[2];
+            Sx[g][j] = sx;
+            Sy[g][j] = sy;
+            Sz[g][j] = sz;
+            SR[g][j] = sqrt(sx * sx + sy * sy + sz * sz);
+        }
+    }
+    for (long e = 0; e < NE; ++e) {
+        const int jn = EJ[e], kn = EK[e];
+        LANES {
+            double ajx = Sx[jn][j], ajy = Sy[jn][j], ajz = Sz[jn][j], Rj = SR[jn][j], Rk = SR[kn][j];
+            double Ex = Sx[kn][j] - ajx, Ey = Sy[kn][j] - ajy, Ez = Sz[kn][j] - ajz;
+            double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
+            double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
+            double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
+            double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
+            double arg = tc_edge_log_arg(lj, lk, Rj, Rk, cx * cx + cy * cy + cz * cz);
+            IE[e][j] = arg > 1e-300 ? arg : 1e-300;
+            EINV[e][j] = invl;
+        }
+    }
+    {
+        double *ie = IE[0];
+#pragma omp simd
+        for (long i = 0; i < NE * QL; ++i) ie[i] = log(ie[i]);
+    }
+    double E[8][QL];
+    for (int i = 0; i < 8; ++i) LANES E[i][j] = 0.0;
+    for (long t = 0; t < Pn; ++t) {
+        const int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
+        const int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
+        const double uat = UA[t], ubt = UB[t], vat = VA[t], vbt = VB[t];
+        LANES {
+            double a0x = Sx[i0][j], a0y = Sy[i0][j], a0z = Sz[i0][j], R0 = SR[i0][j];
+            double a1x = Sx[i1][j], a1y = Sy[i1][j], a1z = Sz[i1][j], R1 = SR[i1][j];
+            double a2x = Sx[i2][j], a2y = Sy[i2][j], a2z = Sz[i2][j], R2 = SR[i2][j];
+            double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
+            double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
+            double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
+            double two_area = sqrt(crx * crx + cry * cry + crz * crz);
+            double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
+            double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
+            double h = det * inv2A, ha = h >= 0 ? h : -h;
+            double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
+                         (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+            double omv = 2.0 * atan2(det, den);
+            double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
+            double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z;
+            double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
+            double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z;
+            double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
+            double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
+            double d0 = m0 * inv2A * EINV[k0][j], d1 = m1 * inv2A * EINV[k1][j], d2 = m2 * inv2A * EINV[k2][j];
+            double q0 = d0 * IE[k0][j], q1 = d1 * IE[k1][j], q2 = d2 * IE[k2][j];
+            double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
+            double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
+            double uc = uat + ubt * u[j], vc = vat + vbt * v[j];
+            double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
+            double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
+            double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
+            double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
+            E[0][j] += b0 * so;
+            E[1][j] += b1 * so;
+            E[2][j] += b2 * so;
+            E[3][j] += b3 * so;
+            E[4][j] += b0 * sp;
+            E[5][j] += b1 * sp;
+            E[6][j] += b2 * sp;
+            E[7][j] += b3 * sp;
+        }
+    }
+    for (int i = 0; i < 8; ++i) LANES est[i][j] = E[i][j];
+}
+
+/* One point-quad pair by the one-point code (tc_quad_pair_c, then the invariants, the estimate and
+ * their combination), into the point's phi, psiq, onq, uv. buf: riemann_one's scratch. */
+static void pair_one(const qgc_ctx *C, long q, const quad_const *qc, const double *x, double qtol, const double *gl,
+                     const double *SP, const double *SPSI, double *buf, double *phi, double *psiq, int *onq,
+                     double *uv) {
+    const int *qi = C->quads + 4 * q;
+    quad_pair qp;
+    tc_quad_pair_c(C->P, qi, qc, x, C->tol, 1, &qp);
+    double u = qp.u, v = qp.v;
+    if (qp.on && *onq < 0) { /* (a corner: its Lagrange values) */
+        *onq = (int)q;
+        uv[0] = qp.vertex < 0 ? u : (qp.vertex == 1 || qp.vertex == 2 ? 1.0 : 0.0);
+        uv[1] = qp.vertex < 0 ? v : (qp.vertex >= 2 ? 1.0 : 0.0);
+    }
+    double rhs[4], est[8];
+    pair_rhs(C, q, x, (const double(*)[3])qp.p, u, v, qp.inside, qp.on, SP, SPSI, rhs);
+    if (qtol > 0) {
+        /* the defining integrals to the tolerance (on the quad too: both integrands are
+         * O(1 / r) there, the principal value is the integral); no norm correction */
+        tc_quad_integrals(qp.p[0], qp.b, qp.cc, qp.dd, u, v, qp.on, qtol, gl, 1, est);
+        for (int i = 0; i < 8; ++i) est[i] *= 1.0 / FOUR_PI;
+    } else {
+        riemann_one(C, qc, qp.p[0], u, v, buf, est);
+    }
+    pair_finish(C, q, rhs, est, !(qtol > 0), phi, psiq);
 }
 
 /*
@@ -169,219 +506,86 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         }
         free(ga);
     }
-    const double inv4pi = 1.0 / FOUR_PI;
+    const qgc_ctx C = {P, pinv, null, origin, s_nrm, s_ell, s_edir, quads, s_tri, T2, Pn, NE, G, tol,
+                       node, TE, EJ, EK, UA, UB, VA, VB, GA, GB};
     /* The quads' point-independent constants, once (without the table, per pair). */
     quad_const *QC = (quad_const *)malloc(sizeof(quad_const) * (size_t)(Q > 0 ? Q : 1));
     if (QC)
         for (long q = 0; q < Q; ++q) tc_quad_const(P, quads + 4 * q, QC + q);
+    /* The Riemann form takes QL points per quad side by side (tc_quad_pair_lanes, riemann_lanes); the
+     * tolerance form (and a failed QC) one point at a time. */
+    const int lanes = !(qtol > 0) && QC;
+    const int NL = lanes ? QL : 1; /* the points per block: split-triangle tables for each */
+    const size_t rbuf = 4 * (size_t)G * G + 2 * (size_t)NE;
     int failed = 0; /* a thread could not allocate its scratch */
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)G * G + 2 * (size_t)NE));
-        double *sbuf = (double *)malloc(sizeof(double) * (sws + 5 * (size_t)T2));
+        double *buf = (double *)malloc(sizeof(double) * rbuf * (lanes ? QL + 1 : 1));
+        double *sbuf = (double *)malloc(sizeof(double) * (sws + 5 * (size_t)T2 * NL));
         if (!buf || !sbuf) {
 #pragma omp atomic write
             failed = 1;
         }
 #pragma omp barrier
         if (failed) goto done; /* (every thread: none enters the worksharing loop) */
-        double *SPSI = sbuf + sws, *SP = SPSI + T2, *SOM = SP + 3 * T2;
-        double *Sx = buf, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
-        double *IE = SR + G * G, *EINV = IE + NE;
+        /* lane j's tables: SPSI + j T2 (T2,), SP + 3 j T2 (3, T2), SOM + j T2 (T2,) */
+        double *SPSI = sbuf + sws, *SP = SPSI + (size_t)T2 * NL, *SOM = SP + 3 * (size_t)T2 * NL;
+        if (!lanes) {
 #pragma omp for schedule(dynamic, 16)
-        for (long pt = 0; pt < n; ++pt) {
-            const double *x = X + 3 * pt;
-            double *phi = PHI + pt * V, *psiq = PSIQ + pt * 4 * Q;
-            ONQ[pt] = -1;
-            double s_alpha[3];
-            tc_gc_point(&sg, x, tol, sbuf, SPSI, SP, SOM, s_alpha);
-            for (long q = 0; q < Q; ++q) {
-                const int *qi = quads + 4 * q;
-                quad_pair qp;
-                quad_const qloc;
-                const quad_const *qc = QC ? QC + q : (tc_quad_const(P, qi, &qloc), &qloc);
-                tc_quad_pair_c(P, qi, qc, x, tol, 1, &qp);
-                double u = qp.u, v = qp.v;
-                if (qp.on && ONQ[pt] < 0) { /* (a corner: its Lagrange values) */
-                    ONQ[pt] = (int)q;
-                    UV[2 * pt] = qp.vertex < 0 ? u : (qp.vertex == 1 || qp.vertex == 2 ? 1.0 : 0.0);
-                    UV[2 * pt + 1] = qp.vertex < 0 ? v : (qp.vertex >= 2 ? 1.0 : 0.0);
+            for (long pt = 0; pt < n; ++pt) {
+                const double *x = X + 3 * pt;
+                double *phi = PHI + pt * V, *psiq = PSIQ + pt * 4 * Q;
+                ONQ[pt] = -1;
+                double s_alpha[3];
+                tc_gc_point(&sg, x, tol, sbuf, SPSI, SP, SOM, s_alpha);
+                for (long q = 0; q < Q; ++q) {
+                    quad_const qloc;
+                    const quad_const *qc = QC ? QC + q : (tc_quad_const(P, quads + 4 * q, &qloc), &qloc);
+                    pair_one(&C, q, qc, x, qtol, gl, SP, SPSI, buf, phi, psiq, ONQ + pt, UV + 2 * pt);
                 }
-                const double *b = qp.b, *cc = qp.cc, *dd = qp.dd;
-                double rhs[4] = {0, 0, 0, 0}; /* the invariants */
-                /* Outside the quad's tetrahedron the point cannot lie between the sheet and the split
-                 * (q0 q1 q2), (q0 q2 q3): those two triangles give the same invariants, already
-                 * computed for all quads above. Within 1.1 times the quad's bounding radius of its
-                 * centre, the fan instead, as for the quads around: near an edge, two quads must see
-                 * it in the same form (split and fan treat the point's side of the edge with
-                 * different bits, and their errors of eps / distance did not cancel). */
-                if (!qp.inside && !qp.on && !near_quad(qp.p)) {
-                    for (long t = 2 * q; t < 2 * q + 2; ++t) {
-                        for (int i = 0; i < 3; ++i) {
-                            double ph = SP[i * T2 + t];
-                            const double *c3 = P + 3 * s_tri[i * T2 + t];
-                            for (int c = 0; c < 3; ++c) rhs[c] += ph * (c3[c] - origin[c]);
-                            rhs[3] += ph;
+            }
+        } else {
+            double *lbuf = buf + rbuf;
+            const long nblk = (n + QL - 1) / QL;
+#pragma omp for schedule(dynamic, 2)
+            for (long blk = 0; blk < nblk; ++blk) {
+                const long p0 = blk * QL;
+                const int nl = n - p0 < QL ? (int)(n - p0) : QL; /* (the lanes past nl repeat the first) */
+                for (int j = 0; j < nl; ++j) {
+                    double s_alpha[3];
+                    ONQ[p0 + j] = -1;
+                    tc_gc_point(&sg, X + 3 * (p0 + j), tol, sbuf, SPSI + j * T2, SP + 3 * j * T2, SOM + j * T2,
+                                s_alpha);
+                }
+                quad_lanes L;
+                for (long q = 0; q < Q; ++q) {
+                    const quad_const *qc = QC + q;
+                    tc_quad_pair_lanes(P, quads + 4 * q, qc, X + 3 * p0, nl, tol, &L);
+                    int nredo = 0;
+                    for (int j = 0; j < nl; ++j) nredo += L.redo[j] != 0;
+                    double est[8][QL];
+                    if (nredo < nl) riemann_lanes(&C, qc, &L, lbuf, est);
+                    for (int j = 0; j < nl; ++j) {
+                        const long pt = p0 + j;
+                        const double *x = X + 3 * pt, *SPj = SP + 3 * j * T2, *SPSIj = SPSI + j * T2;
+                        double *phi = PHI + pt * V, *psiq = PSIQ + pt * 4 * Q;
+                        if (L.redo[j]) { /* (a corner, a flat quad's plane, the split form: the one-point code) */
+                            pair_one(&C, q, qc, x, qtol, gl, SPj, SPSIj, buf, phi, psiq, ONQ + pt, UV + 2 * pt);
+                            continue;
                         }
-                        for (int c = 0; c < 3; ++c) rhs[c] += SPSI[t] * s_nrm[3 * t + c];
-                    }
-                } else { /* on the fan from the projection (apex) to the four edges */
-                    /* The fan's frames from the corners themselves (a quad edge then has the bits
-                     * of the neighbouring quad's fan or triangle face: consistent sides near it). */
-                    double apex[3], ua = u, va = v;
-                    if (!qp.on) fan_apex(u, v, &ua, &va);
-                    const double wq[4] = {(1 - ua) * (1 - va), ua * (1 - va), ua * va, (1 - ua) * va};
-                    for (int c = 0; c < 3; ++c)
-                        apex[c] = wq[0] * P[3 * qi[0] + c] + wq[1] * P[3 * qi[1] + c] + wq[2] * P[3 * qi[2] + c] +
-                                  wq[3] * P[3 * qi[3] + c];
-                    for (int e = 0; e < 4; ++e) {
-                        double ab[3][3], a[3][3], nf[3], ell[3], edir[9], eout[9], gbary[9], ph[3], ps, om, al[3];
-                        memcpy(ab[0], P + 3 * qi[e], sizeof(ab[0]));
-                        memcpy(ab[1], P + 3 * qi[(e + 1) & 3], sizeof(ab[1]));
-                        memcpy(ab[2], apex, sizeof(ab[2]));
-                        for (int i = 0; i < 3; ++i)
-                            for (int c = 0; c < 3; ++c) a[i][c] = ab[i][c] - x[c];
-                        double two_area = tc_tri_frame(ab, nf, ell, edir, eout, gbary);
-                        /* The quad edge (opposite the apex) with the bits Python gave it in the split
-                         * triangles' tables, the function that made the cage faces' (a triangle face
-                         * across the edge then sees the point on the same side: PU was off by 7e-6 at
-                         * 4e-14 from such an edge of Beast, the C and torch norms differing by an ulp). */
-                        {
-                            const long t = e < 2 ? 2 * q : 2 * q + 1;
-                            const int ci = e == 0 ? 2 : (e == 3 ? 1 : 0);
-                            for (int c = 0; c < 3; ++c) edir[6 + c] = s_edir[9 * t + 3 * ci + c];
-                            ell[2] = s_ell[3 * t + ci];
-                            cross3(edir + 6, nf, eout + 6);
-                            for (int c = 0; c < 3; ++c)
-                                gbary[6 + c] = two_area > 0 ? -eout[6 + c] * ell[2] / two_area : 0.0;
+                        const double u = L.u[j], v = L.v[j];
+                        if (L.on[j] && ONQ[pt] < 0) { /* (no corner in these lanes) */
+                            ONQ[pt] = (int)q;
+                            UV[2 * pt] = u;
+                            UV[2 * pt + 1] = v;
                         }
-                        /* The apex on this edge (a point on the quad's boundary): the triangle is
-                         * empty, up to rounding that would make it a sliver seen from its own edge. */
-                        if (two_area <= tol * ell[2]) continue;
-                        tc_tri_green(a, nf, two_area, ell, edir, eout, gbary, tol, ph, &ps, &om, al);
-                        for (int i = 0; i < 3; ++i) {
-                            for (int c = 0; c < 3; ++c) rhs[c] += ph[i] * (ab[i][c] - origin[c]);
-                            rhs[3] += ph[i];
-                        }
-                        for (int c = 0; c < 3; ++c) rhs[c] += ps * nf[c];
+                        double p[4][3], rhs[4], e8[8];
+                        for (int i = 0; i < 4; ++i)
+                            for (int c = 0; c < 3; ++c) p[i][c] = L.p[i][c][j];
+                        pair_rhs(&C, q, x, (const double(*)[3])p, u, v, L.inside[j], L.on[j], SPj, SPSIj, rhs);
+                        for (int i = 0; i < 8; ++i) e8[i] = est[i][j];
+                        pair_finish(&C, q, rhs, e8, 1, phi, psiq);
                     }
-                }
-                const double *Ap = pinv + 32 * q, *Nl = null + 32 * q;
-                double bar[8];
-                for (int i = 0; i < 8; ++i)
-                    bar[i] = Ap[4 * i] * rhs[0] + Ap[4 * i + 1] * rhs[1] + Ap[4 * i + 2] * rhs[2] + Ap[4 * i + 3] * rhs[3];
-                double est[8];
-                if (qtol > 0) {
-                    /* the defining integrals to the tolerance (on the quad too: both integrands are
-                     * O(1 / r) there, the principal value is the integral); no norm correction */
-                    tc_quad_integrals(qp.p[0], b, cc, dd, u, v, qp.on, qtol, gl, 1, est);
-                    for (int i = 0; i < 8; ++i) est[i] *= inv4pi;
-                } else {
-                    /* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18). */
-                    const double p0x = qp.p[0][0], p0y = qp.p[0][1], p0z = qp.p[0][2];
-#pragma omp simd
-                    for (long g = 0; g < G * G; ++g) { /* grid nodes on the quad, minus the point */
-                        double uu = GA[g] + GB[g] * u, vv = GA[G * G + g] + GB[G * G + g] * v, uv = uu * vv;
-                        double sx = p0x + uu * b[0] + vv * cc[0] + uv * dd[0];
-                        double sy = p0y + uu * b[1] + vv * cc[1] + uv * dd[1];
-                        double sz = p0z + uu * b[2] + vv * cc[2] + uv * dd[2];
-                        Sx[g] = sx;
-                        Sy[g] = sy;
-                        Sz[g] = sz;
-                        SR[g] = sqrt(sx * sx + sy * sy + sz * sz);
-                    }
-                    const double *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
-                    /* Edges: int dl / r (tc_edge_log_arg, then the logs in a loop of their own, vectorised
-                     * with libmvec) and 1 / length. */
-#pragma omp simd
-                    for (long e = 0; e < NE; ++e) {
-                        int j = EJ[e], k = EK[e];
-                        double ajx = Sx[j], ajy = Sy[j], ajz = Sz[j], Rj = SR[j], Rk = SR[k];
-                        double Ex = Sx[k] - ajx, Ey = Sy[k] - ajy, Ez = Sz[k] - ajz;
-                        double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
-                        double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
-                        double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
-                        double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
-                        double arg = tc_edge_log_arg(lj, lk, Rj, Rk, cx * cx + cy * cy + cz * cz);
-                        IE[e] = arg > 1e-300 ? arg : 1e-300;
-                        EINV[e] = invl; /* 1 / length (0 for a degenerate edge) */
-                    }
-#pragma omp simd
-                    for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
-                    /* Sub-triangles: Van Oosterom-Strackee solid angle (tan(omega / 2) = det / den,
-                     * det = h 2A), psi = (sum_e d_e I_e - h omega) / 4 pi with d_e the signed distance
-                     * of the foot point to edge e's line, and the bilinear basis at the centroid. */
-                    double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
-#pragma omp simd reduction(+ : e0, e1, e2, e3, e4, e5, e6, e7)
-                    for (long t = 0; t < Pn; ++t) {
-                        int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
-                        double a0x = Sx[i0], a0y = Sy[i0], a0z = Sz[i0], R0 = SR[i0];
-                        double a1x = Sx[i1], a1y = Sy[i1], a1z = Sz[i1], R1 = SR[i1];
-                        double a2x = Sx[i2], a2y = Sy[i2], a2z = Sz[i2], R2 = SR[i2];
-                        double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
-                        double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
-                        double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
-                        double two_area = sqrt(crx * crx + cry * cry + crz * crz);
-                        double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
-                        double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
-                        double h = det * inv2A, ha = h >= 0 ? h : -h;
-                        double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
-                                     (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
-                        double omv = 2.0 * atan2(det, den);
-                        double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
-                        /* d_e = a_j . (E_e x cr) / (|E_e| 2A), E_e from corner j to corner k. */
-                        double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z; /* edge opposite corner 0 */
-                        double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
-                        double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z; /* opposite corner 1 */
-                        double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
-                        double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
-                        int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
-                        double d0 = m0 * inv2A * EINV[k0], d1 = m1 * inv2A * EINV[k1], d2 = m2 * inv2A * EINV[k2];
-                        double q0 = d0 * IE[k0], q1 = d1 * IE[k1], q2 = d2 * IE[k2];
-                        double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
-                        double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
-                        double uc = UA[t] + UB[t] * u, vc = VA[t] + VB[t] * v;
-                        double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
-                        double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
-                        double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
-                        double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
-                        e0 += b0 * so;
-                        e1 += b1 * so;
-                        e2 += b2 * so;
-                        e3 += b3 * so;
-                        e4 += b0 * sp;
-                        e5 += b1 * sp;
-                        e6 += b2 * sp;
-                        e7 += b3 * sp;
-                    }
-                    est[0] = e0;
-                    est[1] = e1;
-                    est[2] = e2;
-                    est[3] = e3;
-                    est[4] = e4;
-                    est[5] = e5;
-                    est[6] = e6;
-                    est[7] = e7;
-                }
-                /* Phi = Phi_bar + sum_i lambda_i kappa_i with the norm correction (none with qtol). */
-                double eb = 0, bb = 0, coef[4];
-                for (int i = 0; i < 8; ++i) {
-                    eb += est[i] * bar[i];
-                    bb += bar[i] * bar[i];
-                }
-                double scale = qtol > 0 ? 1.0 : (eb != 0 ? bb / eb : 0.0);
-                for (int j = 0; j < 4; ++j) {
-                    coef[j] = 0;
-                    for (int i = 0; i < 8; ++i) coef[j] += Nl[4 * i + j] * est[i];
-                    coef[j] *= scale;
-                }
-                for (int i = 0; i < 8; ++i) {
-                    double val = bar[i];
-                    for (int j = 0; j < 4; ++j) val += Nl[4 * i + j] * coef[j];
-                    if (i < 4)
-                        phi[qi[i]] += val;
-                    else
-                        psiq[4 * q + i - 4] = val;
                 }
             }
         }

@@ -451,15 +451,14 @@ void tc_quad_pair_c(const double *P, const int *qi, const quad_const *qc, const 
  * same operations in the same order lane by lane (so the same bits, the vector atan included), each
  * step a loop over the lanes. The lanes on a corner, on a flat quad's plane, or outside the
  * tetrahedron with a hull face near its plane (the split form) are left to tc_quad_pair_c (redo). */
-#define QL 8 /* (8 measured 6-8% faster than 4 with AVX2, one thread) */
-#define LANES _Pragma("omp simd") for (int j = 0; j < QL; ++j)
-typedef struct {
-    double p[4][3][QL], R[4][QL], m[3][QL], k[4][QL], rows[4][3][QL], D[QL], kabs[QL], u[QL], v[QL];
-    int inside[QL], on[QL], redo[QL];
-} quad_lanes;
+#define LANES _Pragma("omp simd") for (int j = 0; j < QL; ++j) /* (QL, quad_lanes: native.h) */
 
-static void quad_pair_lanes(const double *P, const int *qi, const quad_const *qc, const double *X, int nl, double tol,
-                            quad_lanes *L) {
+/* (inlined in tc_qmvc3d as before QGC's entry below gave it a second caller: the same code there) */
+#if defined(__GNUC__) || defined(__clang__)
+__attribute__((always_inline))
+#endif
+static inline void quad_pair_lanes(const double *P, const int *qi, const quad_const *qc, const double *X, int nl,
+                                   double tol, quad_lanes *L) {
     const double *q[4] = {P + 3 * qi[0], P + 3 * qi[1], P + 3 * qi[2], P + 3 * qi[3]};
     const double *b = qc->b, *cc = qc->cc, *dd = qc->dd;
     const double area2 = qc->area2, tol2 = tol * tol;
@@ -657,6 +656,12 @@ static void quad_pair_lanes(const double *P, const int *qi, const quad_const *qc
         L->redo[j] = vert[j] | flat[j] | (split[j] & !L->inside[j]);
     }
 #undef LDOT
+}
+
+/* (QGC's entry: quad_pair_lanes stays static, so tc_qmvc3d's calls compile as before) */
+void tc_quad_pair_lanes(const double *P, const int *qi, const quad_const *qc, const double *X, int nl, double tol,
+                        quad_lanes *L) {
+    quad_pair_lanes(P, qi, qc, X, nl, tol, L);
 }
 
 /* riemann_sums for the QL lanes of quad_pair_lanes (their p0, u, v) side by side, the same sums in the
