@@ -5,11 +5,11 @@ for a million points). glibc serves an allocation that large with a fresh ``mmap
 the first write to each 4 KiB page of it is a page fault: measured here on 2 cores, filling a fresh
 103 MB tensor cost 61 ms against 7 ms for a reused one, a quarter of a Green coordinates call on the
 Beast model. Advised with ``MADV_HUGEPAGE`` first, the same fill took 11 ms (2 MiB pages: 512 times
-fewer faults). NumPy advises its own large arrays the same way (on Linux, 4 MB and above).
+fewer faults). NumPy advises its own large arrays the same way (on Linux, from 4 MB).
 
 :func:`empty_output` is ``torch.empty`` plus that advice for CPU tensors of at least
 :data:`HUGE_PAGE_MIN_BYTES` on Linux, before anything writes them; elsewhere (another system, a
-GPU tensor, a small one, a kernel whose transparent huge pages are off) it is ``torch.empty``. The
+GPU tensor, a smaller one, a kernel whose transparent huge pages are off) it is ``torch.empty``. The
 advice is a hint: it changes neither the values nor what the caller owns, and a failure is ignored.
 """
 
@@ -24,8 +24,11 @@ from torch._C._functorch import is_functorch_wrapped_tensor
 
 __all__ = ["HUGE_PAGE_MIN_BYTES", "advise_huge_pages", "cat_output", "empty_output", "zeros_output"]
 
-#: Tensors at least this large are advised (NumPy's threshold).
-HUGE_PAGE_MIN_BYTES = 4 << 20
+#: Tensors at least this large are advised: glibc's largest mmap threshold on 64-bit systems
+#: (``DEFAULT_MMAP_THRESHOLD_MAX``, 32 MiB). Below it the threshold rises after the first free and
+#: glibc serves the next such tensor from its heap, already faulted in: there the advice saved
+#: nothing and cost 2 ms on a 44 MB Green call of FireHydrant (``benchmarks/alloc.py``).
+HUGE_PAGE_MIN_BYTES = 32 << 20
 
 _PAGE = mmap.PAGESIZE
 _MADV_HUGEPAGE = getattr(mmap, "MADV_HUGEPAGE", None) if sys.platform.startswith("linux") else None
@@ -45,7 +48,7 @@ def advise_huge_pages(t: torch.Tensor) -> bool:
     tensor, or refused by the kernel).
 
     Examples:
-        >>> t = torch.empty(1 << 20)  # 4 MB of float32
+        >>> t = torch.empty(1 << 24)  # 64 MB of float32
         >>> advise_huge_pages(t) in (True, False)
         True
     """
@@ -64,7 +67,7 @@ def empty_output(*shape: int, dtype: torch.dtype, device: torch.device | str | N
     writes in full.
 
     Examples:
-        >>> out = empty_output(40_000, 152, dtype=torch.float64)  # 49 MB
+        >>> out = empty_output(40_000, 152, dtype=torch.float64)  # 49 MB: advised
         >>> out.shape, out.dtype
         (torch.Size([40000, 152]), torch.float64)
     """
