@@ -187,6 +187,51 @@ static void pair_finish(const qgc_ctx *C, long q, const double rhs[4], const dou
     }
 }
 
+#if defined(__GNUC__)
+#define QGC_INLINE inline __attribute__((always_inline))
+#else
+#define QGC_INLINE inline
+#endif
+
+/* One sub-triangle of the Riemann sum, written once for riemann_one and riemann_lanes (inlined in
+ * their vector loops): corners a_i relative to the point with R_i = |a_i|, the log-integrals ie_e
+ * and inverse lengths iv_e of the edges opposite corners 0, 1, 2, and the centroid's (uc, vc).
+ * *so: the solid angle over 4 pi (Van Oosterom-Strackee: tan(omega / 2) = det / den, det = h 2A);
+ * *sp: psi = (sum_e d_e I_e - h omega) / 4 pi over the sheet normal's length at the centroid, d_e
+ * the signed distance of the foot point to edge e's line, d_e = a_j . (E_e x cr) / (|E_e| 2A)
+ * with E_e from corner j to corner k. */
+static QGC_INLINE void subtri_terms(double a0x, double a0y, double a0z, double R0, double a1x, double a1y, double a1z,
+                                    double R1, double a2x, double a2y, double a2z, double R2, double ie0, double ie1,
+                                    double ie2, double iv0, double iv1, double iv2, double uc, double vc,
+                                    const double *N0, const double *Nu, const double *Nv, double tol, double *so,
+                                    double *sp) {
+    const double inv4pi = 1.0 / FOUR_PI;
+    double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
+    double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
+    double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
+    double two_area = sqrt(crx * crx + cry * cry + crz * crz);
+    double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
+    double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
+    double h = det * inv2A, ha = h >= 0 ? h : -h;
+    double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 + (a0x * a2x + a0y * a2y + a0z * a2z) * R1 +
+                 (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+    double omv = 2.0 * atan2(det, den);
+    double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
+    double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z; /* edge opposite corner 0 */
+    double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
+    double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z; /* opposite corner 1 */
+    double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
+    double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
+    double d0 = m0 * inv2A * iv0, d1 = m1 * inv2A * iv1, d2 = m2 * inv2A * iv2;
+    double q0 = d0 * ie0, q1 = d1 * ie1, q2 = d2 * ie2;
+    double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
+    double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
+    double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
+    double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
+    *sp = Nn > 0 ? ps / Nn : 0.0;
+    *so = om * inv4pi;
+}
+
 /* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18) of one pair: p0 the
  * first corner minus the point, (u, v) the projection; buf: 4 G^2 + 2 NE scratch. */
 static void riemann_one(const qgc_ctx *C, const quad_const *qc, const double *p0, double u, double v, double *buf,
@@ -195,7 +240,7 @@ static void riemann_one(const qgc_ctx *C, const quad_const *qc, const double *p0
     const long Pn = C->Pn, NE = C->NE;
     const int *node = C->node, *TE = C->TE, *EJ = C->EJ, *EK = C->EK;
     const double *UA = C->UA, *UB = C->UB, *VA = C->VA, *VB = C->VB, *GA = C->GA, *GB = C->GB;
-    const double tol = C->tol, inv4pi = 1.0 / FOUR_PI;
+    const double tol = C->tol;
     const double *b = qc->b, *cc = qc->cc, *dd = qc->dd;
     double *Sx = buf, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
     double *IE = SR + G * G, *EINV = IE + NE;
@@ -229,42 +274,15 @@ static void riemann_one(const qgc_ctx *C, const quad_const *qc, const double *p0
     }
 #pragma omp simd
     for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
-    /* Sub-triangles: Van Oosterom-Strackee solid angle (tan(omega / 2) = det / den,
-     * det = h 2A), psi = (sum_e d_e I_e - h omega) / 4 pi with d_e the signed distance
-     * of the foot point to edge e's line, and the bilinear basis at the centroid. */
+    /* Sub-triangles (subtri_terms) and the bilinear basis at their centroids. */
     double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
 #pragma omp simd reduction(+ : e0, e1, e2, e3, e4, e5, e6, e7)
     for (long t = 0; t < Pn; ++t) {
-        int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
-        double a0x = Sx[i0], a0y = Sy[i0], a0z = Sz[i0], R0 = SR[i0];
-        double a1x = Sx[i1], a1y = Sy[i1], a1z = Sz[i1], R1 = SR[i1];
-        double a2x = Sx[i2], a2y = Sy[i2], a2z = Sz[i2], R2 = SR[i2];
-        double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
-        double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
-        double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
-        double two_area = sqrt(crx * crx + cry * cry + crz * crz);
-        double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
-        double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
-        double h = det * inv2A, ha = h >= 0 ? h : -h;
-        double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
-                     (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
-        double omv = 2.0 * atan2(det, den);
-        double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
-        /* d_e = a_j . (E_e x cr) / (|E_e| 2A), E_e from corner j to corner k. */
-        double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z; /* edge opposite corner 0 */
-        double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
-        double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z; /* opposite corner 1 */
-        double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
-        double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
-        int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
-        double d0 = m0 * inv2A * EINV[k0], d1 = m1 * inv2A * EINV[k1], d2 = m2 * inv2A * EINV[k2];
-        double q0 = d0 * IE[k0], q1 = d1 * IE[k1], q2 = d2 * IE[k2];
-        double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
-        double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
-        double uc = UA[t] + UB[t] * u, vc = VA[t] + VB[t] * v;
-        double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
-        double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
-        double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
+        const int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
+        const int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
+        double uc = UA[t] + UB[t] * u, vc = VA[t] + VB[t] * v, so, sp;
+        subtri_terms(Sx[i0], Sy[i0], Sz[i0], SR[i0], Sx[i1], Sy[i1], Sz[i1], SR[i1], Sx[i2], Sy[i2], Sz[i2], SR[i2],
+                     IE[k0], IE[k1], IE[k2], EINV[k0], EINV[k1], EINV[k2], uc, vc, N0, Nu, Nv, tol, &so, &sp);
         double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
         e0 += b0 * so;
         e1 += b1 * so;
@@ -296,7 +314,7 @@ static void riemann_lanes(const qgc_ctx *C, const quad_const *qc, const quad_lan
     const long Pn = C->Pn, NE = C->NE, GG = (long)G * G;
     const int *node = C->node, *TE = C->TE, *EJ = C->EJ, *EK = C->EK;
     const double *UA = C->UA, *UB = C->UB, *VA = C->VA, *VB = C->VB, *GA = C->GA, *GB = C->GB;
-    const double tol = C->tol, inv4pi = 1.0 / FOUR_PI;
+    const double tol = C->tol;
     const double *b = qc->b, *cc = qc->cc, *dd = qc->dd, *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
     double(*Sx)[QL] = (double(*)[QL])lbuf, (*Sy)[QL] = Sx + GG, (*Sz)[QL] = Sy + GG, (*SR)[QL] = Sz + GG;
     double(*IE)[QL] = SR + GG, (*EINV)[QL] = IE + NE;
@@ -340,33 +358,10 @@ static void riemann_lanes(const qgc_ctx *C, const quad_const *qc, const quad_lan
         const int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
         const double uat = UA[t], ubt = UB[t], vat = VA[t], vbt = VB[t];
         LANES {
-            double a0x = Sx[i0][j], a0y = Sy[i0][j], a0z = Sz[i0][j], R0 = SR[i0][j];
-            double a1x = Sx[i1][j], a1y = Sy[i1][j], a1z = Sz[i1][j], R1 = SR[i1][j];
-            double a2x = Sx[i2][j], a2y = Sy[i2][j], a2z = Sz[i2][j], R2 = SR[i2][j];
-            double f1x = a1x - a0x, f1y = a1y - a0y, f1z = a1z - a0z;
-            double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
-            double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
-            double two_area = sqrt(crx * crx + cry * cry + crz * crz);
-            double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
-            double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
-            double h = det * inv2A, ha = h >= 0 ? h : -h;
-            double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 +
-                         (a0x * a2x + a0y * a2y + a0z * a2z) * R1 + (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
-            double omv = 2.0 * atan2(det, den);
-            double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
-            double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z;
-            double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
-            double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z;
-            double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
-            double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
-            double d0 = m0 * inv2A * EINV[k0][j], d1 = m1 * inv2A * EINV[k1][j], d2 = m2 * inv2A * EINV[k2][j];
-            double q0 = d0 * IE[k0][j], q1 = d1 * IE[k1][j], q2 = d2 * IE[k2][j];
-            double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
-            double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
-            double uc = uat + ubt * u[j], vc = vat + vbt * v[j];
-            double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
-            double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
-            double sp = Nn > 0 ? ps / Nn : 0.0, so = om * inv4pi;
+            double uc = uat + ubt * u[j], vc = vat + vbt * v[j], so, sp;
+            subtri_terms(Sx[i0][j], Sy[i0][j], Sz[i0][j], SR[i0][j], Sx[i1][j], Sy[i1][j], Sz[i1][j], SR[i1][j],
+                         Sx[i2][j], Sy[i2][j], Sz[i2][j], SR[i2][j], IE[k0][j], IE[k1][j], IE[k2][j], EINV[k0][j],
+                         EINV[k1][j], EINV[k2][j], uc, vc, N0, Nu, Nv, tol, &so, &sp);
             double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
             E[0][j] += b0 * so;
             E[1][j] += b1 * so;
