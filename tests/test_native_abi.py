@@ -121,3 +121,28 @@ def test_a_failed_workspace_becomes_a_memory_error() -> None:
     check_workspace(torch.empty(0, 4), "quad mean value")
     with pytest.raises(MemoryError, match=r"quad Green kernel .*\(about 2 MB per thread\).*set_num_threads"):
         check_workspace(torch.full((3, 4), float("nan")), "quad Green", "about 2 MB per thread")
+
+
+@pytest.mark.native
+def test_green_derivatives_report_a_failed_workspace(monkeypatch) -> None:
+    """tc_gcd3d marks a workspace it could not allocate by NaN gradients (gcd3d.c); the glue raises
+    MemoryError instead of returning them (simulated: the call marks them so)."""
+    from support import cube
+
+    import torchcage.functional as F
+    from torchcage.backends import native as _native
+    from torchcage.families.green import derivatives3d_native as glue
+
+    if not _native.available():
+        pytest.skip("native kernels not available")
+    real = _native.call
+
+    def failing(lib, name, **kw):
+        real(lib, name, **kw)
+        if name == "tc_gcd3d":
+            kw["GPHI"].fill_(float("nan"))  # as the kernel marks a failed allocation
+
+    monkeypatch.setattr(glue._native, "call", failing)
+    x = torch.tensor([[0.1, 0.2, -0.3]], dtype=torch.float64)
+    with pytest.raises(MemoryError, match="Green derivatives kernel"):
+        F.green_derivatives(x, cube(), backend="native")

@@ -291,11 +291,22 @@ double tc_tri_frame(const double a[3][3], double *nf, double *ell, double *edir,
 /* Per-face constants, structure of arrays (index [k * T + f]). */
 enum { FC_N = 0, FC_O = 3, FC_C = 12, FC_M = 15, FC_S = 24, FC_THR = 25, FC_FAR = 26, FC_K = 27 };
 
-/* Fold the per-face constants into g->fc (allocated here; tc_gc_free releases it). */
-void tc_gc_prepare(gc_tables *g) {
+/* Fold the per-face constants into g->fc and list the thin faces in g->thin (allocated here;
+ * tc_gc_free releases them). Returns 0 when they could not be allocated (g->fc and g->thin NULL,
+ * no thin faces): the caller marks its outputs NaN, which the glue reports as a MemoryError. */
+int tc_gc_prepare(gc_tables *g) {
     long T = g->T;
     const double inv4pi = 1.0 / FOUR_PI;
-    double *fc = (double *)malloc(sizeof(double) * FC_K * (size_t)T);
+    double *fc = (double *)malloc(sizeof(double) * FC_K * (size_t)(T > 0 ? T : 1));
+    g->thin = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1));
+    g->nthin = 0;
+    if (fc == NULL || g->thin == NULL) {
+        free(fc);
+        free(g->thin);
+        g->fc = NULL;
+        g->thin = NULL;
+        return 0;
+    }
     for (long f = 0; f < T; ++f) {
         const double *eout = g->eout + 9 * f, *gbary = g->gbary + 9 * f, two_area = g->two_area[f];
         int live = two_area > 0;
@@ -314,13 +325,12 @@ void tc_gc_prepare(gc_tables *g) {
     }
     g->fc = fc;
     /* Faces THIN_ASPECT times longer than wide: their pairs may take the swept form. */
-    g->thin = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1));
-    g->nthin = 0;
     for (long f = 0; f < T; ++f) {
         double L2 = 0.0;
         for (int i = 0; i < 3; ++i) L2 = fmax(L2, g->ell[3 * f + i] * g->ell[3 * f + i]);
         if (g->two_area[f] > 0 && L2 > 0.5 * TC_THIN_ASPECT * g->two_area[f]) g->thin[g->nthin++] = f;
     }
+    return 1;
 }
 
 void tc_gc_free(gc_tables *g) {
@@ -798,12 +808,12 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
              int nthreads, double *PHI, double *PSI, int *ONF, double *AL) {
     gc_tables g = {Pv,   V,    tri,  T,       edges,     E,    eu,       fe, nrm, two_area, ell, edir, eout,
                    gbary, NULL, NULL, 0,       longest,   far_nodes, far_w, far_bary, Q, far_c};
-    tc_gc_prepare(&g);
+    const int prepared = tc_gc_prepare(&g);
     unsigned char *thin = (unsigned char *)calloc((size_t)(T > 0 ? T : 1), 1);
     for (long q = 0; thin != NULL && q < g.nthin; ++q) thin[g.thin[q]] = 1;
     const long nb = (n + GL - 1) / GL; /* blocks of GL points (the last one shorter) */
     const int stream = (double)n * (double)(V + T) > (double)(1 << 22); /* outputs past 32 MiB: streamed */
-    int failed = thin == NULL; /* a workspace that could not be allocated: every output NaN (the glue raises) */
+    int failed = thin == NULL || !prepared; /* a workspace not allocated: every output NaN (the glue raises) */
 #pragma omp parallel num_threads(nthreads)
     {
         double *buf = failed ? NULL : (double *)malloc(sizeof(double) * gc_block_workspace(&g));

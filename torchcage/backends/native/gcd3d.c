@@ -53,12 +53,18 @@ void tc_gcd3d(const double *Pv, long V, const int *tri, long T, const int *edges
               int order, int nthreads, double *GPHI, double *GPSI, double *HPHI, double *HPSI, int *OK) {
     gc_tables g = {Pv,   V,    tri,  T,       edges,     E,    eu,       fe, nrm, two_area, ell, edir, eout,
                    gbary, NULL, NULL, 0,       longest,   far_nodes, far_w, far_bary, Q, far_c};
-    tc_gc_prepare(&g);
+    int failed = !tc_gc_prepare(&g); /* a workspace not allocated: every output NaN (the glue raises) */
     const double inv4pi = 1.0 / FOUR_PI;
 #pragma omp parallel num_threads(nthreads)
     {
         size_t wsn = tc_gc_workspace(&g);
         double *buf = (double *)malloc(sizeof(double) * (wsn + 5 * (size_t)T));
+        if (buf == NULL) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp barrier
+        if (failed) goto done; /* (every thread: none enters the worksharing loop) */
         double *P = buf + wsn, *OM = P + 3 * T, *psi = OM + T;
 #pragma omp for schedule(dynamic, 16)
         for (long p = 0; p < n; ++p) {
@@ -151,7 +157,10 @@ void tc_gcd3d(const double *Pv, long V, const int *tri, long T, const int *edges
                         for (int ib = ia + 1; ib < 3; ++ib) hv[3 * ia + ib] = hv[3 * ib + ia] = 0.5 * (hv[3 * ia + ib] + hv[3 * ib + ia]);
                 }
         }
+    done:
         free(buf);
     }
+    if (failed)
+        for (long k = 0; k < n * V * 3; ++k) GPHI[k] = NAN;
     tc_gc_free(&g);
 }

@@ -211,7 +211,7 @@ int tc_thin_face(const double a[3][3], double two_area);
 int tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],
                  double H[3][6]);
 int tc_thin_green(const double a[3][3], double h, double two_area, double *phi, double *psi, double *omega);
-void tc_gc_prepare(gc_tables *g);
+int tc_gc_prepare(gc_tables *g); /* 0: not allocated (the caller marks its outputs NaN) */
 void tc_gc_free(gc_tables *g);
 size_t tc_gc_workspace(const gc_tables *g);
 long tc_gc_point(const gc_tables *g, const double *x, double tol, double *ws, double *psi, double *P, double *OM,

@@ -425,7 +425,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     const long T2 = 2 * Q;
     gc_tables sg = {s_Pv, V, s_tri, T2, s_edges, s_E, s_eu, s_fe, s_nrm, s_two_area, s_ell, s_edir, s_eout, s_gbary,
                     NULL};
-    tc_gc_prepare(&sg);
+    const int prepared = tc_gc_prepare(&sg);
     const size_t sws = tc_gc_workspace(&sg);
     /* The pattern's sub-triangles as flat grid-node indices (corner c of triangle t at [c * Pn + t])
      * and their u and v indices; its unique edges (nodes EJ, EK) and, for each triangle, the edge
@@ -436,7 +436,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     int *seen = (int *)malloc(sizeof(int) * 25 * (size_t)G * G); /* (node, offset to the other node) */
     double *UA = (double *)malloc(sizeof(double) * (4 * (size_t)Pn + 4 * (size_t)G * G));
     double *ga = (double *)malloc(sizeof(double) * 2 * (size_t)G);
-    if (!node || !EJ || !seen || !UA || !ga) { /* the glue's sign of a failed allocation (MemoryError) */
+    if (!prepared || !node || !EJ || !seen || !UA || !ga) { /* the glue's sign of a failed allocation (MemoryError) */
         for (long k = 0; k < n * V; ++k) PHI[k] = NAN;
         free(node), free(EJ), free(seen), free(UA), free(ga);
         tc_gc_free(&sg);

@@ -44,4 +44,5 @@ def derivatives(
         HPSI=hess_psi if second else None,
         OK=ok,
     )
+    _native.check_workspace(grad_phi, "Green derivatives")
     return ok.bool()
