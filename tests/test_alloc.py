@@ -37,6 +37,7 @@ def test_large_output_is_advised_and_small_is_not() -> None:
     big = empty_output(2 * HUGE_PAGE_MIN_BYTES // 8, dtype=torch.float64)
     # (the advice covers the whole pages inside the tensor: its middle page is in an advised range)
     assert "hg" in _vm_flags(big.data_ptr() + big.numel() * 4)
+    assert "hg" not in _vm_flags(big.data_ptr() - 1)  # (the partial page before its first whole one)
     small = torch.empty(1024, dtype=torch.float64)
     assert advise_huge_pages(small) is False
     strided = torch.empty(2 * HUGE_PAGE_MIN_BYTES // 8, 2, dtype=torch.float64)[:, 0]

@@ -167,9 +167,8 @@ def test_made_cages_on_the_data_set(model, kind):
     assert abs(r.vertices - target) <= 0.25 * target
     assert r.outside == 0 and r.self_intersections == 0 and r.invalid_quads == 0
     assert r.min_clearance >= 0.005 * (1 - 1e-9)
-    if kind == "quad":
-        if r.quad_fraction < 0.8 and model in LOW_QUAD_FRACTION:
-            pytest.xfail(f"{r.quad_fraction:.0%} quads on {model} at {r.vertices} vertices; see LOW_QUAD_FRACTION")
+    low = kind == "quad" and r.quad_fraction < 0.8 and model in LOW_QUAD_FRACTION
+    if kind == "quad" and not low:
         assert r.quad_fraction >= 0.8
     diag = float((v.amax(0) - v.amin(0)).norm())
     lam = F.mean_value_coordinates(v, cage.triangulated())
@@ -180,6 +179,8 @@ def test_made_cages_on_the_data_set(model, kind):
         q = torchcage.QuadMeanValueCoordinates(cage, v)(cage.vertices)
         assert torch.isfinite(q).all() and (q - v).abs().max() <= 1e-8 * diag
     assert r.mean_distance <= 1.5 * reference.mean_distance and r.max_distance <= 0.2
+    if low:  # (last: every other check above has run)
+        pytest.xfail(f"{r.quad_fraction:.0%} quads on {model} at {r.vertices} vertices; see LOW_QUAD_FRACTION")
 
 
 def test_patch_grid_stays_within_its_slack_of_the_bilinear_patch():

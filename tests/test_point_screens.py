@@ -38,6 +38,23 @@ def test_snap_agrees_with_brute_force() -> None:
     assert 100 < int(moved.sum()) < 300 + 1  # (about half of the points within 2 radii, none of the others)
 
 
+def test_snap_in_float32_keeps_the_rows_at_the_radius() -> None:
+    """float32 points just inside the radius along one axis (the screen's slack covers float32's
+    rounding of the squares): snapped as the brute-force search snaps them."""
+    g = torch.Generator().manual_seed(7)
+    V = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    for _ in range(200):
+        r = float(torch.rand(1, generator=g)) * 1e-3 + 1e-6
+        edge = torch.tensor(r, dtype=torch.float32)
+        for k in range(-3, 4):  # a few float32 steps either side of the radius
+            c = edge
+            step = torch.tensor(1.0 if k > 0 else 0.0)
+            for _ in range(abs(k)):
+                c = torch.nextafter(c, step)
+            x = torch.stack([c, torch.tensor(0.0), torch.tensor(0.0)])[None]
+            assert torch.equal(snap_to_vertices(x, V, r), _brute(x, V, r))
+
+
 def test_snap_with_one_vertex_and_in_2d() -> None:
     V = torch.tensor([[0.5, 0.25]], dtype=torch.float64)
     pts = torch.tensor([[0.5, 0.25 + 1e-10], [0.5, 0.3], [0.7, 0.25]], dtype=torch.float64)
@@ -67,3 +84,7 @@ def test_far_screen_never_misses_a_far_point() -> None:
         if trial % 2 == 0:
             assert not may_be_far(V, x)
         assert may_be_far(V[0], x[0]) or not bool(far_region(V[0], x[0])[1].any())
+        # the bound itself: one point at 0.49 of the far radius is within it, at 0.51 beyond
+        one = c[0] + direction[0, :1] * FAR_MOMENT * r[0]
+        assert not may_be_far(V[0], c[0] + (one - c[0]) * 0.49)
+        assert may_be_far(V[0], c[0] + (one - c[0]) * 0.51)

@@ -44,8 +44,8 @@ if _MADV_HUGEPAGE is not None:
 
 def advise_huge_pages(t: torch.Tensor) -> bool:
     """Advise the whole pages inside ``t``'s memory (a contiguous CPU tensor) for transparent huge
-    pages; returns whether the advice was given (``False``: too small, not on Linux, not a CPU
-    tensor, or refused by the kernel).
+    pages; returns whether the advice was given (``False``: too small, not contiguous, not on Linux,
+    not a CPU tensor, or refused by the kernel).
 
     Examples:
         >>> t = torch.empty(1 << 24)  # 64 MB of float32
@@ -87,8 +87,10 @@ def zeros_output(*shape: int, dtype: torch.dtype, device: torch.device | str | N
 
 
 def cat_output(parts: list[torch.Tensor], dim: int = 0) -> torch.Tensor:
-    """``torch.cat(parts, dim)`` of a kernel's chunks (one dtype and device, at least one part),
-    written into an :func:`empty_output` when no part records a graph (``out=`` takes no autograd).
+    """``torch.cat(parts, dim)`` of a kernel's chunks (at least one part, all of the first part's
+    shape but along ``dim``), written into an :func:`empty_output` when no part records a graph
+    (``out=`` takes no autograd) and all share the first part's dtype and device (else plain
+    ``torch.cat``).
 
     Examples:
         >>> cat_output([torch.zeros(2, 3), torch.ones(1, 3)]).shape

@@ -23,7 +23,8 @@ def decimate(
 
     A closed surface with ``c`` components of genus ``g`` has ``F = 2 V - 4 (c - g)`` faces; the
     face target follows from that and is corrected from the count each attempt gives (within 10%
-    of the target, or the closest of ``attempts``).
+    of the target, or the closest of ``attempts``). Where a pass stalls well above its goal, the
+    next one simplifies that pass's output (its quadrics then start afresh from the coarser mesh).
 
     Args:
         vertices: ``(M, 3)``.
