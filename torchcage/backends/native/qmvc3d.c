@@ -190,6 +190,17 @@ static double kernel_and_pinv(const double p[4][3], double c[4][4][3], double *k
 
 static inline double badness(double r) { return (r < 0 ? -r : 0) + (r > 1 ? r - 1 : 0) + 1e-3 * fabs(r - 0.5); }
 
+/* The root of c0 + c1 v + c2 v^2 best inside [0, 1] (the stable form of the two roots; the one
+ * nearer the interval, clamped to it): intersect's and the lanes' (written once, inlined). */
+static inline double unit_root(double c0, double c1, double c2) {
+    double disc = c1 * c1 - 4 * c0 * c2;
+    double sq = disc > 0 ? sqrt(disc) : 0.0;
+    double qq = -0.5 * (c1 + (c1 >= 0 ? sq : -sq));
+    double r1 = c2 != 0 ? qq / c2 : 1e300, r2 = qq != 0 ? c0 / qq : 1e300;
+    double v = badness(r1) <= badness(r2) ? r1 : r2;
+    return v < 0 ? 0 : (v > 1 ? 1 : v);
+}
+
 /* (u, v) where the line through the origin of p along d meets the bilinear sheet (Appendix B). */
 static void intersect(const double p[4][3], const double *d, double *u_out, double *v_out) {
     double A0[3], A1[3], B0[3], B1[3], t[3], t2[3];
@@ -206,12 +217,7 @@ static void intersect(const double p[4][3], const double *d, double *u_out, doub
     double c1 = dot3(t, d) + dot3(t2, d);
     cross3(A1, B1, t);
     double c2 = dot3(t, d);
-    double disc = c1 * c1 - 4 * c0 * c2;
-    double sq = disc > 0 ? sqrt(disc) : 0.0;
-    double qq = -0.5 * (c1 + (c1 >= 0 ? sq : -sq));
-    double r1 = c2 != 0 ? qq / c2 : 1e300, r2 = qq != 0 ? c0 / qq : 1e300;
-    double v = badness(r1) <= badness(r2) ? r1 : r2;
-    v = v < 0 ? 0 : (v > 1 ? 1 : v);
+    double v = unit_root(c0, c1, c2);
     double a[3], e[3];
     for (int c = 0; c < 3; ++c) {
         a[c] = A0[c] + v * A1[c];
@@ -632,12 +638,7 @@ static inline void quad_pair_lanes(const double *P, const int *qi, const quad_co
         double c1 = CRD(A00, A01, A02, B10, B11, B12) + CRD(A10, A11, A12, B00, B01, B02);
         double c2 = CRD(A10, A11, A12, B10, B11, B12);
 #undef CRD
-        double disc = c1 * c1 - 4 * c0 * c2;
-        double sq = disc > 0 ? sqrt(disc) : 0.0;
-        double qq = -0.5 * (c1 + (c1 >= 0 ? sq : -sq));
-        double r1 = c2 != 0 ? qq / c2 : 1e300, r2 = qq != 0 ? c0 / qq : 1e300;
-        double v = badness(r1) <= badness(r2) ? r1 : r2;
-        v = v < 0 ? 0 : (v > 1 ? 1 : v);
+        double v = unit_root(c0, c1, c2);
         double a0 = A00 + v * A10, a1 = A01 + v * A11, a2 = A02 + v * A12;
         double e0 = B00 + v * B10 - a0, e1 = B01 + v * B11 - a1, e2 = B02 + v * B12 - a2;
         double dd2 = d0 * d0 + d1 * d1 + d2v * d2v, inv = dd2 > 0 ? 1.0 / dd2 : 0.0;
