@@ -37,7 +37,6 @@ def test_large_output_is_advised_and_small_is_not() -> None:
     big = empty_output(2 * HUGE_PAGE_MIN_BYTES // 8, dtype=torch.float64)
     # (the advice covers the whole pages inside the tensor: its middle page is in an advised range)
     assert "hg" in _vm_flags(big.data_ptr() + big.numel() * 4)
-    assert "hg" not in _vm_flags(big.data_ptr() - 1)  # (the partial page before its first whole one)
     small = torch.empty(1024, dtype=torch.float64)
     assert advise_huge_pages(small) is False
     strided = torch.empty(2 * HUGE_PAGE_MIN_BYTES // 8, 2, dtype=torch.float64)[:, 0]
@@ -77,3 +76,21 @@ def test_coordinates_on_advised_outputs_are_the_coordinates() -> None:
     assert torch.allclose(w @ v, x, atol=1e-12)
     phi, psi = F.green_coordinates(x, cage)
     assert torch.allclose(phi @ v + psi @ cage.triangle_normals().to(torch.float64), x, atol=1e-12)
+
+
+def test_the_advised_range_lies_inside_the_tensor(monkeypatch) -> None:
+    """The advice covers whole pages inside the tensor's memory and nothing outside it (recorded
+    calls, tensors at offsets that are not page-aligned; memory around a tensor may belong to
+    others, so this is checked on the range itself, not on the mappings)."""
+    from torchcage._core import alloc
+
+    calls: list[tuple[int, int]] = []
+    monkeypatch.setattr(alloc, "_madvise", lambda lo, n, advice: calls.append((lo, n)) or 0)
+    base = torch.empty(HUGE_PAGE_MIN_BYTES // 8 + 4096, dtype=torch.float64)
+    for offset in (0, 1, 7, 513):
+        t = base[offset : offset + HUGE_PAGE_MIN_BYTES // 8]
+        assert alloc.advise_huge_pages(t)
+        lo, n = calls[-1]
+        start, end = t.data_ptr(), t.data_ptr() + t.numel() * 8
+        assert lo % alloc._PAGE == 0 and n % alloc._PAGE == 0
+        assert start <= lo and lo + n <= end and lo - start < alloc._PAGE and end - (lo + n) < alloc._PAGE
