@@ -306,24 +306,25 @@ static inline int mvc3d_point(const mvc3d_cage *g, long V, const int *tri, long 
 #endif
 #define LN TC_MVC_LANES
 
-/* Per-thread scratch of a block: vertex (5V: A, |A|, the gathered weights), edge (6E: N, g N) and
- * face (5T: the corner weights, h, the nearest corner's distance) arrays of LN lanes each, and the
- * list of faces that some lane sees near their support plane. */
+/* Per-thread scratch of a block: vertex (5V: A, |A|, the gathered weights), edge (5E: N, g, and |N|
+ * while g is made) and face (3T: the corner weights) arrays of LN lanes each, and the list of faces
+ * that some lane sees near their support plane. The face pass reads N and g alone (not the three
+ * products g N, nor h and the nearest corner's distance, which the rare careful forms recompute): a
+ * smaller working set, measured faster. */
 typedef struct {
-    double *Ax, *Ay, *Az, *RA, *acc, *Nx, *Ny, *Nz, *Gx, *Gy, *Gz, *Wc, *H, *RM;
+    double *Ax, *Ay, *Az, *RA, *acc, *Nx, *Ny, *Nz, *G, *NN, *Wc;
     long *near;
 } mvc3d_block_scratch;
 
 static size_t mvc3d_block_doubles(long V, long E, long T) {
-    return (size_t)LN * (5 * (size_t)V + 6 * (size_t)E + 5 * (size_t)T);
+    return (size_t)LN * (5 * (size_t)V + 5 * (size_t)E + 3 * (size_t)T);
 }
 
 static void mvc3d_block_carve(double *buf, long V, long E, long T, mvc3d_block_scratch *bs) {
     bs->Ax = buf, bs->Ay = bs->Ax + LN * V, bs->Az = bs->Ay + LN * V, bs->RA = bs->Az + LN * V;
     bs->acc = bs->RA + LN * V;
     bs->Nx = bs->acc + LN * V, bs->Ny = bs->Nx + LN * E, bs->Nz = bs->Ny + LN * E;
-    bs->Gx = bs->Nz + LN * E, bs->Gy = bs->Gx + LN * E, bs->Gz = bs->Gy + LN * E;
-    bs->Wc = bs->Gz + LN * E, bs->H = bs->Wc + 3 * LN * T, bs->RM = bs->H + LN * T;
+    bs->G = bs->Nz + LN * E, bs->NN = bs->G + LN * E, bs->Wc = bs->NN + LN * E;
 }
 
 #if defined(__GNUC__)
@@ -338,13 +339,57 @@ static void mvc3d_block_carve(double *buf, long V, long E, long T, mvc3d_block_s
 #define MVC3D_BLOCK_ARGS \
     g, V, tri, T, edges, E, fe, inc_ptr, inc_idx, fs, Q, far_c, cancel_c, near_c, X, normalize, sc, bs, w, on
 
+/* The rows w[l * V + v] = acc[LN * v + l] * inv[l] (the lanes' values, [vertex][lane], written as
+ * rows, scaled), and sum[l] += each row's values (only their finiteness is read: any order will do).
+ * Four vertices and four lanes at a time by a 4 x 4 transpose in vector registers where the compiler
+ * has __builtin_shufflevector (gcc 12, clang) and LN is 8; else one value at a time. acc is
+ * 64-byte aligned; w need not be. */
+#if LN == 8 && (defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12))
+typedef double tc_v4d __attribute__((vector_size(32)));                        /* (32-byte aligned) */
+typedef double tc_v4du __attribute__((vector_size(32), aligned(8), may_alias)); /* (any double's address) */
+#define MVC3D_SHUFFLE_ROWS 1
+#endif
+static TC_ALWAYS_INLINE void mvc3d_rows_out(const double *acc, const double *inv, long V, double *w, double *sum) {
+    long v0 = 0;
+#ifdef MVC3D_SHUFFLE_ROWS
+    tc_v4d s4[LN];
+    for (int l = 0; l < LN; ++l) s4[l] = (tc_v4d){0.0, 0.0, 0.0, 0.0};
+    for (; v0 + 4 <= V; v0 += 4) {
+        const tc_v4d *a = (const tc_v4d *)(acc + LN * v0); /* a[2 k + h]: vertex v0 + k, lanes 4 h .. 4 h + 3 */
+        for (int h = 0; h < 2; ++h) {
+            const tc_v4d t0 = __builtin_shufflevector(a[h], a[2 + h], 0, 4, 2, 6);
+            const tc_v4d t1 = __builtin_shufflevector(a[h], a[2 + h], 1, 5, 3, 7);
+            const tc_v4d t2 = __builtin_shufflevector(a[4 + h], a[6 + h], 0, 4, 2, 6);
+            const tc_v4d t3 = __builtin_shufflevector(a[4 + h], a[6 + h], 1, 5, 3, 7);
+            const int l = 4 * h;
+            const tc_v4d o0 = __builtin_shufflevector(t0, t2, 0, 1, 4, 5) * inv[l];
+            const tc_v4d o1 = __builtin_shufflevector(t1, t3, 0, 1, 4, 5) * inv[l + 1];
+            const tc_v4d o2 = __builtin_shufflevector(t0, t2, 2, 3, 6, 7) * inv[l + 2];
+            const tc_v4d o3 = __builtin_shufflevector(t1, t3, 2, 3, 6, 7) * inv[l + 3];
+            *(tc_v4du *)(w + V * l + v0) = o0, *(tc_v4du *)(w + V * (l + 1) + v0) = o1;
+            *(tc_v4du *)(w + V * (l + 2) + v0) = o2, *(tc_v4du *)(w + V * (l + 3) + v0) = o3;
+            s4[l] += o0, s4[l + 1] += o1, s4[l + 2] += o2, s4[l + 3] += o3;
+        }
+    }
+    for (int l = 0; l < LN; ++l) sum[l] += (s4[l][0] + s4[l][1]) + (s4[l][2] + s4[l][3]);
+#endif
+    for (long v = v0; v < V; ++v) {
+        const double *av = acc + LN * v;
+        for (int l = 0; l < LN; ++l) {
+            const double wv = av[l] * inv[l];
+            w[V * l + v] = wv;
+            sum[l] += wv;
+        }
+    }
+}
+
 /* The coordinates of the LN points X[0 .. LN) (rows of 3) against cage g, into the rows w[l * V ..)
  * with their flags on[l] (as mvc3d_point's return value). Compiled twice below: for the library's
  * target and, where the compiler and libmvec allow, for AVX-512 (chosen at run time). */
 static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
     MVC3D_CAGE_VIEWS(g);
     double *Ax = bs->Ax, *Ay = bs->Ay, *Az = bs->Az, *RA = bs->RA, *acc = bs->acc, *Nx = bs->Nx, *Ny = bs->Ny,
-           *Nz = bs->Nz, *Gx = bs->Gx, *Gy = bs->Gy, *Gz = bs->Gz, *Wc = bs->Wc, *H = bs->H, *RM = bs->RM;
+           *Nz = bs->Nz, *G = bs->G, *NN = bs->NN, *Wc = bs->Wc;
     long *near = bs->near;
     double x0[LN], x1[LN], x2[LN], total[LN], abs_sum[LN];
     unsigned long long tiny[LN];
@@ -363,12 +408,12 @@ static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
             ra[l] = sqrt(a0 * a0 + a1 * a1 + a2 * a2);
         }
     }
-    /* Edges: N = a_j x a_k, |N|, a_j . a_k and the half-angle tangent argument; then its atan and
-     * g N with g = theta / (2 |N|) (mvc3d_point's edge loops, the last two over all lanes at once). */
+    /* Edges: N = a_j x a_k, |N|, and the half-angle tangent argument with the sign of a_j . a_k;
+     * then its atan and g = theta / (2 |N|) (mvc3d_point's edge loops, the last two over all lanes
+     * at once). */
     for (long q = 0; q < E; ++q) {
         const long j = LN * (long)e0[q], k = LN * (long)e1[q];
-        double *nxq = Nx + LN * q, *nyq = Ny + LN * q, *nzq = Nz + LN * q;
-        double *gxq = Gx + LN * q, *gyq = Gy + LN * q, *gzq = Gz + LN * q;
+        double *nxq = Nx + LN * q, *nyq = Ny + LN * q, *nzq = Nz + LN * q, *gq = G + LN * q, *nnq = NN + LN * q;
 #pragma omp simd
         for (int l = 0; l < LN; ++l) {
             double ajx = Ax[j + l], ajy = Ay[j + l], ajz = Az[j + l], akx = Ax[k + l], aky = Ay[k + l],
@@ -377,22 +422,18 @@ static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
             double nn = sqrt(cx * cx + cy * cy + cz * cz), d = ajx * akx + ajy * aky + ajz * akz;
             double rr = RA[j + l] * RA[k + l];
             nxq[l] = cx, nyq[l] = cy, nzq[l] = cz;
-            gxq[l] = nn / (rr + fabs(d)); /* (Gx, Gy, Gz hold the argument, |N| and a_j . a_k until below) */
-            gyq[l] = nn;
-            gzq[l] = d;
+            const double t = nn / (rr + fabs(d));
+            gq[l] = d < 0 ? -t : t; /* (an obtuse angle: a negative argument, -0 included) */
+            nnq[l] = nn;
         }
     }
 #pragma omp simd
-    for (long i = 0; i < LN * E; ++i) Gx[i] = atan(Gx[i]);
+    for (long i = 0; i < LN * E; ++i) G[i] = atan(G[i]);
 #pragma omp simd
-    for (long i = 0; i < LN * E; ++i) {
-        double at = Gx[i];
-        double nn = Gy[i], obtuse = Gz[i] < 0 ? 1.0 : 0.0;
-        double th = obtuse * M_PI + (1.0 - 2.0 * obtuse) * 2.0 * at;
-        double gq = 0.5 * th / (nn > 1e-300 ? nn : 1e-300);
-        Gx[i] = gq * Nx[i];
-        Gy[i] = gq * Ny[i];
-        Gz[i] = gq * Nz[i];
+    for (long i = 0; i < LN * E; ++i) { /* theta = 2 atan(t), or pi - 2 atan(|t|) where obtuse */
+        const double at = G[i], nn = NN[i];
+        const double th = 2.0 * at + (copysign(1.0, at) < 0 ? M_PI : 0.0); /* (-0 too; signbit does not vectorise) */
+        G[i] = 0.5 * th / (nn > 1e-300 ? nn : 1e-300);
     }
     /* Faces, direct vector form; the faces that some lane sees near their support plane are listed
      * (a bit per face and lane, 64 faces at a time, so that the lane loop needs no reduction). */
@@ -408,22 +449,22 @@ static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
             const double area = two_area[f], far_always = longest[f] * FAR_ALWAYS_RATIO;
             const int shift = (int)(f - fc);
             double *w0 = Wc + LN * f, *w1 = Wc + LN * (T + f), *w2 = Wc + LN * (2 * T + f);
-            double *hf = H + LN * f, *rm = RM + LN * f;
 #pragma omp simd
             for (int l = 0; l < LN; ++l) {
                 double h = nxf * Ax[i0 + l] + nyf * Ay[i0 + l] + nzf * Az[i0 + l];
-                double mx = sa * Gx[a + l] + sb * Gx[b + l] + sc_ * Gx[c + l];
-                double my = sa * Gy[a + l] + sb * Gy[b + l] + sc_ * Gy[c + l];
-                double mz = sa * Gz[a + l] + sb * Gz[b + l] + sc_ * Gz[c + l];
+                const double ga = G[a + l], gb = G[b + l], gc = G[c + l];
+                const double nax = Nx[a + l], nay = Ny[a + l], naz = Nz[a + l], nbx = Nx[b + l], nby = Ny[b + l],
+                             nbz = Nz[b + l], ncx = Nx[c + l], ncy = Ny[c + l], ncz = Nz[c + l];
+                double mx = sa * (ga * nax) + sb * (gb * nbx) + sc_ * (gc * ncx);
+                double my = sa * (ga * nay) + sb * (gb * nby) + sc_ * (gc * ncy);
+                double mz = sa * (ga * naz) + sb * (gb * nbz) + sc_ * (gc * ncz);
                 double inv = 1.0 / (area * h);
-                w0[l] = sa * (Nx[a + l] * mx + Ny[a + l] * my + Nz[a + l] * mz) * inv;
-                w1[l] = sb * (Nx[b + l] * mx + Ny[b + l] * my + Nz[b + l] * mz) * inv;
-                w2[l] = sc_ * (Nx[c + l] * mx + Ny[c + l] * my + Nz[c + l] * mz) * inv;
-                hf[l] = h;
+                w0[l] = sa * (nax * mx + nay * my + naz * mz) * inv;
+                w1[l] = sb * (nbx * mx + nby * my + nbz * mz) * inv;
+                w2[l] = sc_ * (ncx * mx + ncy * my + ncz * mz) * inv;
                 double r0 = RA[i0 + l], r1 = RA[i1 + l], r2 = RA[i2 + l];
                 double r01 = r0 < r1 ? r0 : r1;
                 double rmin = r01 < r2 ? r01 : r2;
-                rm[l] = rmin;
                 unsigned long long near_bit = !(fabs(h) >= near_c * rmin && rmin > tol);
                 bits[l] |= near_bit << shift;
                 tiny[l] |= far_always < rmin ? 1ULL : 0ULL;
@@ -441,7 +482,10 @@ static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
         const double sg[3] = {s0[f], s1[f], s2[f]};
         const double *lf = ell + 3 * f;
         for (int l = 0; l < LN; ++l) {
-            const double h = H[LN * f + l], rmin = RM[LN * f + l];
+            const long i0 = LN * (long)t[0] + l;
+            const double h = nx[f] * Ax[i0] + ny[f] * Ay[i0] + nz[f] * Az[i0]; /* (the face pass's h and rmin) */
+            const double r0 = RA[i0], r1 = RA[LN * (long)t[1] + l], r2 = RA[LN * (long)t[2] + l];
+            const double r01 = r0 < r1 ? r0 : r1, rmin = r01 < r2 ? r01 : r2;
             if (redo[l] || (fabs(h) >= near_c * rmin && rmin > tol)) continue;
             double R[3], s[3], dots[3], wf[3];
             for (int e = 0; e < 3; ++e) {
@@ -473,7 +517,8 @@ static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
                 a[i][0] = Ax[v], a[i][1] = Ay[v], a[i][2] = Az[v];
             }
             if (!tc_thin_face((const double(*)[3])a, two_area[f])) continue;
-            tc_thin_mvc((const double(*)[3])a, nf, H[LN * f + l], two_area[f], wf, gf, Hf);
+            const double h = nf[0] * a[0][0] + nf[1] * a[0][1] + nf[2] * a[0][2];
+            tc_thin_mvc((const double(*)[3])a, nf, h, two_area[f], wf, gf, Hf);
             Wc[LN * f + l] = wf[0];
             Wc[LN * (T + f) + l] = wf[1];
             Wc[LN * (2 * T + f) + l] = wf[2];
@@ -516,14 +561,7 @@ static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
         }
         inv[l] = 1.0 / norm;
     }
-    for (long v = 0; v < V; ++v) {
-        const double *av = acc + LN * v;
-        for (int l = 0; l < LN; ++l) {
-            double wv = av[l] * inv[l];
-            w[V * l + v] = wv;
-            sum[l] += wv; /* (only its finiteness is read) */
-        }
-    }
+    mvc3d_rows_out(acc, inv, V, w, sum);
     for (int l = 0; l < LN; ++l) {
         if (!redo[l]) on[l] = normalize && !isfinite(sum[l]) ? 2 : 0;
         else
