@@ -28,8 +28,10 @@ iteration (the setup cancels).
 
 Timing: one thread for both (``torch.set_num_threads(1)``; the native kernels take their thread
 count from torch; ``OMP_NUM_THREADS=1`` is set before torch loads). For each model and method the
-authors' code and torchcage run alternately ``--repeat`` times after an untimed warm-up on a few
-points; the table gives the minimum CPU time (``time.process_time``) of each, the ratio of the
+authors' code and torchcage run alternately ``--repeat`` times after one untimed alternated round
+at full size (the warm-up: tables, libraries, and the memory allocator's heap, whose first calls
+fault in fresh pages for torchcage's outputs, while the authors' code writes into arrays made
+once); the table gives the minimum CPU time (``time.process_time``) of each, the ratio of the
 minima, the ratio of the minimum wall times beside it, and the largest absolute difference between
 the two results (the same coordinates, computed twice). The machine's load average is printed
 before and after. Mesh vertices are the points; cages are triangulated along ``q0-q2`` for MVC and
@@ -334,28 +336,27 @@ def alternate(
     fns: Sequence[Callable[[], np.ndarray]], repeat: int
 ) -> tuple[list[float], list[float], list[np.ndarray]]:
     """Run ``fns`` in turn ``repeat`` times: the minimum CPU and wall seconds of each, and each
-    one's last result (a copy)."""
+    one's last result. (The results are held, not copied between the calls: a copy of every
+    result made the allocator's heap grow and shrink, and torchcage, which returns fresh arrays
+    where the authors' drivers write into arrays made once, then faulted in fresh pages on every
+    call; the peers' arrays are rewritten by each call, and each one's last call is its last.)"""
     cpu, wall = [float("inf")] * len(fns), [float("inf")] * len(fns)
     outs: list[np.ndarray] = [np.empty(0)] * len(fns)
     for _ in range(repeat):
         for i, fn in enumerate(fns):
             c, w = time.process_time(), time.perf_counter()
-            out = fn()
+            outs[i] = fn()
             w, c = time.perf_counter() - w, time.process_time() - c
             cpu[i], wall[i] = min(cpu[i], c), min(wall[i], w)
-            outs[i] = np.array(out, copy=True)
     return cpu, wall, outs
 
 
 def compare(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchcage.Cage, repeat: int) -> dict[str, float]:
     """Time ``method`` of the peer and of torchcage alternately; the row's figures."""
-    warm = points[:16]
-    peer_call(lib, method, warm, cage)()
-    torchcage_call(method, warm, cage)()
     fns = [peer_call(lib, method, points, cage), torchcage_call(method, points, cage)]
     if method == "qgc":  # the goal of QGC is relative to torchcage's QMVC: timed in the same turns
-        torchcage_call("qmvc", warm, cage)()
         fns.append(torchcage_call("qmvc", points, cage))
+    alternate(fns, 1)  # (warm-up at full size, both sides: tables, libraries, the allocator's heap)
     cpu, wall, outs = alternate(fns, repeat)
     po, to = outs[0], outs[1]
     row = {"peer": cpu[0], "torchcage": cpu[1], "peer_wall": wall[0], "torchcage_wall": wall[1],

@@ -24,11 +24,15 @@ from torch._C._functorch import is_functorch_wrapped_tensor
 
 __all__ = ["HUGE_PAGE_MIN_BYTES", "advise_huge_pages", "cat_output", "empty_output", "zeros_output"]
 
-#: Tensors at least this large are advised: glibc's largest mmap threshold on 64-bit systems
-#: (``DEFAULT_MMAP_THRESHOLD_MAX``, 32 MiB). Below it the threshold rises after the first free and
-#: glibc serves the next such tensor from its heap, already faulted in: there the advice saved
-#: nothing and cost 2 ms on a 44 MB Green call of FireHydrant (``benchmarks/alloc.py``).
-HUGE_PAGE_MIN_BYTES = 32 << 20
+#: Tensors at least this large are advised (NumPy's threshold for its own arrays). Below glibc's
+#: largest mmap threshold (32 MiB) a table may come from glibc's heap, already faulted in, when the
+#: previous one was freed; but where the caller keeps its results, or other large arrays come and
+#: go between calls (``benchmarks/peers.py`` joins and copies them), the heap grows and shrinks and
+#: fresh 4 KiB pages were faulted in on every call: 7,400-11,400 faults and 94-102 ms for a Green
+#: call on FireHydrant (two tables of 15 and 29 MB) with only tables of 32 MiB and more advised,
+#: 1,400-1,900 faults and 80-84 ms with tables from 2 MiB advised; where the heap is reused (the
+#: result freed before the next call) the advice changed nothing (61.6 and 67.0 ms, noise).
+HUGE_PAGE_MIN_BYTES = 4 << 20
 
 _PAGE = mmap.PAGESIZE
 _MADV_HUGEPAGE = getattr(mmap, "MADV_HUGEPAGE", None) if sys.platform.startswith("linux") else None
