@@ -472,11 +472,31 @@ def unique_face_edges(tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, to
         >>> edges.shape[0], face_edge.tolist()
         (5, [[3, 1, 0], [4, 2, 1]])
     """
+    if type(tri) is torch.Tensor and tri.device.type == "cpu" and tri.dim() == 2 and tri.shape[1] == 3:
+        # (a plain CPU table, the native kernels' case: computed once per topology; torch.unique
+        # took 0.6 ms on 92 triangles and 1.8 ms on 300, 1.5% of a mean value call, on every call)
+        cached = _unique_face_edges_cached(tri.dtype, tri.shape[0], tri.contiguous().numpy().tobytes())
+        return tuple(t.clone() for t in cached)  # type: ignore[return-value]
+    return _unique_face_edges(tri)
+
+
+def _unique_face_edges(tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`unique_face_edges`, computed."""
     opp = torch.stack([tri.roll(-1, dims=1), tri.roll(-2, dims=1)], dim=-1)  # (T, 3, 2)
     lo, hi = torch.minimum(opp[..., 0], opp[..., 1]), torch.maximum(opp[..., 0], opp[..., 1])
     uniq, inv = torch.unique(torch.stack([lo, hi], dim=-1).reshape(-1, 2), dim=0, return_inverse=True)
     sign = torch.where(opp[..., 0] == lo, 1.0, -1.0).to(torch.float64)
     return uniq, inv.reshape(-1, 3), sign
+
+
+@functools.lru_cache(maxsize=32)
+def _unique_face_edges_cached(
+    dtype: torch.dtype, T: int, table: bytes
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`unique_face_edges` of the CPU table ``(T, 3)`` of ``dtype`` whose bytes are ``table``
+    (the key is the table's content: a cage edited in place is a new key). The caller gets clones."""
+    tri = torch.frombuffer(bytearray(table), dtype=dtype).reshape(T, 3) if T else torch.empty(0, 3, dtype=dtype)
+    return _unique_face_edges(tri)
 
 
 def jacobian_rows(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> list[torch.Tensor]:
