@@ -2,7 +2,7 @@
 snap (torchcage._core.common.snap_to_vertices: points within the snap radius of a cage vertex are
 moved onto it) against a brute-force search over every pair, including points that share one or
 two coordinates with a vertex and points just inside and just outside the radius; the far-region
-bound (may_be_far) against far_region."""
+bound (may_be_far) against far_region; the cached edge table (unique_face_edges) against its computation."""
 
 from __future__ import annotations
 
@@ -88,3 +88,28 @@ def test_far_screen_never_misses_a_far_point() -> None:
         one = c[0] + direction[0, :1] * FAR_MOMENT * r[0]
         assert not may_be_far(V[0], c[0] + (one - c[0]) * 0.49)
         assert may_be_far(V[0], c[0] + (one - c[0]) * 0.51)
+
+
+def test_unique_face_edges_cached_per_topology_is_the_computed_table() -> None:
+    """The cached edge table (plain CPU tables, keyed by the table's content) equals a direct
+    computation and the definition, for int64 and int32 tables; changing the returned tensors or
+    editing the table in place never serves a stale result."""
+    from torchcage._core.common import _unique_face_edges, unique_face_edges
+
+    g = torch.Generator().manual_seed(5)
+    for dtype in (torch.int64, torch.int32):
+        tri = torch.stack([torch.randperm(30, generator=g)[:3] for _ in range(50)]).to(dtype)
+        for _ in range(2):  # (the second call is served from the cache)
+            edges, face_edge, sign = unique_face_edges(tri)
+            ref = _unique_face_edges(tri)
+            got = (edges, face_edge, sign)
+            assert all(torch.equal(a, b) and a.dtype == b.dtype for a, b in zip(got, ref, strict=True))
+            for i in range(3):  # the definition: edge opposite corner i, stored (t[i+1], t[i+2]) when sign = +1
+                j, k = tri[:, (i + 1) % 3], tri[:, (i + 2) % 3]
+                e = edges[face_edge[:, i]]
+                fwd = sign[:, i] > 0
+                assert torch.equal(torch.where(fwd, e[:, 0], e[:, 1]), j)
+                assert torch.equal(torch.where(fwd, e[:, 1], e[:, 0]), k)
+            edges.zero_(), face_edge.zero_(), sign.zero_()  # a caller's changes stay its own
+        tri[0] = torch.tensor([27, 28, 29], dtype=dtype)  # edited in place: a new key
+        assert all(torch.equal(a, b) for a, b in zip(unique_face_edges(tri), _unique_face_edges(tri), strict=True))
