@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable
 
 import torch
-from harness import MODELS, add_data_argument, load_model
+from harness import MODELS, add_data_argument, present_models
 
 import torchcage.functional as F
 from torchcage._core import alloc
@@ -87,12 +87,7 @@ def main() -> None:
     print(f"torch {torch.__version__}, one thread, float64; huge-page advice available: {alloc._madvise is not None}")
     print("| model | table | MB | fresh, 4 KiB pages | fresh, advised | reused | call, advice off | call, advice on |")
     print("|---|---|---|---|---|---|---|---|")
-    for model in args.models:
-        loaded = load_model(args.data, model)
-        if loaded is None:
-            print(f"| {model} | (not in {args.data}) |")
-            continue
-        points, cage = loaded
+    for model, points, cage in present_models(args.data, args.models):
         tri = cage.triangulated()
         n, V, T = points.shape[0], tri.num_vertices, tri.triangles.shape[0]
         calls = {

@@ -13,7 +13,7 @@ import os
 import resource
 import subprocess
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import torch
@@ -22,8 +22,8 @@ import torchcage
 from torchcage._timing import best_of
 from torchcage.testing import QMVC_MODELS
 
-__all__ = ["MODELS", "add_data_argument", "best_of", "load_model", "peak_mb", "peak_since", "qmvc_root",
-           "reset_peak", "rss_mb", "run_in_child"]  # fmt: skip
+__all__ = ["MODELS", "add_data_argument", "best_of", "load_model", "peak_mb", "peak_since", "present_models",
+           "qmvc_root", "reset_peak", "rss_mb", "run_in_child"]  # fmt: skip
 
 #: The QMVC paper's models (the data set is not shipped: ``--data`` points at it).
 MODELS = list(QMVC_MODELS)
@@ -50,6 +50,17 @@ def load_model(data: str | Path, model: str) -> tuple[torch.Tensor, torchcage.Ca
     if not mesh.exists() or not cage_file.exists():
         return None
     return torchcage.load_mesh(mesh)[0].to(torch.float64), torchcage.load_cage(cage_file)
+
+
+def present_models(data: str | Path, models: Sequence[str]) -> Iterator[tuple[str, torch.Tensor, torchcage.Cage]]:
+    """``(model, points, cage)`` of each of ``models`` found in ``data`` (:func:`load_model`); for
+    each absent one, a table row saying so is printed instead."""
+    for model in models:
+        loaded = load_model(data, model)
+        if loaded is None:
+            print(f"| {model} | (not in {data}) |")
+            continue
+        yield model, *loaded
 
 
 def rss_mb() -> float:

@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable
 
 import torch
-from harness import MODELS, add_data_argument, load_model
+from harness import MODELS, add_data_argument, present_models
 
 import torchcage
 import torchcage.functional as F
@@ -69,12 +69,7 @@ def main() -> None:
     print(f"torch {torch.__version__}, float64, native library: {native.variant()}, {os.cpu_count()} CPUs")
     print(f"| model | method | 1 thread | {args.threads} threads | scaling | max diff. |")
     print("|---|---|---|---|---|---|")
-    for model in args.models:
-        loaded = load_model(args.data, model)
-        if loaded is None:
-            print(f"| {model} | (not in {args.data}) |")
-            continue
-        points, cage = loaded
+    for model, points, cage in present_models(args.data, args.models):
         name = f"{model} ({points.shape[0]:,} pts)"
         for label, fn in methods(points, cage).items():
             fn()  # (warm-up: tables, libraries)
