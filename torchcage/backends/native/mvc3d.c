@@ -483,7 +483,8 @@ static TC_ALWAYS_INLINE void mvc3d_block_body(MVC3D_BLOCK_PARAMS) {
         const double *lf = ell + 3 * f;
         for (int l = 0; l < LN; ++l) {
             const long i0 = LN * (long)t[0] + l;
-            const double h = nx[f] * Ax[i0] + ny[f] * Ay[i0] + nz[f] * Az[i0]; /* (the face pass's h and rmin) */
+            /* h and rmin recomputed (as the face pass has them; at the threshold either form serves) */
+            const double h = nx[f] * Ax[i0] + ny[f] * Ay[i0] + nz[f] * Az[i0];
             const double r0 = RA[i0], r1 = RA[LN * (long)t[1] + l], r2 = RA[LN * (long)t[2] + l];
             const double r01 = r0 < r1 ? r0 : r1, rmin = r01 < r2 ? r01 : r2;
             if (redo[l] || (fabs(h) >= near_c * rmin && rmin > tol)) continue;
