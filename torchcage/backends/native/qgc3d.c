@@ -84,8 +84,13 @@ typedef struct {
     int G;
     double tol;
     const int *node, *TE, *EJ, *EK;
+    const double *TS; /* +1 or -1: the edge opposite a triangle's corner, in the order of EJ -> EK or not */
     const double *UA, *UB, *VA, *VB, *GA, *GB;
 } qgc_ctx;
+
+/* Scratch of one lane of the Riemann sum: the grid nodes (x, y, z, R) and the edges' tables (QE,
+ * 1 / length, w, D). */
+#define RIEMANN_BUF(G, NE) (4 * (size_t)(G) * (G) + 6 * (size_t)(NE))
 
 #define LANES _Pragma("omp simd") for (int j = 0; j < QL; ++j)
 
@@ -194,15 +199,21 @@ static void pair_finish(const qgc_ctx *C, long q, const double rhs[4], const dou
 #endif
 
 /* One sub-triangle of the Riemann sum, written once for riemann_one and riemann_lanes (inlined in
- * their vector loops): corners a_i relative to the point with R_i = |a_i|, the log-integrals ie_e
- * and inverse lengths iv_e of the edges opposite corners 0, 1, 2, and the centroid's (uc, vc).
- * *so: the solid angle over 4 pi (Van Oosterom-Strackee: tan(omega / 2) = det / den, det = h 2A);
+ * their vector loops): corners a_i relative to the point with R_i = |a_i|; for the edge opposite
+ * corner i (from corner j = i + 1 to k = i + 2), its tables in the orientation of the pattern's edge
+ * list, s_i = +1 or -1 the triangle's orientation of it: w_i = s_i a_j x a_k, D_i = a_j . a_k and
+ * QE_i = int dl / r over its length; the centroid's (uc, vc).
+ * *so: the solid angle over 4 pi (Van Oosterom-Strackee: tan(omega / 2) = det / den, det = h 2A =
+ * a_0 . (a_1 x a_2), den = R0 R1 R2 + D_0 R0 + D_1 R1 + D_2 R2);
  * *sp: psi = (sum_e d_e I_e - h omega) / 4 pi over the sheet normal's length at the centroid, d_e
- * the signed distance of the foot point to edge e's line, d_e = a_j . (E_e x cr) / (|E_e| 2A)
- * with E_e from corner j to corner k. */
+ * the signed distance of the foot point to edge e's line, d_e |E_e| 2A = a_j . (E_e x cr) = cr .
+ * (a_j x a_k) with E_e = a_k - a_j: the edge's cross product, shared by the triangles on both sides
+ * (the edge tables hold I_e / |E_e| as QE). */
 static QGC_INLINE void subtri_terms(double a0x, double a0y, double a0z, double R0, double a1x, double a1y, double a1z,
-                                    double R1, double a2x, double a2y, double a2z, double R2, double ie0, double ie1,
-                                    double ie2, double iv0, double iv1, double iv2, double uc, double vc,
+                                    double R1, double a2x, double a2y, double a2z, double R2, double s0, double s1,
+                                    double s2, double w0x, double w0y, double w0z, double w1x, double w1y,
+                                    double w1z, double w2x, double w2y, double w2z, double D0,
+                                    double D1, double D2, double qe0, double qe1, double qe2, double uc, double vc,
                                     const double *N0, const double *Nu, const double *Nv, double tol, double *so,
                                     double *sp) {
     const double inv4pi = 1.0 / FOUR_PI;
@@ -210,40 +221,62 @@ static QGC_INLINE void subtri_terms(double a0x, double a0y, double a0z, double R
     double f2x = a2x - a0x, f2y = a2y - a0y, f2z = a2z - a0z;
     double crx = f1y * f2z - f1z * f2y, cry = f1z * f2x - f1x * f2z, crz = f1x * f2y - f1y * f2x;
     double two_area = sqrt(crx * crx + cry * cry + crz * crz);
-    double inv2A = two_area > 0 ? 1.0 / two_area : 0.0;
-    double det = a0x * (a1y * a2z - a1z * a2y) + a0y * (a1z * a2x - a1x * a2z) + a0z * (a1x * a2y - a1y * a2x);
-    double h = det * inv2A, ha = h >= 0 ? h : -h;
-    double den = R0 * R1 * R2 + (a0x * a1x + a0y * a1y + a0z * a1z) * R2 + (a0x * a2x + a0y * a2y + a0z * a2z) * R1 +
-                 (a1x * a2x + a1y * a2y + a1z * a2z) * R0;
+    double det = s0 * (a0x * w0x + a0y * w0y + a0z * w0z);
+    double den = R0 * R1 * R2 + D0 * R0 + D1 * R1 + D2 * R2;
     double omv = 2.0 * atan2(det, den);
-    double om = (ha <= tol || two_area == 0) ? 0.0 : omv;
-    double g0x = a2x - a1x, g0y = a2y - a1y, g0z = a2z - a1z; /* edge opposite corner 0 */
-    double m0 = a1x * (g0y * crz - g0z * cry) + a1y * (g0z * crx - g0x * crz) + a1z * (g0x * cry - g0y * crx);
-    double g1x = a0x - a2x, g1y = a0y - a2y, g1z = a0z - a2z; /* opposite corner 1 */
-    double m1 = a2x * (g1y * crz - g1z * cry) + a2y * (g1z * crx - g1x * crz) + a2z * (g1x * cry - g1y * crx);
-    double m2 = a0x * (f1y * crz - f1z * cry) + a0y * (f1z * crx - f1x * crz) + a0z * (f1x * cry - f1y * crx);
-    double d0 = m0 * inv2A * iv0, d1 = m1 * inv2A * iv1, d2 = m2 * inv2A * iv2;
-    double q0 = d0 * ie0, q1 = d1 * ie1, q2 = d2 * ie2;
-    double dI = (d0 != 0 ? q0 : 0.0) + (d1 != 0 ? q1 : 0.0) + (d2 != 0 ? q2 : 0.0);
-    double ps = two_area > 0 ? (dI - h * om) * inv4pi : 0.0;
+    double om = ((det >= 0 ? det : -det) <= tol * two_area || two_area == 0) ? 0.0 : omv;
+    double m0 = crx * w0x + cry * w0y + crz * w0z;
+    double m1 = crx * w1x + cry * w1y + crz * w1z;
+    double m2 = crx * w2x + cry * w2y + crz * w2z;
     double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
     double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
-    *sp = Nn > 0 ? ps / Nn : 0.0;
+    /* psi_t / |N| = (sum_e m_e QE_e - det omega) / (4 pi 2A |N|) */
+    double an = two_area * Nn, r = an > 0 ? inv4pi / an : 0.0;
+    *sp = (s0 * m0 * qe0 + s1 * m1 * qe1 + s2 * m2 * qe2 - det * om) * r;
     *so = om * inv4pi;
 }
 
+/* One edge of the pattern (nodes a_j -> a_k relative to the point, R = |a|): its tables for
+ * subtri_terms (w = a_j x a_k, D = a_j . a_k), the argument of its log-integral int dl / r (the log is
+ * taken in a loop of its own, vectorised with libmvec) and *invl = 1 / length (0 for a degenerate
+ * edge). The argument is tc_edge_log_arg's, with l_j = a_j . u, l_k = a_k . u and c2 = |a_j x u|^2
+ * for u = E / ell, E = a_k - a_j, each quotient's terms multiplied by ell (the third's by ell^2), so
+ * that one division gives both it and 1 / ell. */
+static QGC_INLINE void edge_terms(double ajx, double ajy, double ajz, double Rj, double akx, double aky, double akz,
+                                  double Rk, double *wx, double *wy, double *wz, double *D, double *arg,
+                                  double *invl) {
+    double Ex = akx - ajx, Ey = aky - ajy, Ez = akz - ajz;
+    double ell2 = Ex * Ex + Ey * Ey + Ez * Ez, ell = sqrt(ell2);
+    double cx = ajy * akz - ajz * aky, cy = ajz * akx - ajx * akz, cz = ajx * aky - ajy * akx;
+    double ljE = ajx * Ex + ajy * Ey + ajz * Ez, lkE = ljE + ell2; /* ell l_j, ell l_k */
+    double pk = Rk * ell + lkE, mj = Rj * ell - ljE;
+    double num = ljE >= 0 ? pk : (lkE <= 0 ? mj : pk * mj);
+    double den = ljE >= 0 ? Rj * ell + ljE : (lkE <= 0 ? Rk * ell - lkE : cx * cx + cy * cy + cz * cz);
+    den = den > 1e-300 ? den : 1e-300; /* (on the edge: as tc_edge_log_arg) */
+    double dl = den * ell, r = dl > 0 ? 1.0 / dl : 0.0;
+    double a = num * ell * r;
+    a = num > 0 && ell > 0 ? (a < 1e300 ? a : 1e300) : 1.0;
+    *wx = cx;
+    *wy = cy;
+    *wz = cz;
+    *D = ajx * akx + ajy * aky + ajz * akz;
+    *arg = a > 1e-300 ? a : 1e-300;
+    *invl = den * r;
+}
+
 /* Riemann estimate on the adaptive tessellation (Algorithm 1, Eqs. 17-18) of one pair: p0 the
- * first corner minus the point, (u, v) the projection; buf: 4 G^2 + 2 NE scratch. */
+ * first corner minus the point, (u, v) the projection; buf: RIEMANN_BUF(G, NE) scratch. */
 static void riemann_one(const qgc_ctx *C, const quad_const *qc, const double *p0, double u, double v, double *buf,
                         double est[8]) {
     const int G = C->G;
     const long Pn = C->Pn, NE = C->NE;
     const int *node = C->node, *TE = C->TE, *EJ = C->EJ, *EK = C->EK;
+    const double *TS = C->TS;
     const double *UA = C->UA, *UB = C->UB, *VA = C->VA, *VB = C->VB, *GA = C->GA, *GB = C->GB;
     const double tol = C->tol;
     const double *b = qc->b, *cc = qc->cc, *dd = qc->dd;
     double *Sx = buf, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
-    double *IE = SR + G * G, *EINV = IE + NE;
+    double *QE = SR + G * G, *EINV = QE + NE, *Wx = EINV + NE, *Wy = Wx + NE, *Wz = Wy + NE, *DE = Wz + NE;
     const double p0x = p0[0], p0y = p0[1], p0z = p0[2];
 #pragma omp simd
     for (long g = 0; g < G * G; ++g) { /* grid nodes on the quad, minus the point */
@@ -257,23 +290,14 @@ static void riemann_one(const qgc_ctx *C, const quad_const *qc, const double *p0
         SR[g] = sqrt(sx * sx + sy * sy + sz * sz);
     }
     const double *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
-    /* Edges: int dl / r (tc_edge_log_arg, then the logs in a loop of their own, vectorised
-     * with libmvec) and 1 / length. */
 #pragma omp simd
     for (long e = 0; e < NE; ++e) {
         int j = EJ[e], k = EK[e];
-        double ajx = Sx[j], ajy = Sy[j], ajz = Sz[j], Rj = SR[j], Rk = SR[k];
-        double Ex = Sx[k] - ajx, Ey = Sy[k] - ajy, Ez = Sz[k] - ajz;
-        double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
-        double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
-        double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
-        double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
-        double arg = tc_edge_log_arg(lj, lk, Rj, Rk, cx * cx + cy * cy + cz * cz);
-        IE[e] = arg > 1e-300 ? arg : 1e-300;
-        EINV[e] = invl; /* 1 / length (0 for a degenerate edge) */
+        edge_terms(Sx[j], Sy[j], Sz[j], SR[j], Sx[k], Sy[k], Sz[k], SR[k], Wx + e, Wy + e, Wz + e, DE + e, QE + e,
+                   EINV + e);
     }
 #pragma omp simd
-    for (long e = 0; e < NE; ++e) IE[e] = log(IE[e]);
+    for (long e = 0; e < NE; ++e) QE[e] = log(QE[e]) * EINV[e];
     /* Sub-triangles (subtri_terms) and the bilinear basis at their centroids. */
     double e0 = 0, e1 = 0, e2 = 0, e3 = 0, e4 = 0, e5 = 0, e6 = 0, e7 = 0;
 #pragma omp simd reduction(+ : e0, e1, e2, e3, e4, e5, e6, e7)
@@ -282,7 +306,9 @@ static void riemann_one(const qgc_ctx *C, const quad_const *qc, const double *p0
         const int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
         double uc = UA[t] + UB[t] * u, vc = VA[t] + VB[t] * v, so, sp;
         subtri_terms(Sx[i0], Sy[i0], Sz[i0], SR[i0], Sx[i1], Sy[i1], Sz[i1], SR[i1], Sx[i2], Sy[i2], Sz[i2], SR[i2],
-                     IE[k0], IE[k1], IE[k2], EINV[k0], EINV[k1], EINV[k2], uc, vc, N0, Nu, Nv, tol, &so, &sp);
+                     TS[t], TS[Pn + t], TS[2 * Pn + t], Wx[k0], Wy[k0], Wz[k0], Wx[k1], Wy[k1], Wz[k1], Wx[k2], Wy[k2],
+                     Wz[k2], DE[k0], DE[k1], DE[k2],
+                     QE[k0], QE[k1], QE[k2], uc, vc, N0, Nu, Nv, tol, &so, &sp);
         double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
         e0 += b0 * so;
         e1 += b1 * so;
@@ -306,18 +332,20 @@ static void riemann_one(const qgc_ctx *C, const quad_const *qc, const double *p0
 /* riemann_one for the QL lanes of tc_quad_pair_lanes (their p0, u, v) side by side, each lane's
  * operations as riemann_one's (the sums over the sub-triangles in order, not in the vector
  * reduction's order): nodes stored [node][lane], edges [edge][lane], so the sub-triangle loop loads
- * its corners' lanes contiguously (riemann_one gathers ~18 values per triangle). lbuf: QL (4 G^2 +
- * 2 NE) scratch; est: (8, QL). */
+ * its corners' lanes contiguously (riemann_one gathers ~30 values per triangle). lbuf: QL
+ * RIEMANN_BUF(G, NE) scratch; est: (8, QL). */
 static void riemann_lanes(const qgc_ctx *C, const quad_const *qc, const quad_lanes *L, double *lbuf,
                           double est[8][QL]) {
     const int G = C->G;
     const long Pn = C->Pn, NE = C->NE, GG = (long)G * G;
     const int *node = C->node, *TE = C->TE, *EJ = C->EJ, *EK = C->EK;
+    const double *TS = C->TS;
     const double *UA = C->UA, *UB = C->UB, *VA = C->VA, *VB = C->VB, *GA = C->GA, *GB = C->GB;
     const double tol = C->tol;
     const double *b = qc->b, *cc = qc->cc, *dd = qc->dd, *N0 = qc->N0, *Nu = qc->Nu, *Nv = qc->Nv;
     double(*Sx)[QL] = (double(*)[QL])lbuf, (*Sy)[QL] = Sx + GG, (*Sz)[QL] = Sy + GG, (*SR)[QL] = Sz + GG;
-    double(*IE)[QL] = SR + GG, (*EINV)[QL] = IE + NE;
+    double(*QE)[QL] = SR + GG, (*EINV)[QL] = QE + NE, (*Wx)[QL] = EINV + NE, (*Wy)[QL] = Wx + NE;
+    double(*Wz)[QL] = Wy + NE, (*DE)[QL] = Wz + NE;
     const double *u = L->u, *v = L->v, *p0x = L->p[0][0], *p0y = L->p[0][1], *p0z = L->p[0][2];
     for (long g = 0; g < GG; ++g) { /* grid nodes on the quad, minus the points */
         const double gau = GA[g], gbu = GB[g], gav = GA[GG + g], gbv = GB[GG + g];
@@ -334,22 +362,13 @@ static void riemann_lanes(const qgc_ctx *C, const quad_const *qc, const quad_lan
     }
     for (long e = 0; e < NE; ++e) {
         const int jn = EJ[e], kn = EK[e];
-        LANES {
-            double ajx = Sx[jn][j], ajy = Sy[jn][j], ajz = Sz[jn][j], Rj = SR[jn][j], Rk = SR[kn][j];
-            double Ex = Sx[kn][j] - ajx, Ey = Sy[kn][j] - ajy, Ez = Sz[kn][j] - ajz;
-            double ell = sqrt(Ex * Ex + Ey * Ey + Ez * Ez), invl = ell > 0 ? 1.0 / ell : 0.0;
-            double ux = Ex * invl, uy = Ey * invl, uz = Ez * invl;
-            double lj = ajx * ux + ajy * uy + ajz * uz, lk = lj + ell;
-            double cx = ajy * uz - ajz * uy, cy = ajz * ux - ajx * uz, cz = ajx * uy - ajy * ux;
-            double arg = tc_edge_log_arg(lj, lk, Rj, Rk, cx * cx + cy * cy + cz * cz);
-            IE[e][j] = arg > 1e-300 ? arg : 1e-300;
-            EINV[e][j] = invl;
-        }
+        LANES edge_terms(Sx[jn][j], Sy[jn][j], Sz[jn][j], SR[jn][j], Sx[kn][j], Sy[kn][j], Sz[kn][j], SR[kn][j],
+                         &Wx[e][j], &Wy[e][j], &Wz[e][j], &DE[e][j], &QE[e][j], &EINV[e][j]);
     }
     {
-        double *ie = IE[0];
+        double *qe = QE[0], *il = EINV[0];
 #pragma omp simd
-        for (long i = 0; i < NE * QL; ++i) ie[i] = log(ie[i]);
+        for (long i = 0; i < NE * QL; ++i) qe[i] = log(qe[i]) * il[i];
     }
     double E[8][QL];
     for (int i = 0; i < 8; ++i) LANES E[i][j] = 0.0;
@@ -357,11 +376,13 @@ static void riemann_lanes(const qgc_ctx *C, const quad_const *qc, const quad_lan
         const int i0 = node[t], i1 = node[Pn + t], i2 = node[2 * Pn + t];
         const int k0 = TE[t], k1 = TE[Pn + t], k2 = TE[2 * Pn + t];
         const double uat = UA[t], ubt = UB[t], vat = VA[t], vbt = VB[t];
+        const double s0 = TS[t], s1 = TS[Pn + t], s2 = TS[2 * Pn + t];
         LANES {
             double uc = uat + ubt * u[j], vc = vat + vbt * v[j], so, sp;
             subtri_terms(Sx[i0][j], Sy[i0][j], Sz[i0][j], SR[i0][j], Sx[i1][j], Sy[i1][j], Sz[i1][j], SR[i1][j],
-                         Sx[i2][j], Sy[i2][j], Sz[i2][j], SR[i2][j], IE[k0][j], IE[k1][j], IE[k2][j], EINV[k0][j],
-                         EINV[k1][j], EINV[k2][j], uc, vc, N0, Nu, Nv, tol, &so, &sp);
+                         Sx[i2][j], Sy[i2][j], Sz[i2][j], SR[i2][j], s0, s1, s2, Wx[k0][j], Wy[k0][j], Wz[k0][j],
+                         Wx[k1][j], Wy[k1][j], Wz[k1][j], Wx[k2][j], Wy[k2][j], Wz[k2][j], DE[k0][j], DE[k1][j],
+                         DE[k2][j], QE[k0][j], QE[k1][j], QE[k2][j], uc, vc, N0, Nu, Nv, tol, &so, &sp);
             double b0 = (1 - uc) * (1 - vc), b1 = uc * (1 - vc), b2 = uc * vc, b3 = (1 - uc) * vc;
             E[0][j] += b0 * so;
             E[1][j] += b1 * so;
@@ -429,12 +450,12 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     const size_t sws = tc_gc_workspace(&sg);
     /* The pattern's sub-triangles as flat grid-node indices (corner c of triangle t at [c * Pn + t])
      * and their u and v indices; its unique edges (nodes EJ, EK) and, for each triangle, the edge
-     * opposite each corner (TE, same layout): an edge's integral int dl / r is shared by the
-     * triangles on both sides. */
+     * opposite each corner (TE, same layout) with the sign of its orientation there (TS): an edge's
+     * integral int dl / r and cross product are shared by the triangles on both sides. */
     int *node = (int *)malloc(sizeof(int) * 12 * (size_t)Pn), *iu = node + 3 * Pn, *iv = iu + 3 * Pn;
     int *TE = iv + 3 * Pn, *EJ = (int *)malloc(sizeof(int) * 6 * (size_t)Pn), *EK = EJ + 3 * Pn;
     int *seen = (int *)malloc(sizeof(int) * 25 * (size_t)G * G); /* (node, offset to the other node) */
-    double *UA = (double *)malloc(sizeof(double) * (4 * (size_t)Pn + 4 * (size_t)G * G));
+    double *UA = (double *)malloc(sizeof(double) * (7 * (size_t)Pn + 4 * (size_t)G * G));
     double *ga = (double *)malloc(sizeof(double) * 2 * (size_t)G);
     if (!prepared || !node || !EJ || !seen || !UA || !ga) { /* the glue's sign of a failed allocation (MemoryError) */
         for (long k = 0; k < n * V; ++k) PHI[k] = NAN;
@@ -442,6 +463,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         tc_gc_free(&sg);
         return;
     }
+    double *UB = UA + Pn, *VA = UB + Pn, *VB = VA + Pn, *TS = VB + Pn, *GA = TS + 3 * Pn, *GB = GA + 2 * G * G;
     for (long i = 0; i < 25 * (long)G * G; ++i) seen[i] = -1;
     long NE = 0;
     for (long t = 0; t < Pn; ++t)
@@ -468,12 +490,12 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
                 if (slot) *slot = (int)id;
             }
             TE[c * Pn + t] = (int)id;
+            TS[c * Pn + t] = j == lo ? 1.0 : -1.0;
         }
     free(seen);
     /* Eq. 19's nodes are affine in the centre t (node i = ga[i] + gb[i] t): so are the grid node
      * g = (i, j) = i G + j, (u_i, v_j) = (GA[g] + GB[g] u, GA[G^2 + g] + GB[G^2 + g] v), and a
      * sub-triangle's centroid (uc, vc) = (UA + UB u, VA + VB v): no per-point grid, no gathers. */
-    double *UB = UA + Pn, *VA = UB + Pn, *VB = VA + Pn, *GA = VB + Pn, *GB = GA + 2 * G * G;
     {
         double *gb = ga + G;
         grid19(0.0, K, ga);
@@ -502,7 +524,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         free(ga);
     }
     const qgc_ctx C = {P, pinv, null, origin, s_nrm, s_ell, s_edir, quads, s_tri, T2, Pn, NE, G, tol,
-                       node, TE, EJ, EK, UA, UB, VA, VB, GA, GB};
+                       node, TE, EJ, EK, TS, UA, UB, VA, VB, GA, GB};
     /* The quads' point-independent constants, once (without the table, per pair). */
     quad_const *QC = (quad_const *)malloc(sizeof(quad_const) * (size_t)(Q > 0 ? Q : 1));
     if (QC)
@@ -511,7 +533,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
      * tolerance form (and a failed QC) one point at a time. */
     const int lanes = !(qtol > 0) && QC;
     const int NL = lanes ? QL : 1; /* the points per block: split-triangle tables for each */
-    const size_t rbuf = 4 * (size_t)G * G + 2 * (size_t)NE;
+    const size_t rbuf = RIEMANN_BUF(G, NE);
     int failed = 0; /* a thread could not allocate its scratch */
 #pragma omp parallel num_threads(nthreads)
     {
