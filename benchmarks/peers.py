@@ -277,12 +277,22 @@ def _np(t: torch.Tensor, dtype: type) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=dtype)
 
 
-def peer_call(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchcage.Cage) -> Callable[[], np.ndarray]:
+#: What a timed call returns: the ``(N, V)`` coordinates, or ``(phi, psi)`` as each side computes
+#: them (joined by :func:`joined` after the timing: neither side needs the copy).
+Result = np.ndarray | tuple[np.ndarray, np.ndarray]
+
+
+def joined(r: Result) -> np.ndarray:
+    """``r`` as one array ``(N, V)`` or ``(N, V + T)`` (``phi`` then ``psi``), for the comparisons."""
+    return np.concatenate(r, 1) if isinstance(r, tuple) else r
+
+
+def peer_call(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchcage.Cage) -> Callable[[], Result]:
     """A no-argument function that runs ``method`` of the peer library on ``points``.
 
     The arrays are converted once, outside the timed call. ``mvc`` and ``gc`` take the cage
     triangulated along ``q0-q2``; ``qmvc`` the triquad cage. The result is ``(N, V)``, or for
-    ``gc`` ``(N, V + T)`` (``phi`` then ``psi``).
+    ``gc`` and ``qgc`` the pair ``(phi, psi)`` the peer wrote.
     """
     x = _np(points, np.float64)
     n = x.shape[0]
@@ -297,7 +307,7 @@ def peer_call(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchca
         phi, psi = np.empty((n, nv)), np.empty((n, nt))
         return lambda: (lib.peer_gc(_ptr(v, ctypes.c_double), nv, _ptr(t, ctypes.c_long), nt,
                                     _ptr(x, ctypes.c_double), n, _ptr(phi, ctypes.c_double),
-                                    _ptr(psi, ctypes.c_double)), np.concatenate([phi, psi], 1))[1]  # fmt: skip
+                                    _ptr(psi, ctypes.c_double)), (phi, psi))[1]  # fmt: skip
     v = _np(cage.vertices, np.float64)
     t = _np(cage.triangles, np.int64).reshape(-1, 3)
     q = _np(cage.quads, np.int64).reshape(-1, 4)
@@ -312,36 +322,38 @@ def peer_call(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchca
         return lambda: (lib.peer_qgc(_ptr(v, ctypes.c_double), nv, _ptr(t, ctypes.c_long), nt,
                                      _ptr(q, ctypes.c_long), nq, _ptr(x, ctypes.c_double), n,
                                      _ptr(phi, ctypes.c_double), _ptr(psi, ctypes.c_double)),
-                        np.concatenate([phi, psi], 1))[1]  # fmt: skip
+                        (phi, psi))[1]  # fmt: skip
     raise ValueError(f"unknown method {method!r}; expected one of {sorted(GOALS)}")
 
 
-def torchcage_call(method: str, points: torch.Tensor, cage: torchcage.Cage) -> Callable[[], np.ndarray]:
-    """The same as :func:`peer_call`, computed by torchcage (default backend, float64); ``phi`` and
-    ``psi`` joined by the same ``np.concatenate`` as the peer's."""
+def torchcage_call(method: str, points: torch.Tensor, cage: torchcage.Cage) -> Callable[[], Result]:
+    """The same as :func:`peer_call`, computed by torchcage (default backend, float64; the tensors
+    as NumPy views, no copy)."""
     if method == "mvc":
         tri = cage.triangulated()
         return lambda: F.mean_value_coordinates(points, tri).numpy()
     if method == "gc":
         tri = cage.triangulated()
-        return lambda: np.concatenate([t.numpy() for t in F.green_coordinates(points, tri, exterior="none")], 1)
+        return lambda: _views(F.green_coordinates(points, tri, exterior="none"))
     if method == "qmvc":
         return lambda: F.quad_mean_value_coordinates(points, cage, n=4).numpy()
     if method == "qgc":
-        return lambda: np.concatenate([t.numpy() for t in F.quad_green_coordinates(points, cage, n=2)], 1)
+        return lambda: _views(F.quad_green_coordinates(points, cage, n=2))
     raise ValueError(f"unknown method {method!r}; expected one of {sorted(GOALS)}")
 
 
-def alternate(
-    fns: Sequence[Callable[[], np.ndarray]], repeat: int
-) -> tuple[list[float], list[float], list[np.ndarray]]:
+def _views(r: tuple[torch.Tensor, torch.Tensor]) -> tuple[np.ndarray, np.ndarray]:
+    return r[0].numpy(), r[1].numpy()
+
+
+def alternate(fns: Sequence[Callable[[], Result]], repeat: int) -> tuple[list[float], list[float], list[Result]]:
     """Run ``fns`` in turn ``repeat`` times: the minimum CPU and wall seconds of each, and each
     one's last result. (The results are held, not copied between the calls: a copy of every
     result made the allocator's heap grow and shrink, and torchcage, which returns fresh arrays
     where the authors' drivers write into arrays made once, then faulted in fresh pages on every
     call; the peers' arrays are rewritten by each call, and each one's last call is its last.)"""
     cpu, wall = [float("inf")] * len(fns), [float("inf")] * len(fns)
-    outs: list[np.ndarray] = [np.empty(0)] * len(fns)
+    outs: list[Result] = [np.empty(0)] * len(fns)
     for _ in range(repeat):
         for i, fn in enumerate(fns):
             c, w = time.process_time(), time.perf_counter()
@@ -358,7 +370,7 @@ def compare(lib: ctypes.CDLL, method: str, points: torch.Tensor, cage: torchcage
         fns.append(torchcage_call("qmvc", points, cage))
     alternate(fns, 1)  # (warm-up at full size, both sides: tables, libraries, the allocator's heap)
     cpu, wall, outs = alternate(fns, repeat)
-    po, to = outs[0], outs[1]
+    po, to = joined(outs[0]), joined(outs[1])
     row = {"peer": cpu[0], "torchcage": cpu[1], "peer_wall": wall[0], "torchcage_wall": wall[1],
            "diff": float(np.abs(po - to).max()) if po.size else 0.0}  # fmt: skip
     if method == "qgc":
