@@ -84,6 +84,8 @@ typedef struct {
     int G;
     double tol;
     const int *node, *TE, *EJ, *EK;
+    const int *UN; /* the NU grid nodes the pattern uses (Algorithm 1's triangles skip some) */
+    long NU;
     const double *TS; /* +1 or -1: the edge opposite a triangle's corner, in the order of EJ -> EK or not */
     const double *UA, *UB, *VA, *VB, *GA, *GB;
 } qgc_ctx;
@@ -278,8 +280,10 @@ static void riemann_one(const qgc_ctx *C, const quad_const *qc, const double *p0
     double *Sx = buf, *Sy = Sx + G * G, *Sz = Sy + G * G, *SR = Sz + G * G;
     double *QE = SR + G * G, *EINV = QE + NE, *Wx = EINV + NE, *Wy = Wx + NE, *Wz = Wy + NE, *DE = Wz + NE;
     const double p0x = p0[0], p0y = p0[1], p0z = p0[2];
+    const int *UN = C->UN;
 #pragma omp simd
-    for (long g = 0; g < G * G; ++g) { /* grid nodes on the quad, minus the point */
+    for (long i = 0; i < C->NU; ++i) { /* grid nodes on the quad, minus the point */
+        const long g = UN[i];
         double uu = GA[g] + GB[g] * u, vv = GA[G * G + g] + GB[G * G + g] * v, uv = uu * vv;
         double sx = p0x + uu * b[0] + vv * cc[0] + uv * dd[0];
         double sy = p0y + uu * b[1] + vv * cc[1] + uv * dd[1];
@@ -347,7 +351,8 @@ static void riemann_lanes(const qgc_ctx *C, const quad_const *qc, const quad_lan
     double(*QE)[QL] = SR + GG, (*EINV)[QL] = QE + NE, (*Wx)[QL] = EINV + NE, (*Wy)[QL] = Wx + NE;
     double(*Wz)[QL] = Wy + NE, (*DE)[QL] = Wz + NE;
     const double *u = L->u, *v = L->v, *p0x = L->p[0][0], *p0y = L->p[0][1], *p0z = L->p[0][2];
-    for (long g = 0; g < GG; ++g) { /* grid nodes on the quad, minus the points */
+    for (long i = 0; i < C->NU; ++i) { /* grid nodes on the quad, minus the points */
+        const long g = C->UN[i];
         const double gau = GA[g], gbu = GB[g], gav = GA[GG + g], gbv = GB[GG + g];
         LANES {
             double uu = gau + gbu * u[j], vv = gav + gbv * v[j], uv = uu * vv;
@@ -452,8 +457,8 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
      * and their u and v indices; its unique edges (nodes EJ, EK) and, for each triangle, the edge
      * opposite each corner (TE, same layout) with the sign of its orientation there (TS): an edge's
      * integral int dl / r and cross product are shared by the triangles on both sides. */
-    int *node = (int *)malloc(sizeof(int) * 12 * (size_t)Pn), *iu = node + 3 * Pn, *iv = iu + 3 * Pn;
-    int *TE = iv + 3 * Pn, *EJ = (int *)malloc(sizeof(int) * 6 * (size_t)Pn), *EK = EJ + 3 * Pn;
+    int *node = (int *)malloc(sizeof(int) * (12 * (size_t)Pn + (size_t)G * G)), *iu = node + 3 * Pn;
+    int *iv = iu + 3 * Pn, *TE = iv + 3 * Pn, *UN = TE + 3 * Pn, *EJ = (int *)malloc(sizeof(int) * 6 * (size_t)Pn), *EK = EJ + 3 * Pn;
     int *seen = (int *)malloc(sizeof(int) * 25 * (size_t)G * G); /* (node, offset to the other node) */
     double *UA = (double *)malloc(sizeof(double) * (7 * (size_t)Pn + 4 * (size_t)G * G));
     double *ga = (double *)malloc(sizeof(double) * 2 * (size_t)G);
@@ -493,6 +498,12 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
             TS[c * Pn + t] = j == lo ? 1.0 : -1.0;
         }
     free(seen);
+    long NU = 0; /* the nodes in use */
+    for (int g = 0; g < G * G; ++g) {
+        int used = 0;
+        for (long i = 0; i < 3 * Pn && !used; ++i) used = node[i] == g;
+        if (used) UN[NU++] = g;
+    }
     /* Eq. 19's nodes are affine in the centre t (node i = ga[i] + gb[i] t): so are the grid node
      * g = (i, j) = i G + j, (u_i, v_j) = (GA[g] + GB[g] u, GA[G^2 + g] + GB[G^2 + g] v), and a
      * sub-triangle's centroid (uc, vc) = (UA + UB u, VA + VB v): no per-point grid, no gathers. */
@@ -524,7 +535,7 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         free(ga);
     }
     const qgc_ctx C = {P, pinv, null, origin, s_nrm, s_ell, s_edir, quads, s_tri, T2, Pn, NE, G, tol,
-                       node, TE, EJ, EK, TS, UA, UB, VA, VB, GA, GB};
+                       node, TE, EJ, EK, UN, NU, TS, UA, UB, VA, VB, GA, GB};
     /* The quads' point-independent constants, once (without the table, per pair). */
     quad_const *QC = (quad_const *)malloc(sizeof(quad_const) * (size_t)(Q > 0 ? Q : 1));
     if (QC)
