@@ -144,9 +144,9 @@ int tc_thin_green(const double a[3][3], double h, double two_area, double *phi, 
 /* The solid angle's edge sum (no cancellation near the face's plane) over a face's three edges, edge
  * e's term atan2(d l_k, R0sq + habs R_k) - atan2(d l_j, R0sq + habs R_j): d the foot point's signed
  * distance to the edge line, l_j, l_k, R_j, R_k as in tc_edge_log_arg, R0sq = d^2 + h^2, habs =
- * |h|. The six atan2 run in one vector loop of fixed length (on x86-64 with libmvec, its four-lane
- * form twice: a scalar atan2 took ten times as long per value), so the bits depend on the arguments
- * alone. */
+ * |h|. The six atan2 run in one vector loop of fixed length (in the AVX2 build, libmvec's four-lane
+ * form twice: a scalar atan2 took ten times as long per value), so that within a build the bits
+ * depend on the arguments alone. */
 static inline double edge_angle_sum(const double *d, const double *l_j, const double *l_k, const double *R_j,
                                     const double *R_k, const double *R0sq, double habs) {
     double y[8], x[8], t[8];

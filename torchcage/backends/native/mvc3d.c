@@ -29,10 +29,10 @@ __attribute__((simd("notinbranch"))) double atan(double);
  * than taken from the edge pass: the terms delta / h^2 and theta * eps / h^2 cancel where x nears
  * an edge's line, and only a theta consistent with delta keeps that cancellation exact. The six
  * angles (delta and theta0 of each edge) are atans of quotients, taken in one vector loop of fixed
- * length (on x86-64 with libmvec, its four-lane form twice, so the bits depend on the arguments
- * alone; the scalar atans took 5% of a mean value call on the Beast model): theta0 = atan2(|s|, qq)
- * is atan(|s| / qq) for qq > 0, else pi / 2 - atan(qq / |s|); delta = atan(h^2 X / Y) for Y > 0,
- * else atan2(h^2 X, Y) (rare, scalar). */
+ * length (in the AVX2 build, libmvec's four-lane form twice; within a build the bits depend on the
+ * arguments alone; the scalar atans took 5% of a mean value call on the Beast model): theta0 =
+ * atan2(|s|, qq) is atan(|s| / qq) for qq > 0, else pi / 2 - atan(qq / |s|); delta = atan(h^2 X /
+ * Y) for Y > 0, else atan2(h^2 X, Y) (rare, scalar). */
 void tc_stable_face(double h, const double *s, const double *dots, const double *R, const double *ell,
                     const double *gram, double two_area, double *w) {
     double h2 = h * h, wind_angle = 0.0, S_rest = 0.0, tN[3];

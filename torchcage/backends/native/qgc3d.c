@@ -233,7 +233,7 @@ static QGC_INLINE void subtri_terms(double a0x, double a0y, double a0z, double R
     double Ncx = N0[0] + uc * Nu[0] + vc * Nv[0], Ncy = N0[1] + uc * Nu[1] + vc * Nv[1];
     double Ncz = N0[2] + uc * Nu[2] + vc * Nv[2], Nn = sqrt(Ncx * Ncx + Ncy * Ncy + Ncz * Ncz);
     /* psi_t / |N| = (sum_e m_e QE_e - det omega) / (4 pi 2A |N|) */
-    double an = two_area * Nn, r = an > 0 ? inv4pi / an : 0.0;
+    double an = two_area * Nn, r = an >= 0x1p-1022 ? inv4pi / an : 0.0; /* (1 / an finite: no 0 * inf) */
     *sp = (s0 * m0 * qe0 + s1 * m1 * qe1 + s2 * m2 * qe2 - det * om) * r;
     *so = om * inv4pi;
 }
@@ -254,8 +254,10 @@ static QGC_INLINE void edge_terms(double ajx, double ajy, double ajz, double Rj,
     double pk = Rk * ell + lkE, mj = Rj * ell - ljE;
     double num = ljE >= 0 ? pk : (lkE <= 0 ? mj : pk * mj);
     double den = ljE >= 0 ? Rj * ell + ljE : (lkE <= 0 ? Rk * ell - lkE : cx * cx + cy * cy + cz * cz);
-    den = den > 1e-300 ? den : 1e-300; /* (on the edge: as tc_edge_log_arg) */
-    double dl = den * ell, r = dl > 0 ? 1.0 / dl : 0.0;
+    den = den > 1e-300 ? den : 1e-300; /* (on the edge's line: then w = 0, and QE only needs to be finite) */
+    /* (dl below 1e-300, reached only there or on a degenerate edge, is clamped too: 1 / dl must not
+     * overflow, or QE = log(.) / ell would be inf and w . cr QE NaN) */
+    double dl = den * ell, r = ell > 0 ? 1.0 / (dl > 1e-300 ? dl : 1e-300) : 0.0;
     double a = num * ell * r;
     a = num > 0 && ell > 0 ? (a < 1e300 ? a : 1e300) : 1.0;
     *wx = cx;
