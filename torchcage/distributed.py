@@ -9,6 +9,7 @@ Example (inside an initialised process group; see docs/learning.md)::
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -70,7 +71,28 @@ def shard_coordinates(
     for part in parts:
         pad = part.new_zeros((size - part.shape[0], *part.shape[1:]))
         buf = [part.new_empty((size, *part.shape[1:])) for _ in range(world)]
-        dist.all_gather(buf, torch.cat([part, pad]).contiguous(), group=group)
+        send = torch.cat([part, pad]).contiguous()
+        _all_gather_released(buf, send, group)
         counts = [shard_slice(n, r, world) for r in range(world)]
         gathered.append(torch.cat([b[: s.stop - s.start] for b, s in zip(buf, counts, strict=True)]))
     return tuple(gathered) if isinstance(local, tuple) else gathered[0]
+
+
+def _all_gather_released(out: list[torch.Tensor], send: torch.Tensor, group: Any) -> None:
+    """``dist.all_gather(out, send)``, returning once the backend's worker thread has let go of the
+    tensors (within 10 s; ``out`` is filled either way).
+
+    The collective's result is ready before gloo's worker thread drops its references to the
+    tensors. Were their Python objects freed first, the worker would free the tensors and need the
+    GIL for it. With torch 2.5 (not 2.13), ``dist.destroy_process_group()`` joins that thread while
+    holding the GIL: the process hangs for good (about one call in four, right after this
+    function). Holding our references until the worker's are gone avoids it.
+    """
+    import torch.distributed as dist
+
+    tensors = [*out, send]
+    before = [t._use_count() for t in tensors]
+    dist.all_gather(out, send, group=group)
+    deadline = time.monotonic() + 10.0
+    while any(t._use_count() > b for t, b in zip(tensors, before, strict=True)) and time.monotonic() < deadline:
+        time.sleep(1e-4)  # (releases the GIL, which the worker may need meanwhile)
