@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import faulthandler
 import os
-import sys
 
 import pytest
 import torch
@@ -51,30 +49,3 @@ def pytest_collection_modifyitems(config, items) -> None:
     for item in items:
         if "native" in item.keywords:
             item.add_marker(skip)
-
-
-#: Seconds past pyproject's pytest-timeout after which a test's process is ended anyway.
-HARD_LIMIT_MARGIN = 60
-
-
-def _timeout(config) -> float:
-    try:
-        return float(config.getini("timeout") or 0)
-    except ValueError:  # pytest-timeout not installed
-        return 0.0
-
-
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_protocol(item, nextitem):
-    """A hang that holds the GIL (as torch 2.5's gloo teardown could) stops pytest-timeout's thread
-    too; faulthandler's watchdog needs no GIL. It prints every thread's stack and ends the worker a
-    minute after pytest-timeout would have, so that xdist reports the test instead of CI running
-    out of time."""
-    limit = _timeout(item.config)
-    if limit > 0:
-        faulthandler.dump_traceback_later(limit + HARD_LIMIT_MARGIN, exit=True, file=sys.stderr)
-    try:
-        yield
-    finally:
-        if limit > 0:
-            faulthandler.cancel_dump_traceback_later()
