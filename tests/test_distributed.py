@@ -138,8 +138,8 @@ _TEARDOWN = textwrap.dedent("""
 def test_destroying_the_group_right_after_sharding_does_not_hang():
     """Under torch 2.5, ``destroy_process_group`` right after a gloo collective deadlocked (5 of about
     50 calls) when the collective's tensors were freed before gloo's worker let go of them (the
-    worker then needs the GIL the destroying thread holds): without the fix, forty rounds hung every
-    time. In a child process, which a hang cannot take down with the test run."""
+    worker then needs the GIL the destroying thread holds): without the fix, the forty rounds hung
+    here. In a child process, which a hang cannot take down with the test run."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     try:
         out = subprocess.run([sys.executable, "-c", _TEARDOWN], capture_output=True, text=True, timeout=120, env=env)
