@@ -79,20 +79,24 @@ def shard_coordinates(
 
 
 def _all_gather_released(out: list[torch.Tensor], send: torch.Tensor, group: Any) -> None:
-    """``dist.all_gather(out, send)``, returning once the backend's worker thread has let go of the
-    tensors (within 10 s; ``out`` is filled either way).
+    """``dist.all_gather(out, send)``; for CPU tensors (gloo's), returning once gloo's worker thread
+    has let go of them (within 10 s; ``out`` is filled either way).
 
     The collective's result is ready before gloo's worker thread drops its references to the
     tensors. Were their Python objects freed first, the worker would free the tensors and need the
     GIL for it. With torch 2.5 (not 2.13), ``dist.destroy_process_group()`` joins that thread while
     holding the GIL: the process hangs for good (5 of about 50 calls right after this function
-    hung here). Holding our references until the worker's are gone avoids it.
+    hung here). Holding our references until the worker's are gone avoids it. (CUDA tensors go to
+    NCCL, whose watchdog keeps them until the device is done: no wait for those.)
     """
     import torch.distributed as dist
 
     tensors = [*out, send]
+    wait = send.device.type == "cpu"
     before = [t._use_count() for t in tensors]
     dist.all_gather(out, send, group=group)
     deadline = time.monotonic() + 10.0
-    while any(t._use_count() > b for t, b in zip(tensors, before, strict=True)) and time.monotonic() < deadline:
+    while wait and any(t._use_count() > b for t, b in zip(tensors, before, strict=True)):
+        if time.monotonic() > deadline:
+            break
         time.sleep(1e-4)  # (releases the GIL, which the worker may need meanwhile)
