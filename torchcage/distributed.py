@@ -87,7 +87,7 @@ def _all_gather_released(out: list[torch.Tensor], send: torch.Tensor, group: Any
     GIL for it. With torch 2.5 (not 2.13), ``dist.destroy_process_group()`` joins that thread while
     holding the GIL: the process hangs for good (5 of about 50 calls right after this function
     hung here). Holding our references until the worker's are gone avoids it. (CUDA tensors go to
-    NCCL, whose watchdog keeps them until the device is done: no wait for those.)
+    NCCL, which may hold them until the device is done: no wait for those.)
     """
     import torch.distributed as dist
 
