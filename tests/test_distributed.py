@@ -118,6 +118,8 @@ def test_shard_slice_covers_everything():
 
 
 _TEARDOWN = textwrap.dedent("""
+    import faulthandler
+    faulthandler.dump_traceback_later(100, exit=True)  # (a hang: where, on stderr)
     import torch, torch.distributed as dist
     from torchcage import functional as F
     from torchcage.distributed import shard_coordinates
@@ -146,3 +148,4 @@ def test_destroying_the_group_right_after_sharding_does_not_hang():
     except subprocess.TimeoutExpired as err:
         raise AssertionError(f"init, shard_coordinates and destroy hung (torch {torch.__version__})") from err
     assert out.returncode == 0 and out.stdout.strip() == "done", out.stderr[-3000:]
+    assert "RuntimeWarning" not in out.stderr, out.stderr[-3000:]  # (no 10 s wait hit its cap)

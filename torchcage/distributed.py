@@ -10,6 +10,7 @@ Example (inside an initialised process group; see docs/learning.md)::
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -79,24 +80,31 @@ def shard_coordinates(
 
 
 def _all_gather_released(out: list[torch.Tensor], send: torch.Tensor, group: Any) -> None:
-    """``dist.all_gather(out, send)``; for CPU tensors (gloo's), returning once gloo's worker thread
-    has let go of them (within 10 s; ``out`` is filled either way).
+    """``dist.all_gather(out, send)``; where gloo carries it, returning once gloo's worker thread has
+    let go of the tensors (within 10 s, else with a warning; ``out`` is filled either way).
 
     The collective's result is ready before gloo's worker thread drops its references to the
     tensors. Were their Python objects freed first, the worker would free the tensors and need the
     GIL for it. With torch 2.5 (not 2.13), ``dist.destroy_process_group()`` joins that thread while
     holding the GIL: the process hangs for good (5 of about 50 calls right after this function
-    hung here). Holding our references until the worker's are gone avoids it. (CUDA tensors go to
-    NCCL, which may hold them until the device is done: no wait for those.)
+    hung here). Holding our references until the worker's are gone avoids it. Other backends
+    (NCCL, which may hold CUDA tensors until the device is done) are not waited for.
     """
     import torch.distributed as dist
 
+    backend = str(dist.get_backend(group))
+    wait = backend == "gloo" or f"{send.device.type}:gloo" in backend  # (or "cpu:gloo,cuda:nccl")
     tensors = [*out, send]
-    wait = send.device.type == "cpu"
     before = [t._use_count() for t in tensors]
     dist.all_gather(out, send, group=group)
     deadline = time.monotonic() + 10.0
     while wait and any(t._use_count() > b for t, b in zip(tensors, before, strict=True)):
         if time.monotonic() > deadline:
+            warnings.warn(
+                "shard_coordinates: gloo still holds the gathered tensors after 10 s; under torch 2.5 a "
+                "destroy_process_group() now may hang",
+                RuntimeWarning,
+                stacklevel=3,
+            )
             break
         time.sleep(1e-4)  # (releases the GIL, which the worker may need meanwhile)
