@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import warnings
 
 import pytest
 import torch
@@ -148,4 +149,38 @@ def test_destroying_the_group_right_after_sharding_does_not_hang():
     except subprocess.TimeoutExpired as err:
         raise AssertionError(f"init, shard_coordinates and destroy hung (torch {torch.__version__})") from err
     assert out.returncode == 0 and out.stdout.strip() == "done", out.stderr[-3000:]
-    assert "RuntimeWarning" not in out.stderr, out.stderr[-3000:]  # (no 10 s wait hit its cap)
+    assert "still holds the gathered tensors" not in out.stderr, out.stderr[-3000:]  # (no wait hit its cap)
+
+
+def _fake_gather(monkeypatch, backend: str, keep: list | None) -> None:
+    """``dist.all_gather`` copying ``send`` into every output; with ``keep``, like a backend still
+    working, it keeps a view of each tensor (a view holds a reference to its base: ``_use_count``
+    stays up)."""
+
+    def all_gather(out, send, group=None):
+        for o in out:
+            o.copy_(send)
+        if keep is not None:
+            keep.extend(t.view(-1) for t in [*out, send])
+
+    monkeypatch.setattr(dist, "all_gather", all_gather)
+    monkeypatch.setattr(dist, "get_backend", lambda group=None: backend)
+
+
+def test_the_wait_for_gloo_is_bounded_and_warns(monkeypatch):
+    """A backend that never lets go: the gather returns its values after the wait, with a warning
+    naming the risk; on other backends there is no wait, and a backend that lets go draws none."""
+    from torchcage.distributed import _all_gather_released
+
+    monkeypatch.setattr(torchcage.distributed, "RELEASE_WAIT_S", 0.05)
+    send = torch.arange(6.0).reshape(3, 2)
+    for backend, waits in [("gloo", True), ("cpu:gloo,cuda:nccl", True), ("nccl", False), ("mpi", False)]:
+        for keep in ([], None):
+            _fake_gather(monkeypatch, backend, keep)
+            out = [torch.empty(3, 2) for _ in range(2)]
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                _all_gather_released(out, send, None)
+            assert all(torch.equal(o, send) for o in out)
+            warned = any("still holds the gathered tensors" in str(w.message) for w in caught)
+            assert warned == (waits and keep is not None), (backend, keep)

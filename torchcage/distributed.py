@@ -20,6 +20,10 @@ from torchcage.cage import Cage
 
 __all__ = ["shard_coordinates", "shard_slice"]
 
+#: Seconds ``shard_coordinates`` waits at most, per gather, for gloo's worker to let go of the
+#: tensors (see ``_all_gather_released``); it warns when the wait runs out.
+RELEASE_WAIT_S = 10.0
+
 
 def shard_slice(n: int, rank: int, world: int) -> slice:
     """Rank ``rank``'s contiguous slice of ``n`` items split as evenly as possible over ``world``
@@ -81,7 +85,7 @@ def shard_coordinates(
 
 def _all_gather_released(out: list[torch.Tensor], send: torch.Tensor, group: Any) -> None:
     """``dist.all_gather(out, send)``; where gloo carries it, returning once gloo's worker thread has
-    let go of the tensors (within 10 s, else with a warning; ``out`` is filled either way).
+    let go of the tensors (within ``RELEASE_WAIT_S``, else with a warning; ``out`` is filled either way).
 
     The collective's result is ready before gloo's worker thread drops its references to the
     tensors. Were their Python objects freed first, the worker would free the tensors and need the
@@ -97,12 +101,12 @@ def _all_gather_released(out: list[torch.Tensor], send: torch.Tensor, group: Any
     tensors = [*out, send]
     before = [t._use_count() for t in tensors]
     dist.all_gather(out, send, group=group)
-    deadline = time.monotonic() + 10.0
+    deadline = time.monotonic() + RELEASE_WAIT_S
     while wait and any(t._use_count() > b for t, b in zip(tensors, before, strict=True)):
         if time.monotonic() > deadline:
             warnings.warn(
-                "shard_coordinates: gloo still holds the gathered tensors after 10 s; under torch 2.5 a "
-                "destroy_process_group() now may hang",
+                f"shard_coordinates: gloo still holds the gathered tensors after {RELEASE_WAIT_S:g} s; under "
+                "torch 2.5 a destroy_process_group() now may hang",
                 RuntimeWarning,
                 stacklevel=3,
             )
