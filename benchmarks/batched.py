@@ -1,11 +1,11 @@
 """Benchmark of batched rest cages: one native call for the whole batch against a loop of
-single-cage calls, mean value coordinates forward (no graph, CPU).
+single-cage calls, mean value and Green coordinates forward (no graph, CPU).
 
 The setting of ``learnable.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each, a 42-vertex /
 80-triangle icosphere cage per shape (each jittered), points inside. *loop*: ``over_cage_batch``
-calling ``F.mean_value_coordinates`` per element (per element its tables, its checks and one
-native call); *batched*: ``F.mean_value_coordinates`` on the batched ``Cage`` (one set of tables
-for the batch, one native call). With ``--baseline REV`` (default ``HEAD``; ``none`` to skip), also
+calling ``F.mean_value_coordinates`` (``F.green_coordinates``) per element (per element its
+tables, its checks and one native call); *batched*: the same function on the batched ``Cage`` (one
+set of tables for the batch, one native call). With ``--baseline REV`` (default ``HEAD``; ``none`` to skip), also
 the loop of the library at git revision ``REV`` (exported to a temporary folder; what a batched cage
 cost before this benchmark's revision, the single-cage path's own set-up included). Each call
 builds the cage (``validate="topology"``, as a training step does), so the geometric check runs
@@ -14,7 +14,8 @@ excluded); *set-up*: the rest, and its share of the total. Each tree runs in its
 implementations interleaved, best of ``--repeat``; *speed-up* is against the first row of the
 dtype.
 
-Usage: ``python benchmarks/batched.py [--batch 8] [--points 5000] [--repeat 10] [--baseline REV]``
+Usage: ``python benchmarks/batched.py [--batch 8] [--points 5000] [--repeat 10] [--baseline REV]
+[--methods mvc gc]``
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ def _child(args: argparse.Namespace) -> None:
     import torch
 
     import torchcage
-    from torchcage.functional import mean_value_coordinates
+    from torchcage.functional import green_coordinates, mean_value_coordinates
 
     try:  # (the layout since the families' folders; a baseline revision may predate it)
         from torchcage._core.batch import over_cage_batch
@@ -64,9 +65,14 @@ def _child(args: argparse.Namespace) -> None:
 
     _native.call = timed_call  # every glue module calls it through the module attribute
     x, P, faces, _ = problem(args.batch, args.points, getattr(torch, args.dtype), "cpu")
-    impls: dict[str, Callable[[], torch.Tensor]] = {
-        "loop": lambda: over_cage_batch(mean_value_coordinates, x, torchcage.Cage(P, faces, validate="topology")),
-        "batched": lambda: mean_value_coordinates(x, torchcage.Cage(P, faces, validate="topology")),
+    fn = mean_value_coordinates if args.method == "mvc" else green_coordinates
+
+    def joined(out: torch.Tensor | tuple[torch.Tensor, ...]) -> torch.Tensor:  # (Green's phi and psi, for the diff)
+        return out if isinstance(out, torch.Tensor) else torch.cat(out, dim=-1)
+
+    impls: dict[str, Callable[[], torch.Tensor | tuple[torch.Tensor, ...]]] = {
+        "loop": lambda: over_cage_batch(fn, x, torchcage.Cage(P, faces, validate="topology")),
+        "batched": lambda: fn(x, torchcage.Cage(P, faces, validate="topology")),
     }
     names = args.impl.split(",")
     best = {k: (float("inf"), 0.0) for k in names}
@@ -80,14 +86,14 @@ def _child(args: argparse.Namespace) -> None:
                 dt = time.perf_counter() - t
                 if dt < best[k][0]:
                     best[k] = (dt, KERNEL[0])
-    ref = outs[names[0]]
-    diff = {k: float((outs[k] - ref).abs().max()) for k in names}
+    ref = joined(outs[names[0]])
+    diff = {k: float((joined(outs[k]) - ref).abs().max()) for k in names}
     print(json.dumps({"best": best, "diff": diff, "threads": torch.get_num_threads()}))
 
 
-def _run(tree: Path, args: argparse.Namespace, dtype: str, impl: str) -> dict:
+def _run(tree: Path, args: argparse.Namespace, dtype: str, impl: str, method: str) -> dict:
     env = {**os.environ, "PYTHONPATH": str(tree)}
-    cmd = [sys.executable, __file__, "--child", "--impl", impl, "--dtype", dtype]
+    cmd = [sys.executable, __file__, "--child", "--impl", impl, "--dtype", dtype, "--method", method]
     cmd += ["--batch", str(args.batch), "--points", str(args.points), "--repeat", str(args.repeat)]
     res = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if res.returncode != 0:
@@ -104,6 +110,8 @@ def main() -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--impl", default="loop,batched", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
+    ap.add_argument("--method", default="mvc", choices=["mvc", "gc"], help=argparse.SUPPRESS)
+    ap.add_argument("--methods", nargs="+", default=["mvc", "gc"], choices=["mvc", "gc"])
     args = ap.parse_args()
     if args.child:
         _child(args)
@@ -118,19 +126,20 @@ def main() -> None:
             subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
             base = (f"loop at {rev}", Path(tmp))
         rows = []
-        for dtype in ("float32", "float64"):
-            runs = []
-            if base is not None:
-                r = _run(base[1], args, dtype, "loop")
-                runs.append((base[0], *r["best"]["loop"]))
-            r = _run(ROOT, args, dtype, "loop,batched")
-            runs += [("loop", *r["best"]["loop"]), ("batched", *r["best"]["batched"])]
-            rows.append((dtype, runs, r["diff"]["batched"], r["threads"]))
+        for method in args.methods:
+            for dtype in ("float32", "float64"):
+                runs = []
+                if base is not None:
+                    r = _run(base[1], args, dtype, "loop", method)
+                    runs.append((base[0], *r["best"]["loop"]))
+                r = _run(ROOT, args, dtype, "loop,batched", method)
+                runs += [("loop", *r["best"]["loop"]), ("batched", *r["best"]["batched"])]
+                rows.append((f"{method} {dtype}", runs, r["diff"]["batched"], r["threads"]))
     print(
         f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages, CPU, "
         f"{rows[0][3]} threads, best of {args.repeat}\n"
     )
-    print("| dtype | path | forward | kernel | set-up | set-up share | speed-up |")
+    print("| method, dtype | path | forward | kernel | set-up | set-up share | speed-up |")
     print("|---|---|---|---|---|---|---|")
     for dtype, runs, diff, _ in rows:
         first = runs[0][1]

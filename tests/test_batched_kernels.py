@@ -1,7 +1,7 @@
-"""Batched rest cages as one native kernel call: mean value coordinates of a batch of 3D triangle
-cages with one topology agree with the loop of single-cage calls (the same tables, the same kernel),
-for points inside, outside, on faces, edges and vertices and far away, and the batch's errors name
-the element."""
+"""Batched rest cages as one native kernel call: mean value and Green coordinates of a batch of 3D
+triangle cages with one topology agree with the loop of single-cage calls (the same tables, the same
+kernel), for points inside, outside, on faces, edges and vertices and far away, and the batch's
+errors name the element."""
 
 from __future__ import annotations
 
@@ -68,14 +68,14 @@ def _assert_same(out: torch.Tensor, ref: torch.Tensor) -> None:
 
 
 class _CountCalls:
-    """Counts ``tc_mvc3d`` calls (with their batch size) through ``_native.call``."""
+    """Counts ``tc_mvc3d`` calls (or those of ``entry``, with their batch size) through ``_native.call``."""
 
-    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, entry: str = "tc_mvc3d") -> None:
         self.batches: list[int] = []
         real = _native.call
 
         def call(lib, name, **kw):
-            if name == "tc_mvc3d":
+            if name == entry:
                 self.batches.append(int(kw["B"]))
             return real(lib, name, **kw)
 
@@ -203,3 +203,113 @@ def test_undefined_points_of_one_cage_are_named_from_the_kernel_flags(monkeypatc
     monkeypatch.setattr(_mvc3d_native, "native_chunk", chunk)
     with pytest.raises(torchcage.PointsError, match=r"undefined at points \[4\] \(the total weight"):
         F.mean_value_coordinates(torch.zeros(6, 3, dtype=D64), torchcage.Cage(V[0], tri), backend="native")
+
+
+# ----------------------------------------------------------------------------------- Green
+
+
+def _near_vertices(V: torch.Tensor, seed: int) -> torch.Tensor:
+    """Points a few rounding steps from the first vertices of ``V`` ``(42, 3)``: inside the vertex
+    snap's radius (64 on-cage tolerances, about 2.3e-13 of the size) and just outside it."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(16, 3, generator=g, dtype=D64)
+    d = d / d.norm(dim=1, keepdim=True)
+    scale = float((V.amax(0) - V.amin(0)).norm())
+    r = torch.tensor([1e-15, 1e-14, 1e-13, 2e-13, 5e-13, 1e-12, 1e-11, 1e-10] * 2, dtype=D64)[:, None] * scale
+    return V[:16] + r * d
+
+
+@pytest.mark.native
+@pytest.mark.parametrize("dtype", [torch.float32, D64])
+@pytest.mark.parametrize("B", [1, 3])
+@pytest.mark.parametrize("shift", [0.0, 1e3])
+@pytest.mark.parametrize("exterior", ["extend", "none"])
+def test_batched_green_equals_the_loop(dtype, B, shift, exterior, monkeypatch):
+    V, tri = _cages(B, shift=shift)
+    cage = torchcage.Cage(V.to(dtype), tri)
+    per_cage = torch.stack([torch.cat([_points(V[b], tri, seed=b), _near_vertices(V[b], b)]) for b in range(B)]).to(
+        dtype
+    )  # (B, N, 3)
+    shared = per_cage[0]  # (N, 3): on cage 0's faces, near the others'
+    count = _CountCalls(monkeypatch, "tc_gc3d_batch")
+    for pts in (per_cage, shared):
+        count.batches.clear()
+        phi, psi = F.green_coordinates(pts, cage, exterior=exterior)
+        assert count.batches == [B]  # the whole batch in one native call
+        refs = [F.green_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], exterior=exterior) for b in range(B)]
+        _assert_same(phi, torch.stack([r[0] for r in refs]))
+        _assert_same(psi, torch.stack([r[1] for r in refs]))
+    # the coordinates themselves: phi @ V + psi @ n reproduces the points inside (and, extended,
+    # outside), and phi sums to one there
+    phi, psi = F.green_coordinates(per_cage.double(), torchcage.Cage(V, tri), exterior=exterior)
+    n = torch.stack([torchcage.Cage(V[b], tri).triangle_normals() for b in range(B)])
+    inside = torch.zeros(per_cage.shape[:2], dtype=torch.bool)
+    inside[:, :60] = True  # (the inside points of _points)
+    keep = inside | (exterior == "extend") & ((per_cage.double() - V.mean(1, keepdim=True)).norm(dim=-1) < 10)
+    err = (phi @ V + psi @ n - per_cage.double()).norm(dim=-1)
+    assert float(err[keep].max()) < 1e-9 * (1 + shift)
+    assert float((phi.sum(-1) - 1).abs()[keep].max()) < 1e-9
+
+
+@pytest.mark.native
+def test_batched_green_two_batch_dimensions_and_chunks(monkeypatch):
+    V, tri = _cages(6, seed=3)
+    cage = torchcage.Cage(V.reshape(2, 3, 42, 3), tri)
+    pts = torch.stack([_points(V[b], tri, seed=b) for b in range(6)]).reshape(2, 3, -1, 3)
+    count = _CountCalls(monkeypatch, "tc_gc3d_batch")
+    seen = []
+    phi, psi = F.green_coordinates(pts, cage, chunk_size=100, progress=lambda done, total: seen.append(done))
+    N = pts.shape[-2]
+    assert phi.shape == (2, 3, N, 42) and psi.shape == (2, 3, N, 80)
+    assert count.batches == [6] * -(-N // 100) and seen[-1] == N  # one call per chunk, progress to the end
+    for i in range(2):
+        for j in range(3):
+            ref = F.green_coordinates(pts[i, j], cage[i, j])
+            _assert_same(phi[i, j], ref[0])
+            _assert_same(psi[i, j], ref[1])
+    # points broadcast over the first batch axis: (3, N, 3) against cages (2, 3)
+    phi, psi = F.green_coordinates(pts[0], cage)
+    for i in range(2):
+        for j in range(3):
+            _assert_same(phi[i, j], F.green_coordinates(pts[0, j], cage[i, j])[0])
+
+
+def test_batched_green_edge_cases():
+    V, tri = _cages(3)
+    cage = torchcage.Cage(V, tri)
+    for pts in (torch.zeros(0, 3, dtype=D64), torch.zeros(3, 0, 3, dtype=D64)):
+        phi, psi = F.green_coordinates(pts, cage)
+        assert phi.shape == (3, 0, 42) and psi.shape == (3, 0, 80)
+    x = torch.zeros(3, 5, 3, dtype=D64)
+    x[2, 1, 0] = float("inf")
+    with pytest.raises(torchcage.PointsError, match=r"indices \[1\].*batch element \(2,\)"):
+        F.green_coordinates(x, cage)
+    # the torch kernel and a graph keep the loop; the same numbers up to the kernels' agreement
+    x = torch.stack([_points(V[b], tri, seed=b)[:60] for b in range(3)])
+    phi = F.green_coordinates(x, cage)[0]
+    assert torch.allclose(F.green_coordinates(x, cage, backend="torch")[0], phi, atol=1e-10)
+    Vg = V.clone().requires_grad_(True)
+    phig = F.green_coordinates(x, torchcage.Cage(Vg, tri))[0]
+    assert phig.requires_grad and torch.allclose(phig.detach(), phi, atol=1e-10)
+
+
+def test_snap_of_a_batch_equals_the_snap_of_each_element():
+    from torchcage._core.common import snap_to_vertices, snap_to_vertices_batch
+
+    V, _ = _cages(4, seed=5)
+    g = torch.Generator().manual_seed(7)
+    x = torch.stack(
+        [torch.cat([_near_vertices(V[b], b), 0.5 * torch.randn(50, 3, generator=g, dtype=D64)]) for b in range(4)]
+    )
+    x[1, 3] = V[2, 3]  # another element's vertex: not snapped in element 1
+    x[3, 5, 1] = V[3, 9, 1]  # one coordinate of a vertex: passes the first screens only
+    radius = torch.tensor([1e-13, 3e-13, 0.0, 1e-12], dtype=D64)
+    out = snap_to_vertices_batch(x, V, radius)
+    for b in range(4):
+        assert torch.equal(out[b], snap_to_vertices(x[b], V[b], float(radius[b])))
+    # and against the definition: a point moves iff a vertex is within the radius, onto the nearest
+    d = (x[:, :, None] - V[:, None]).norm(dim=-1)  # (B, N, V)
+    moved = (out != x).any(-1)
+    assert torch.equal(moved, (d.amin(-1) <= radius[:, None]) & (d.amin(-1) > 0))
+    assert torch.equal(out[moved], V[torch.nonzero(moved)[:, 0], d.argmin(-1)[moved]])
+    assert snap_to_vertices_batch(x, V, torch.zeros(4, dtype=D64)) is x  # nothing snaps: no copy

@@ -14,10 +14,10 @@ from typing import Any
 
 import torch
 
-from torchcage.cage import Cage
+from torchcage.cage import Cage, _batch_name
 from torchcage.errors import PointsError
 
-__all__ = ["broadcast_batch", "over_cage_batch"]
+__all__ = ["broadcast_batch", "check_finite_batch", "over_cage_batch"]
 
 
 def over_cage_batch(fn: Callable[..., Any], points: torch.Tensor, cage: Cage, **kwargs: Any) -> Any:
@@ -79,6 +79,22 @@ def broadcast_batch(points: Any, cage: Cage) -> tuple[torch.Tensor, torch.Tensor
     pts = points.reshape(1, N, D) if shared else points.expand(*batch, N, D).reshape(nb, N, D)
     verts = cage.vertices.expand(*batch, V, D).reshape(nb, V, D)
     return pts, verts, batch
+
+
+def check_finite_batch(pts: torch.Tensor, batch: torch.Size) -> None:
+    """Raise for points ``pts`` ``(B or 1, N, D)`` (from :func:`broadcast_batch`) holding NaN or inf,
+    naming the first ten and the batch element (a NaN or an inf anywhere shows in the points' box:
+    one pass, and the full test only then).
+
+    Raises:
+        PointsError: points that are not finite.
+    """
+    if pts.shape[-2] and not bool(torch.isfinite(torch.stack(torch.aminmax(pts, dim=-2))).all()):
+        bad = ~torch.isfinite(pts).all(dim=-1)  # (1 or B, N)
+        b = int(torch.nonzero(bad.any(dim=1))[0])
+        idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
+        where = _batch_name(torch.tensor(b), batch) if pts.shape[0] > 1 else ""
+        raise PointsError(f"points contain NaN or inf (flattened indices {idx}{where}); remove or fix them")
 
 
 def _stack(parts: list[torch.Tensor | None], batch: torch.Size) -> torch.Tensor | None:

@@ -42,7 +42,8 @@ def on_cage_tolerances(vertices: torch.Tensor) -> torch.Tensor:
 def unit_sum(phi: torch.Tensor, x: torch.Tensor, vertices: torch.Tensor, band: float = 1e-8) -> torch.Tensor:
     """``phi`` ``(N, V)`` divided by its sum for the points ``x`` ``(N, D)`` nearer the centre of the
     cage's ``vertices`` ``(V, D)`` than the centre is to the origin, where the sum is within ``band``
-    of 1.
+    of 1. (A batch of cages: ``phi`` ``(B, N, V)``, ``x`` ``(B or 1, N, D)``, ``vertices``
+    ``(B, V, D)``, each element as alone.)
 
     Green coordinates sum to 1 (inside the cage, and continued outside) only up to the rounding of
     their solid angles, some ``1e-14``. With ``s`` that sum and ``c`` the centre, the error of
@@ -60,8 +61,8 @@ def unit_sum(phi: torch.Tensor, x: torch.Tensor, vertices: torch.Tensor, band: f
         >>> bool(abs(out[0].sum() - 1) < 1e-15), out[1].tolist()
         (True, [0.0, 0.0])
     """
-    c = (vertices.detach().amax(dim=0) + vertices.detach().amin(dim=0)) / 2
-    closer = (x.detach() - c).norm(dim=-1, keepdim=True) < c.norm()
+    c = (vertices.detach().amax(dim=-2) + vertices.detach().amin(dim=-2)) / 2  # (D,), or (B, D)
+    closer = (x.detach() - c.unsqueeze(-2)).norm(dim=-1, keepdim=True) < c.norm(dim=-1)[..., None, None]
     plain = not phi.requires_grad and not is_functorch_wrapped_tensor(phi)
     if plain and not bool(closer.any()):  # (a cage about the origin: no row to scale, no pass over phi)
         return phi
@@ -139,6 +140,62 @@ def snap_to_vertices(x: torch.Tensor, vertices: torch.Tensor, radius: float) -> 
     if not bool(near.any()):
         return x
     return torch.where(near[:, None], V[best], x)
+
+
+def snap_to_vertices_batch(x: torch.Tensor, vertices: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
+    """:func:`snap_to_vertices` for a batch of cages at once, without autograd: ``x`` ``(B, N, D)``
+    with every point within ``radius[b]`` ``(B,)`` of a vertex of ``vertices[b]`` ``(B, V, D)``
+    replaced by that vertex (a new tensor, or ``x`` itself when no point snaps); element by element
+    the same points as :func:`snap_to_vertices`.
+
+    Examples:
+        >>> V = torch.tensor([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 1.0], [1.0, 1.0]]])
+        >>> x = torch.tensor([[[1e-9, 0.0]], [[1e-9, 0.0]]])
+        >>> snap_to_vertices_batch(x, V, torch.tensor([1e-6, 1e-6])).tolist()
+        [[[0.0, 0.0]], [[1e-09, 0.0]]]
+    """
+    N, D = x.shape[1:]
+    if N == 0 or vertices.shape[1] == 0:
+        return x
+    Vd, xd = vertices.detach().to(x.dtype), x.detach()
+    r = radius.to(x.dtype)
+    with torch.no_grad():
+        # The screen of snap_to_vertices, axis by axis, each axis over the (element, row) pairs the
+        # previous one kept (all, then few).
+        reach = r * (1 + max(1e-12, 4 * torch.finfo(x.dtype).eps))  # (B,)
+        coords = Vd.transpose(1, 2).sort(dim=-1).values  # (B, D, V): each element's coordinates per axis, sorted
+        b = n = None
+        for k in range(D):
+            if b is None:  # (every row of every element: the batched search)
+                coord, xk, rk = coords[:, k].contiguous(), xd[..., k].contiguous(), reach[:, None]
+            else:
+                coord, xk, rk = coords[b, k], xd[b, n, k][:, None], reach[b][:, None]
+            if coord.shape[1] > 1:
+                i = torch.searchsorted(coord, xk).clamp_(1, coord.shape[1] - 1)
+                gap = torch.minimum((xk - coord.gather(1, i - 1)).abs(), (xk - coord.gather(1, i)).abs())
+            else:
+                gap = (xk - coord).abs()
+            keep = gap <= rk
+            if b is None:
+                b, n = torch.nonzero(keep, as_tuple=True)
+            else:
+                b, n = b[keep[:, 0]], n[keep[:, 0]]
+            if b.numel() == 0:
+                return x
+        assert b is not None and n is not None
+        # (the test of snap_to_vertices: the same sums of squares, the same comparison)
+        xs, vs = xd[b, n], Vd[b]
+        d2 = (xs[:, None, 0] - vs[..., 0]).square()
+        for k in range(1, D):
+            d2 = d2 + (xs[:, None, k] - vs[..., k]).square()
+        rb = r[b]
+        ns = d2.amin(dim=1) <= rb * rb
+        if not bool(ns.any()):
+            return x
+        b, n, best = b[ns], n[ns], d2[ns].argmin(dim=1)
+        out = x.clone()
+        out[b, n] = Vd[b, best]
+        return out
 
 
 def records_graph(*tensors: torch.Tensor) -> bool:

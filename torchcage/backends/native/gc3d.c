@@ -817,33 +817,29 @@ static void gc_block(const gc_tables *g, const unsigned char *thin, const double
     }
 }
 
-void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges, long E, const double *eu,
-             const int *fe, const double *nrm, const double *two_area, const double *ell, const double *edir,
-             const double *eout, const double *gbary, const double *longest, const double *far_nodes,
-             const double *far_w, const double *far_bary, long Q, double far_c, const double *X, long n, double tol,
-             int nthreads, double *PHI, double *PSI, int *ONF, double *AL) {
-    gc_tables g = {Pv,   V,    tri,  T,       edges,     E,    eu,       fe, nrm, two_area, ell, edir, eout,
-                   gbary, NULL, NULL, 0,       longest,   far_nodes, far_w, far_bary, Q, far_c};
-    const int prepared = tc_gc_prepare(&g);
-    unsigned char *thin = (unsigned char *)calloc((size_t)(T > 0 ? T : 1), 1);
-    for (long q = 0; thin != NULL && q < g.nthin; ++q) thin[g.thin[q]] = 1;
-    const long nb = (n + GL - 1) / GL; /* blocks of GL points (the last one shorter) */
-    const int stream = (double)n * (double)(V + T) > (double)(1 << 22); /* outputs past 32 MiB: streamed */
-    int failed = thin == NULL || !prepared; /* a workspace not allocated: every output NaN (the glue raises) */
+/* The blocks of GL points of B cages with one topology: element b's tables gs[b] (prepared; thin:
+ * its flags at thin + T b), points X + 3 n b, tolerance tol[b], rows PHI + V n b, PSI + T n b (ONF,
+ * AL: B = 1 only). One parallel loop over every element's blocks; failed: every output NaN. */
+static void gc3d_run(long B, const gc_tables *gs, const unsigned char *thin, const double *X, long n, const double *tol,
+                     int nthreads, int failed, double *PHI, double *PSI, int *ONF, double *AL) {
+    const long V = gs[0].V, T = gs[0].T;
+    const long nb = (n + GL - 1) / GL; /* blocks of GL points per element (the last one shorter) */
+    const int stream = (double)B * (double)n * (double)(V + T) > (double)(1 << 22); /* outputs past 32 MiB */
 #pragma omp parallel num_threads(nthreads)
     {
-        double *buf = failed ? NULL : (double *)malloc(sizeof(double) * gc_block_workspace(&g));
+        double *buf = failed ? NULL : (double *)malloc(sizeof(double) * gc_block_workspace(&gs[0]));
         if (buf == NULL) {
 #pragma omp atomic write
             failed = 1;
         }
 #pragma omp for schedule(dynamic, 2)
-        for (long b = 0; b < nb; ++b) {
-            long p = GL * b;
-            int cnt = n - p < GL ? (int)(n - p) : GL;
+        for (long i = 0; i < B * nb; ++i) {
+            const long b = i / nb, p = GL * (i % nb);
+            const int cnt = n - p < GL ? (int)(n - p) : GL;
+            const long row = n * b + p;
             if (buf == NULL) continue;
-            gc_block(&g, thin, X + 3 * p, cnt, tol, buf, stream, PHI + p * V, PSI + p * T, ONF ? ONF + p : NULL,
-                     ONF ? AL + 3 * p : NULL);
+            gc_block(&gs[b], thin + T * b, X + 3 * row, cnt, tol[b], buf, stream, PHI + row * V, PSI + row * T,
+                     ONF ? ONF + p : NULL, ONF ? AL + 3 * p : NULL);
         }
 #ifdef GC_STREAM
         _mm_sfence(); /* the streamed stores before this thread's part is read */
@@ -851,9 +847,60 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
         free(buf);
     }
     if (failed) {
-        for (long i = 0; i < n * V; ++i) PHI[i] = NAN;
-        for (long i = 0; i < n * T; ++i) PSI[i] = NAN;
+        for (long i = 0; i < B * n * V; ++i) PHI[i] = NAN;
+        for (long i = 0; i < B * n * T; ++i) PSI[i] = NAN;
     }
+}
+
+/* Fold element b's tables (prepared: 0 when they could not be allocated) and its thin flags. */
+static int gc_prepare_thin(gc_tables *g, unsigned char *thin) {
+    if (!tc_gc_prepare(g)) return 0;
+    for (long q = 0; q < g->nthin; ++q) thin[g->thin[q]] = 1;
+    return 1;
+}
+
+void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges, long E, const double *eu,
+             const int *fe, const double *nrm, const double *two_area, const double *ell, const double *edir,
+             const double *eout, const double *gbary, const double *longest, const double *far_nodes,
+             const double *far_w, const double *far_bary, long Q, double far_c, const double *X, long n, double tol,
+             int nthreads, double *PHI, double *PSI, int *ONF, double *AL) {
+    gc_tables g = {Pv,   V,    tri,  T,       edges,     E,    eu,       fe, nrm, two_area, ell, edir, eout,
+                   gbary, NULL, NULL, 0,       longest,   far_nodes, far_w, far_bary, Q, far_c};
+    unsigned char *thin = (unsigned char *)calloc((size_t)(T > 0 ? T : 1), 1);
+    int failed = thin == NULL || !gc_prepare_thin(&g, thin); /* (a workspace not allocated: the glue raises) */
+    gc3d_run(1, &g, thin, X, n, &tol, nthreads, failed, PHI, PSI, ONF, AL);
     free(thin);
     tc_gc_free(&g);
+}
+
+/* tc_gc3d for B cages with one topology (tri, edges, fe shared): each per-cage table has a leading
+ * batch axis (Pv (B, 3, V), eu (B, 3, E), nrm (B, T, 3) ..., far_nodes (B, T, Q, 3), far_w (B, T, Q);
+ * far_bary is shared), X (B, n, 3), tol (B,), outputs PHI (B, n, V), PSI (B, n, T) (closed cages:
+ * the jump is added here). Element by element the numbers of tc_gc3d. */
+void tc_gc3d_batch(long B, const double *Pv, long V, const int *tri, long T, const int *edges, long E,
+                   const double *eu, const int *fe, const double *nrm, const double *two_area, const double *ell,
+                   const double *edir, const double *eout, const double *gbary, const double *longest,
+                   const double *far_nodes, const double *far_w, const double *far_bary, long Q, double far_c,
+                   const double *X, long n, const double *tol, int nthreads, double *PHI, double *PSI) {
+    gc_tables *gs = (gc_tables *)calloc((size_t)(B > 0 ? B : 1), sizeof(gc_tables));
+    unsigned char *thin = (unsigned char *)calloc((size_t)(B * T > 0 ? B * T : 1), 1);
+    if (gs == NULL || thin == NULL) { /* every output NaN (the glue raises) */
+        for (long i = 0; i < B * n * V; ++i) PHI[i] = NAN;
+        for (long i = 0; i < B * n * T; ++i) PSI[i] = NAN;
+        free(gs);
+        free(thin);
+        return;
+    }
+    int failed = 0;
+    for (long b = 0; !failed && b < B; ++b) {
+        gc_tables g = {Pv + 3 * V * b, V, tri, T, edges, E, eu + 3 * E * b, fe, nrm + 3 * T * b, two_area + T * b,
+                       ell + 3 * T * b, edir + 9 * T * b, eout + 9 * T * b, gbary + 9 * T * b, NULL, NULL, 0,
+                       longest + T * b, far_nodes + 3 * Q * T * b, far_w + Q * T * b, far_bary, Q, far_c};
+        gs[b] = g;
+        failed = !gc_prepare_thin(&gs[b], thin + T * b);
+    }
+    if (B > 0) gc3d_run(B, gs, thin, X, n, tol, nthreads, failed, PHI, PSI, NULL, NULL);
+    for (long b = 0; b < B; ++b) tc_gc_free(&gs[b]);
+    free(gs);
+    free(thin);
 }

@@ -44,15 +44,16 @@ FAR_ORDER = 5
 
 
 def far_nodes(p: torch.Tensor, two_area: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The rule's nodes on faces with corners ``p`` ``(T, 3, 3)`` and twice their areas ``(T,)``.
+    """The rule's nodes on faces with corners ``p`` ``(*B, T, 3, 3)`` and twice their areas
+    ``(*B, T)``.
 
     Returns:
-        ``(nodes (T, Q, 3), weights (T, Q), bary (Q, 3))``: node positions, their weights (area
-        included) and barycentric coordinates.
+        ``(nodes (*B, T, Q, 3), weights (*B, T, Q), bary (Q, 3))``: node positions, their weights
+        (area included) and barycentric coordinates.
     """
     bary, qw = collapsed_gauss(FAR_ORDER, p.dtype, p.device)
-    nodes = torch.einsum("qi,tic->tqc", bary, p)
-    return nodes, two_area[:, None] * qw, bary
+    nodes = torch.einsum("qi,...tic->...tqc", bary, p)
+    return nodes, two_area[..., None] * qw, bary
 
 
 def far_pairs(R: torch.Tensor, longest: torch.Tensor) -> torch.Tensor:

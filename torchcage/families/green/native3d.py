@@ -10,10 +10,10 @@ import torch
 
 from torchcage._core.common import unique_face_edges
 from torchcage.backends import native as _native
-from torchcage.families.green.far_triangle import FAR_RATIO
+from torchcage.families.green.far_triangle import FAR_RATIO, far_nodes
 from torchcage.families.green.kernel3d import TriangleGreenData, triangle_green_geometry
 
-__all__ = ["native_chunk", "native_subset_tables", "native_tables"]
+__all__ = ["batch_chunk", "batch_tables", "native_chunk", "native_subset_tables", "native_tables"]
 
 
 def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, object]:
@@ -76,4 +76,55 @@ def native_chunk(
     point's barycentric coordinates there, for the caller's jump term."""
     _native.call(lib, "tc_gc3d", **tables, X=x.contiguous(), n=x.shape[0], PHI=phi, PSI=psi, ONF=on_face, AL=alpha)
     mb = 8 * 8 * (5 * phi.shape[1] + 4 * psi.shape[1]) / 2**20
+    _native.check_workspace(phi, "Green", f"about {mb:.0f} MB per thread")
+
+
+def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """``tc_gc3d_batch``'s per-cage arguments for a batch of cages with one topology: ``vertices``
+    ``(B, V, 3)`` float64 (centred), ``tri`` ``(T, 3)``, ``tol`` ``(B,)`` the on-cage tolerances.
+    Element by element the tables :func:`native_tables` builds for one cage (the same operations,
+    over a leading batch axis)."""
+    edges, face_edge, _ = unique_face_edges(tri)
+    p = vertices[:, tri]  # (B, T, 3, 3)
+    cross = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
+    two_area = cross.norm(dim=-1)  # (as triangle_geometry)
+    normal = cross / two_area[..., None]
+    _, _, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
+    longest = (p.roll(-1, dims=-2) - p).norm(dim=-1).amax(dim=-1)  # (as triangle_green_data)
+    nodes, weights, bary = far_nodes(p, two_area)
+    edges = edges.T  # (2, E)
+    direction = vertices[:, edges[1]] - vertices[:, edges[0]]  # (B, E, 3)
+    return {
+        "B": vertices.shape[0],
+        "Pv": vertices.transpose(1, 2).contiguous(),
+        "V": vertices.shape[1],
+        "tri": tri.T.to(torch.int32).contiguous(),
+        "T": tri.shape[0],
+        "edges": edges.to(torch.int32).contiguous(),
+        "E": edges.shape[1],
+        "eu": (direction / direction.norm(dim=-1, keepdim=True)).transpose(1, 2).contiguous(),
+        "fe": face_edge.T.to(torch.int32).contiguous(),
+        "nrm": normal.contiguous(),
+        "two_area": two_area.contiguous(),
+        "ell": (grad_bary.norm(dim=-1) * two_area[..., None]).contiguous(),
+        "edir": edge_dir.contiguous(),
+        "eout": edge_out.contiguous(),
+        "gbary": grad_bary.contiguous(),
+        "longest": longest.contiguous(),
+        "far_nodes": nodes.contiguous(),
+        "far_w": weights.contiguous(),
+        "far_bary": bary.contiguous(),
+        "Q": bary.shape[0],
+        "far_c": FAR_RATIO,
+        "tol": tol.to(torch.float64).contiguous(),
+    }
+
+
+def batch_chunk(
+    x: torch.Tensor, tables: dict[str, object], lib: ctypes.CDLL, phi: torch.Tensor, psi: torch.Tensor
+) -> None:
+    """The native kernel on a chunk of every cage's points: ``x`` ``(B, n, 3)`` float64 into ``phi``
+    ``(B, n, V)`` and ``psi`` ``(B, n, T)`` (contiguous float64 CPU tensors, written in place)."""
+    _native.call(lib, "tc_gc3d_batch", **tables, X=x.contiguous(), n=x.shape[1], PHI=phi, PSI=psi)
+    mb = 8 * 8 * (5 * phi.shape[-1] + 4 * psi.shape[-1]) / 2**20
     _native.check_workspace(phi, "Green", f"about {mb:.0f} MB per thread")

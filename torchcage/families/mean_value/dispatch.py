@@ -12,7 +12,7 @@ from typing import cast
 import torch
 
 from torchcage._core.alloc import empty_output
-from torchcage._core.batch import broadcast_batch
+from torchcage._core.batch import broadcast_batch, check_finite_batch
 from torchcage._core.centre import centred_batch
 from torchcage._core.common import (
     chunks,
@@ -153,13 +153,7 @@ def coordinates_batch(
     compute, out_dtype = result_dtype(pts, cage, dtype, backend)
     if pts.device.type == "cpu" and backend != "triton" and compute != torch.float64:
         return None
-    # (a NaN or an inf anywhere shows in the points' box: one pass, and the full test only then)
-    if pts.shape[-2] and not bool(torch.isfinite(torch.stack(torch.aminmax(pts, dim=-2))).all()):
-        bad = ~torch.isfinite(pts).all(dim=-1)  # (1 or B, N)
-        b = int(torch.nonzero(bad.any(dim=1))[0])
-        idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
-        where = _batch_name(torch.tensor(b), batch) if pts.shape[0] > 1 else ""
-        raise PointsError(f"points contain NaN or inf (flattened indices {idx}{where}); remove or fix them")
+    check_finite_batch(pts, batch)
     # relative to each cage's centre, as the single-cage function does (module _centre)
     x, v = centred_batch(pts, verts, compute)
     choice = select(MVC, backend, x, v, graph=False)
