@@ -824,8 +824,9 @@ static void gc3d_run(long B, const gc_tables *gs, const unsigned char *thin, con
                      int nthreads, int failed, double *PHI, double *PSI, int *ONF, double *AL) {
     const long V = gs[0].V, T = gs[0].T;
     const long nb = (n + GL - 1) / GL; /* blocks of GL points per element (the last one shorter) */
-    /* outputs past 32 MiB per element streamed, as for one cage (a batch of small elements streamed
-     * as a whole measured slower: 8 x 5,000 points, 42 vertices, 47 against 31 ms) */
+    /* outputs past 32 MiB per element streamed, as for one cage (streaming a batch of small elements
+     * as a whole measured slower: 8 x 5,000 points, 42 vertices, 47 against 31 ms in one process
+     * alternated with the loop of single-cage calls) */
     const int stream = (double)n * (double)(V + T) > (double)(1 << 22);
 #pragma omp parallel num_threads(nthreads)
     {
