@@ -150,9 +150,9 @@ def snap_to_vertices_batch(x: torch.Tensor, vertices: torch.Tensor, radius: torc
 
     Examples:
         >>> V = torch.tensor([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 1.0], [1.0, 1.0]]])
-        >>> x = torch.tensor([[[1e-9, 0.0]], [[1e-9, 0.0]]])
+        >>> x = torch.tensor([[[0.25**12, 0.0]], [[0.25**12, 0.0]]])  # (6e-8 from (0, 0))
         >>> snap_to_vertices_batch(x, V, torch.tensor([1e-6, 1e-6])).tolist()
-        [[[0.0, 0.0]], [[1e-09, 0.0]]]
+        [[[0.0, 0.0]], [[5.960464477539063e-08, 0.0]]]
     """
     N, D = x.shape[1:]
     if N == 0 or vertices.shape[1] == 0:
