@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from support import cube
 
 import torchcage
 from torchcage import functional as F
@@ -313,3 +314,64 @@ def test_snap_of_a_batch_equals_the_snap_of_each_element():
     assert torch.equal(moved, (d.amin(-1) <= radius[:, None]) & (d.amin(-1) > 0))
     assert torch.equal(out[moved], V[torch.nonzero(moved)[:, 0], d.argmin(-1)[moved]])
     assert snap_to_vertices_batch(x, V, torch.zeros(4, dtype=D64)) is x  # nothing snaps: no copy
+
+
+# ------------------------------------------------------------------------- with autograd
+
+
+def _loss_grads(fn, pts: torch.Tensor, V: torch.Tensor, tri: torch.Tensor, cot: torch.Tensor, wrt: str):
+    """The coordinates and the gradients of ``sum(cot * lam)`` with respect to ``wrt`` ("points",
+    "vertices" or both, "all")."""
+    x = pts.clone().requires_grad_(wrt in ("points", "all"))
+    P = V.clone().requires_grad_(wrt in ("vertices", "all"))
+    lam = fn(x, torchcage.Cage(P, tri))
+    (lam * cot).sum().backward()
+    return lam.detach(), x.grad, P.grad
+
+
+@pytest.mark.native
+@pytest.mark.parametrize("dtype", [torch.float32, D64])
+@pytest.mark.parametrize("shift", [0.0, 1e3])
+@pytest.mark.parametrize("wrt", ["all", "vertices", "points"])
+def test_batched_call_with_a_graph_equals_the_loop(dtype, shift, wrt, monkeypatch):
+    B = 3
+    V, tri = _cages(B, shift=shift)
+    per_cage = torch.stack([_points(V[b], tri, seed=b) for b in range(B)])  # on faces, edges, vertices ...
+    count = _CountCalls(monkeypatch)
+    vjp = _CountCalls(monkeypatch, "tc_mvc3d_vjp_batch")
+    for pts in (per_cage, per_cage[0]):
+        cot = torch.randn(B, pts.shape[-2], 42, generator=torch.Generator().manual_seed(2), dtype=D64).to(dtype)
+        count.batches.clear(), vjp.batches.clear()
+        lam, gx, gP = _loss_grads(F.mean_value_coordinates, pts.to(dtype), V.to(dtype), tri, cot, wrt)
+        # the values of the whole batch in one native call, and their products in one more (the
+        # points alone: element by element, the forward again and the analytic point gradients)
+        assert count.batches == [B] + ([1] * B if wrt == "points" else [])
+        assert vjp.batches == ([B] if wrt != "points" else [])
+        ref = _loss_grads(
+            lambda x, c: over_cage_batch(F.mean_value_coordinates, x, c), pts.to(dtype), V.to(dtype), tri, cot, wrt
+        )
+        _assert_same(lam, ref[0])
+        for got, want in zip((gx, gP), ref[1:], strict=True):
+            assert (got is None) == (want is None)
+            if got is not None:  # (vertex gradients summed in another order: rounding apart)
+                assert got.dtype == dtype and bool(torch.isfinite(got).all())
+                err = float((got - want).abs().max()) / max(1.0, float(want.abs().max()))
+                assert err <= 8 * torch.finfo(dtype).eps, err
+
+
+@pytest.mark.native
+@pytest.mark.parametrize("mixed", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_batched_call_with_a_graph_checks_its_derivatives(mixed):
+    ico = cube().triangulated()  # a small cage: gradcheck perturbs every coordinate
+    g = torch.Generator().manual_seed(4)
+    V = (ico.vertices[None] * (1 + 0.1 * torch.rand(2, 1, 1, generator=g, dtype=D64))).requires_grad_()
+    x = (0.4 * (torch.rand(2, 2, 3, generator=g, dtype=D64) - 0.5)).requires_grad_()
+
+    def mvc(points, rest):
+        return F.mean_value_coordinates(points, torchcage.Cage(rest, ico.triangles, validate=False))
+
+    assert torch.autograd.gradcheck(mvc, (x, V))
+    # double backward (second derivatives with respect to the points) through the batched call
+    assert torch.autograd.gradgradcheck(lambda p: mvc(p, V.detach()), (x,))
+    if mixed:  # and the mixed ones, with the rest vertices (7 s: the slow tier)
+        assert torch.autograd.gradgradcheck(mvc, (x, V))

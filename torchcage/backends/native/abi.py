@@ -118,6 +118,10 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "P:f64*[V,3] V:i64 tri:i32*[T,3] T:i64 X:f64*[n,3] n:i64 G:f64*[n,V] tol:f64 near_c:f64 cancel_c:f64 "
         "far_always:f64 nthreads:i32 GX:f64*![n,3] GP:f64*![V,3] reg:u8*![n]"
     ),
+    "tc_mvc3d_vjp_batch": _parse(
+        "B:i64 P:f64*[B,V,3] V:i64 tri:i32*[T,3] T:i64 X:f64*[B,n,3] n:i64 G:f64*[B,n,V] tol:f64*[B] near_c:f64 "
+        "cancel_c:f64 far_always:f64 nthreads:i32 GX:f64*![B,n,3] GP:f64*![B,V,3] reg:u8*![B,n]"
+    ),
     "tc_mvc3d_vjp_near": _parse(
         "P:f64*[V,3] V:i64 tri:i32*[T,3] T:i64 X:f64*[n,3] n:i64 G:f64*[n,V] tol:f64 near_c:f64 cancel_c:f64 "
         "far_always:f64 band:f64 near_d:f64 far_d:f64 margin:f64 split_pairs:i32 nthreads:i32 GX:f64*![n,3] "

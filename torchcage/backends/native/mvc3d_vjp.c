@@ -233,58 +233,86 @@ static void vjp_block(const double *P, long V, const int *tri, long T, const dou
     }
 }
 
-void tc_mvc3d_vjp(const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
-                  double tol, double near_c, double cancel_c, double far_always, int nthreads, double *GX,
-                  double *GP, unsigned char *reg) {
-    double *two_area = (double *)malloc(sizeof(double) * 2 * (size_t)(T > 0 ? T : 1)), *longest = two_area + T;
-    memset(GP, 0, sizeof(double) * 3 * (size_t)V);
-    if (two_area == NULL) { /* no point regular: the caller computes them all */
-        memset(GX, 0, sizeof(double) * 3 * (size_t)n);
-        memset(reg, 0, (size_t)n);
+/* tc_mvc3d_vjp_batch's work for B cages with one topology (P (B, V, 3), X (B, n, 3), G (B, n, V),
+ * tol (B,); outputs GX (B, n, 3), GP (B, V, 3), reg (B, n)): element by element the same blocks. */
+static void vjp_run(long B, const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
+                    const double *tol, double near_c, double cancel_c, double far_always, int nthreads, double *GX,
+                    double *GP, unsigned char *reg) {
+    memset(GP, 0, sizeof(double) * 3 * (size_t)(B * V));
+    /* per element: twice the faces' areas, their longest edges, whether one is thin */
+    double *two_area = (double *)malloc(sizeof(double) * 2 * (size_t)(B * T > 0 ? B * T : 1)), *longest = NULL;
+    int *any_thin = (int *)calloc((size_t)(B > 0 ? B : 1), sizeof(int));
+    if (two_area == NULL || any_thin == NULL) { /* no point regular: the caller computes them all */
+        memset(GX, 0, sizeof(double) * 3 * (size_t)(B * n));
+        memset(reg, 0, (size_t)(B * n));
+        free(two_area);
+        free(any_thin);
         return;
     }
-    int any_thin = 0;
-    for (long f = 0; f < T; ++f) {
-        const double *p0 = P + 3 * tri[3 * f], *p1 = P + 3 * tri[3 * f + 1], *p2 = P + 3 * tri[3 * f + 2];
-        double e1[3], e2[3], e3[3], c[3];
-        for (int k = 0; k < 3; ++k) e1[k] = p1[k] - p0[k], e2[k] = p2[k] - p0[k], e3[k] = p2[k] - p1[k];
-        cross3(e1, e2, c);
-        two_area[f] = sqrt(dot3(c, c));
-        double l = fmax(fmax(dot3(e1, e1), dot3(e2, e2)), dot3(e3, e3));
-        longest[f] = sqrt(l);
-        any_thin |= two_area[f] > 0 && l > TC_THIN_ASPECT * two_area[f];
-    }
+    longest = two_area + B * T;
+    for (long b = 0; b < B; ++b)
+        for (long f = 0; f < T; ++f) {
+            const double *Pb = P + 3 * V * b;
+            const double *p0 = Pb + 3 * tri[3 * f], *p1 = Pb + 3 * tri[3 * f + 1], *p2 = Pb + 3 * tri[3 * f + 2];
+            double e1[3], e2[3], e3[3], c[3];
+            for (int k = 0; k < 3; ++k) e1[k] = p1[k] - p0[k], e2[k] = p2[k] - p0[k], e3[k] = p2[k] - p1[k];
+            cross3(e1, e2, c);
+            two_area[T * b + f] = sqrt(dot3(c, c));
+            double l = fmax(fmax(dot3(e1, e1), dot3(e2, e2)), dot3(e3, e3));
+            longest[T * b + f] = sqrt(l);
+            any_thin[b] |= two_area[T * b + f] > 0 && l > TC_THIN_ASPECT * two_area[T * b + f];
+        }
     const long nb = (n + VL - 1) / VL;
 #pragma omp parallel num_threads(nthreads)
     {
         /* face scratch, raw weights and their cotangent, the vertex gradients lane by lane */
         size_t size = (size_t)TC_FA_SIZE * T * VL + 5 * (size_t)V * VL;
         double *ws = (double *)malloc(sizeof(double) * size), *gpl = ws ? ws + size - 3 * (size_t)V * VL : NULL;
-        if (gpl != NULL) memset(gpl, 0, sizeof(double) * 3 * (size_t)V * VL);
+        for (long b = 0; b < B; ++b) {
+            const double *Pb = P + 3 * V * b;
+            if (gpl != NULL) memset(gpl, 0, sizeof(double) * 3 * (size_t)V * VL);
 #pragma omp for schedule(dynamic, 8)
-        for (long b = 0; b < nb; ++b) {
-            const long p0 = VL * b;
-            const int cnt = n - p0 < VL ? (int)(n - p0) : VL;
-            if (ws == NULL) { /* no scratch: these points are left to the caller (not regular) */
-                for (int l = 0; l < cnt; ++l) {
-                    GX[3 * (p0 + l)] = GX[3 * (p0 + l) + 1] = GX[3 * (p0 + l) + 2] = 0.0;
-                    reg[p0 + l] = 0;
+            for (long i = 0; i < nb; ++i) {
+                const long p0 = VL * i;
+                const int cnt = n - p0 < VL ? (int)(n - p0) : VL;
+                double *gx = GX + 3 * n * b;
+                unsigned char *rg = reg + n * b;
+                if (ws == NULL) { /* no scratch: these points are left to the caller (not regular) */
+                    for (int l = 0; l < cnt; ++l) {
+                        gx[3 * (p0 + l)] = gx[3 * (p0 + l) + 1] = gx[3 * (p0 + l) + 2] = 0.0;
+                        rg[p0 + l] = 0;
+                    }
+                    continue;
                 }
-                continue;
+                vjp_block(Pb, V, tri, T, two_area + T * b, longest + T * b, any_thin[b], X + 3 * n * b, G + n * V * b,
+                          p0, cnt, tol[b], near_c, cancel_c, far_always, ws, gpl, gx, rg);
             }
-            vjp_block(P, V, tri, T, two_area, longest, any_thin, X, G, p0, cnt, tol, near_c, cancel_c, far_always, ws,
-                      gpl, GX, reg);
-        }
-        if (gpl != NULL) {
+            if (gpl != NULL) {
 #pragma omp critical
-            for (long v = 0; v < V; ++v)
-                for (int c = 0; c < 3; ++c) {
-                    double sum = 0.0;
-                    for (int l = 0; l < VL; ++l) sum += gpl[(3 * v + c) * VL + l];
-                    GP[3 * v + c] += sum;
-                }
+                for (long v = 0; v < V; ++v)
+                    for (int c = 0; c < 3; ++c) {
+                        double sum = 0.0;
+                        for (int l = 0; l < VL; ++l) sum += gpl[(3 * v + c) * VL + l];
+                        GP[3 * (V * b + v) + c] += sum;
+                    }
+            }
         }
         free(ws);
     }
     free(two_area);
+    free(any_thin);
+}
+
+void tc_mvc3d_vjp(const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
+                  double tol, double near_c, double cancel_c, double far_always, int nthreads, double *GX,
+                  double *GP, unsigned char *reg) {
+    vjp_run(1, P, V, tri, T, X, n, G, &tol, near_c, cancel_c, far_always, nthreads, GX, GP, reg);
+}
+
+/* tc_mvc3d_vjp for B cages with one topology: P (B, V, 3), X (B, n, 3), G (B, n, V), tol (B,);
+ * GX (B, n, 3), GP (B, V, 3), reg (B, n). Element by element the products of tc_mvc3d_vjp. */
+void tc_mvc3d_vjp_batch(long B, const double *P, long V, const int *tri, long T, const double *X, long n,
+                        const double *G, const double *tol, double near_c, double cancel_c, double far_always,
+                        int nthreads, double *GX, double *GP, unsigned char *reg) {
+    vjp_run(B, P, V, tri, T, X, n, G, tol, near_c, cancel_c, far_always, nthreads, GX, GP, reg);
 }

@@ -10,15 +10,17 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
+from torch._C._functorch import is_functorch_wrapped_tensor
 
-from torchcage._core.batch import over_cage_batch
-from torchcage._core.centre import centred
+from torchcage._core.batch import broadcast_batch, check_finite_batch, over_cage_batch
+from torchcage._core.centre import centre_of, centred
 from torchcage._core.common import as_inputs, check_points, far_unity, records_graph, result_dtype
 from torchcage._core.compiled import CompiledOp
+from torchcage.backends import select
 from torchcage.cage import Cage
-from torchcage.families.mean_value.dispatch import coordinates_batch, coordinates_flat
+from torchcage.families.mean_value.dispatch import MVC, coordinates_batch, coordinates_flat
 from torchcage.families.mean_value.kernel3d import triangle_cage_data
-from torchcage.families.mean_value.ops import mean_value_function
+from torchcage.families.mean_value.ops import MeanValueBatchFunction, mean_value_function
 
 __all__ = ["mean_value_coordinates"]
 
@@ -104,11 +106,15 @@ def mean_value_coordinates(
         return lam
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
-        # One native call / Triton launch for the whole batch (no autograd graph, a triangle cage) ...
-        lam = coordinates_batch(points, cage, chunk_size, dtype, progress, backend)
+        # One native call / Triton launch for the whole batch (a triangle cage; with an autograd
+        # graph, the native kernels forward and backward) ...
+        if records_graph(points, cage.vertices):
+            lam = _batch_with_graph(points, cage, chunk_size, dtype, progress, backend)
+        else:
+            lam = coordinates_batch(points, cage, chunk_size, dtype, progress, backend)
         if lam is not None:
             return lam
-        # ... elsewhere (the torch kernel, an autograd graph, 2D) one call per element for
+        # ... elsewhere (the torch kernel, torch.func transforms, 2D) one call per element for
         # now (_batch.over_cage_batch): those paths have no batched kernel yet.
         return over_cage_batch(
             mean_value_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend
@@ -125,3 +131,36 @@ def mean_value_coordinates(
         lam = coordinates_flat(x, rel, chunk_size, progress, backend)
     (lam,) = far_unity(lam, x, rel.vertices.to(lam.dtype))
     return lam.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
+
+
+def _batch_with_graph(
+    points: torch.Tensor,
+    cage: Cage,
+    chunk_size: int | None,
+    dtype: torch.dtype | None,
+    progress: bool | Callable[[int, int], None],
+    backend: str,
+) -> torch.Tensor | None:
+    """Mean value coordinates ``(*B', N, V)`` of a batch of 3D triangle cages with an autograd
+    graph (points or rest vertices that require grad) through :class:`MeanValueBatchFunction`: one
+    native call for the values of the whole batch and one for the first-order backward. ``None``
+    where it does not serve (another backend or device, a torch.func transform, 2D or quads, no
+    native build): the caller then loops over the cages. Element by element the numbers of the
+    single-cage call: the same centring, kernels and far-field normalisation."""
+    if cage.dim != 3 or cage.has_quads or backend not in ("auto", "native"):
+        return None
+    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
+        return None
+    pts, verts, batch = broadcast_batch(points, cage)
+    if not pts.is_floating_point() or pts.device.type != "cpu" or verts.device.type != "cpu":
+        return None
+    compute, out_dtype = result_dtype(pts, cage, dtype, backend)
+    if compute != torch.float64 or select(MVC, backend, pts.new_empty((0, 3), dtype=compute), graph=False).lib is None:
+        return None
+    check_finite_batch(pts, batch)
+    # each cage and its points relative to the cage's centre (a constant: module _core.centre)
+    c = centre_of(verts, compute)[:, None, :]  # (B, 1, 3)
+    x, v = pts.to(compute) - c, verts.to(compute) - c
+    lam = MeanValueBatchFunction.apply(x, v, cage.triangles, chunk_size, progress, batch)
+    (lam,) = far_unity(lam, x, v)
+    return lam.to(out_dtype).reshape(*batch, x.shape[1], cage.num_vertices)

@@ -32,7 +32,7 @@ from torchcage.families.mean_value import native3d as _mvc3d_native
 from torchcage.families.mean_value.kernel2d import mvc2d_chunk, polygon_data
 from torchcage.families.mean_value.kernel3d import mvc3d_chunk, triangle_cage_data, triangle_data
 
-__all__ = ["MVC", "coordinates_batch", "coordinates_flat"]
+__all__ = ["MVC", "coordinates_batch", "coordinates_flat", "native_batch"]
 
 #: The kernels of mean value coordinates (:func:`torchcage.backends.select` chooses).
 MVC = Op("mean value coordinates", native_dims=(2, 3), triton=True, triton_dims=(2, 3))
@@ -164,9 +164,33 @@ def coordinates_batch(
     if lib is None:
         return None
     B, N, V = v.shape[0], x.shape[1], v.shape[1]
-    tables = _mvc3d_native.batch_tables(v, cage.triangles, on_cage_tolerances(v))
-    # The kernel needs no temporaries beyond its output: chunks only pace the progress bar.
-    size = chunk_size if chunk_size is not None else default_chunk(B * cage.triangles.shape[0], 1 << 23)
+    out = native_batch(x, v, cage.triangles, lib, chunk_size, progress, batch)
+    if may_be_far(v, x):  # (else far_unity leaves every row as it is: a pass over the points spared)
+        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
+    return out.to(out_dtype).reshape(*batch, N, V)
+
+
+def native_batch(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    tri: torch.Tensor,
+    lib: object,
+    chunk_size: int | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+    batch: torch.Size | None = None,
+) -> torch.Tensor:
+    """The native kernel's coordinates ``(B, N, V)`` (before the far field's normalisation) of
+    centred float64 CPU points ``x`` ``(B or 1, N, 3)`` for the centred cages ``v`` ``(B, V, 3)``
+    with triangles ``tri``: one call per chunk of points for every cage at once (chunks only pace
+    the progress bar), the per-cage tables built by one set of tensor operations.
+
+    Raises:
+        PointsError: points where the coordinates are undefined, naming the batch element (of
+            ``batch``, the caller's batch shape).
+    """
+    B, N, V = v.shape[0], x.shape[1], v.shape[1]
+    tables = _mvc3d_native.batch_tables(v, tri, on_cage_tolerances(v))
+    size = chunk_size if chunk_size is not None else default_chunk(B * tri.shape[0], 1 << 23)
     out = empty_output(B, N, V, dtype=torch.float64)
     flags = torch.empty((B, N), dtype=torch.uint8)
     for sl in chunks(N, size, progress, desc="mean value coordinates"):
@@ -177,10 +201,8 @@ def coordinates_batch(
             flags[:, sl] = _mvc3d_native.native_chunk(x[:, sl], tables, lib, part)
             out[:, sl] = part
     bad = flags == 2  # (B, N): rows whose sum is not finite (the kernel checks them, sparing a pass here)
-    _refuse_undefined(bad, batch)
-    if may_be_far(v, x):  # (else far_unity leaves every row as it is: a pass over the points spared)
-        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
-    return out.to(out_dtype).reshape(*batch, N, V)
+    _refuse_undefined(bad, torch.Size([B]) if batch is None else batch)
+    return out
 
 
 def _triton_batch(

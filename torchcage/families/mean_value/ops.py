@@ -24,18 +24,24 @@ import torch
 from torch import Tensor
 from torch._C._functorch import is_functorch_wrapped_tensor
 
-from torchcage._core.common import check_finite, on_cage_tolerance, result_dtype
+from torchcage._core.common import check_finite, on_cage_tolerance, on_cage_tolerances, result_dtype
 from torchcage.backends import native as _native
 from torchcage.backends import triton as _triton
 from torchcage.cage import Cage
 from torchcage.families.mean_value.derivatives import derivatives_flat
-from torchcage.families.mean_value.dispatch import coordinates_flat
+from torchcage.families.mean_value.dispatch import coordinates_flat, native_batch
 from torchcage.families.mean_value.edge_line import edge_line_offsets as _edge_line_offsets
 from torchcage.families.mean_value.kernel3d import _stable_face_weights
 from torchcage.families.mean_value.vjp3d import direct_vjp
-from torchcage.families.mean_value.vjp3d_native import native_vjp, native_vjp_near
+from torchcage.families.mean_value.vjp3d_native import native_vjp, native_vjp_batch, native_vjp_near
 
-__all__ = ["MeanValueFunction", "MeanValueGradFunction", "MeanValueHessFunction", "mean_value_function"]
+__all__ = [
+    "MeanValueBatchFunction",
+    "MeanValueFunction",
+    "MeanValueGradFunction",
+    "MeanValueHessFunction",
+    "mean_value_function",
+]
 
 
 _cage = Cage._from_faces  # (vertices, faces of a validated cage) -> Cage
@@ -222,41 +228,64 @@ def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> 
     lib = _native.library() if x.device.type == "cpu" and dt == torch.float64 else None
     if lib is not None:  # one pass over all points: the kernel needs no temporaries beyond its outputs
         gx, gP, reg = native_vjp(lib, x64, P64, faces, g64, tol)
-        idx = torch.nonzero(~reg).flatten()
-        if idx.numel():  # near a support plane: the careful form on the pairs that need it only
-            gxs, gPs, split = _split_vjp(lib, x64.index_select(0, idx), P64, faces, g64.index_select(0, idx), tol)
-            gP += gPs
-            gx[idx[split]] = gxs[split]
-            idx = idx[~split]
-    else:
-        size = max(64, (1 << 16) // max(1, faces.shape[0]))
-        irregular = []
-        for s in range(0, x.shape[0], size):
-            gxc, gPc, reg = direct_vjp(x64[s : s + size], P64, faces, g64[s : s + size], tol)
-            gx[s : s + size] = gxc
-            gP += gPc
-            irregular.append(torch.nonzero(~reg).flatten() + s)
-        idx = torch.cat(irregular) if irregular else torch.zeros(0, dtype=torch.long, device=x.device)
+        _irregular_vjp(lib, x, P, faces, g, torch.nonzero(~reg).flatten(), tol, gx, gP, need_x)
+        return (gx.to(x.dtype) if need_x else None), gP.to(P.dtype)
+    size = max(64, (1 << 16) // max(1, faces.shape[0]))
+    irregular = []
+    for s in range(0, x.shape[0], size):
+        gxc, gPc, reg = direct_vjp(x64[s : s + size], P64, faces, g64[s : s + size], tol)
+        gx[s : s + size] = gxc
+        gP += gPc
+        irregular.append(torch.nonzero(~reg).flatten() + s)
+    idx = torch.cat(irregular) if irregular else torch.zeros(0, dtype=torch.long, device=x.device)
     if idx.numel():
         xi, gi = x.index_select(0, idx), g.index_select(0, idx)
-        if lib is not None:
-            gxi, lam_i, inside = _on_face_vjp(xi, P, faces, gi)
-            if bool(inside.any()):
-                # On a face (inside it) or at a vertex the coordinates are the interpolant's, and
-                # d lam_v / d p_j = -lam_j d lam_v / dx (barycentric coordinates are affine
-                # invariant; zero at a vertex): no autograd of the torch kernel for those points.
-                gP -= lam_i[inside].T.to(dt) @ gxi[inside].to(dt)
-                rest = torch.nonzero(~inside).flatten()
-                xi, gi = xi.index_select(0, rest), gi.index_select(0, rest)
-            if xi.shape[0]:
-                gP += _vertex_vjp(xi, P, faces, gi).to(dt)
-            if need_x:
-                gx[idx] = gxi.to(dt)
-        else:
-            gP += _vertex_vjp(xi, P, faces, gi).to(dt)
-            if need_x:
-                gx[idx] = _point_grad(xi, P, faces, gi).to(dt)
+        gP += _vertex_vjp(xi, P, faces, gi).to(dt)
+        if need_x:
+            gx[idx] = _point_grad(xi, P, faces, gi).to(dt)
     return (gx.to(x.dtype) if need_x else None), gP.to(P.dtype)
+
+
+def _irregular_vjp(
+    lib: object,
+    x: Tensor,
+    P: Tensor,
+    faces: Tensor,
+    g: Tensor,
+    idx: Tensor,
+    tol: float,
+    gx: Tensor,
+    gP: Tensor,
+    need_x: bool,
+) -> None:
+    """:func:`_joint_vjp`'s products for the points ``idx`` the native direct form left (not
+    regular), added into ``gx`` ``(N, 3)`` and ``gP`` ``(V, 3)`` (float64): those near a support
+    plane split per face, those on a face or at a vertex in closed form, the others by autograd of
+    the torch kernel."""
+    if idx.numel() == 0:
+        return
+    dt = gP.dtype
+    x64, P64, g64 = x.detach().to(dt), P.detach().to(dt), g.to(dt)
+    # near a support plane: the careful form on the pairs that need it only
+    gxs, gPs, split = _split_vjp(lib, x64.index_select(0, idx), P64, faces, g64.index_select(0, idx), tol)
+    gP += gPs
+    gx[idx[split]] = gxs[split]
+    idx = idx[~split]
+    if idx.numel() == 0:
+        return
+    xi, gi = x.index_select(0, idx), g.index_select(0, idx)
+    gxi, lam_i, inside = _on_face_vjp(xi, P, faces, gi)
+    if bool(inside.any()):
+        # On a face (inside it) or at a vertex the coordinates are the interpolant's, and
+        # d lam_v / d p_j = -lam_j d lam_v / dx (barycentric coordinates are affine
+        # invariant; zero at a vertex): no autograd of the torch kernel for those points.
+        gP -= lam_i[inside].T.to(dt) @ gxi[inside].to(dt)
+        rest = torch.nonzero(~inside).flatten()
+        xi, gi = xi.index_select(0, rest), gi.index_select(0, rest)
+    if xi.shape[0]:
+        gP += _vertex_vjp(xi, P, faces, gi).to(dt)
+    if need_x:
+        gx[idx] = gxi.to(dt)
 
 
 def _split_vjp(
@@ -498,6 +527,47 @@ class MeanValueFunction(torch.autograd.Function):
         x, P = ctx.saved_tensors
         _no_vertex_tangent(dP)
         return torch.einsum("nvc,nc->nv", MeanValueGradFunction.apply(x, P, ctx.faces), dx)
+
+
+class MeanValueBatchFunction(torch.autograd.Function):
+    """``(points (B, N, 3), vertices (B, V, 3), faces, chunk_size, progress, batch) -> lam (B, N, V)``
+    for a batch of 3D triangle cages with one topology, centred float64 CPU tensors, the native
+    kernel: the values by one native call for the whole batch (:func:`.dispatch.native_batch`), the
+    first-order products with respect to the points and the vertices by one native VJP call
+    (:func:`native_vjp_batch`), the points it leaves (not regular) by :func:`_joint_vjp`'s forms
+    element by element. Element by element the numbers of :class:`MeanValueFunction`; where the
+    rest cage needs no gradient, or on double backward, its backward runs element by element."""
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size, progress, batch) -> Tensor:
+        lib = _native.library()
+        return native_batch(points.detach(), vertices.detach(), faces, lib, chunk_size, progress, batch)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(inputs[0], inputs[1])
+        ctx.faces = inputs[2]
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        x, P = ctx.saved_tensors
+        need_x, need_P = ctx.needs_input_grad[:2]
+        faces = ctx.faces
+        if not need_P or torch.is_grad_enabled():  # the per-element Functions (analytic point gradients, Hessians)
+            with torch.enable_grad():
+                lam = torch.stack([MeanValueFunction.apply(x[b], P[b], faces, 0, "auto") for b in range(P.shape[0])])
+            wrt = [t for t, need in ((x, need_x), (P, need_P)) if need]
+            grads = list(torch.autograd.grad(lam, wrt, g, create_graph=torch.is_grad_enabled()))
+            gx = grads.pop(0) if need_x else None
+            return gx, (grads.pop(0) if need_P else None), None, None, None, None
+        g0 = g - g.mean(dim=-1, keepdim=True)  # (as MeanValueFunction.backward)
+        lib = _native.library()
+        tol = on_cage_tolerances(P)  # (B,): element by element on_cage_tolerance
+        gx, gP, reg = native_vjp_batch(lib, x.detach(), P.detach(), faces, g0, tol)
+        for b in torch.nonzero((~reg).any(dim=1)).flatten().tolist():
+            idx = torch.nonzero(~reg[b]).flatten()
+            _irregular_vjp(lib, x[b], P[b], faces, g0[b], idx, float(tol[b]), gx[b], gP[b], need_x)
+        return (gx if need_x else None), gP, None, None, None, None
 
 
 def mean_value_function(points: Tensor, cage: Cage, chunk_size: int | None = None, backend: str = "auto") -> Tensor:

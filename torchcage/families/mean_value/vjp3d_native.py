@@ -12,7 +12,7 @@ from torchcage.families.mean_value.derivatives_native import DERIVATIVE_FAR_FIEL
 from torchcage.families.mean_value.edge_line import EDGE_LINE_BAND
 from torchcage.families.mean_value.kernel3d import CANCELLATION_RATIO, FAR_ALWAYS_RATIO, SPLIT_FORM_RATIO
 
-__all__ = ["native_vjp", "native_vjp_near"]
+__all__ = ["native_vjp", "native_vjp_batch", "native_vjp_near"]
 
 
 def _shared_arguments(
@@ -51,6 +51,22 @@ def native_vjp(
         GP=gP,
         reg=reg,
     )
+    return gx, gP, reg.bool()
+
+
+def native_vjp_batch(
+    lib: ctypes.CDLL, x: torch.Tensor, vertices: torch.Tensor, tri: torch.Tensor, gbar: torch.Tensor, tol: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`native_vjp` of a batch of cages with one topology in one call: float64 CPU ``x``
+    ``(B, n, 3)``, ``vertices`` ``(B, V, 3)``, ``gbar`` ``(B, n, V)``, ``tol`` ``(B,)`` ->
+    ``(gx (B, n, 3), gP (B, V, 3), regular (B, n))``, element by element :func:`native_vjp`'s."""
+    B, n, V = vertices.shape[0], x.shape[1], vertices.shape[1]
+    gx = torch.empty((B, n, 3), dtype=torch.float64)
+    gP = torch.empty((B, V, 3), dtype=torch.float64)
+    reg = torch.empty((B, n), dtype=torch.uint8)
+    args = _shared_arguments(x.reshape(-1, 3), vertices.reshape(-1, 3), tri, gbar.reshape(-1, V), 0.0)
+    args.update(B=B, P=vertices.contiguous(), V=V, X=x.contiguous(), n=n, G=gbar.contiguous(), tol=tol.contiguous())
+    _native.call(lib, "tc_mvc3d_vjp_batch", **args, GX=gx, GP=gP, reg=reg)
     return gx, gP, reg.bool()
 
 
