@@ -13,7 +13,7 @@ import torchcage
 from torchcage.backends import native as _native
 from torchcage.families.mean_value.ops import _torch_coordinates
 from torchcage.families.mean_value.vjp3d import direct_vjp
-from torchcage.families.mean_value.vjp3d_native import native_vjp
+from torchcage.families.mean_value.vjp3d_native import native_vjp, native_vjp_batch
 from torchcage.testing import icosphere, twisted_bar
 
 D64 = torch.float64
@@ -97,3 +97,20 @@ def test_the_product_is_autograd_of_the_coordinates(lib):
     rx, rP = torch.autograd.grad((lam * cot).sum(), [xr, Vr])
     assert float((gx - rx).abs().max()) <= 1e-10 * float(rx.abs().max())
     assert float((gP - rP).abs().max()) <= 1e-10 * float(rP.abs().max())
+
+
+@pytest.mark.native
+def test_a_batch_of_cages_in_one_call_equals_each_cage_alone(lib):
+    base = icosphere()
+    g = torch.Generator().manual_seed(8)
+    V = base.vertices.to(D64)[None] * (1 + 0.2 * torch.rand(3, 1, 1, generator=g, dtype=D64))
+    V = V + 0.02 * torch.randn(V.shape, generator=g, dtype=D64)
+    tri = base.triangles
+    x = torch.stack([_mixed_points(torchcage.Cage(V[b], tri), seed=b) for b in range(3)])  # (mixed lanes)
+    cot = torch.randn(3, x.shape[1], 42, generator=g, dtype=D64)
+    tol = torch.tensor([1e-14 * torchcage.Cage(V[b], tri).scale for b in range(3)], dtype=D64)
+    gx, gP, reg = native_vjp_batch(lib, x, V, tri, cot, tol)
+    for b in range(3):
+        ex, eP, er = native_vjp(lib, x[b], V[b], tri, cot[b], float(tol[b]))
+        assert torch.equal(gx[b], ex) and torch.equal(reg[b], er) and 0 < int(er.sum()) < x.shape[1]
+        assert float((gP[b] - eP).abs().max()) <= 1e-13 * float(eP.abs().max())

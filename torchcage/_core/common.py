@@ -82,6 +82,10 @@ def unit_sum(phi: torch.Tensor, x: torch.Tensor, vertices: torch.Tensor, band: f
 VERTEX_SNAP = 64.0
 
 
+#: The snaps' exact test takes (rows, vertices) squared distances at most this many at a time.
+SNAP_ENTRIES = 1 << 22
+
+
 def snap_to_vertices(x: torch.Tensor, vertices: torch.Tensor, radius: float) -> torch.Tensor:
     """``x`` ``(N, D)`` with every point within ``radius`` of a vertex ``(V, D)`` replaced by that
     vertex (a new tensor; differentiable: snapped rows follow the vertex, others the point).
@@ -122,7 +126,7 @@ def snap_to_vertices(x: torch.Tensor, vertices: torch.Tensor, radius: float) -> 
             if rows.numel() == 0:
                 return x
         assert rows is not None
-        step = max(1, (1 << 22) // max(1, V.shape[0]))
+        step = max(1, SNAP_ENTRIES // max(1, V.shape[0]))
         for s in range(0, rows.numel(), step):
             rs = rows[s : s + step]
             xs = xd[rs]
@@ -160,39 +164,43 @@ def snap_to_vertices_batch(x: torch.Tensor, vertices: torch.Tensor, radius: torc
     Vd, xd = vertices.detach().to(x.dtype), x.detach()
     r = radius.to(x.dtype)
     with torch.no_grad():
-        # The screen of snap_to_vertices, axis by axis, each axis over the (element, row) pairs the
-        # previous one kept (all, then few).
+        # The screen of snap_to_vertices, axis by axis: the first axis over every row of every
+        # element (one batched search), the others over the (element, row) pairs it kept, in chunks
+        # that bound the (pairs, V) temporaries as snap_to_vertices does.
         reach = r * (1 + max(1e-12, 4 * torch.finfo(x.dtype).eps))  # (B,)
         coords = Vd.transpose(1, 2).sort(dim=-1).values  # (B, D, V): each element's coordinates per axis, sorted
-        b = n = None
-        for k in range(D):
-            if b is None:  # (every row of every element: the batched search)
-                coord, xk, rk = coords[:, k].contiguous(), xd[..., k].contiguous(), reach[:, None]
-            else:
-                coord, xk, rk = coords[b, k], xd[b, n, k][:, None], reach[b][:, None]
-            if coord.shape[1] > 1:
-                i = torch.searchsorted(coord, xk).clamp_(1, coord.shape[1] - 1)
-                gap = torch.minimum((xk - coord.gather(1, i - 1)).abs(), (xk - coord.gather(1, i)).abs())
-            else:
-                gap = (xk - coord).abs()
-            keep = gap <= rk
-            if b is None:
-                b, n = torch.nonzero(keep, as_tuple=True)
-            else:
-                b, n = b[keep[:, 0]], n[keep[:, 0]]
+
+        def screen(coord: torch.Tensor, xk: torch.Tensor, rk: torch.Tensor) -> torch.Tensor:
+            """Whether a vertex coordinate lies within ``rk`` of ``xk`` ``(m, k)`` in its row of the
+            sorted ``coord`` ``(m, V)``."""
+            if coord.shape[1] == 1:
+                return (xk - coord).abs() <= rk
+            i = torch.searchsorted(coord, xk).clamp_(1, coord.shape[1] - 1)
+            return torch.minimum((xk - coord.gather(1, i - 1)).abs(), (xk - coord.gather(1, i)).abs()) <= rk
+
+        first = screen(coords[:, 0].contiguous(), xd[..., 0].contiguous(), reach[:, None])  # (B, N)
+        b0, n0 = torch.nonzero(first, as_tuple=True)
+        step = max(1, SNAP_ENTRIES // max(1, Vd.shape[1]))
+        hits: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        for s in range(0, b0.numel(), step):
+            b, n = b0[s : s + step], n0[s : s + step]
+            for k in range(1, D):
+                keep = screen(coords[b, k], xd[b, n, k][:, None], reach[b][:, None])[:, 0]
+                b, n = b[keep], n[keep]
             if b.numel() == 0:
-                return x
-        assert b is not None and n is not None
-        # (the test of snap_to_vertices: the same sums of squares, the same comparison)
-        xs, vs = xd[b, n], Vd[b]
-        d2 = (xs[:, None, 0] - vs[..., 0]).square()
-        for k in range(1, D):
-            d2 = d2 + (xs[:, None, k] - vs[..., k]).square()
-        rb = r[b]
-        ns = d2.amin(dim=1) <= rb * rb
-        if not bool(ns.any()):
+                continue
+            # (the test of snap_to_vertices: the same sums of squares, the same comparison)
+            xs, vs = xd[b, n], Vd[b]
+            d2 = (xs[:, None, 0] - vs[..., 0]).square()
+            for k in range(1, D):
+                d2 = d2 + (xs[:, None, k] - vs[..., k]).square()
+            rb = r[b]
+            ns = d2.amin(dim=1) <= rb * rb
+            if bool(ns.any()):
+                hits.append((b[ns], n[ns], d2[ns].argmin(dim=1)))
+        if not hits:
             return x
-        b, n, best = b[ns], n[ns], d2[ns].argmin(dim=1)
+        b, n, best = (torch.cat(t) for t in zip(*hits, strict=True))
         out = x.clone()
         out[b, n] = Vd[b, best]
         return out

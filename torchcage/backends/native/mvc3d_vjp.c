@@ -271,7 +271,8 @@ static void vjp_run(long B, const double *P, long V, const int *tri, long T, con
         for (long b = 0; b < B; ++b) {
             const double *Pb = P + 3 * V * b;
             if (gpl != NULL) memset(gpl, 0, sizeof(double) * 3 * (size_t)V * VL);
-#pragma omp for schedule(dynamic, 8)
+            /* (nowait: each thread adds its own lanes' sums below, whatever the others are doing) */
+#pragma omp for schedule(dynamic, 8) nowait
             for (long i = 0; i < nb; ++i) {
                 const long p0 = VL * i;
                 const int cnt = n - p0 < VL ? (int)(n - p0) : VL;

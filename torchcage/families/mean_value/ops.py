@@ -518,15 +518,25 @@ class MeanValueFunction(torch.autograd.Function):
         if need_P and x.shape[-1] == 3 and not torch.is_grad_enabled():
             # first order (no double backward) with respect to the rest cage: one fused pass
             return *_joint_vjp(x, P, ctx.faces, g0, need_x), None, None, None
-        gx = _point_grad(x, P, ctx.faces, g if _analytic(x) else g0) if need_x else None
-        gP = _vertex_vjp(x, P, ctx.faces, g0) if need_P else None
-        return gx, gP, None, None, None
+        return *_separate_vjp(x, P, ctx.faces, g, g0, need_x, need_P), None, None, None
 
     @staticmethod
     def jvp(ctx, dx: Tensor | None, dP: Tensor | None, *_: None) -> Tensor:
         x, P = ctx.saved_tensors
         _no_vertex_tangent(dP)
         return torch.einsum("nvc,nc->nv", MeanValueGradFunction.apply(x, P, ctx.faces), dx)
+
+
+def _separate_vjp(
+    x: Tensor, P: Tensor, faces: Tensor, g: Tensor, g0: Tensor, need_x: bool, need_P: bool
+) -> tuple[Tensor | None, Tensor | None]:
+    """:class:`MeanValueFunction`'s backward where it is not one fused pass (the points alone,
+    double backward, 2D): the analytic point gradients (``g``, or ``g0 = g`` less its mean over the
+    vertices where autograd of the torch kernel stands in) and the vertex products, each
+    differentiable when the caller records a graph."""
+    gx = _point_grad(x, P, faces, g if _analytic(x) else g0) if need_x else None
+    gP = _vertex_vjp(x, P, faces, g0) if need_P else None
+    return gx, gP
 
 
 class MeanValueBatchFunction(torch.autograd.Function):
@@ -536,31 +546,26 @@ class MeanValueBatchFunction(torch.autograd.Function):
     first-order products with respect to the points and the vertices by one native VJP call
     (:func:`native_vjp_batch`), the points it leaves (not regular) by :func:`_joint_vjp`'s forms
     element by element. Element by element the numbers of :class:`MeanValueFunction`; where the
-    rest cage needs no gradient, or on double backward, its backward runs element by element."""
+    rest cage needs no gradient, on double backward and in forward mode (points' tangents), its
+    derivatives are taken element by element, by the same formulas."""
 
     @staticmethod
     def forward(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size, progress, batch) -> Tensor:
         lib = _native.library()
         return native_batch(points.detach(), vertices.detach(), faces, lib, chunk_size, progress, batch)
 
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        ctx.save_for_backward(inputs[0], inputs[1])
-        ctx.faces = inputs[2]
+    setup_context = staticmethod(_save_points_and_vertices)
 
     @staticmethod
     def backward(ctx, g: Tensor):
         x, P = ctx.saved_tensors
         need_x, need_P = ctx.needs_input_grad[:2]
         faces = ctx.faces
-        if not need_P or torch.is_grad_enabled():  # the per-element Functions (analytic point gradients, Hessians)
-            with torch.enable_grad():
-                lam = torch.stack([MeanValueFunction.apply(x[b], P[b], faces, 0, "auto") for b in range(P.shape[0])])
-            wrt = [t for t, need in ((x, need_x), (P, need_P)) if need]
-            grads = list(torch.autograd.grad(lam, wrt, g, create_graph=torch.is_grad_enabled()))
-            gx = grads.pop(0) if need_x else None
-            return gx, (grads.pop(0) if need_P else None), None, None, None, None
         g0 = g - g.mean(dim=-1, keepdim=True)  # (as MeanValueFunction.backward)
+        if not need_P or torch.is_grad_enabled():  # element by element, as MeanValueFunction.backward
+            parts = [_separate_vjp(x[b], P[b], faces, g[b], g0[b], need_x, need_P) for b in range(P.shape[0])]
+            gx, gP = (torch.stack(t) if t[0] is not None else None for t in zip(*parts, strict=True))
+            return gx, gP, None, None, None, None
         lib = _native.library()
         tol = on_cage_tolerances(P)  # (B,): element by element on_cage_tolerance
         gx, gP, reg = native_vjp_batch(lib, x.detach(), P.detach(), faces, g0, tol)
@@ -568,6 +573,20 @@ class MeanValueBatchFunction(torch.autograd.Function):
             idx = torch.nonzero(~reg[b]).flatten()
             _irregular_vjp(lib, x[b], P[b], faces, g0[b], idx, float(tol[b]), gx[b], gP[b], need_x)
         return (gx if need_x else None), gP, None, None, None, None
+
+    @staticmethod
+    def jvp(ctx, dx: Tensor | None, dP: Tensor | None, *_: None) -> Tensor:
+        x, P = ctx.saved_tensors
+        _no_vertex_tangent(dP)
+        if dx is None:
+            return torch.zeros(P.shape[0], x.shape[1], P.shape[1], dtype=x.dtype, device=x.device)
+        # (element by element, as MeanValueFunction.jvp)
+        return torch.stack(
+            [
+                torch.einsum("nvc,nc->nv", MeanValueGradFunction.apply(x[b], P[b], ctx.faces), dx[b])
+                for b in range(P.shape[0])
+            ]
+        )
 
 
 def mean_value_function(points: Tensor, cage: Cage, chunk_size: int | None = None, backend: str = "auto") -> Tensor:

@@ -28,10 +28,12 @@ def _shared_arguments(
         "n": x.shape[0],
         "G": gbar.contiguous(),
         "tol": tol,
-        "near_c": SPLIT_FORM_RATIO,
-        "cancel_c": CANCELLATION_RATIO,
-        "far_always": FAR_ALWAYS_RATIO,
+        **_THRESHOLDS,
     }
+
+
+#: The direct form's thresholds (the regular-point test), by their ABI names.
+_THRESHOLDS = {"near_c": SPLIT_FORM_RATIO, "cancel_c": CANCELLATION_RATIO, "far_always": FAR_ALWAYS_RATIO}
 
 
 def native_vjp(
@@ -64,9 +66,23 @@ def native_vjp_batch(
     gx = torch.empty((B, n, 3), dtype=torch.float64)
     gP = torch.empty((B, V, 3), dtype=torch.float64)
     reg = torch.empty((B, n), dtype=torch.uint8)
-    args = _shared_arguments(x.reshape(-1, 3), vertices.reshape(-1, 3), tri, gbar.reshape(-1, V), 0.0)
-    args.update(B=B, P=vertices.contiguous(), V=V, X=x.contiguous(), n=n, G=gbar.contiguous(), tol=tol.contiguous())
-    _native.call(lib, "tc_mvc3d_vjp_batch", **args, GX=gx, GP=gP, reg=reg)
+    _native.call(
+        lib,
+        "tc_mvc3d_vjp_batch",
+        B=B,
+        P=vertices.contiguous(),
+        V=V,
+        tri=tri.to(torch.int32).contiguous(),
+        T=tri.shape[0],
+        X=x.contiguous(),
+        n=n,
+        G=gbar.contiguous(),
+        tol=tol.contiguous(),
+        **_THRESHOLDS,
+        GX=gx,
+        GP=gP,
+        reg=reg,
+    )
     return gx, gP, reg.bool()
 
 
