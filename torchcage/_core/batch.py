@@ -89,6 +89,7 @@ def check_finite_batch(pts: torch.Tensor, batch: torch.Size) -> None:
     Raises:
         PointsError: points that are not finite.
     """
+    pts = pts.detach()  # (values only: no graph, and no forward-mode tangent, which aminmax lacks in torch 2.5)
     if pts.shape[-2] and not bool(torch.isfinite(torch.stack(torch.aminmax(pts, dim=-2))).all()):
         bad = ~torch.isfinite(pts).all(dim=-1)  # (1 or B, N)
         b = int(torch.nonzero(bad.any(dim=1))[0])
