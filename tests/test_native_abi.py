@@ -42,7 +42,7 @@ def test_the_prototype_reader_sees_every_entry_point() -> None:
     # The entry points the library loads are exactly those abi.py declares; the others are shared
     # helpers between C files (they take structs or single points, never torch's arrays).
     basic = {"double", "long", "int", "unsigned char", "const double *", "double *", "const int *", "int *",
-             "unsigned char *"}  # fmt: skip
+             "const unsigned char *", "unsigned char *"}  # fmt: skip
     protos = _c_prototypes()
     helpers = {name for name, params in protos.items() if any(t not in basic for t, _ in params)}
     assert helpers, "the reader should see the struct-taking helpers too"

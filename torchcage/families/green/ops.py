@@ -20,10 +20,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcage._core.common import result_dtype
+from torchcage._core.common import on_cage_tolerance, result_dtype
+from torchcage.backends import select
 from torchcage.cage import Cage
 from torchcage.families.green.derivatives_flat import bare_derivatives
-from torchcage.families.green.dispatch import green_flat
+from torchcage.families.green.dispatch import GC, green_flat
+from torchcage.families.green.vjp3d_native import native_vjp
 
 __all__ = ["GreenFunction", "GreenGradFunction", "GreenHessFunction", "green_function"]
 
@@ -100,7 +102,7 @@ class GreenFunction(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
         ctx.save_for_backward(inputs[0], inputs[1])
-        ctx.faces = inputs[2]
+        ctx.faces, ctx.backend = inputs[2], inputs[4]
 
     @staticmethod
     def backward(ctx, gphi: Tensor, gpsi: Tensor):
@@ -115,29 +117,75 @@ class GreenFunction(torch.autograd.Function):
             if gpsi is not None:
                 gx = gx + torch.einsum("nt,ntc->nc", gpsi.to(d_psi.dtype), d_psi)
             return (gx if torch.is_tensor(gx) else torch.zeros_like(x)), None, None, None, None
-        create = torch.is_grad_enabled()
-        size = max(64, _PAIRS // max(1, ctx.faces.shape[0]))
-        gx_parts, gP = [], torch.zeros_like(P) if need_P else None
         gphi = gphi if gphi is not None else torch.zeros(x.shape[0], P.shape[0], dtype=x.dtype, device=x.device)
         gpsi = gpsi if gpsi is not None else torch.zeros(x.shape[0], ctx.faces.shape[0], dtype=x.dtype, device=x.device)
-        for s in range(0, x.shape[0], size):
-            sl = slice(s, s + size)
-            with torch.enable_grad():
-                xc = x[sl] if create and x.requires_grad else x[sl].detach().requires_grad_(need_x)
-                Pc = P if create and P.requires_grad else P.detach().requires_grad_(need_P)
-                cage = _cage(Pc, ctx.faces)
-                compute, _ = result_dtype(xc, cage, None)
-                phi, psi = green_flat(xc.to(compute), cage.to(compute), None, False, "torch")
-                wrt = [t for t, need in ((xc, need_x), (Pc, need_P)) if need]
-                cot = (gphi[sl].to(compute), gpsi[sl].to(compute))
-                grads = torch.autograd.grad((phi, psi), wrt, cot, create_graph=create, allow_unused=True)
-            grads = [torch.zeros_like(t) if gr is None else gr.to(t.dtype) for t, gr in zip(wrt, grads, strict=True)]
-            if need_x:
-                gx_parts.append(grads[0])
-            if need_P:
-                gP = gP + grads[-1]
-        gx = (torch.cat(gx_parts) if gx_parts else torch.zeros_like(x)) if need_x else None
+        create = torch.is_grad_enabled()
+        lib = None if create else _native_library(x, P, ctx.backend)
+        if lib is not None:
+            gx, gP = _native_backward(lib, x, P, ctx.faces, gphi, gpsi, need_x, need_P)
+        else:
+            gx, gP = _autograd_backward(x, P, ctx.faces, gphi, gpsi, need_x, need_P, create)
         return gx, gP, None, None, None
+
+
+def _native_library(x: Tensor, P: Tensor, backend: str):
+    """The native library when it serves the first-order backward pass of float64-computed 3D
+    points on the CPU under ``backend``, else None."""
+    if x.shape[-1] != 3 or backend not in ("auto", "native") or x.device.type != "cpu" or P.device.type != "cpu":
+        return None
+    choice = select(GC, backend, x.detach().to(torch.float64), P.detach().to(torch.float64), graph=False)
+    return choice.lib if choice.kind == "native" else None
+
+
+def _native_backward(lib, x: Tensor, P: Tensor, faces: Tensor, gphi: Tensor, gpsi: Tensor, need_x: bool, need_P: bool):
+    """The first-order products by the native kernel (:func:`.vjp3d_native.native_vjp`), the points it
+    leaves (on or near the cage, thin faces) by :func:`_autograd_backward`."""
+    tol = on_cage_tolerance(_cage(P.detach(), faces))
+    gx, gP, reg = native_vjp(lib, x, P, faces, gphi, gpsi, tol)
+    rows = torch.nonzero(~reg).flatten()
+    if rows.numel():
+        gx_rows, gP_rows = _autograd_backward(
+            x.index_select(0, rows),
+            P,
+            faces,
+            gphi.index_select(0, rows),
+            gpsi.index_select(0, rows),
+            need_x,
+            need_P,
+            False,
+        )
+        if gx_rows is not None:
+            gx = gx.index_copy(0, rows, gx_rows.to(gx.dtype))
+        if gP_rows is not None:
+            gP = gP + gP_rows.to(gP.dtype)
+    return (gx.to(x.dtype) if need_x else None), (gP.to(P.dtype) if need_P else None)
+
+
+def _autograd_backward(
+    x: Tensor, P: Tensor, faces: Tensor, gphi: Tensor, gpsi: Tensor, need_x: bool, need_P: bool, create: bool
+) -> tuple[Tensor | None, Tensor | None]:
+    """``(dL/dx, dL/dP)`` (None where not needed) by autograd of the torch kernel, recomputed chunk
+    by chunk of points (the graph kept with ``create``)."""
+    size = max(64, _PAIRS // max(1, faces.shape[0]))
+    gx_parts, gP = [], torch.zeros_like(P) if need_P else None
+    for s in range(0, x.shape[0], size):
+        sl = slice(s, s + size)
+        with torch.enable_grad():
+            xc = x[sl] if create and x.requires_grad else x[sl].detach().requires_grad_(need_x)
+            Pc = P if create and P.requires_grad else P.detach().requires_grad_(need_P)
+            cage = _cage(Pc, faces)
+            compute, _ = result_dtype(xc, cage, None)
+            phi, psi = green_flat(xc.to(compute), cage.to(compute), None, False, "torch")
+            wrt = [t for t, need in ((xc, need_x), (Pc, need_P)) if need]
+            cot = (gphi[sl].to(compute), gpsi[sl].to(compute))
+            grads = torch.autograd.grad((phi, psi), wrt, cot, create_graph=create, allow_unused=True)
+        grads = [torch.zeros_like(t) if gr is None else gr.to(t.dtype) for t, gr in zip(wrt, grads, strict=True)]
+        if need_x:
+            gx_parts.append(grads[0])
+        if need_P:
+            gP = gP + grads[-1]
+    gx = (torch.cat(gx_parts) if gx_parts else torch.zeros_like(x)) if need_x else None
+    return gx, gP
 
 
 def green_function(points: Tensor, cage: Cage, chunk_size: int | None = None, backend: str = "auto"):
