@@ -18,7 +18,8 @@ __all__ = ["BASE_FLAGS", "HEADERS", "SOURCES", "cpu_has_avx2", "prebuilt_variant
            "source_digest", "x86_glibc"]  # fmt: skip
 
 SOURCES = ("mvc3d.c", "mvc2d.c", "gc3d.c", "gcd3d.c", "raster.c", "qmvc3d.c", "qgc3d.c", "mvcd3d.c", "mvcd2d.c",
-           "mvc3d_vjp.c", "mvc3d_vjp_near.c", "gc3d_vjp.c", "geometry.c", "quadrature.c", "lbc.c", "version.c")  # fmt: skip
+           "mvc3d_vjp.c", "mvc3d_vjp_near.c", "gc3d_vjp.c", "geometry.c", "quadrature.c", "lbc.c",
+           "version.c")  # fmt: skip
 HEADERS = ("native.h", "jet.h")
 
 

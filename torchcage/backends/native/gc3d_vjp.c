@@ -39,6 +39,12 @@
 
 #include "native.h"
 
+#ifdef TC_LIBMVEC
+/* Let the compiler call glibc's vector log and atan2 (libmvec) in the lane loop below. */
+__attribute__((simd("notinbranch"))) double log(double);
+__attribute__((simd("notinbranch"))) double atan2(double, double);
+#endif
+
 #define FOUR_PI 12.566370614359172953850573533118
 #define GF_SIZE 33
 #define GF_N 0
@@ -47,108 +53,17 @@
 #define GF_GBARY 21
 #define GF_GNORM 30
 
-/* The face constants of one face, and where their cotangents go. */
+/* The face constants of one face: n (3), edir, eout, gbary (3, 3), gnorm (3). */
 typedef struct {
-    const double *n, *ed, *eo, *gb, *gn; /* (3), (3, 3), (3, 3), (3, 3), (3) */
-    double *gf;                          /* (GF_SIZE) cotangents */
+    const double *n, *ed, *eo, *gb, *gn;
 } face_in;
 
 static inline void axpy3(double s, const double *x, double *y) {
     y[0] += s * x[0], y[1] += s * x[1], y[2] += s * x[2];
 }
 
-/* One pair by the closed forms: a (3 corners x 3) the corners minus the point, bphi (3) and bpsi
- * the cotangents divided by 4 pi. Adds the corners' cotangents to ga and the face's to f->gf. */
-static void closed_pair(const double a[3][3], const face_in *f, const double bphi[3], double bpsi, double ga[3][3]) {
-    double R[3], lj[3], lk[3], d[3], I[3], R0c[3] = {0, 0, 0}, w[3][3] = {{0}};
-    int br[3];
-    for (int i = 0; i < 3; ++i) R[i] = sqrt(dot3(a[i], a[i]));
-    const double h = dot3(a[0], f->n), sg = h >= 0 ? 1.0 : -1.0, ha = sg * h;
-    for (int e = 0; e < 3; ++e) {
-        const int j = (e + 1) % 3, k = (e + 2) % 3;
-        const double *u = f->ed + 3 * e;
-        lj[e] = dot3(a[j], u), lk[e] = dot3(a[k], u), d[e] = dot3(a[j], f->eo + 3 * e);
-        if (lj[e] >= 0) {
-            br[e] = 0, I[e] = log((R[k] + lk[e]) / (R[j] + lj[e]));
-        } else if (lk[e] <= 0) {
-            br[e] = 1, I[e] = log((R[j] - lj[e]) / (R[k] - lk[e]));
-        } else {
-            cross3(a[j], u, w[e]);
-            R0c[e] = dot3(w[e], w[e]);
-            br[e] = 2, I[e] = log((R[k] + lk[e]) * (R[j] - lj[e]) / R0c[e]);
-        }
-    }
-    double xk[3], yk[3], xj[3], yj[3], omega = 0.0;
-    for (int e = 0; e < 3; ++e) {
-        const int j = (e + 1) % 3, k = (e + 2) % 3;
-        const double r0 = d[e] * d[e] + ha * ha;
-        xk[e] = r0 + ha * R[k], yk[e] = d[e] * lk[e], xj[e] = r0 + ha * R[j], yj[e] = d[e] * lj[e];
-        omega += atan2(yk[e], xk[e]) - atan2(yj[e], xj[e]);
-    }
-    omega *= sg;
-    double K[3] = {0, 0, 0}, gK[3], alpha[3];
-    for (int e = 0; e < 3; ++e) axpy3(-I[e], f->eo + 3 * e, K);
-    for (int i = 0; i < 3; ++i) gK[i] = dot3(f->gb + 3 * i, K), alpha[i] = d[i] * f->gn[i];
-    /* reverse */
-    double b_omega = -bpsi * h, b_h = -bpsi * omega, kbar[3] = {0, 0, 0}, b_d[3], b_I[3];
-    for (int i = 0; i < 3; ++i) {
-        b_omega += bphi[i] * alpha[i];
-        b_h += bphi[i] * gK[i];
-        axpy3(bphi[i] * h, f->gb + 3 * i, kbar);
-        axpy3(bphi[i] * h, K, f->gf + GF_GBARY + 3 * i);
-        f->gf[GF_GNORM + i] += bphi[i] * omega * d[i];
-        b_d[i] = bpsi * I[i] + bphi[i] * omega * f->gn[i];
-    }
-    for (int e = 0; e < 3; ++e) {
-        b_I[e] = bpsi * d[e] - dot3(kbar, f->eo + 3 * e);
-        axpy3(-I[e], kbar, f->gf + GF_EOUT + 3 * e);
-    }
-    const double b_beta = sg * b_omega;
-    double b_ha = 0.0, b_R[3] = {0, 0, 0}, b_lj[3], b_lk[3];
-    for (int e = 0; e < 3; ++e) {
-        const int j = (e + 1) % 3, k = (e + 2) % 3;
-        const double dk = b_beta / (xk[e] * xk[e] + yk[e] * yk[e]), dj = b_beta / (xj[e] * xj[e] + yj[e] * yj[e]);
-        const double b_yk = dk * xk[e], b_xk = -dk * yk[e], b_yj = -dj * xj[e], b_xj = dj * yj[e];
-        const double b_r0 = b_xk + b_xj;
-        b_d[e] += b_yk * lk[e] + b_yj * lj[e] + 2.0 * d[e] * b_r0;
-        b_lk[e] = b_yk * d[e], b_lj[e] = b_yj * d[e];
-        b_ha += b_xk * R[k] + b_xj * R[j] + 2.0 * ha * b_r0;
-        b_R[k] += b_xk * ha, b_R[j] += b_xj * ha;
-    }
-    b_h += sg * b_ha;
-    for (int e = 0; e < 3; ++e) {
-        const int j = (e + 1) % 3, k = (e + 2) % 3;
-        const double *u = f->ed + 3 * e, *m = f->eo + 3 * e;
-        double *gu = f->gf + GF_EDIR + 3 * e;
-        if (br[e] == 0) {
-            const double t1 = b_I[e] / (R[k] + lk[e]), t2 = b_I[e] / (R[j] + lj[e]);
-            b_R[k] += t1, b_lk[e] += t1, b_R[j] -= t2, b_lj[e] -= t2;
-        } else if (br[e] == 1) {
-            const double t1 = b_I[e] / (R[j] - lj[e]), t2 = b_I[e] / (R[k] - lk[e]);
-            b_R[j] += t1, b_lj[e] -= t1, b_R[k] -= t2, b_lk[e] += t2;
-        } else {
-            const double t1 = b_I[e] / (R[k] + lk[e]), t2 = b_I[e] / (R[j] - lj[e]), s = -2.0 * b_I[e] / R0c[e];
-            b_R[k] += t1, b_lk[e] += t1, b_R[j] += t2, b_lj[e] -= t2;
-            double bw[3] = {s * w[e][0], s * w[e][1], s * w[e][2]}, c[3];
-            cross3(u, bw, c); /* w = a_j x u */
-            axpy3(1.0, c, ga[j]);
-            cross3(bw, a[j], c);
-            axpy3(1.0, c, gu);
-        }
-        axpy3(b_lj[e], u, ga[j]);
-        axpy3(b_lj[e], a[j], gu);
-        axpy3(b_lk[e], u, ga[k]);
-        axpy3(b_lk[e], a[k], gu);
-        axpy3(b_d[e], m, ga[j]);
-        axpy3(b_d[e], a[j], f->gf + GF_EOUT + 3 * e);
-    }
-    for (int i = 0; i < 3; ++i) axpy3(b_R[i] / R[i], a[i], ga[i]);
-    axpy3(b_h, f->n, ga[0]);
-    axpy3(b_h, a[0], f->gf + GF_N);
-}
-
 /* One pair by the far-field rule: x the point, a0 = p_0 - x, the face's Q nodes (Q, 3), weights
- * (Q,) and the rule's barycentric coordinates (Q, 3); bphi, bpsi as closed_pair. Adds to ga0 (the
+ * (Q,) and the rule's barycentric coordinates (Q, 3); bphi (3), bpsi the cotangents over 4 pi. Adds to ga0 (the
  * first corner's cotangent, through h), gx (the point's, through the nodes' offsets), the face's
  * normal cotangent (gfn) and its nodes' (gn) and weights' (gw). */
 static void far_pair(const double *x, const double *a0, const double *n, const double *nodes, const double *wq,
@@ -171,26 +86,167 @@ static void far_pair(const double *x, const double *a0, const double *n, const d
     axpy3(b_h, a0, gfn);
 }
 
-/* 1 when every pair of the point x takes the closed forms or the far-field rule (see the top). */
-static int regular_point(const double *P, const int *tri, long T, const double *nrm, const double *two_area,
-                         const double *longest, const unsigned char *thin, const double *x, double far_c,
-                         double near_c, double vertex_c, double tol) {
-    for (long f = 0; f < T; ++f) {
-        if (!(two_area[f] > 0)) return 0;
-        const int *t = tri + 3 * f;
-        double a[3][3], r2[3];
-        for (int c = 0; c < 3; ++c) {
-            for (int k = 0; k < 3; ++k) a[c][k] = P[3 * t[c] + k] - x[k];
-            r2[c] = dot3(a[c], a[c]);
-        }
-        const double rmin2 = fmin(fmin(r2[0], r2[1]), r2[2]), rmax2 = fmax(fmax(r2[0], r2[1]), r2[2]);
-        const double far = far_c * longest[f];
-        if (longest[f] > 0 && rmin2 >= far * far) continue;
-        if (thin[f]) return 0;
-        const double h = fabs(dot3(a[0], nrm + 3 * f)), rmin = sqrt(rmin2);
-        if (!(h >= near_c * rmin) || !(h > tol) || !(rmin >= vertex_c * sqrt(rmax2))) return 0;
+#ifndef GC_VJP_LANES
+#define GC_VJP_LANES 4 /* points side by side (one AVX2 register of doubles) */
+#endif
+#define VL GC_VJP_LANES
+
+/* a_j . v and the components of a_j x v, a_j given as the variables a<j>x, a<j>y, a<j>z */
+#define DOTA(j, v) (a##j##x * (v)[0] + a##j##y * (v)[1] + a##j##z * (v)[2])
+
+/* Edge e (from corner j to corner k) of closed_lanes' forward pass: l_j, l_k, d_e, the edge integral
+ * I_e = log(num_e / den_e) (one branch of three, as kernel3d._edge_integrals), the solid angle's term be_e. */
+#define EDGE_FWD(e, j, k)                                                                                            \
+    const double *u##e = f->ed + 3 * e, *m##e = f->eo + 3 * e;                                                      \
+    double lj##e = DOTA(j, u##e), lk##e = DOTA(k, u##e), d##e = DOTA(j, m##e);                                      \
+    double wx##e = a##j##y * u##e[2] - a##j##z * u##e[1], wy##e = a##j##z * u##e[0] - a##j##x * u##e[2];            \
+    double wz##e = a##j##x * u##e[1] - a##j##y * u##e[0];                                                           \
+    int ah##e = lj##e >= 0, bh##e = !ah##e && lk##e <= 0;                                                           \
+    double num##e = ah##e ? R##k + lk##e : (bh##e ? R##j - lj##e : (R##k + lk##e) * (R##j - lj##e));                \
+    double den##e = ah##e ? R##j + lj##e : (bh##e ? R##k - lk##e : wx##e * wx##e + wy##e * wy##e + wz##e * wz##e);  \
+    double I##e = log(num##e / den##e);                                                                             \
+    double r0##e = d##e * d##e + ha * ha;                                                                           \
+    double xk##e = r0##e + ha * R##k, yk##e = d##e * lk##e, xj##e = r0##e + ha * R##j, yj##e = d##e * lj##e;        \
+    double be##e = atan2(yk##e, xk##e) - atan2(yj##e, xj##e);
+
+/* Edge e's reverse pass through the solid angle's term. */
+#define EDGE_REV_OMEGA(e, j, k)                                                                                      \
+    double dk##e = bbeta / (xk##e * xk##e + yk##e * yk##e), dj##e = bbeta / (xj##e * xj##e + yj##e * yj##e);        \
+    double bxk##e = -dk##e * yk##e, bxj##e = dj##e * yj##e, br0##e = bxk##e + bxj##e;                               \
+    bd##e += dk##e * xk##e * lk##e - dj##e * xj##e * lj##e + 2.0 * d##e * br0##e;                                   \
+    double blk##e = dk##e * xk##e * d##e, blj##e = -dj##e * xj##e * d##e;                                           \
+    bha += bxk##e * R##k + bxj##e * R##j + 2.0 * ha * br0##e;                                                       \
+    bR##k += bxk##e * ha, bR##j += bxj##e * ha;
+
+/* Edge e's reverse pass through its integral, l_j, l_k, d_e: the corners' and the edge's
+ * constants' cotangents (gu: the direction's, go: the normal's, 3 lanes-wide rows each). */
+#define EDGE_REV_EDGE(e, j, k)                                                                                       \
+    {                                                                                                                \
+        const double bnum = bI##e / num##e, bden = -bI##e / den##e;                                                 \
+        const int st = !ah##e && !bh##e;                                                                             \
+        bR##k += ah##e ? bnum : (bh##e ? bden : bnum * (R##j - lj##e));                                             \
+        blk##e += ah##e ? bnum : (bh##e ? -bden : bnum * (R##j - lj##e));                                           \
+        bR##j += ah##e ? bden : (bh##e ? bnum : bnum * (R##k + lk##e));                                             \
+        blj##e += ah##e ? bden : (bh##e ? -bnum : -bnum * (R##k + lk##e));                                          \
+        const double sw = st ? 2.0 * bden : 0.0; /* w = a_j x u, den = |w|^2 */                                    \
+        const double bwx = sw * wx##e, bwy = sw * wy##e, bwz = sw * wz##e;                                           \
+        ga##j##x += blj##e * u##e[0] + bd##e * m##e[0] + u##e[1] * bwz - u##e[2] * bwy;                              \
+        ga##j##y += blj##e * u##e[1] + bd##e * m##e[1] + u##e[2] * bwx - u##e[0] * bwz;                              \
+        ga##j##z += blj##e * u##e[2] + bd##e * m##e[2] + u##e[0] * bwy - u##e[1] * bwx;                              \
+        ga##k##x += blk##e * u##e[0], ga##k##y += blk##e * u##e[1], ga##k##z += blk##e * u##e[2];                    \
+        double *gu = GF + (GF_EDIR + 3 * e) * VL, *go = GF + (GF_EOUT + 3 * e) * VL;                                \
+        gu[l] = ok[l] ? blj##e * a##j##x + blk##e * a##k##x + bwy * a##j##z - bwz * a##j##y : 0.0;                    \
+        gu[VL + l] = ok[l] ? blj##e * a##j##y + blk##e * a##k##y + bwz * a##j##x - bwx * a##j##z : 0.0;               \
+        gu[2 * VL + l] = ok[l] ? blj##e * a##j##z + blk##e * a##k##z + bwx * a##j##y - bwy * a##j##x : 0.0;           \
+        go[l] = ok[l] ? bd##e * a##j##x - bI##e##kx : 0.0;                                                            \
+        go[VL + l] = ok[l] ? bd##e * a##j##y - bI##e##ky : 0.0;                                                       \
+        go[2 * VL + l] = ok[l] ? bd##e * a##j##z - bI##e##kz : 0.0;                                                   \
     }
-    return 1;
+
+/* One face by the closed forms for VL points side by side (one face; corners q0, q1, q2; points x0, x1, x2 (VL),
+ * cotangents over 4 pi bp0, bp1, bp2, bps (VL)), lane by lane added to: c0, c1, c2 (3, VL) the
+ * corners' cotangents, FL (GF_SIZE, VL) the face constants', gx (3, VL) the points'. Lanes with
+ * ok = 0 add nothing (a select: their values may be inf or NaN). */
+/* (not inlined: inlined into the point loop, gcc no longer vectorised its lane loop) */
+__attribute__((noinline)) static void closed_lanes(const double *q0, const double *q1, const double *q2, const face_in *f, const double *x0,
+                         const double *x1, const double *x2, const double *bp0, const double *bp1, const double *bp2,
+                         const double *bps, const double *ok, double *c0, double *c1, double *c2, double *FL,
+                         double *gx, double *restrict GA, double *restrict GF) {
+    const double *nv = f->n, *g0 = f->gb, *g1 = f->gb + 3, *g2 = f->gb + 6, *gn = f->gn;
+#pragma omp simd
+    for (int l = 0; l < VL; ++l) {
+        double a0x = q0[0] - x0[l], a0y = q0[1] - x1[l], a0z = q0[2] - x2[l];
+        double a1x = q1[0] - x0[l], a1y = q1[1] - x1[l], a1z = q1[2] - x2[l];
+        double a2x = q2[0] - x0[l], a2y = q2[1] - x1[l], a2z = q2[2] - x2[l];
+        double R0 = sqrt(a0x * a0x + a0y * a0y + a0z * a0z), R1 = sqrt(a1x * a1x + a1y * a1y + a1z * a1z);
+        double R2 = sqrt(a2x * a2x + a2y * a2y + a2z * a2z);
+        double h = DOTA(0, nv), sg = h >= 0 ? 1.0 : -1.0, ha = sg * h;
+        EDGE_FWD(0, 1, 2)
+        EDGE_FWD(1, 2, 0)
+        EDGE_FWD(2, 0, 1)
+        double omega = sg * (be0 + be1 + be2);
+        double Kx = -(m0[0] * I0 + m1[0] * I1 + m2[0] * I2), Ky = -(m0[1] * I0 + m1[1] * I1 + m2[1] * I2);
+        double Kz = -(m0[2] * I0 + m1[2] * I1 + m2[2] * I2);
+        double gK0 = g0[0] * Kx + g0[1] * Ky + g0[2] * Kz, gK1 = g1[0] * Kx + g1[1] * Ky + g1[2] * Kz;
+        double gK2 = g2[0] * Kx + g2[1] * Ky + g2[2] * Kz;
+        double p0 = bp0[l], p1 = bp1[l], p2 = bp2[l], ps = bps[l];
+        /* reverse */
+        double bomega = -ps * h + p0 * d0 * gn[0] + p1 * d1 * gn[1] + p2 * d2 * gn[2];
+        double bh = -ps * omega + p0 * gK0 + p1 * gK1 + p2 * gK2;
+        double kbx = h * (p0 * g0[0] + p1 * g1[0] + p2 * g2[0]), kby = h * (p0 * g0[1] + p1 * g1[1] + p2 * g2[1]);
+        double kbz = h * (p0 * g0[2] + p1 * g1[2] + p2 * g2[2]);
+        double *gg = GF + GF_GBARY * VL;
+        gg[0 * VL + l] = ok[l] ? p0 * h * Kx : 0.0, gg[1 * VL + l] = ok[l] ? p0 * h * Ky : 0.0;
+        gg[2 * VL + l] = ok[l] ? p0 * h * Kz : 0.0, gg[3 * VL + l] = ok[l] ? p1 * h * Kx : 0.0;
+        gg[4 * VL + l] = ok[l] ? p1 * h * Ky : 0.0, gg[5 * VL + l] = ok[l] ? p1 * h * Kz : 0.0;
+        gg[6 * VL + l] = ok[l] ? p2 * h * Kx : 0.0, gg[7 * VL + l] = ok[l] ? p2 * h * Ky : 0.0;
+        gg[8 * VL + l] = ok[l] ? p2 * h * Kz : 0.0;
+        GF[(GF_GNORM + 0) * VL + l] = ok[l] ? p0 * omega * d0 : 0.0;
+        GF[(GF_GNORM + 1) * VL + l] = ok[l] ? p1 * omega * d1 : 0.0;
+        GF[(GF_GNORM + 2) * VL + l] = ok[l] ? p2 * omega * d2 : 0.0;
+        double bd0 = ps * I0 + p0 * omega * gn[0], bd1 = ps * I1 + p1 * omega * gn[1];
+        double bd2 = ps * I2 + p2 * omega * gn[2];
+        double bI0 = ps * d0 - (kbx * m0[0] + kby * m0[1] + kbz * m0[2]);
+        double bI1 = ps * d1 - (kbx * m1[0] + kby * m1[1] + kbz * m1[2]);
+        double bI2 = ps * d2 - (kbx * m2[0] + kby * m2[1] + kbz * m2[2]);
+        double bI0kx = I0 * kbx, bI0ky = I0 * kby, bI0kz = I0 * kbz, bI1kx = I1 * kbx, bI1ky = I1 * kby;
+        double bI1kz = I1 * kbz, bI2kx = I2 * kbx, bI2ky = I2 * kby, bI2kz = I2 * kbz;
+        double bbeta = sg * bomega, bha = 0.0, bR0 = 0.0, bR1 = 0.0, bR2 = 0.0;
+        EDGE_REV_OMEGA(0, 1, 2)
+        EDGE_REV_OMEGA(1, 2, 0)
+        EDGE_REV_OMEGA(2, 0, 1)
+        bh += sg * bha;
+        double ga0x = 0.0, ga0y = 0.0, ga0z = 0.0, ga1x = 0.0, ga1y = 0.0, ga1z = 0.0;
+        double ga2x = 0.0, ga2y = 0.0, ga2z = 0.0;
+        EDGE_REV_EDGE(0, 1, 2)
+        EDGE_REV_EDGE(1, 2, 0)
+        EDGE_REV_EDGE(2, 0, 1)
+        double s0 = bR0 / R0, s1 = bR1 / R1, s2 = bR2 / R2;
+        ga0x += s0 * a0x + bh * nv[0], ga0y += s0 * a0y + bh * nv[1], ga0z += s0 * a0z + bh * nv[2];
+        ga1x += s1 * a1x, ga1y += s1 * a1y, ga1z += s1 * a1z;
+        ga2x += s2 * a2x, ga2y += s2 * a2y, ga2z += s2 * a2z;
+        GF[(GF_N + 0) * VL + l] = ok[l] ? bh * a0x : 0.0;
+        GF[(GF_N + 1) * VL + l] = ok[l] ? bh * a0y : 0.0;
+        GF[(GF_N + 2) * VL + l] = ok[l] ? bh * a0z : 0.0;
+        GA[0 * VL + l] = ok[l] ? ga0x : 0.0, GA[1 * VL + l] = ok[l] ? ga0y : 0.0, GA[2 * VL + l] = ok[l] ? ga0z : 0.0;
+        GA[3 * VL + l] = ok[l] ? ga1x : 0.0, GA[4 * VL + l] = ok[l] ? ga1y : 0.0, GA[5 * VL + l] = ok[l] ? ga1z : 0.0;
+        GA[6 * VL + l] = ok[l] ? ga2x : 0.0, GA[7 * VL + l] = ok[l] ? ga2y : 0.0, GA[8 * VL + l] = ok[l] ? ga2z : 0.0;
+    }
+    /* (added here, not in the loop above: plain stores there keep it simple to vectorise) */
+    for (int c = 0; c < 3; ++c) {
+        double *cc = c == 0 ? c0 : (c == 1 ? c1 : c2);
+        for (int k = 0; k < 3 * VL; ++k) cc[k] += GA[3 * VL * c + k], gx[k] -= GA[3 * VL * c + k];
+    }
+    for (int k = 0; k < GF_SIZE * VL; ++k) FL[k] += GF[k];
+}
+
+/* The regular-point test (see the top) for VL points side by side: bad (VL) is set to 1 for the
+ * lanes that some face makes irregular; far (T, VL) is 1 where a face takes the far-field rule. */
+static void classify_lanes(const double *P, const int *tri, long T, const double *nrm, const double *two_area,
+                           const double *longest, const unsigned char *thin, const double *x0, const double *x1,
+                           const double *x2, double far_c, double near_c, double vertex_c, double tol, double *bad,
+                           double *far) {
+    for (long f = 0; f < T; ++f) {
+        const int *t = tri + 3 * f;
+        const double *q0 = P + 3 * t[0], *q1 = P + 3 * t[1], *q2 = P + 3 * t[2], *nv = nrm + 3 * f;
+        const double fd = far_c * longest[f], vc2 = vertex_c * vertex_c;
+        const int lost = !(two_area[f] > 0), is_thin = thin[f] != 0, has_far = longest[f] > 0;
+#pragma omp simd
+        for (int l = 0; l < VL; ++l) {
+            double a0x = q0[0] - x0[l], a0y = q0[1] - x1[l], a0z = q0[2] - x2[l];
+            double a1x = q1[0] - x0[l], a1y = q1[1] - x1[l], a1z = q1[2] - x2[l];
+            double a2x = q2[0] - x0[l], a2y = q2[1] - x1[l], a2z = q2[2] - x2[l];
+            double r0 = a0x * a0x + a0y * a0y + a0z * a0z, r1 = a1x * a1x + a1y * a1y + a1z * a1z;
+            double r2 = a2x * a2x + a2y * a2y + a2z * a2z;
+            double rmin2 = r0 < r1 ? r0 : r1, rmax2 = r0 < r1 ? r1 : r0;
+            rmin2 = r2 < rmin2 ? r2 : rmin2, rmax2 = r2 > rmax2 ? r2 : rmax2;
+            int is_far = has_far && rmin2 >= fd * fd;
+            double h = fabs(DOTA(0, nv));
+            int closed_bad = is_thin | !(h * h >= near_c * near_c * rmin2) | !(h > tol) | !(rmin2 >= vc2 * rmax2);
+            bad[l] = lost | (!is_far & closed_bad) ? 1.0 : bad[l];
+            far[f * VL + l] = is_far ? 1.0 : 0.0;
+        }
+    }
 }
 
 void tc_gc3d_vjp(const double *P, long V, const int *tri, long T, const double *nrm, const double *edir,
@@ -203,49 +259,78 @@ void tc_gc3d_vjp(const double *P, long V, const int *tri, long T, const double *
     memset(GF, 0, sizeof(double) * GF_SIZE * (size_t)T);
     memset(GN, 0, sizeof(double) * 3 * (size_t)(T * Q));
     memset(GW, 0, sizeof(double) * (size_t)(T * Q));
+    const long nb = (n + VL - 1) / VL;
 #pragma omp parallel num_threads(nthreads)
     {
-        /* this thread's sums: corners (V, 3), face constants (T, GF_SIZE), nodes (T, Q, 3), weights (T, Q) */
-        const size_t size = 3 * (size_t)V + GF_SIZE * (size_t)T + 4 * (size_t)(T * Q);
-        double *ws = (double *)calloc(size > 0 ? size : 1, sizeof(double));
-        double *ga_t = ws, *gf_t = ws + 3 * V, *gn_t = gf_t + GF_SIZE * T, *gw_t = gn_t + 3 * T * Q;
-#pragma omp for schedule(dynamic, 16)
-        for (long i = 0; i < n; ++i) {
-            const double *x = X + 3 * i;
-            double *gx = GX + 3 * i;
-            gx[0] = gx[1] = gx[2] = 0.0;
-            reg[i] = ws != NULL &&
-                     regular_point(P, tri, T, nrm, two_area, longest, thin, x, far_c, near_c, vertex_c, tol);
-            if (!reg[i]) continue; /* (no scratch: left to the caller too) */
-            const double *gphi = GPHI + V * i, *gpsi = GPSI + T * i;
-            for (long f = 0; f < T; ++f) {
-                const int *t = tri + 3 * f;
-                const double bphi[3] = {gphi[t[0]] / FOUR_PI, gphi[t[1]] / FOUR_PI, gphi[t[2]] / FOUR_PI};
-                const double bpsi = gpsi[f] / FOUR_PI;
-                if (bphi[0] == 0 && bphi[1] == 0 && bphi[2] == 0 && bpsi == 0) continue;
-                double a[3][3], ga[3][3] = {{0}}, rmin2 = INFINITY;
-                for (int c = 0; c < 3; ++c) {
-                    for (int k = 0; k < 3; ++k) a[c][k] = P[3 * t[c] + k] - x[k];
-                    rmin2 = fmin(rmin2, dot3(a[c], a[c]));
-                }
-                const double far = far_c * longest[f];
-                if (longest[f] > 0 && rmin2 >= far * far) {
-                    far_pair(x, a[0], nrm + 3 * f, far_nodes + 3 * Q * f, far_w + Q * f, far_bary, Q, bphi, bpsi,
-                             ga[0], gx, gf_t + GF_SIZE * f + GF_N, gn_t + 3 * Q * f, gw_t + Q * f);
-                } else {
-                    const face_in fi = {nrm + 3 * f, edir + 9 * f, eout + 9 * f, gbary + 9 * f, gnorm + 3 * f,
-                                        gf_t + GF_SIZE * f};
-                    closed_pair(a, &fi, bphi, bpsi, ga);
-                }
-                for (int c = 0; c < 3; ++c)
-                    for (int k = 0; k < 3; ++k) ga_t[3 * t[c] + k] += ga[c][k], gx[k] -= ga[c][k];
+        /* this thread's sums, lane by lane: corners (V, 3, VL), face constants (T, GF_SIZE, VL); the
+         * far-field rule's: corners (V, 3), face constants (T, GF_SIZE), nodes (T, Q, 3), weights
+         * (T, Q); a block's far flags (T, VL) */
+        const size_t lanes = (3 * (size_t)V + GF_SIZE * (size_t)T) * VL;
+        const size_t size =
+            lanes + 3 * (size_t)V + GF_SIZE * (size_t)T + 4 * (size_t)(T * Q) + (size_t)T * VL + (9 + GF_SIZE) * VL;
+        double *ws = (double *)calloc(size, sizeof(double));
+        double *cl = ws, *fl = ws + 3 * (size_t)V * VL, *ga_t = ws + lanes, *gf_t = ga_t + 3 * V;
+        double *gn_t = gf_t + GF_SIZE * T, *gw_t = gn_t + 3 * T * Q, *farl = gw_t + T * Q;
+        double *lane_ga = farl + (size_t)T * VL, *lane_gf = lane_ga + 9 * VL; /* one face's lanes */
+#pragma omp for schedule(dynamic, 4)
+        for (long ib = 0; ib < nb; ++ib) {
+            const long i0 = VL * ib;
+            const int cnt = n - i0 < VL ? (int)(n - i0) : VL;
+            double xl[3][VL], bad[VL], okc[VL], gxl[3][VL], bp[3][VL], bps[VL];
+            long row[VL];
+            for (int l = 0; l < VL; ++l) {
+                row[l] = i0 + (l < cnt ? l : cnt - 1); /* padded lanes repeat the last point, bad */
+                for (int k = 0; k < 3; ++k) xl[k][l] = X[3 * row[l] + k], gxl[k][l] = 0.0;
+                bad[l] = l < cnt && ws != NULL ? 0.0 : 1.0;
             }
+            if (ws != NULL)
+                classify_lanes(P, tri, T, nrm, two_area, longest, thin, xl[0], xl[1], xl[2], far_c, near_c, vertex_c,
+                               tol, bad, farl);
+            int any = 0;
+            for (int l = 0; l < cnt; ++l) reg[i0 + l] = bad[l] == 0, any |= bad[l] == 0;
+            for (long f = 0; any && f < T; ++f) {
+                const int *t = tri + 3 * f;
+                const double *q[3] = {P + 3 * t[0], P + 3 * t[1], P + 3 * t[2]};
+                int nclosed = 0, nfar = 0;
+                for (int l = 0; l < VL; ++l) {
+                    for (int c = 0; c < 3; ++c) bp[c][l] = GPHI[V * row[l] + t[c]] / FOUR_PI;
+                    bps[l] = GPSI[T * row[l] + f] / FOUR_PI;
+                    okc[l] = bad[l] == 0 && farl[f * VL + l] == 0 ? 1.0 : 0.0;
+                    nclosed += okc[l] != 0, nfar += bad[l] == 0 && farl[f * VL + l] != 0;
+                }
+                if (nclosed) {
+                    const face_in fi = {nrm + 3 * f, edir + 9 * f, eout + 9 * f, gbary + 9 * f, gnorm + 3 * f};
+                    closed_lanes(q[0], q[1], q[2], &fi, xl[0], xl[1], xl[2], bp[0], bp[1], bp[2], bps, okc,
+                                 cl + 3 * VL * t[0], cl + 3 * VL * t[1], cl + 3 * VL * t[2], fl + GF_SIZE * VL * f,
+                                 gxl[0], lane_ga, lane_gf);
+                }
+                for (int l = 0; nfar && l < VL; ++l) {
+                    if (bad[l] != 0 || okc[l] != 0) continue;
+                    const double x[3] = {xl[0][l], xl[1][l], xl[2][l]};
+                    const double a0[3] = {q[0][0] - x[0], q[0][1] - x[1], q[0][2] - x[2]};
+                    const double bphi[3] = {bp[0][l], bp[1][l], bp[2][l]};
+                    double ga0[3] = {0, 0, 0}, gx[3] = {0, 0, 0};
+                    far_pair(x, a0, nrm + 3 * f, far_nodes + 3 * Q * f, far_w + Q * f, far_bary, Q, bphi, bps[l], ga0,
+                             gx, gf_t + GF_SIZE * f + GF_N, gn_t + 3 * Q * f, gw_t + Q * f);
+                    for (int k = 0; k < 3; ++k) ga_t[3 * t[0] + k] += ga0[k], gxl[k][l] += gx[k] - ga0[k];
+                }
+            }
+            for (int l = 0; l < cnt; ++l)
+                for (int k = 0; k < 3; ++k) GX[3 * (i0 + l) + k] = bad[l] == 0 ? gxl[k][l] : 0.0;
         }
         if (ws != NULL) {
 #pragma omp critical
             {
-                for (size_t k = 0; k < 3 * (size_t)V; ++k) GA[k] += ga_t[k];
-                for (size_t k = 0; k < GF_SIZE * (size_t)T; ++k) GF[k] += gf_t[k];
+                for (size_t k = 0; k < 3 * (size_t)V; ++k) {
+                    double sum = ga_t[k];
+                    for (int l = 0; l < VL; ++l) sum += cl[k * VL + l];
+                    GA[k] += sum;
+                }
+                for (size_t k = 0; k < GF_SIZE * (size_t)T; ++k) {
+                    double sum = gf_t[k];
+                    for (int l = 0; l < VL; ++l) sum += fl[k * VL + l];
+                    GF[k] += sum;
+                }
                 for (size_t k = 0; k < 3 * (size_t)(T * Q); ++k) GN[k] += gn_t[k];
                 for (size_t k = 0; k < (size_t)(T * Q); ++k) GW[k] += gw_t[k];
             }
