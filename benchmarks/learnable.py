@@ -12,8 +12,8 @@ hide it). *err*: the largest coordinate difference to
 torchcage's float64 values. With CUDA present, the same on the GPU.
 
 ``--green`` adds Green coordinates (``phi`` and ``psi``; gradients with respect to points and rest
-cages): torchcage's ``GreenFunction`` (values by the native kernel, backward recomputed chunk by
-chunk) against plain autograd of the same torch kernel over all points at once, in the inputs'
+cages): torchcage's ``GreenFunction`` (values by the native kernel, backward by the native reverse pass
+``gc3d_vjp.c``) against plain autograd of the same torch kernel over all points at once, in the inputs'
 dtype (what torchcage did before, except that it computed in float64).
 
 A last row per device: float64 forward+backward with ``--near-fraction`` (10%) of the points on the

@@ -1,13 +1,16 @@
 """The autograd Functions of Green coordinates: values by the fastest kernel; derivatives with
 respect to the points by the closed-form gradients (Hessians on double backward), and with
-respect to the rest cage's vertices by recomputing chunk by chunk.
+respect to the rest cage's vertices by a native reverse pass or by recomputing chunk by chunk.
 
-``GreenFunction`` computes ``(phi, psi)`` without a graph (the native kernel where it serves) and,
-in ``backward``, runs the torch kernel again over chunks of points under autograd, one chunk at a
-time: the derivatives are exact (autograd of the same closed forms) and the memory of a backward
-pass is that of one chunk's intermediates, not of every point's (plain autograd of the forward
-kept them all: 1.8 GB for the FireHydrant model). Double backward works: with ``create_graph``
-the chunks' graphs are kept.
+``GreenFunction`` computes ``(phi, psi)`` without a graph (the native kernel where it serves). Its
+first-order ``backward`` on the CPU runs the native kernel of the hand-derived reverse mode
+(:mod:`.vjp3d_native`, ``gc3d_vjp.c``) for the points whose every face takes the closed forms or the
+far-field rule; the other points (on or near a face's plane or a corner, beside a thin face), and
+every point under double backward, on other devices or with ``backend="torch"``, run the torch
+kernel again over chunks of points under autograd, one chunk at a time: the derivatives are exact
+(autograd of the same closed forms) and the memory of a backward pass is that of one chunk's
+intermediates, not of every point's (plain autograd of the forward kept them all: 1.8 GB for the
+FireHydrant model). Double backward works: with ``create_graph`` the chunks' graphs are kept.
 
 For the points alone (the rest cage constant), ``backward`` contracts the closed-form gradients
 (:func:`torchcage.functional.green_derivatives`, native where it loads) with the incoming
