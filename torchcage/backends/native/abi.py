@@ -93,6 +93,13 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "GPSI:f64*[n,T] nthreads:i32 GX:f64*![n,3] GA:f64*![V,3] GF:f64*![T,33] GN:f64*![T,Q,3] GW:f64*![T,Q] "
         "reg:u8*![n]"
     ),
+    "tc_gc3d_vjp_batch": _parse(
+        "B:i64 P:f64*[B,V,3] V:i64 tri:i32*[T,3] T:i64 nrm:f64*[B,T,3] edir:f64*[B,T,3,3] eout:f64*[B,T,3,3] "
+        "gbary:f64*[B,T,3,3] gnorm:f64*[B,T,3] two_area:f64*[B,T] longest:f64*[B,T] thin:u8*[B,T] "
+        "far_nodes:f64*[B,T,Q,3] far_w:f64*[B,T,Q] far_bary:f64*[Q,3] Q:i64 far_c:f64 near_c:f64 vertex_c:f64 "
+        "tol:f64*[B] X:f64*[B,n,3] n:i64 GPHI:f64*[B,n,V] GPSI:f64*[B,n,T] nthreads:i32 GX:f64*![B,n,3] "
+        "GA:f64*![B,V,3] GF:f64*![B,T,33] GN:f64*![B,T,Q,3] GW:f64*![B,T,Q] reg:u8*![B,n]"
+    ),
     "tc_gcd3d": _parse(
         "Pv:f64*[3,V] V:i64 tri:i32*[3,T] T:i64 edges:i32*[2,E] E:i64 eu:f64*[3,E] fe:i32*[3,T] nrm:f64*[T,3] "
         "two_area:f64*[T] ell:f64*[T,3] edir:f64*[T,3,3] eout:f64*[T,3,3] gbary:f64*[T,3,3] longest:f64*[T] "

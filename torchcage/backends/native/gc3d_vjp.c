@@ -240,12 +240,151 @@ static void classify_lanes(const double *P, const int *tri, long T, const double
             double r2 = a2x * a2x + a2y * a2y + a2z * a2z;
             double rmin2 = r0 < r1 ? r0 : r1, rmax2 = r0 < r1 ? r1 : r0;
             rmin2 = r2 < rmin2 ? r2 : rmin2, rmax2 = r2 > rmax2 ? r2 : rmax2;
-            int is_far = has_far && rmin2 >= fd * fd;
+            int is_far = has_far & (rmin2 >= fd * fd);
             double h = fabs(DOTA(0, nv));
             int closed_bad = is_thin | !(h * h >= near_c * near_c * rmin2) | !(h > tol) | !(rmin2 >= vc2 * rmax2);
-            bad[l] = lost | (!is_far & closed_bad) ? 1.0 : bad[l];
+            bad[l] = (lost | ((is_far == 0) & closed_bad)) ? 1.0 : bad[l];
             far[f * VL + l] = is_far ? 1.0 : 0.0;
         }
+    }
+}
+
+/* One batch element's arrays (the layouts of tc_gc3d_vjp's arguments). */
+typedef struct {
+    const double *P, *nrm, *edir, *eout, *gbary, *gnorm, *two_area, *longest, *far_nodes, *far_w, *X, *GPHI, *GPSI;
+    const unsigned char *thin;
+    double tol, *GX, *GA, *GF, *GN, *GW;
+    unsigned char *reg;
+} vjp_element;
+
+/* The sizes every element shares. */
+typedef struct {
+    const int *tri;
+    const double *far_bary;
+    long V, T, Q, n;
+    double far_c, near_c, vertex_c;
+} vjp_shape;
+
+/* A thread's scratch: lane-by-lane sums of the corners' (V, 3, VL) and the face constants'
+ * (T, GF_SIZE, VL) cotangents; the far-field rule's sums: corners (V, 3), face constants
+ * (T, GF_SIZE), nodes (T, Q, 3), weights (T, Q); a block's far flags (T, VL); one face's lanes. */
+typedef struct {
+    double *cl, *fl, *ga, *gf, *gn, *gw, *farl, *lane_ga, *lane_gf;
+    size_t sums; /* the length of the sums, from cl to gw */
+} vjp_scratch;
+
+static vjp_scratch scratch_of(double *ws, const vjp_shape *s) {
+    const long V = s->V, T = s->T, Q = s->Q;
+    vjp_scratch w;
+    w.cl = ws, w.fl = ws + 3 * V * VL, w.ga = w.fl + GF_SIZE * T * VL, w.gf = w.ga + 3 * V;
+    w.gn = w.gf + GF_SIZE * T, w.gw = w.gn + 3 * T * Q, w.farl = w.gw + T * Q;
+    w.lane_ga = w.farl + T * VL, w.lane_gf = w.lane_ga + 9 * VL;
+    w.sums = (size_t)(w.farl - ws);
+    return w;
+}
+
+static size_t scratch_size(const vjp_shape *s) {
+    return (size_t)(3 * s->V + GF_SIZE * s->T) * (VL + 1) + 4 * (size_t)(s->T * s->Q) + (size_t)s->T * VL +
+           (9 + GF_SIZE) * VL;
+}
+
+/* Block ib (VL points) of element e: its points' rows of GX and reg, its sums into w. w == NULL:
+ * no scratch, the points are left to the caller. */
+static void vjp_block(const vjp_element *e, const vjp_shape *s, long ib, const vjp_scratch *w) {
+    const long V = s->V, T = s->T, Q = s->Q, n = s->n, i0 = VL * ib;
+    const int *tri = s->tri;
+    const int cnt = n - i0 < VL ? (int)(n - i0) : VL;
+    double xl[3][VL], bad[VL], okc[VL], gxl[3][VL], bp[3][VL], bps[VL];
+    long row[VL];
+    for (int l = 0; l < VL; ++l) {
+        row[l] = i0 + (l < cnt ? l : cnt - 1); /* padded lanes repeat the last point, bad */
+        for (int k = 0; k < 3; ++k) xl[k][l] = e->X[3 * row[l] + k], gxl[k][l] = 0.0;
+        bad[l] = l < cnt && w != NULL ? 0.0 : 1.0;
+    }
+    if (w != NULL)
+        classify_lanes(e->P, tri, T, e->nrm, e->two_area, e->longest, e->thin, xl[0], xl[1], xl[2], s->far_c,
+                       s->near_c, s->vertex_c, e->tol, bad, w->farl);
+    int any = 0;
+    for (int l = 0; l < cnt; ++l) e->reg[i0 + l] = bad[l] == 0, any |= bad[l] == 0;
+    for (long f = 0; any && f < T; ++f) {
+        const int *t = tri + 3 * f;
+        const double *q[3] = {e->P + 3 * t[0], e->P + 3 * t[1], e->P + 3 * t[2]};
+        int nclosed = 0, nfar = 0;
+        for (int l = 0; l < VL; ++l) {
+            for (int c = 0; c < 3; ++c) bp[c][l] = e->GPHI[V * row[l] + t[c]] / FOUR_PI;
+            bps[l] = e->GPSI[T * row[l] + f] / FOUR_PI;
+            okc[l] = bad[l] == 0 && w->farl[f * VL + l] == 0 ? 1.0 : 0.0;
+            nclosed += okc[l] != 0, nfar += bad[l] == 0 && w->farl[f * VL + l] != 0;
+        }
+        if (nclosed) {
+            const face_in fi = {e->nrm + 3 * f, e->edir + 9 * f, e->eout + 9 * f, e->gbary + 9 * f, e->gnorm + 3 * f};
+            closed_lanes(q[0], q[1], q[2], &fi, xl[0], xl[1], xl[2], bp[0], bp[1], bp[2], bps, okc,
+                         w->cl + 3 * VL * t[0], w->cl + 3 * VL * t[1], w->cl + 3 * VL * t[2],
+                         w->fl + GF_SIZE * VL * f, gxl[0], w->lane_ga, w->lane_gf);
+        }
+        for (int l = 0; nfar && l < VL; ++l) {
+            if (bad[l] != 0 || okc[l] != 0) continue;
+            const double x[3] = {xl[0][l], xl[1][l], xl[2][l]};
+            const double a0[3] = {q[0][0] - x[0], q[0][1] - x[1], q[0][2] - x[2]};
+            const double bphi[3] = {bp[0][l], bp[1][l], bp[2][l]};
+            double ga0[3] = {0, 0, 0}, gx[3] = {0, 0, 0};
+            far_pair(x, a0, e->nrm + 3 * f, e->far_nodes + 3 * Q * f, e->far_w + Q * f, s->far_bary, Q, bphi, bps[l],
+                     ga0, gx, w->gf + GF_SIZE * f + GF_N, w->gn + 3 * Q * f, w->gw + Q * f);
+            for (int k = 0; k < 3; ++k) w->ga[3 * t[0] + k] += ga0[k], gxl[k][l] += gx[k] - ga0[k];
+        }
+    }
+    for (int l = 0; l < cnt; ++l)
+        for (int k = 0; k < 3; ++k) e->GX[3 * (i0 + l) + k] = bad[l] == 0 ? gxl[k][l] : 0.0;
+}
+
+/* A thread's sums of element e added to its outputs (under the caller's critical section). */
+static void add_sums(const vjp_element *e, const vjp_shape *s, const vjp_scratch *w) {
+    for (size_t k = 0; k < 3 * (size_t)s->V; ++k) {
+        double sum = w->ga[k];
+        for (int l = 0; l < VL; ++l) sum += w->cl[k * VL + l];
+        e->GA[k] += sum;
+    }
+    for (size_t k = 0; k < GF_SIZE * (size_t)s->T; ++k) {
+        double sum = w->gf[k];
+        for (int l = 0; l < VL; ++l) sum += w->fl[k * VL + l];
+        e->GF[k] += sum;
+    }
+    for (size_t k = 0; k < 3 * (size_t)(s->T * s->Q); ++k) e->GN[k] += w->gn[k];
+    for (size_t k = 0; k < (size_t)(s->T * s->Q); ++k) e->GW[k] += w->gw[k];
+}
+
+/* B elements: element b's arrays start b (one element's size) into each of first's, its on-cage
+ * tolerance is tol[b]. */
+static void vjp_run(long B, const vjp_element *first, const double *tol, const vjp_shape *s, int nthreads) {
+    const long V = s->V, T = s->T, Q = s->Q, n = s->n, nb = (n + VL - 1) / VL;
+    memset(first->GA, 0, sizeof(double) * 3 * (size_t)(B * V));
+    memset(first->GF, 0, sizeof(double) * GF_SIZE * (size_t)(B * T));
+    memset(first->GN, 0, sizeof(double) * 3 * (size_t)(B * T * Q));
+    memset(first->GW, 0, sizeof(double) * (size_t)(B * T * Q));
+#pragma omp parallel num_threads(nthreads)
+    {
+        double *ws = (double *)malloc(sizeof(double) * scratch_size(s));
+        vjp_scratch w;
+        if (ws != NULL) w = scratch_of(ws, s);
+        for (long b = 0; b < B; ++b) {
+            const vjp_element *f = first;
+            const vjp_element e = {
+                f->P + 3 * V * b,         f->nrm + 3 * T * b,          f->edir + 9 * T * b,  f->eout + 9 * T * b,
+                f->gbary + 9 * T * b,     f->gnorm + 3 * T * b,        f->two_area + T * b,  f->longest + T * b,
+                f->far_nodes + 3 * T * Q * b, f->far_w + T * Q * b,    f->X + 3 * n * b,     f->GPHI + n * V * b,
+                f->GPSI + n * T * b,      f->thin + T * b,             tol[b],               f->GX + 3 * n * b,
+                f->GA + 3 * V * b,        f->GF + GF_SIZE * T * b,     f->GN + 3 * T * Q * b, f->GW + T * Q * b,
+                f->reg + n * b};
+            if (ws != NULL) memset(ws, 0, sizeof(double) * w.sums);
+            /* (nowait: each thread adds its own sums below, whatever the others are doing) */
+#pragma omp for schedule(dynamic, 4) nowait
+            for (long ib = 0; ib < nb; ++ib) vjp_block(&e, s, ib, ws != NULL ? &w : NULL);
+            if (ws != NULL) {
+#pragma omp critical
+                add_sums(&e, s, &w);
+            }
+        }
+        free(ws);
     }
 }
 
@@ -255,86 +394,24 @@ void tc_gc3d_vjp(const double *P, long V, const int *tri, long T, const double *
                  const double *far_bary, long Q, double far_c, double near_c, double vertex_c, double tol,
                  const double *X, long n, const double *GPHI, const double *GPSI, int nthreads, double *GX,
                  double *GA, double *GF, double *GN, double *GW, unsigned char *reg) {
-    memset(GA, 0, sizeof(double) * 3 * (size_t)V);
-    memset(GF, 0, sizeof(double) * GF_SIZE * (size_t)T);
-    memset(GN, 0, sizeof(double) * 3 * (size_t)(T * Q));
-    memset(GW, 0, sizeof(double) * (size_t)(T * Q));
-    const long nb = (n + VL - 1) / VL;
-#pragma omp parallel num_threads(nthreads)
-    {
-        /* this thread's sums, lane by lane: corners (V, 3, VL), face constants (T, GF_SIZE, VL); the
-         * far-field rule's: corners (V, 3), face constants (T, GF_SIZE), nodes (T, Q, 3), weights
-         * (T, Q); a block's far flags (T, VL) */
-        const size_t lanes = (3 * (size_t)V + GF_SIZE * (size_t)T) * VL;
-        const size_t size =
-            lanes + 3 * (size_t)V + GF_SIZE * (size_t)T + 4 * (size_t)(T * Q) + (size_t)T * VL + (9 + GF_SIZE) * VL;
-        double *ws = (double *)calloc(size, sizeof(double));
-        double *cl = ws, *fl = ws + 3 * (size_t)V * VL, *ga_t = ws + lanes, *gf_t = ga_t + 3 * V;
-        double *gn_t = gf_t + GF_SIZE * T, *gw_t = gn_t + 3 * T * Q, *farl = gw_t + T * Q;
-        double *lane_ga = farl + (size_t)T * VL, *lane_gf = lane_ga + 9 * VL; /* one face's lanes */
-#pragma omp for schedule(dynamic, 4)
-        for (long ib = 0; ib < nb; ++ib) {
-            const long i0 = VL * ib;
-            const int cnt = n - i0 < VL ? (int)(n - i0) : VL;
-            double xl[3][VL], bad[VL], okc[VL], gxl[3][VL], bp[3][VL], bps[VL];
-            long row[VL];
-            for (int l = 0; l < VL; ++l) {
-                row[l] = i0 + (l < cnt ? l : cnt - 1); /* padded lanes repeat the last point, bad */
-                for (int k = 0; k < 3; ++k) xl[k][l] = X[3 * row[l] + k], gxl[k][l] = 0.0;
-                bad[l] = l < cnt && ws != NULL ? 0.0 : 1.0;
-            }
-            if (ws != NULL)
-                classify_lanes(P, tri, T, nrm, two_area, longest, thin, xl[0], xl[1], xl[2], far_c, near_c, vertex_c,
-                               tol, bad, farl);
-            int any = 0;
-            for (int l = 0; l < cnt; ++l) reg[i0 + l] = bad[l] == 0, any |= bad[l] == 0;
-            for (long f = 0; any && f < T; ++f) {
-                const int *t = tri + 3 * f;
-                const double *q[3] = {P + 3 * t[0], P + 3 * t[1], P + 3 * t[2]};
-                int nclosed = 0, nfar = 0;
-                for (int l = 0; l < VL; ++l) {
-                    for (int c = 0; c < 3; ++c) bp[c][l] = GPHI[V * row[l] + t[c]] / FOUR_PI;
-                    bps[l] = GPSI[T * row[l] + f] / FOUR_PI;
-                    okc[l] = bad[l] == 0 && farl[f * VL + l] == 0 ? 1.0 : 0.0;
-                    nclosed += okc[l] != 0, nfar += bad[l] == 0 && farl[f * VL + l] != 0;
-                }
-                if (nclosed) {
-                    const face_in fi = {nrm + 3 * f, edir + 9 * f, eout + 9 * f, gbary + 9 * f, gnorm + 3 * f};
-                    closed_lanes(q[0], q[1], q[2], &fi, xl[0], xl[1], xl[2], bp[0], bp[1], bp[2], bps, okc,
-                                 cl + 3 * VL * t[0], cl + 3 * VL * t[1], cl + 3 * VL * t[2], fl + GF_SIZE * VL * f,
-                                 gxl[0], lane_ga, lane_gf);
-                }
-                for (int l = 0; nfar && l < VL; ++l) {
-                    if (bad[l] != 0 || okc[l] != 0) continue;
-                    const double x[3] = {xl[0][l], xl[1][l], xl[2][l]};
-                    const double a0[3] = {q[0][0] - x[0], q[0][1] - x[1], q[0][2] - x[2]};
-                    const double bphi[3] = {bp[0][l], bp[1][l], bp[2][l]};
-                    double ga0[3] = {0, 0, 0}, gx[3] = {0, 0, 0};
-                    far_pair(x, a0, nrm + 3 * f, far_nodes + 3 * Q * f, far_w + Q * f, far_bary, Q, bphi, bps[l], ga0,
-                             gx, gf_t + GF_SIZE * f + GF_N, gn_t + 3 * Q * f, gw_t + Q * f);
-                    for (int k = 0; k < 3; ++k) ga_t[3 * t[0] + k] += ga0[k], gxl[k][l] += gx[k] - ga0[k];
-                }
-            }
-            for (int l = 0; l < cnt; ++l)
-                for (int k = 0; k < 3; ++k) GX[3 * (i0 + l) + k] = bad[l] == 0 ? gxl[k][l] : 0.0;
-        }
-        if (ws != NULL) {
-#pragma omp critical
-            {
-                for (size_t k = 0; k < 3 * (size_t)V; ++k) {
-                    double sum = ga_t[k];
-                    for (int l = 0; l < VL; ++l) sum += cl[k * VL + l];
-                    GA[k] += sum;
-                }
-                for (size_t k = 0; k < GF_SIZE * (size_t)T; ++k) {
-                    double sum = gf_t[k];
-                    for (int l = 0; l < VL; ++l) sum += fl[k * VL + l];
-                    GF[k] += sum;
-                }
-                for (size_t k = 0; k < 3 * (size_t)(T * Q); ++k) GN[k] += gn_t[k];
-                for (size_t k = 0; k < (size_t)(T * Q); ++k) GW[k] += gw_t[k];
-            }
-        }
-        free(ws);
-    }
+    const vjp_element e = {P, nrm, edir, eout, gbary, gnorm, two_area, longest, far_nodes, far_w, X, GPHI, GPSI,
+                           thin, tol, GX, GA, GF, GN, GW, reg};
+    const vjp_shape s = {tri, far_bary, V, T, Q, n, far_c, near_c, vertex_c};
+    vjp_run(1, &e, &tol, &s, nthreads);
+}
+
+/* tc_gc3d_vjp for B cages with one topology: the per-cage arguments gain a leading B (P (B, V, 3),
+ * the face constants (B, T, ...), X (B, n, 3), GPHI (B, n, V), GPSI (B, n, T), tol (B,)), and so do
+ * the outputs. Element by element the products of tc_gc3d_vjp. */
+void tc_gc3d_vjp_batch(long B, const double *P, long V, const int *tri, long T, const double *nrm,
+                       const double *edir, const double *eout, const double *gbary, const double *gnorm,
+                       const double *two_area, const double *longest, const unsigned char *thin,
+                       const double *far_nodes, const double *far_w, const double *far_bary, long Q, double far_c,
+                       double near_c, double vertex_c, const double *tol, const double *X, long n,
+                       const double *GPHI, const double *GPSI, int nthreads, double *GX, double *GA, double *GF,
+                       double *GN, double *GW, unsigned char *reg) {
+    const vjp_element e = {P, nrm, edir, eout, gbary, gnorm, two_area, longest, far_nodes, far_w, X, GPHI, GPSI,
+                           thin, 0.0, GX, GA, GF, GN, GW, reg};
+    const vjp_shape s = {tri, far_bary, V, T, Q, n, far_c, near_c, vertex_c};
+    vjp_run(B, &e, tol, &s, nthreads);
 }
