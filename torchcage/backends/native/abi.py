@@ -86,13 +86,6 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "gbary:f64*[B,T,3,3] longest:f64*[B,T] far_nodes:f64*[B,T,Q,3] far_w:f64*[B,T,Q] far_bary:f64*[Q,3] Q:i64 "
         "far_c:f64 X:f64*[B,n,3] n:i64 tol:f64*[B] nthreads:i32 PHI:f64*![B,n,V] PSI:f64*![B,n,T]"
     ),
-    "tc_gc3d_vjp": _parse(
-        "P:f64*[V,3] V:i64 tri:i32*[T,3] T:i64 nrm:f64*[T,3] edir:f64*[T,3,3] eout:f64*[T,3,3] gbary:f64*[T,3,3] "
-        "gnorm:f64*[T,3] two_area:f64*[T] longest:f64*[T] thin:u8*[T] far_nodes:f64*[T,Q,3] far_w:f64*[T,Q] "
-        "far_bary:f64*[Q,3] Q:i64 far_c:f64 near_c:f64 vertex_c:f64 tol:f64 X:f64*[n,3] n:i64 GPHI:f64*[n,V] "
-        "GPSI:f64*[n,T] nthreads:i32 GX:f64*![n,3] GA:f64*![V,3] GF:f64*![T,33] GN:f64*![T,Q,3] GW:f64*![T,Q] "
-        "reg:u8*![n]"
-    ),
     "tc_gc3d_vjp_batch": _parse(
         "B:i64 P:f64*[B,V,3] V:i64 tri:i32*[T,3] T:i64 nrm:f64*[B,T,3] edir:f64*[B,T,3,3] eout:f64*[B,T,3,3] "
         "gbary:f64*[B,T,3,3] gnorm:f64*[B,T,3] two_area:f64*[B,T] longest:f64*[B,T] thin:u8*[B,T] "

@@ -27,11 +27,12 @@
  * kernel's perpendicular forms and on-face limits). The other points get reg = 0 and a zero row,
  * and add nothing: the caller computes them.
  *
- * P (V, 3); tri (T, 3); nrm (T, 3); edir, eout, gbary (T, 3, 3) (row e: the edge opposite corner e,
- * or corner e's gradient); gnorm (T, 3) = |gbary|; two_area, longest (T,); thin (T,) 1 for thin
- * faces; far_nodes (T, Q, 3), far_w (T, Q), far_bary (Q, 3); X (n, 3); GPHI (n, V), GPSI (n, T)
- * the cotangents. Outputs: GX (n, 3), GA (V, 3), GF (T, 33) (n 3, edir 9, eout 9, gbary 9,
- * gnorm 3), GN (T, Q, 3), GW (T, Q), reg (n,).
+ * tc_gc3d_vjp_batch takes B cages with one topology; per cage: P (V, 3); nrm (T, 3); edir, eout,
+ * gbary (T, 3, 3) (row e: the edge opposite corner e, or corner e's gradient); gnorm (T, 3) =
+ * |gbary|; two_area, longest (T,); thin (T,) 1 for thin faces; far_nodes (T, Q, 3), far_w (T, Q);
+ * tol; X (n, 3); GPHI (n, V), GPSI (n, T) the cotangents. Shared: tri (T, 3), far_bary (Q, 3).
+ * Outputs per cage: GX (n, 3), GA (V, 3), GF (T, 33) (n 3, edir 9, eout 9, gbary 9, gnorm 3),
+ * GN (T, Q, 3), GW (T, Q), reg (n,).
  */
 #include <math.h>
 #include <stdlib.h>
@@ -249,7 +250,7 @@ static void classify_lanes(const double *P, const int *tri, long T, const double
     }
 }
 
-/* One batch element's arrays (the layouts of tc_gc3d_vjp's arguments). */
+/* One batch element's arrays (the layouts at the top). */
 typedef struct {
     const double *P, *nrm, *edir, *eout, *gbary, *gnorm, *two_area, *longest, *far_nodes, *far_w, *X, *GPHI, *GPSI;
     const unsigned char *thin;
@@ -388,21 +389,9 @@ static void vjp_run(long B, const vjp_element *first, const double *tol, const v
     }
 }
 
-void tc_gc3d_vjp(const double *P, long V, const int *tri, long T, const double *nrm, const double *edir,
-                 const double *eout, const double *gbary, const double *gnorm, const double *two_area,
-                 const double *longest, const unsigned char *thin, const double *far_nodes, const double *far_w,
-                 const double *far_bary, long Q, double far_c, double near_c, double vertex_c, double tol,
-                 const double *X, long n, const double *GPHI, const double *GPSI, int nthreads, double *GX,
-                 double *GA, double *GF, double *GN, double *GW, unsigned char *reg) {
-    const vjp_element e = {P, nrm, edir, eout, gbary, gnorm, two_area, longest, far_nodes, far_w, X, GPHI, GPSI,
-                           thin, tol, GX, GA, GF, GN, GW, reg};
-    const vjp_shape s = {tri, far_bary, V, T, Q, n, far_c, near_c, vertex_c};
-    vjp_run(1, &e, &tol, &s, nthreads);
-}
-
-/* tc_gc3d_vjp for B cages with one topology: the per-cage arguments gain a leading B (P (B, V, 3),
- * the face constants (B, T, ...), X (B, n, 3), GPHI (B, n, V), GPSI (B, n, T), tol (B,)), and so do
- * the outputs. Element by element the products of tc_gc3d_vjp. */
+/* The products for B cages with one topology (the arguments and outputs of the comment at the top,
+ * each per-cage one with a leading B; tol (B,)): element by element the same blocks, in one parallel
+ * region. */
 void tc_gc3d_vjp_batch(long B, const double *P, long V, const int *tri, long T, const double *nrm,
                        const double *edir, const double *eout, const double *gbary, const double *gnorm,
                        const double *two_area, const double *longest, const unsigned char *thin,

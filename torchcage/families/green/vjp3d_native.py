@@ -18,7 +18,7 @@ from torchcage.families.green.kernel3d import (
     triangle_green_geometry,
 )
 
-__all__ = ["native_vjp"]
+__all__ = ["native_vjp", "native_vjp_batch"]
 
 #: The kernel's face-constant cotangents, columns of its ``GF`` output: name -> (start, shape).
 _FACE_COLUMNS = {"normal": (0, (3,)), "edge_dir": (3, (3, 3)), "edge_out": (12, (3, 3)), "grad_bary": (21, (3, 3)),
@@ -54,24 +54,48 @@ def native_vjp(
         >>> bool(reg[0]), float(gx.abs().max()) < 1e-12  # sum phi = 1 inside: no derivative
         (True, True)
     """
-    n, V, T = x.shape[0], vertices.shape[0], tri.shape[0]
+    tols = torch.tensor([float(tol)], dtype=torch.float64)
+    gx, gP, reg = native_vjp_batch(lib, x[None], vertices[None], tri, gphi[None], gpsi[None], tols)
+    return gx[0], gP[0], reg[0]
+
+
+def native_vjp_batch(
+    lib: ctypes.CDLL,
+    x: torch.Tensor,
+    vertices: torch.Tensor,
+    tri: torch.Tensor,
+    gphi: torch.Tensor,
+    gpsi: torch.Tensor,
+    tol: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`native_vjp` of B cages with one topology in one call: ``x`` ``(B, n, 3)``,
+    ``vertices`` ``(B, V, 3)``, ``gphi`` ``(B, n, V)``, ``gpsi`` ``(B, n, T)``, ``tol`` ``(B,)`` ->
+    ``(gx (B, n, 3), gP (B, V, 3), regular (B, n))``, element by element :func:`native_vjp`'s."""
+    B, n, V, T = vertices.shape[0], x.shape[1], vertices.shape[1], tri.shape[0]
     f64 = torch.float64
     with torch.enable_grad():
         P = vertices.detach().to(f64).requires_grad_()
-        p = P[tri]  # (T, 3, 3)
+        p = P[:, tri]  # (B, T, 3, 3)
         normal, two_area, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
         gnorm = grad_bary.norm(dim=-1)
         nodes, weights, bary = far_nodes(p, two_area)
     consts = {"normal": normal, "edge_dir": edge_dir, "edge_out": edge_out, "grad_bary": grad_bary, "gnorm": gnorm}
     detached = {k: v.detach().contiguous() for k, v in consts.items()}
-    longest = (p.detach().roll(-1, dims=1) - p.detach()).norm(dim=-1).amax(dim=1)
+    pd = p.detach()
+    longest = (pd.roll(-1, dims=-2) - pd).norm(dim=-1).amax(dim=-1)
     thin = (grad_bary.detach().square().sum(-1).amax(-1) * two_area.detach() > THIN_ASPECT).to(torch.uint8)
     Q = bary.shape[0]
-    gx, gA, gF = torch.empty((n, 3), dtype=f64), torch.empty((V, 3), dtype=f64), torch.empty((T, 33), dtype=f64)
-    gN, gW, reg = torch.empty((T, Q, 3), dtype=f64), torch.empty((T, Q), dtype=f64), torch.empty(n, dtype=torch.uint8)
+    gx, gA, gF = (
+        torch.empty((B, n, 3), dtype=f64),
+        torch.empty((B, V, 3), dtype=f64),
+        torch.empty((B, T, 33), dtype=f64),
+    )
+    gN, gW = torch.empty((B, T, Q, 3), dtype=f64), torch.empty((B, T, Q), dtype=f64)
+    reg = torch.empty((B, n), dtype=torch.uint8)
     _native.call(
         lib,
-        "tc_gc3d_vjp",
+        "tc_gc3d_vjp_batch",
+        B=B,
         P=P.detach().contiguous(),
         V=V,
         tri=tri.to(torch.int32).contiguous(),
@@ -91,7 +115,7 @@ def native_vjp(
         far_c=FAR_RATIO,
         near_c=PERPENDICULAR_PLANE_RATIO,
         vertex_c=PERPENDICULAR_VERTEX_RATIO,
-        tol=float(tol),
+        tol=tol.to(f64).contiguous(),
         X=x.detach().to(f64).contiguous(),
         n=n,
         GPHI=gphi.detach().to(f64).contiguous(),
@@ -103,8 +127,8 @@ def native_vjp(
         GW=gW,
         reg=reg,
     )
-    # The face constants' cotangents to the vertices: autograd of the few operations over T faces.
+    # The face constants' cotangents to the vertices: autograd of the few operations over B T faces.
     outs = [*consts.values(), nodes, weights]
-    cots = [gF[:, s : s + (3 if len(shape) == 1 else 9)].reshape(T, *shape) for s, shape in _FACE_COLUMNS.values()]
+    cots = [gF[..., s : s + (3 if len(shape) == 1 else 9)].reshape(B, T, *shape) for s, shape in _FACE_COLUMNS.values()]
     (gP,) = torch.autograd.grad(outs, P, [*cots, gN, gW])
     return gx, gA + gP, reg.bool()
