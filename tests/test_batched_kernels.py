@@ -423,3 +423,67 @@ def test_batched_call_in_forward_mode_equals_the_loop():
         - F.mean_value_coordinates(x - h * tangent, torchcage.Cage(V, tri))
     ) / (2 * h)
     assert float((outs[0] - fd).abs().max()) < 1e-7
+
+
+def _green_loss_grads(fn, pts, V, tri, cots, wrt: str, exterior: str):
+    """Green coordinates and the gradients of ``sum(cot_phi * phi) + sum(cot_psi * psi)`` with
+    respect to ``wrt`` ("points", "vertices" or both, "all")."""
+    x = pts.clone().requires_grad_(wrt in ("points", "all"))
+    P = V.clone().requires_grad_(wrt in ("vertices", "all"))
+    phi, psi = fn(x, torchcage.Cage(P, tri), exterior=exterior)
+    ((phi * cots[0]).sum() + (psi * cots[1]).sum()).backward()
+    return phi.detach(), psi.detach(), x.grad, P.grad
+
+
+@pytest.mark.native
+@pytest.mark.parametrize("dtype", [torch.float32, D64])
+@pytest.mark.parametrize("shift", [0.0, 1e3])
+@pytest.mark.parametrize("wrt", ["all", "vertices", "points"])
+@pytest.mark.parametrize("exterior", ["extend", "none"])
+def test_batched_green_with_a_graph_equals_the_loop(dtype, shift, wrt, exterior, monkeypatch):
+    B = 3
+    V, tri = _cages(B, shift=shift)
+    per_cage = torch.stack([torch.cat([_points(V[b], tri, seed=b), _near_vertices(V[b], b)]) for b in range(B)])
+    values = _CountCalls(monkeypatch, "tc_gc3d_batch")
+    vjp = _CountCalls(monkeypatch, "tc_gc3d_vjp_batch")
+    g = torch.Generator().manual_seed(2)
+    for pts in (per_cage, per_cage[0]):
+        N = pts.shape[-2]
+        cots = (
+            torch.randn(B, N, 42, generator=g, dtype=D64).to(dtype),
+            torch.randn(B, N, 80, generator=g, dtype=D64).to(dtype),
+        )
+        values.batches.clear(), vjp.batches.clear()
+        phi, psi, gx, gP = _green_loss_grads(F.green_coordinates, pts.to(dtype), V.to(dtype), tri, cots, wrt, exterior)
+        # the values of the whole batch in one native call, and their products in one more (the
+        # points alone: element by element, the closed-form point gradients)
+        assert values.batches == [B]
+        assert vjp.batches == ([B] if wrt != "points" else [])
+        ref = _green_loss_grads(
+            lambda x, c, **kw: over_cage_batch(F.green_coordinates, x, c, **kw),
+            pts.to(dtype), V.to(dtype), tri, cots, wrt, exterior,
+        )  # fmt: skip
+        _assert_same(phi, ref[0])
+        _assert_same(psi, ref[1])
+        for got, want in zip((gx, gP), ref[2:], strict=True):
+            assert (got is None) == (want is None)
+            if got is not None:  # (sums over the points in another order: rounding apart)
+                assert got.dtype == dtype and bool(torch.isfinite(got).all())
+                err = float((got - want).abs().max()) / max(1.0, float(want.abs().max()))
+                assert err <= 64 * torch.finfo(dtype).eps, err
+
+
+@pytest.mark.native
+def test_batched_green_with_a_graph_checks_its_derivatives():
+    box = cube().triangulated()  # a small cage: gradcheck perturbs every coordinate
+    g = torch.Generator().manual_seed(5)
+    V = (box.vertices[None] * (1 + 0.1 * torch.rand(2, 1, 1, generator=g, dtype=D64))).requires_grad_()
+    x = torch.cat([0.4 * (torch.rand(2, 2, 3, generator=g, dtype=D64) - 0.5), torch.full((2, 1, 3), 3.0, dtype=D64)], 1)
+    x.requires_grad_()  # two points inside each cage, one outside (the extension)
+
+    def green(points, rest):
+        return F.green_coordinates(points, torchcage.Cage(rest, box.triangles, validate=False))
+
+    assert torch.autograd.gradcheck(green, (x, V))
+    # double backward (second derivatives with respect to the points) through the batched call
+    assert torch.autograd.gradgradcheck(lambda p: green(p, V.detach()), (x,))

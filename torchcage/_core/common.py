@@ -147,10 +147,10 @@ def snap_to_vertices(x: torch.Tensor, vertices: torch.Tensor, radius: float) -> 
 
 
 def snap_to_vertices_batch(x: torch.Tensor, vertices: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
-    """:func:`snap_to_vertices` for a batch of cages at once, without autograd: ``x`` ``(B, N, D)``
-    with every point within ``radius[b]`` ``(B,)`` of a vertex of ``vertices[b]`` ``(B, V, D)``
-    replaced by that vertex (a new tensor, or ``x`` itself when no point snaps); element by element
-    the same points as :func:`snap_to_vertices`.
+    """:func:`snap_to_vertices` for a batch of cages at once: ``x`` ``(B, N, D)`` with every point
+    within ``radius[b]`` ``(B,)`` of a vertex of ``vertices[b]`` ``(B, V, D)`` replaced by that
+    vertex (a new tensor, or ``x`` itself when no point snaps); element by element the same points
+    as :func:`snap_to_vertices`, and differentiable as it (snapped rows follow the vertex).
 
     Examples:
         >>> V = torch.tensor([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 1.0], [1.0, 1.0]]])
@@ -201,9 +201,9 @@ def snap_to_vertices_batch(x: torch.Tensor, vertices: torch.Tensor, radius: torc
         if not hits:
             return x
         b, n, best = (torch.cat(t) for t in zip(*hits, strict=True))
-        out = x.clone()
-        out[b, n] = Vd[b, best]
-        return out
+    out = x.clone()
+    out[b, n] = vertices.to(x.dtype)[b, best]
+    return out
 
 
 def records_graph(*tensors: torch.Tensor) -> bool:

@@ -23,7 +23,8 @@ from torchcage._core.common import (
 )
 from torchcage._core.compiled import CompiledOp, through_op
 from torchcage.cage import Cage
-from torchcage.families.green.dispatch import coordinates_batch, green_flat
+from torchcage.families.green.batch import coordinates_batch
+from torchcage.families.green.dispatch import green_flat
 from torchcage.families.green.exterior import extend_outside
 from torchcage.families.green.kernel3d import triangle_green_data
 from torchcage.families.green.ops import green_function
@@ -124,11 +125,12 @@ def green_coordinates(
         return phi, psi
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
-        # One native call for the whole batch (no autograd graph, a triangle cage, the CPU) ...
+        # One native call for the whole batch (a triangle cage, the CPU; with a graph, one more
+        # for the backward pass) ...
         batched = coordinates_batch(points, cage, chunk_size, dtype, progress, backend, exterior)
         if batched is not None:
             return batched
-        # ... elsewhere (the torch or Triton kernels, an autograd graph, 2D) one call per element.
+        # ... elsewhere (the torch or Triton kernels, torch.func transforms, 2D) one call per element.
         return over_cage_batch(
             green_coordinates,
             points,

@@ -4,31 +4,25 @@ kernel (native C, Triton or torch) and runs it over chunks of points. Both the p
 
 from __future__ import annotations
 
+import ctypes
 from collections.abc import Callable
 
 import torch
 
 from torchcage._core.alloc import empty_output
-from torchcage._core.batch import broadcast_batch, check_finite_batch
 from torchcage._core.common import (
-    ON_CAGE_TOLERANCE,
-    VERTEX_SNAP,
     chunks,
     default_chunk,
     on_cage_tolerances,
     records_graph,
-    result_dtype,
-    snap_to_vertices_batch,
-    unit_sum,
 )
 from torchcage.backends import Op, select
 from torchcage.cage import Cage
-from torchcage.families.green.exterior import extend_outside
 from torchcage.families.green.kernel2d import green2d_coordinates
 from torchcage.families.green.kernel3d import TriangleGreenData, green3d_coordinates, triangle_green_data
 from torchcage.families.green.native3d import batch_chunk, batch_tables, native_chunk, native_tables
 
-__all__ = ["coordinates_batch", "green_flat"]
+__all__ = ["batch_integrals", "green_flat"]
 
 
 #: The kernels of Green coordinates (:func:`torchcage.backends.select` chooses).
@@ -96,68 +90,32 @@ def _triton_chunk(
     return phi, psi
 
 
-def coordinates_batch(
-    points: torch.Tensor,
-    cage: Cage,
+def batch_integrals(
+    x: torch.Tensor,
+    vertices: torch.Tensor,
+    faces: torch.Tensor,
+    lib: ctypes.CDLL,
     chunk_size: int | None = None,
-    dtype: torch.dtype | None = None,
     progress: bool | Callable[[int, int], None] = False,
-    backend: str = "auto",
-    exterior: str = "extend",
-) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Green coordinates ``(phi (*B', N, V), psi (*B', N, T))`` of points ``(N, 3)`` or
-    ``(*Bp, N, 3)`` for a batch of 3D triangle cages with one topology (batch shape ``B``, ``B'``
-    the broadcast shape) by the native kernel: one call per chunk of points for every cage at once,
-    the per-cage tables built by one set of tensor operations. Element by element the numbers of
-    the public function on ``cage[b]``: the same centring, vertex snap, tables and kernel, the
-    exterior continuation (for the elements that have points outside) and the unit sum.
-
-    ``None`` where the native kernel does not serve (another backend, an autograd graph, 2D or quad
-    cages, another device or compute dtype, no native build): the caller then computes element by
-    element (``_batch.over_cage_batch``), which also raises the errors of those paths. The cages'
-    geometry is checked by the caller (``as_inputs``).
-
-    Raises:
-        PointsError: points that do not broadcast with the cages, or points holding NaN or inf; the
-            batch element is named.
-    """
-    if cage.dim != 3 or cage.has_quads or backend not in ("auto", "native") or records_graph(points, cage.vertices):
-        return None
-    pts, verts, batch = broadcast_batch(points, cage)
-    if not pts.is_floating_point() or pts.device.type != "cpu" or verts.device.type != "cpu":
-        return None
-    compute, out_dtype = result_dtype(pts, cage, dtype)
-    if compute != torch.float64:
-        return None
-    check_finite_batch(pts, batch)
-    # Each cage and its points about the middle of its bounding box (as ``api.centred``).
-    v = verts.detach().to(compute)
-    c = ((v.amax(dim=-2) + v.amin(dim=-2)) / 2)[:, None, :]  # (B, 1, 3)
-    x, vc = pts.detach().to(compute) - c, v - c
-    choice = select(GC, backend, x, vc, graph=False)
-    if choice.kind != "native" or choice.lib is None:
-        return None
-    B, N, V, T = vc.shape[0], x.shape[1], vc.shape[1], cage.triangles.shape[0]
-    scale = (v.amax(dim=-2) - v.amin(dim=-2)).norm(dim=-1)  # (B,): each element's Cage.scale
-    x = snap_to_vertices_batch(x, vc, VERTEX_SNAP * ON_CAGE_TOLERANCE * scale)
-    tables = batch_tables(vc, cage.triangles, on_cage_tolerances(vc))
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The bare Green integrals ``(phi (B, N, V), psi (B, N, T))`` of points ``x`` ``(B, N, 3)``
+    (snapped) for cages ``vertices`` ``(B, V, 3)`` (both centred, float64 CPU, no graph) by the
+    native kernel: the tables built once for the batch, one call per chunk of points for every cage
+    at once."""
+    B, N, V, T = vertices.shape[0], x.shape[1], vertices.shape[1], faces.shape[0]
+    tables = batch_tables(vertices, faces, on_cage_tolerances(vertices))
     # The kernel needs no temporaries beyond its outputs: chunks only pace the progress bar.
     size = chunk_size if chunk_size is not None else default_chunk(B * T, 1 << 23)
-    phi = empty_output(B, N, V, dtype=compute)
-    psi = empty_output(B, N, T, dtype=compute)
+    phi = empty_output(B, N, V, dtype=x.dtype)
+    psi = empty_output(B, N, T, dtype=x.dtype)
     for sl in chunks(N, size, progress, desc="Green coordinates"):
         if sl.start == 0 and sl.stop == N:
-            batch_chunk(x, tables, choice.lib, phi, psi)
+            batch_chunk(x, tables, lib, phi, psi)
         else:
             part_phi, part_psi = (
-                torch.empty((B, sl.stop - sl.start, V), dtype=compute),
-                torch.empty((B, sl.stop - sl.start, T), dtype=compute),
+                torch.empty((B, sl.stop - sl.start, V), dtype=x.dtype),
+                torch.empty((B, sl.stop - sl.start, T), dtype=x.dtype),
             )
-            batch_chunk(x[:, sl], tables, choice.lib, part_phi, part_psi)
+            batch_chunk(x[:, sl], tables, lib, part_phi, part_psi)
             phi[:, sl], psi[:, sl] = part_phi, part_psi
-    if exterior == "extend":  # the elements with points outside (a winding number below 1/2)
-        for b in torch.nonzero((phi.sum(dim=-1) < 0.5).any(dim=1)).flatten().tolist():
-            phi[b], psi[b], _ = extend_outside(x[b], cage._like(vc[b]), phi[b], psi[b])
-    # (the sum made 1 where the caller multiplies by the vertices: about the origin)
-    phi = unit_sum(phi, pts.to(compute), v)
-    return phi.to(out_dtype).reshape(*batch, N, V), psi.to(out_dtype).reshape(*batch, N, T)
+    return phi, psi

@@ -23,14 +23,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcage._core.common import on_cage_tolerance, result_dtype
+from torchcage._core.common import on_cage_tolerance, on_cage_tolerances, result_dtype
 from torchcage.backends import select
 from torchcage.cage import Cage
 from torchcage.families.green.derivatives_flat import bare_derivatives
-from torchcage.families.green.dispatch import GC, green_flat
-from torchcage.families.green.vjp3d_native import native_vjp
+from torchcage.families.green.dispatch import GC, batch_integrals, green_flat
+from torchcage.families.green.vjp3d_native import native_vjp, native_vjp_batch
 
-__all__ = ["GreenFunction", "GreenGradFunction", "GreenHessFunction", "green_function"]
+__all__ = ["GreenBatchFunction", "GreenFunction", "GreenGradFunction", "GreenHessFunction", "green_function"]
 
 #: Point-face pairs per chunk of the backward pass (about 1 KB of autograd state each).
 _PAIRS = 1 << 17
@@ -108,27 +108,95 @@ class GreenFunction(torch.autograd.Function):
         ctx.faces, ctx.backend = inputs[2], inputs[4]
 
     @staticmethod
-    def backward(ctx, gphi: Tensor, gpsi: Tensor):
+    def backward(ctx, gphi: Tensor | None, gpsi: Tensor | None):
+        x, P = ctx.saved_tensors
+        gx, gP = _backward(x, P, ctx.faces, gphi, gpsi, *ctx.needs_input_grad[:2], ctx.backend)
+        return gx, gP, None, None, None
+
+
+class GreenBatchFunction(torch.autograd.Function):
+    """``(points (B, N, 3), vertices (B, V, 3), faces, chunk_size, progress, backend) -> (phi (B, N,
+    V), psi (B, N, T))``: the bare integrals of a batch of 3D triangle cages with one topology,
+    float64 CPU points and vertices (centred and snapped, as :class:`GreenFunction` takes one), by
+    one native call for the values (:func:`.dispatch.batch_integrals`) and one for the first-order
+    backward pass (:func:`.vjp3d_native.native_vjp_batch`); the points that call leaves, the points
+    alone (the closed-form gradients) and double backward go element by element as
+    :class:`GreenFunction`'s backward."""
+
+    @staticmethod
+    def forward(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int, progress, backend: str):
+        lib = _native_library(points, vertices, backend)
+        if lib is None:
+            raise RuntimeError("GreenBatchFunction takes float64 CPU points where the native kernel loads")
+        return batch_integrals(points.detach(), vertices.detach(), faces, lib, chunk_size or None, progress)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(inputs[0], inputs[1])
+        ctx.faces, ctx.backend = inputs[2], inputs[5]
+
+    @staticmethod
+    def backward(ctx, gphi: Tensor | None, gpsi: Tensor | None):
         x, P = ctx.saved_tensors
         need_x, need_P = ctx.needs_input_grad[:2]
-        if need_x and not need_P and not P.requires_grad:
-            # the points alone: the closed-form gradients (Hessians on double backward)
-            d_phi, d_psi = GreenGradFunction.apply(x, P, ctx.faces)
-            gx = 0
-            if gphi is not None:
-                gx = gx + torch.einsum("nv,nvc->nc", gphi.to(d_phi.dtype), d_phi)
-            if gpsi is not None:
-                gx = gx + torch.einsum("nt,ntc->nc", gpsi.to(d_psi.dtype), d_psi)
-            return (gx if torch.is_tensor(gx) else torch.zeros_like(x)), None, None, None, None
-        gphi = gphi if gphi is not None else torch.zeros(x.shape[0], P.shape[0], dtype=x.dtype, device=x.device)
-        gpsi = gpsi if gpsi is not None else torch.zeros(x.shape[0], ctx.faces.shape[0], dtype=x.dtype, device=x.device)
-        create = torch.is_grad_enabled()
-        lib = None if create else _native_library(x, P, ctx.backend)
-        if lib is not None:
-            gx, gP = _native_backward(lib, x, P, ctx.faces, gphi, gpsi, need_x, need_P)
-        else:
-            gx, gP = _autograd_backward(x, P, ctx.faces, gphi, gpsi, need_x, need_P, create)
-        return gx, gP, None, None, None
+        B, faces = x.shape[0], ctx.faces
+        points_only = need_x and not need_P and not P.requires_grad
+        lib = None if torch.is_grad_enabled() or points_only else _native_library(x, P, ctx.backend)
+        if lib is None:  # element by element, as GreenFunction
+            parts = [
+                _backward(x[b], P[b], faces, None if gphi is None else gphi[b], None if gpsi is None else gpsi[b],
+                          need_x, need_P, ctx.backend)
+                for b in range(B)
+            ]  # fmt: skip
+            gx = torch.stack([g for g, _ in parts]) if need_x else None
+            gP = torch.stack([g for _, g in parts]) if need_P else None
+            return gx, gP, None, None, None, None
+        gphi = gphi if gphi is not None else x.new_zeros(B, x.shape[1], P.shape[1])
+        gpsi = gpsi if gpsi is not None else x.new_zeros(B, x.shape[1], faces.shape[0])
+        gx, gP, reg = native_vjp_batch(lib, x, P, faces, gphi, gpsi, on_cage_tolerances(P.detach()))
+        for b in torch.nonzero(~reg.all(dim=1)).flatten().tolist():  # the points the kernel left
+            rows = torch.nonzero(~reg[b]).flatten()
+            gx_rows, gP_rows = _autograd_backward(
+                x[b].index_select(0, rows), P[b], faces, gphi[b].index_select(0, rows),
+                gpsi[b].index_select(0, rows), need_x, need_P, False,
+            )  # fmt: skip
+            if gx_rows is not None:
+                gx[b, rows] = gx_rows.to(gx.dtype)
+            if gP_rows is not None:
+                gP[b] += gP_rows.to(gP.dtype)
+        return (gx if need_x else None), (gP if need_P else None), None, None, None, None
+
+
+def _backward(
+    x: Tensor,
+    P: Tensor,
+    faces: Tensor,
+    gphi: Tensor | None,
+    gpsi: Tensor | None,
+    need_x: bool,
+    need_P: bool,
+    backend: str,
+) -> tuple[Tensor | None, Tensor | None]:
+    """``(dL/dx (N, D), dL/dP (V, D))`` (None where not needed) of one cage's bare integrals for the
+    cotangents ``gphi`` ``(N, V)`` and ``gpsi`` ``(N, T)`` (None: zero): the closed-form gradients
+    for the points alone; else the native reverse pass where it serves (first order, CPU); else
+    autograd of the torch kernel, chunk by chunk (kept for double backward)."""
+    if need_x and not need_P and not P.requires_grad:
+        # the points alone: the closed-form gradients (Hessians on double backward)
+        d_phi, d_psi = GreenGradFunction.apply(x, P, faces)
+        gx = torch.zeros_like(x)
+        if gphi is not None:
+            gx = gx + torch.einsum("nv,nvc->nc", gphi.to(d_phi.dtype), d_phi)
+        if gpsi is not None:
+            gx = gx + torch.einsum("nt,ntc->nc", gpsi.to(d_psi.dtype), d_psi)
+        return gx, None
+    gphi = gphi if gphi is not None else torch.zeros(x.shape[0], P.shape[0], dtype=x.dtype, device=x.device)
+    gpsi = gpsi if gpsi is not None else torch.zeros(x.shape[0], faces.shape[0], dtype=x.dtype, device=x.device)
+    create = torch.is_grad_enabled()
+    lib = None if create else _native_library(x, P, backend)
+    if lib is not None:
+        return _native_backward(lib, x, P, faces, gphi, gpsi, need_x, need_P)
+    return _autograd_backward(x, P, faces, gphi, gpsi, need_x, need_P, create)
 
 
 def _native_library(x: Tensor, P: Tensor, backend: str):
