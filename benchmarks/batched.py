@@ -1,14 +1,14 @@
 """Benchmark of batched rest cages: one native call for the whole batch against a loop of
-single-cage calls, mean value and Green coordinates forward (no graph, CPU), and mean value
-coordinates forward and backward (``mvc-grad``: the gradients of a loss with respect to the points
-and the rest cages, as a training step takes them).
+single-cage calls, mean value and Green coordinates forward (no graph, CPU), and forward and
+backward (``mvc-grad``, ``gc-grad``: the gradients of a loss with respect to the points and the rest
+cages, as a training step takes them).
 
 The setting of ``learnable.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each, a 42-vertex /
 80-triangle icosphere cage per shape (each jittered), points inside. *loop*: ``over_cage_batch``
 calling ``F.mean_value_coordinates`` (``F.green_coordinates``) per element (per element its
 tables, its checks and one native call); *batched*: the same function on the batched ``Cage`` (one
-set of tables for the batch, one native call; with ``mvc-grad``, one more for the backward pass).
-*time*: the forward call, or for ``mvc-grad`` the forward call and the backward pass. With
+set of tables for the batch, one native call; with ``-grad``, one more for the backward pass).
+*time*: the forward call, or for ``-grad`` the forward call and the backward pass. With
 ``--baseline REV`` (default ``HEAD``; ``none`` to skip), also the loop of the library at git
 revision ``REV`` (exported to a temporary folder; what a batched cage
 cost before this benchmark's revision, the single-cage path's own set-up included). Each call
@@ -19,7 +19,7 @@ implementations interleaved, best of ``--repeat``; *speed-up* is against the fir
 method and dtype.
 
 Usage: ``python benchmarks/batched.py [--batch 8] [--points 5000] [--repeat 10] [--baseline REV]
-[--methods mvc gc mvc-grad]``
+[--methods mvc gc mvc-grad gc-grad]``
 """
 
 from __future__ import annotations
@@ -70,21 +70,23 @@ def _child(args: argparse.Namespace) -> None:
 
     _native.call = timed_call  # every glue module calls it through the module attribute
     x, P, faces, _ = problem(args.batch, args.points, getattr(torch, args.dtype), "cpu")
-    fn = green_coordinates if args.method == "gc" else mean_value_coordinates
-    cot = torch.randn(args.batch, args.points, P.shape[-2], generator=torch.Generator().manual_seed(1)).to(x.dtype)
+    green = args.method.startswith("gc")
+    fn = green_coordinates if green else mean_value_coordinates
+    width = P.shape[-2] + (faces.shape[0] if green else 0)  # (Green: phi and psi, joined)
+    cot = torch.randn(args.batch, args.points, width, generator=torch.Generator().manual_seed(1)).to(x.dtype)
 
     def joined(out: torch.Tensor | tuple[torch.Tensor, ...]) -> torch.Tensor:  # (Green's phi and psi, for the diff)
         return out if isinstance(out, torch.Tensor) else torch.cat(out, dim=-1)
 
     def call(batched: bool) -> torch.Tensor | tuple[torch.Tensor, ...]:
-        if args.method != "mvc-grad":
+        if not args.method.endswith("-grad"):
             cage = torchcage.Cage(P, faces, validate="topology")
             return fn(x, cage) if batched else over_cage_batch(fn, x, cage)
         # a training step's part: the values and the gradients of a loss with respect to the
         # points and the rest cages (returned, joined, for the diff)
         xx, PP = x.clone().requires_grad_(), P.clone().requires_grad_()
         cage = torchcage.Cage(PP, faces, validate="topology")
-        lam = fn(xx, cage) if batched else over_cage_batch(fn, xx, cage)
+        lam = joined(fn(xx, cage) if batched else over_cage_batch(fn, xx, cage))
         (lam * cot).sum().backward()
         assert xx.grad is not None and PP.grad is not None
         return torch.cat([xx.grad.reshape(-1), PP.grad.reshape(-1)])
@@ -95,7 +97,7 @@ def _child(args: argparse.Namespace) -> None:
     }
     names = args.impl.split(",")
     best = {k: (float("inf"), 0.0) for k in names}
-    with torch.no_grad() if args.method != "mvc-grad" else contextlib.nullcontext():
+    with torch.no_grad() if not args.method.endswith("-grad") else contextlib.nullcontext():
         outs = {k: impls[k]() for k in names}  # (warm-up: lazy imports, the native library)
         for _ in range(args.repeat):
             for k in names:
@@ -129,7 +131,7 @@ def main() -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--impl", default="loop,batched", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
-    methods = ["mvc", "gc", "mvc-grad"]
+    methods = ["mvc", "gc", "mvc-grad", "gc-grad"]
     ap.add_argument("--method", default="mvc", choices=methods, help=argparse.SUPPRESS)
     ap.add_argument("--methods", nargs="+", default=methods, choices=methods)
     args = ap.parse_args()
