@@ -10,6 +10,7 @@ from typing import Any
 
 import torch
 from torch._C._functorch import is_functorch_wrapped_tensor
+from torch.autograd import forward_ad
 
 from torchcage._core.centre import rounding_extent
 from torchcage.cage import Cage
@@ -207,10 +208,44 @@ def snap_to_vertices_batch(x: torch.Tensor, vertices: torch.Tensor, radius: torc
 
 
 def records_graph(*tensors: torch.Tensor) -> bool:
-    """True when autograd (or a torch.func transform) differentiates through a call on ``tensors``."""
-    if any(is_functorch_wrapped_tensor(t) for t in tensors):
+    """True when autograd (reverse or forward mode, or a torch.func transform) differentiates
+    through a call on ``tensors``."""
+    if any(is_functorch_wrapped_tensor(t) or has_tangent(t) for t in tensors):
         return True
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
+def no_vertex_tangent(dP: torch.Tensor | None) -> None:
+    """Forward mode covers tangents of the points only (torch.func passes zeros for the others).
+
+    Raises:
+        NotImplementedError: a nonzero tangent ``dP`` of the rest cage's vertices.
+    """
+    if dP is None:
+        return
+    try:
+        zero = bool((dP == 0).all())
+    except RuntimeError:  # a batched tangent whose values cannot be inspected
+        zero = False
+    if not zero:
+        raise NotImplementedError(
+            "forward-mode derivatives with respect to the rest cage's vertices are not implemented; "
+            "use reverse mode (backward, torch.func.jacrev)"
+        )
+
+
+def has_tangent(t: torch.Tensor) -> bool:
+    """True when ``t`` carries a forward-mode tangent at the current level
+    (:mod:`torch.autograd.forward_ad`): a call on it must keep the derivative.
+
+    Examples:
+        >>> import torch.autograd.forward_ad as fwAD
+        >>> x = torch.ones(2)
+        >>> with fwAD.dual_level():
+        ...     has_tangent(fwAD.make_dual(x, torch.ones(2))), has_tangent(x)
+        (True, False)
+    """
+    return forward_ad.unpack_dual(t).tangent is not None
 
 
 def outside_point(vertices: torch.Tensor) -> torch.Tensor:

@@ -33,6 +33,7 @@ from typing import Literal
 
 import torch
 from torch._C._functorch import is_functorch_wrapped_tensor
+from torch.autograd import forward_ad
 
 from torchcage.backends import native as _native
 from torchcage.backends import triton as _triton
@@ -125,9 +126,10 @@ def select(
     check(op, backend)
     if graph is None:
         tensors = (points,) if cage_vertices is None else (points, cage_vertices)
-        graph = any(is_functorch_wrapped_tensor(t) for t in tensors) or (
-            torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
-        )
+        graph = any(
+            is_functorch_wrapped_tensor(t) or forward_ad.unpack_dual(t).tangent is not None  # (forward mode)
+            for t in tensors
+        ) or (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
     dim = points.shape[-1]
     if backend == "torch":
         return Choice("torch")

@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcage._core.common import on_cage_tolerance, on_cage_tolerances, result_dtype
+from torchcage._core.common import no_vertex_tangent, on_cage_tolerance, on_cage_tolerances, result_dtype
 from torchcage.backends import select
 from torchcage.cage import Cage
 from torchcage.families.green.derivatives_flat import bare_derivatives
@@ -105,6 +105,7 @@ class GreenFunction(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
         ctx.save_for_backward(inputs[0], inputs[1])
+        ctx.save_for_forward(inputs[0], inputs[1])
         ctx.faces, ctx.backend = inputs[2], inputs[4]
 
     @staticmethod
@@ -112,6 +113,11 @@ class GreenFunction(torch.autograd.Function):
         x, P = ctx.saved_tensors
         gx, gP = _backward(x, P, ctx.faces, gphi, gpsi, *ctx.needs_input_grad[:2], ctx.backend)
         return gx, gP, None, None, None
+
+    @staticmethod
+    def jvp(ctx, dx: Tensor | None, dP: Tensor | None, *_: None) -> tuple[Tensor, Tensor]:
+        x, P = ctx.saved_tensors
+        return _points_jvp(x, P, ctx.faces, dx, dP)
 
 
 class GreenBatchFunction(torch.autograd.Function):
@@ -133,7 +139,15 @@ class GreenBatchFunction(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
         ctx.save_for_backward(inputs[0], inputs[1])
+        ctx.save_for_forward(inputs[0], inputs[1])
         ctx.faces, ctx.backend = inputs[2], inputs[5]
+
+    @staticmethod
+    def jvp(ctx, dx: Tensor | None, dP: Tensor | None, *_: None) -> tuple[Tensor, Tensor]:
+        x, P = ctx.saved_tensors
+        no_vertex_tangent(dP)
+        parts = [_points_jvp(x[b], P[b], ctx.faces, None if dx is None else dx[b], None) for b in range(P.shape[0])]
+        return torch.stack([p for p, _ in parts]), torch.stack([q for _, q in parts])
 
     @staticmethod
     def backward(ctx, gphi: Tensor | None, gpsi: Tensor | None):
@@ -165,6 +179,18 @@ class GreenBatchFunction(torch.autograd.Function):
             if gP_rows is not None:
                 gP[b] += gP_rows.to(gP.dtype)
         return (gx if need_x else None), (gP if need_P else None), None, None, None, None
+
+
+def _points_jvp(x: Tensor, P: Tensor, faces: Tensor, dx: Tensor | None, dP: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Forward mode of one cage's bare integrals: ``(d phi (N, V), d psi (N, T))`` along the points'
+    tangent ``dx`` ``(N, D)`` by the closed-form gradients (tangents of the rest cage's vertices
+    raise, as for mean value coordinates)."""
+    no_vertex_tangent(dP)
+    if dx is None:
+        zeros = x.new_zeros
+        return zeros(x.shape[0], P.shape[0]), zeros(x.shape[0], faces.shape[0])
+    d_phi, d_psi = GreenGradFunction.apply(x, P, faces)
+    return torch.einsum("nvc,nc->nv", d_phi, dx.to(d_phi.dtype)), torch.einsum("ntc,nc->nt", d_psi, dx.to(d_psi.dtype))
 
 
 def _backward(

@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from torchcage._core.common import as_inputs, check_points
+from torchcage._core.common import as_inputs, check_points, has_tangent
 from torchcage.cage import Cage
 from torchcage.errors import CageError
 from torchcage.solvers.domain import Domain, check_solution, domain_for
@@ -145,7 +145,7 @@ def interpolate_on_mesh(
     dtype."""
     x = flat.detach().to(torch.float64).cpu()
     V = weights.shape[1]
-    grad = flat.requires_grad and torch.is_grad_enabled()
+    grad = (flat.requires_grad and torch.is_grad_enabled()) or has_tangent(flat)  # (reverse or forward mode)
     parts = []
     outside, farthest = 0, 0.0
     for s in range(0, x.shape[0], chunk_size):

@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchcage._core.common import as_inputs, check_points, chunks, on_cage_tolerance, result_dtype
+from torchcage._core.common import as_inputs, check_points, chunks, has_tangent, on_cage_tolerance, result_dtype
 from torchcage.cage import Cage
 from torchcage.errors import CageError, PointsError
 from torchcage.families.mean_value.api import mean_value_coordinates
@@ -204,7 +204,7 @@ def maximum_entropy_coordinates(
         [0.03125, 0.03125, 0.09375, 0.09375, 0.09375, 0.09375, 0.28125, 0.28125]
     """
     points, cage = as_inputs(points, cage)
-    if points.requires_grad or cage.vertices.requires_grad:
+    if points.requires_grad or cage.vertices.requires_grad or has_tangent(points) or has_tangent(cage.vertices):
         raise PointsError(
             "maximum_entropy_coordinates is not differentiable (Newton's method on the dual); pass detached "
             "points and cage, and deform with the coordinates as constants (torchcage.MaximumEntropyCoordinates)"

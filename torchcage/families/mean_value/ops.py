@@ -24,7 +24,13 @@ import torch
 from torch import Tensor
 from torch._C._functorch import is_functorch_wrapped_tensor
 
-from torchcage._core.common import check_finite, on_cage_tolerance, on_cage_tolerances, result_dtype
+from torchcage._core.common import (
+    check_finite,
+    no_vertex_tangent,
+    on_cage_tolerance,
+    on_cage_tolerances,
+    result_dtype,
+)
 from torchcage.backends import native as _native
 from torchcage.backends import triton as _triton
 from torchcage.cage import Cage
@@ -422,21 +428,6 @@ def _vertex_grad_vjp_plain(points: Tensor, vertices: Tensor, faces: Tensor, G: T
     return total_gP
 
 
-def _no_vertex_tangent(dP: Tensor | None) -> None:
-    """Forward mode covers tangents of the points only (torch.func passes zeros for the others)."""
-    if dP is None:
-        return
-    try:
-        zero = bool((dP == 0).all())
-    except RuntimeError:  # a batched tangent whose values cannot be inspected
-        zero = False
-    if not zero:
-        raise NotImplementedError(
-            "forward-mode derivatives with respect to the rest cage's vertices are not implemented; "
-            "use reverse mode (backward, torch.func.jacrev)"
-        )
-
-
 def _save_points_and_vertices(ctx, inputs, output) -> None:
     """``setup_context`` of the Functions below: the points and vertices (for backward and for
     forward mode) and the faces."""
@@ -490,7 +481,7 @@ class MeanValueGradFunction(torch.autograd.Function):
     @staticmethod
     def jvp(ctx, dx: Tensor | None, dP: Tensor | None, _df: None) -> Tensor:
         x, P = ctx.saved_tensors
-        _no_vertex_tangent(dP)
+        no_vertex_tangent(dP)
         return torch.einsum("nvcd,nd->nvc", MeanValueHessFunction.apply(x, P, ctx.faces), dx)
 
 
@@ -523,7 +514,7 @@ class MeanValueFunction(torch.autograd.Function):
     @staticmethod
     def jvp(ctx, dx: Tensor | None, dP: Tensor | None, *_: None) -> Tensor:
         x, P = ctx.saved_tensors
-        _no_vertex_tangent(dP)
+        no_vertex_tangent(dP)
         return torch.einsum("nvc,nc->nv", MeanValueGradFunction.apply(x, P, ctx.faces), dx)
 
 
@@ -577,7 +568,7 @@ class MeanValueBatchFunction(torch.autograd.Function):
     @staticmethod
     def jvp(ctx, dx: Tensor | None, dP: Tensor | None, *_: None) -> Tensor:
         x, P = ctx.saved_tensors
-        _no_vertex_tangent(dP)
+        no_vertex_tangent(dP)
         if dx is None:
             return torch.zeros(P.shape[0], x.shape[1], P.shape[1], dtype=x.dtype, device=x.device)
         # (element by element, as MeanValueFunction.jvp)
