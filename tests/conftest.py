@@ -26,6 +26,17 @@ def backend(request) -> str:
     return request.param
 
 
+@pytest.fixture(name="lib")
+def native_library():
+    """The native kernels' library (``ctypes.CDLL``): a test that takes it skips where none loads."""
+    from torchcage.backends import native as _native
+
+    lib = _native.library()
+    if lib is None:
+        pytest.skip("native kernel unavailable")
+    return lib
+
+
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 

@@ -13,20 +13,11 @@ from support import box_cage
 
 import torchcage
 from torchcage import functional as F
-from torchcage.backends import native as _native
 from torchcage.families.green.kernel3d import green3d_coordinates, triangle_green_data
 from torchcage.families.green.vjp3d_native import native_vjp
 from torchcage.testing import icosphere
 
 D64 = torch.float64
-
-
-@pytest.fixture(name="lib")
-def _lib():
-    lib = _native.library()
-    if lib is None:
-        pytest.skip("native kernel unavailable")
-    return lib
 
 
 def _jittered(cage: torchcage.Cage, seed: int) -> torchcage.Cage:

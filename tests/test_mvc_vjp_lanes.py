@@ -10,21 +10,12 @@ import pytest
 import torch
 
 import torchcage
-from torchcage.backends import native as _native
 from torchcage.families.mean_value.ops import _torch_coordinates
 from torchcage.families.mean_value.vjp3d import direct_vjp
 from torchcage.families.mean_value.vjp3d_native import native_vjp, native_vjp_batch
 from torchcage.testing import icosphere, twisted_bar
 
 D64 = torch.float64
-
-
-@pytest.fixture(name="lib")
-def _lib():
-    lib = _native.library()
-    if lib is None:
-        pytest.skip("native kernel unavailable")
-    return lib
 
 
 def _mixed_points(cage: torchcage.Cage, seed: int) -> torch.Tensor:
