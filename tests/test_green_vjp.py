@@ -55,15 +55,22 @@ def _autograd_reference(x: torch.Tensor, cage: torchcage.Cage, gphi: torch.Tenso
 def test_native_products_agree_with_autograd_of_the_torch_kernel(lib, name) -> None:
     cage = icosphere() if name == "icosphere" else box_cage(2, 1, 1).triangulated()
     cage = _jittered(cage.to(D64), 1)
-    x = _points(cage, 2)
+    # the points left out (on a face, near its plane, at and near a vertex: rows 50-57, whose
+    # closed forms are inf or NaN there) one per block of four, beside points the kernel takes
+    order = list(range(50))
+    for k, bad in enumerate(range(50, 58)):
+        order.insert(4 * k + 1, bad)
+    x = _points(cage, 2)[order]
     g = torch.Generator().manual_seed(3)
     gphi = torch.randn(x.shape[0], cage.num_vertices, generator=g, dtype=D64)
     gpsi = torch.randn(x.shape[0], cage.triangles.shape[0], generator=g, dtype=D64)
     gx, gP, reg = native_vjp(lib, x, cage.vertices, cage.triangles, gphi, gpsi, 1e-12 * cage.scale)
     # the inside and far points are taken (outside ones unless near a face's plane); on a face,
     # near its plane, at a vertex are not
-    assert bool(reg[:40].all()) and bool(reg[46:50].all()) and not bool(reg[50:].any())
-    assert float(gx[~reg].abs().max()) == 0.0
+    taken = torch.tensor([i < 40 or 46 <= i < 50 for i in order])
+    left = torch.tensor([i >= 50 for i in order])
+    assert bool(reg[taken].all()) and not bool(reg[left].any())
+    assert float(gx[~reg].abs().max()) == 0.0 and bool(torch.isfinite(gx).all() and torch.isfinite(gP).all())
     rx, rP = _autograd_reference(x[reg], cage, gphi[reg], gpsi[reg])
     assert float((gx[reg] - rx).abs().max()) <= 1e-12 * float(rx.abs().max())
     # the points left out add nothing to the vertices' products
@@ -72,7 +79,9 @@ def test_native_products_agree_with_autograd_of_the_torch_kernel(lib, name) -> N
 
 def test_a_thin_face_leaves_the_points_beside_it(lib) -> None:
     cage = box_cage(1, 1, 1, size=(300.0, 1.0, 1.0)).triangulated().to(D64)  # faces 300 times longer than wide
-    x = torch.tensor([[0.0, 0.1, 0.05], [10.0, -0.2, 0.3], [0.0, 0.0, 5000.0]], dtype=D64)
+    # beside the box, inside it near an end (neither near a face's plane nor far: the thin faces'
+    # swept form, not the closed forms, gives their values), far away
+    x = torch.tensor([[30.0, 5.0, -12.0], [145.0, 0.0, 0.0], [0.0, 0.0, 5000.0]], dtype=D64)
     gphi, gpsi = torch.ones(3, cage.num_vertices, dtype=D64), torch.ones(3, cage.triangles.shape[0], dtype=D64)
     gx, gP, reg = native_vjp(lib, x, cage.vertices, cage.triangles, gphi, gpsi, 1e-12 * cage.scale)
     assert reg.tolist() == [False, False, True]  # the far point sees every face by the far-field rule
@@ -81,10 +90,16 @@ def test_a_thin_face_leaves_the_points_beside_it(lib) -> None:
     assert float((gP - rP).abs().max()) <= 1e-12 * float(rP.abs().max())
 
 
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_gradients_through_green_coordinates_equal_the_torch_backend(lib, dtype) -> None:
-    cage = _jittered(icosphere().to(D64), 4)
-    x = _points(cage, 5)
+@pytest.mark.parametrize(
+    ("dtype", "name"), [(torch.float64, "icosphere"), (torch.float32, "icosphere"), (torch.float64, "thin box")]
+)
+def test_gradients_through_green_coordinates_equal_the_torch_backend(lib, dtype, name) -> None:
+    if name == "thin box":  # faces 300 times longer than wide
+        cage = box_cage(1, 1, 1, size=(300.0, 1.0, 1.0)).triangulated().to(D64)
+        extra = torch.tensor([[30.0, 5.0, -12.0], [145.0, 0.0, 0.0], [0.0, 3.0, 0.0], [-149.0, 0.1, 0.2]], dtype=D64)
+    else:
+        cage, extra = _jittered(icosphere().to(D64), 4), torch.zeros(0, 3, dtype=D64)
+    x = torch.cat([_points(cage, 5), extra])
     g = torch.Generator().manual_seed(6)
     wphi = torch.randn(x.shape[0], cage.num_vertices, generator=g, dtype=D64)
     wpsi = torch.randn(x.shape[0], cage.triangles.shape[0], generator=g, dtype=D64)

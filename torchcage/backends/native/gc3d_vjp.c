@@ -290,8 +290,8 @@ static size_t scratch_size(const vjp_shape *s) {
 }
 
 /* Block ib (VL points) of element e: its points' rows of GX and reg, its sums into w. w == NULL:
- * no scratch, the points are left to the caller. */
-static void vjp_block(const vjp_element *e, const vjp_shape *s, long ib, const vjp_scratch *w) {
+ * no scratch, the points are left to the caller. Returns whether a point was regular (w used). */
+static int vjp_block(const vjp_element *e, const vjp_shape *s, long ib, const vjp_scratch *w) {
     const long V = s->V, T = s->T, Q = s->Q, n = s->n, i0 = VL * ib;
     const int *tri = s->tri;
     const int cnt = n - i0 < VL ? (int)(n - i0) : VL;
@@ -336,6 +336,7 @@ static void vjp_block(const vjp_element *e, const vjp_shape *s, long ib, const v
     }
     for (int l = 0; l < cnt; ++l)
         for (int k = 0; k < 3; ++k) e->GX[3 * (i0 + l) + k] = bad[l] == 0 ? gxl[k][l] : 0.0;
+    return any;
 }
 
 /* A thread's sums of element e added to its outputs (under the caller's critical section). */
@@ -366,6 +367,7 @@ static void vjp_run(long B, const vjp_element *first, const double *tol, const v
     {
         double *ws = (double *)malloc(sizeof(double) * scratch_size(s));
         vjp_scratch w;
+        int dirty = 1; /* whether the sums hold something (cleared, and added, only then) */
         if (ws != NULL) w = scratch_of(ws, s);
         for (long b = 0; b < B; ++b) {
             const vjp_element *f = first;
@@ -376,11 +378,12 @@ static void vjp_run(long B, const vjp_element *first, const double *tol, const v
                 f->GPSI + n * T * b,      f->thin + T * b,             tol[b],               f->GX + 3 * n * b,
                 f->GA + 3 * V * b,        f->GF + GF_SIZE * T * b,     f->GN + 3 * T * Q * b, f->GW + T * Q * b,
                 f->reg + n * b};
-            if (ws != NULL) memset(ws, 0, sizeof(double) * w.sums);
+            if (ws != NULL && dirty) memset(ws, 0, sizeof(double) * w.sums);
+            dirty = 0;
             /* (nowait: each thread adds its own sums below, whatever the others are doing) */
 #pragma omp for schedule(dynamic, 4) nowait
-            for (long ib = 0; ib < nb; ++ib) vjp_block(&e, s, ib, ws != NULL ? &w : NULL);
-            if (ws != NULL) {
+            for (long ib = 0; ib < nb; ++ib) dirty |= vjp_block(&e, s, ib, ws != NULL ? &w : NULL);
+            if (ws != NULL && dirty) {
 #pragma omp critical
                 add_sums(&e, s, &w);
             }
