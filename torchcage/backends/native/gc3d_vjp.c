@@ -363,9 +363,14 @@ static void vjp_run(long B, const vjp_element *first, const double *tol, const v
     memset(first->GF, 0, sizeof(double) * GF_SIZE * (size_t)(B * T));
     memset(first->GN, 0, sizeof(double) * 3 * (size_t)(B * T * Q));
     memset(first->GW, 0, sizeof(double) * (size_t)(B * T * Q));
+    int failed = 0;
 #pragma omp parallel num_threads(nthreads)
     {
         double *ws = (double *)malloc(sizeof(double) * scratch_size(s));
+        if (ws == NULL) {
+#pragma omp atomic write
+            failed = 1;
+        }
         vjp_scratch w;
         int dirty = 1; /* whether the sums hold something (cleared, and added, only then) */
         if (ws != NULL) w = scratch_of(ws, s);
@@ -390,6 +395,7 @@ static void vjp_run(long B, const vjp_element *first, const double *tol, const v
         }
         free(ws);
     }
+    if (failed && B * n > 0) first->GX[0] = NAN; /* (the caller raises MemoryError: check_workspace) */
 }
 
 /* The products for B cages with one topology (the arguments and outputs of the comment at the top,

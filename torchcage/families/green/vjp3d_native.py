@@ -127,6 +127,8 @@ def native_vjp_batch(
         GW=gW,
         reg=reg,
     )
+    mb = 8 * ((3 * V + 33 * T) * 5 + 4 * T * Q + 4 * T + 42 * 4) / 2**20  # (gc3d_vjp.c: scratch_size)
+    _native.check_workspace(gx, "Green backward", f"about {mb:.1f} MB per thread")
     # The face constants' cotangents to the vertices: autograd of the few operations over B T faces.
     outs = [*consts.values(), nodes, weights]
     cots = [gF[..., s : s + (3 if len(shape) == 1 else 9)].reshape(B, T, *shape) for s, shape in _FACE_COLUMNS.values()]
