@@ -16,9 +16,9 @@ cages): torchcage's ``GreenFunction`` (values by the native kernel, backward by 
 ``gc3d_vjp.c``) against plain autograd of the same torch kernel over all points at once, in the inputs'
 dtype (what torchcage did before, except that it computed in float64).
 
-A last row per device: float64 forward+backward with ``--near-fraction`` (10%) of the points on the
-cage (half, inside faces) or within ``1e-4`` inside it (the others), and its ratio to the row
-without (issue 44: at most 1.5x).
+Two last rows per device: float64 forward+backward with ``--near-fraction`` (10%) of the points on
+the cage (half, inside faces) or within ``1e-4`` inside it (the others), then on its edges (half)
+or within ``1e-6`` of them, and their ratios to the row without (issue 44: at most 1.5x).
 
 Usage: ``python benchmarks/learnable.py [--batch 8] [--points 5000] [--repeat 3] [--near-fraction 0.1] [--green]``
 """
@@ -43,9 +43,10 @@ from harness import best_of, peak_since, reset_peak, run_in_child
 from torchcage.families.green.dispatch import green_flat
 
 
-def problem(B: int, N: int, dtype: torch.dtype, device: str, near: float = 0.0):
+def problem(B: int, N: int, dtype: torch.dtype, device: str, near: float = 0.0, near_on: str = "faces"):
     """Cages ``(B, 42, 3)``, points ``(B, N, 3)`` inside, a cotangent; ``near``: the fraction of the
-    points put on the cage (half of them, inside faces) or within ``1e-4`` inside it (the others)."""
+    points put on the cage (half of them, inside faces) or within ``1e-4`` inside it (the others);
+    with ``near_on="edges"``, on the cage's edges (half of them) or within ``1e-6`` of them."""
     ico = icosphere()
     g = torch.Generator().manual_seed(0)
     P = ico.vertices * (1 + 0.1 * torch.rand(B, 1, 1, generator=g, dtype=torch.float64))
@@ -61,6 +62,11 @@ def problem(B: int, N: int, dtype: torch.dtype, device: str, near: float = 0.0):
         depth = torch.rand(B, k, 1, generator=g, dtype=torch.float64) * 1e-4
         depth[:, : k // 2] = 0
         x[:, :k] = ((w / w.sum(-1, keepdim=True))[..., None] * tri).sum(-2) - depth * n / n.norm(dim=-1, keepdim=True)
+        if near_on == "edges":  # along the face's first edge, then half of them moved by 1e-6 anywhere
+            t = 0.05 + 0.9 * torch.rand(B, k, 1, generator=g, dtype=torch.float64)
+            off = torch.nn.functional.normalize(torch.randn(B, k, 3, generator=g, dtype=torch.float64), dim=-1)
+            off[:, : k // 2] = 0
+            x[:, :k] = (1 - t) * tri[..., 0, :] + t * tri[..., 1, :] + 1e-6 * off
     cot = torch.randn(B, N, 42, generator=g, dtype=torch.float64)
     return x.to(device, dtype), P.to(device, dtype), ico.triangles.to(device), cot.to(device, dtype)
 
@@ -82,7 +88,7 @@ def _coordinates(impl: str, x: torch.Tensor, P: torch.Tensor, faces: torch.Tenso
 
 def child(args: argparse.Namespace) -> None:
     dtype = getattr(torch, args.dtype)
-    x, P, faces, _ = problem(args.batch, args.points, dtype, args.device, args.near)
+    x, P, faces, _ = problem(args.batch, args.points, dtype, args.device, args.near, args.near_on)
     green = args.impl.startswith("gc")
     ref = _coordinates("gc" if green else "torchcage", x.double().cpu(), P.double().cpu(), faces.cpu())
     cot = torch.randn(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64).to(args.device, dtype)
@@ -137,16 +143,18 @@ def _table(args: argparse.Namespace, device: str, ours: str, theirs: str) -> Non
         # Points on the cage or within 1e-4 of it (issue 44): torchcage only (the dense formula is
         # not defined on the cage); "speed-up" here is the ratio to the row above (no such points).
         nf = str(args.near_fraction)
-        near = run_in_child(
-            __file__,
-            [*common, "--impl", ours, "--task", "backward", "--dtype", "float64", "--device", device, "--near", nf],
-        )
-        print(
-            f"| {device} | float64 | forward+backward, {args.near_fraction:.0%} of points on or near the cage | "
-            f"{near['best'] * 1e3:,.0f} ms | | {near['best'] / a['best']:.2f}x the row above | "
-            f"{near['peak']:,.0f} MB | | {near['err']:.1e} | |",
-            flush=True,
-        )
+        for on, where in (("faces", "on or near the cage"), ("edges", "on or within 1e-6 of its edges")):
+            near = run_in_child(
+                __file__,
+                [*common, "--impl", ours, "--task", "backward", "--dtype", "float64", "--device", device,
+                 "--near", nf, "--near-on", on],
+            )  # fmt: skip
+            print(
+                f"| {device} | float64 | forward+backward, {args.near_fraction:.0%} of points {where} | "
+                f"{near['best'] * 1e3:,.0f} ms | | {near['best'] / a['best']:.2f}x the plain row | "
+                f"{near['peak']:,.0f} MB | | {near['err']:.1e} | |",
+                flush=True,
+            )
 
 
 def main() -> None:
@@ -160,6 +168,7 @@ def main() -> None:
     )
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--near", type=float, default=0.0, help=argparse.SUPPRESS)
+    ap.add_argument("--near-on", default="faces", choices=["faces", "edges"], help=argparse.SUPPRESS)
     ap.add_argument("--impl", default="torchcage", help=argparse.SUPPRESS)
     ap.add_argument("--task", default="forward", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
