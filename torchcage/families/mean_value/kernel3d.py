@@ -42,6 +42,7 @@ barycentric on the face, linear on the edge, Lagrange at a vertex.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -451,28 +452,42 @@ def mvc3d_chunk(
     """
     V, n = data.vertices.shape[1], x.shape[0]
     far = "always" if part else True
-    q = _pair_terms(x, data)
-    # Points on the cage: barycentric coordinates in a face that contains them.
-    on_face = _on_cage(q, data)
-    on_cage = on_face.any(dim=0)
+    graph = records_graph(x, data.vertices)
+    with torch.no_grad() if graph else contextlib.nullcontext():
+        q = _pair_terms(x, data)
+        # Points on the cage: barycentric coordinates in a face that contains them.
+        on_face = _on_cage(q, data)
+        on_cage = on_face.any(dim=0)
     any_on = bool(on_cage.any())
-    if any_on and records_graph(x, data.vertices):
-        # The regular formula is singular on the cage: evaluate it on the points off the cage only,
-        # so that no discarded value carries a non-finite derivative (NaN through torch.where) and
-        # the points on the cage cost only their interpolant. (Evaluating it at a stand-in point
-        # far outside, as before, took the far-field quadrature on every face: 100 times an
-        # ordinary point's cost.)
-        off = torch.nonzero(~on_cage).squeeze(1)
-        W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
-        if off.numel():
-            W = W.index_copy(1, off, _gathered_weights(x.index_select(0, off), data, far, scaled))
+    if graph:
+        # The pair terms above, of every face, carry no graph: the weights are recomputed with it,
+        # and the interpolant of a point on the cage from its own face. The regular formula is
+        # singular on the cage: it is evaluated on the points off the cage only, so that no
+        # discarded value carries a non-finite derivative (NaN through torch.where) and the points
+        # on the cage cost only their interpolant. (Evaluating it at a stand-in point far outside,
+        # as before, took the far-field quadrature on every face: 100 times an ordinary point's
+        # cost.)
+        if not any_on:
+            W = _gathered_weights(x, data, far, scaled)
+        else:
+            off = torch.nonzero(~on_cage).squeeze(1)
+            W = torch.zeros((V, n), dtype=x.dtype, device=x.device)
+            if off.numel():
+                W = W.index_copy(1, off, _gathered_weights(x.index_select(0, off), data, far, scaled))
     else:
         W = _gathered_weights(x, data, far, scaled, q)
     if any_on:
         cols = torch.nonzero(on_cage).squeeze(1)
         # the largest face holding each point: its barycentric values are the best conditioned
         f = (on_face[:, cols] * data.two_area).argmax(dim=0)
-        bary = torch.stack([q["s"][i][f, cols] for i in range(3)]).clamp_min(0.0)  # (3, m)
+        if graph:  # (s of that face alone, as _pair_terms computes it: n . (a_j x a_k))
+            xt = x.index_select(0, cols).T  # (3, m)
+            a = [tuple(data.vertices[c].index_select(0, data.tri[f, i]) - xt[c] for c in range(3)) for i in range(3)]
+            nrm = tuple(data.normal[c].reshape(-1).index_select(0, f) for c in range(3))
+            s_on = [_dot(_cross(a[(e + 1) % 3], a[(e + 2) % 3]), nrm) for e in range(3)]
+        else:
+            s_on = [q["s"][i][f, cols] for i in range(3)]
+        bary = torch.stack(s_on).clamp_min(0.0)  # (3, m)
         at_vertex = torch.stack([q["R"][i][f, cols] for i in range(3)]) <= data.tol
         bary = torch.where(at_vertex.any(dim=0, keepdim=True), at_vertex.to(bary.dtype), bary)
         bary = bary / bary.sum(dim=0, keepdim=True)
