@@ -207,6 +207,11 @@ def snap_to_vertices_batch(x: torch.Tensor, vertices: torch.Tensor, radius: torc
     return out
 
 
+#: Entries of a gradient table ``(n, V, D)`` that a backward pass builds at once (32 MB of float64):
+#: the closed-form point gradients are contracted with their cotangents chunk by chunk of points.
+GRADIENT_TABLE_ENTRIES = 1 << 22
+
+
 def records_graph(*tensors: torch.Tensor) -> bool:
     """True when autograd (reverse or forward mode, or a torch.func transform) differentiates
     through a call on ``tensors``."""

@@ -23,7 +23,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcage._core.common import no_vertex_tangent, on_cage_tolerance, on_cage_tolerances, result_dtype
+from torchcage._core.common import (
+    GRADIENT_TABLE_ENTRIES,
+    no_vertex_tangent,
+    on_cage_tolerance,
+    on_cage_tolerances,
+    result_dtype,
+)
 from torchcage.backends import select
 from torchcage.cage import Cage
 from torchcage.families.green.derivatives_flat import bare_derivatives
@@ -208,14 +214,19 @@ def _backward(
     for the points alone; else the native reverse pass where it serves (first order, CPU); else
     autograd of the torch kernel, chunk by chunk (kept for double backward)."""
     if need_x and not need_P and not P.requires_grad:
-        # the points alone: the closed-form gradients (Hessians on double backward)
-        d_phi, d_psi = GreenGradFunction.apply(x, P, faces)
-        gx = torch.zeros_like(x)
-        if gphi is not None:
-            gx = gx + torch.einsum("nv,nvc->nc", gphi.to(d_phi.dtype), d_phi)
-        if gpsi is not None:
-            gx = gx + torch.einsum("nt,ntc->nc", gpsi.to(d_psi.dtype), d_psi)
-        return gx, None
+        # the points alone: the closed-form gradients (Hessians on double backward), chunk by
+        # chunk of points (the gradient tables are (n, V + T, D))
+        size = max(64, GRADIENT_TABLE_ENTRIES // max(1, (P.shape[0] + faces.shape[0]) * x.shape[-1]))
+        parts = []
+        for s in range(0, x.shape[0], size):
+            d_phi, d_psi = GreenGradFunction.apply(x[s : s + size], P, faces)
+            gx = torch.zeros_like(x[s : s + size])
+            if gphi is not None:
+                gx = gx + torch.einsum("nv,nvc->nc", gphi[s : s + size].to(d_phi.dtype), d_phi)
+            if gpsi is not None:
+                gx = gx + torch.einsum("nt,ntc->nc", gpsi[s : s + size].to(d_psi.dtype), d_psi)
+            parts.append(gx)
+        return (torch.cat(parts) if len(parts) != 1 else parts[0]) if parts else torch.zeros_like(x), None
     gphi = gphi if gphi is not None else torch.zeros(x.shape[0], P.shape[0], dtype=x.dtype, device=x.device)
     gpsi = gpsi if gpsi is not None else torch.zeros(x.shape[0], faces.shape[0], dtype=x.dtype, device=x.device)
     create = torch.is_grad_enabled()

@@ -25,6 +25,7 @@ from torch import Tensor
 from torch._C._functorch import is_functorch_wrapped_tensor
 
 from torchcage._core.common import (
+    GRADIENT_TABLE_ENTRIES,
     check_finite,
     no_vertex_tangent,
     on_cage_tolerance,
@@ -214,8 +215,13 @@ def _point_vjp_plain(points: Tensor, vertices: Tensor, faces: Tensor, g: Tensor)
 def _point_grad(x: Tensor, P: Tensor, faces: Tensor, g: Tensor) -> Tensor:
     """``sum g * d lam / d points``: the analytic gradients where the native kernel serves, else
     autograd of the torch kernel."""
-    if _analytic(x):
-        return torch.einsum("nv,nvc->nc", g, MeanValueGradFunction.apply(x, P, faces))
+    if _analytic(x):  # (chunk by chunk of points: the gradient tables are (n, V, D))
+        size = max(64, GRADIENT_TABLE_ENTRIES // max(1, P.shape[0] * x.shape[-1]))
+        parts = [
+            torch.einsum("nv,nvc->nc", g[s : s + size], MeanValueGradFunction.apply(x[s : s + size], P, faces))
+            for s in range(0, x.shape[0], size)
+        ]
+        return torch.cat(parts) if len(parts) != 1 else parts[0]
     return _point_vjp(x, P, faces, g)
 
 
