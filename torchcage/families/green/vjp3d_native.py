@@ -50,9 +50,10 @@ def native_vjp(
         >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
         >>> x = torch.tensor([[0.1, 0.2, -0.3]], dtype=torch.float64)
         >>> gphi, gpsi = torch.ones(1, 8, dtype=torch.float64), torch.zeros(1, 12, dtype=torch.float64)
-        >>> gx, gP, reg = native_vjp(native.library(), x, cube.vertices, cube.triangles, gphi, gpsi, 1e-12)
-        >>> bool(reg[0]), float(gx.abs().max()) < 1e-12  # sum phi = 1 inside: no derivative
-        (True, True)
+        >>> lib = native.library()  # (None where no native kernel loads: then nothing to show)
+        >>> if lib is not None:
+        ...     gx, gP, reg = native_vjp(lib, x, cube.vertices, cube.triangles, gphi, gpsi, 1e-12)
+        ...     assert bool(reg[0]) and float(gx.abs().max()) < 1e-12  # sum phi = 1 inside: no derivative
     """
     tols = torch.tensor([float(tol)], dtype=torch.float64)
     gx, gP, reg = native_vjp_batch(lib, x[None], vertices[None], tri, gphi[None], gpsi[None], tols)
