@@ -131,7 +131,7 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
     ),
     "tc_mvc3d_vjp_near": _parse(
         "P:f64*[V,3] V:i64 tri:i32*[T,3] T:i64 X:f64*[n,3] n:i64 G:f64*[n,V] tol:f64 near_c:f64 cancel_c:f64 "
-        "far_always:f64 band:f64 near_d:f64 far_d:f64 margin:f64 split_pairs:i32 nthreads:i32 GX:f64*![n,3] "
+        "far_always:f64 band:f64 near_d:f64 far_d:f64 split_pairs:i32 nthreads:i32 GX:f64*![n,3] "
         "GP:f64*![V,3] status:u8*![n] PAIR:u8*![n,T] WB:f64*![n,V] SN:f64*![n] HS:f64*![n]"
     ),
     "tc_winding3d": _parse("P:f64*[T,3,3] T:i64 X:f64*[n,3] n:i64 nthreads:i32 W:f64*![n]"),

@@ -10,25 +10,33 @@
  *   2. runs the hand-derived adjoint of mvc3d_vjp.c over the regular pairs (into GX and GP);
  *   3. differentiates the split form of the careful pairs by forward mode in the nine components
  *      of the face's a_i (dual_split_face: the operations of kernel3d._stable_face_weights), with
- *      the coefficient of dh of the c_i / h term of the face holding the foot point (f*) taken
- *      from the identity sum_v wbar_v w_v = 0 (no cancellation: see ops._split_vjp). With
- *      split_pairs = 0 it leaves them to the caller (ops._split_vjp, autograd of the torch split
- *      form: the tests compare the two): PAIR marks them (1; 2 for f*), WB holds wbar, HS the h
- *      of f* and SN = sum over every face but f* of wbar . w_f.
+ *      the coefficient of dh of the c_i / h term of the nearest face holding the foot point (f*)
+ *      taken from the identity sum_v wbar_v w_v = 0 (no cancellation: see ops._split_vjp). Other
+ *      faces holding the foot point (near an edge: both adjacent faces may) differentiate their
+ *      c_i / h as it is; the one identity cannot split between two faces, and near an edge the
+ *      inputs' own rounding (n . (a_j x a_k) of an edge at distance d) already costs eps / d,
+ *      which is what that term loses. With split_pairs = 0 it leaves the careful pairs to the
+ *      caller (ops._split_vjp, autograd of the torch split form: the tests compare the two): PAIR
+ *      marks them (1; 2 for f*, 3 for the other faces around the foot), WB holds wbar, HS the h of
+ *      f* and SN = sum over every face but f* of wbar . w_f.
  *
  * A point takes this path (status 1) only when every face is regular or careful. Points on the
  * cage take the interpolant's closed form (status 2), as tc_mvcd3d and ops._on_face_vjp define it:
- * the first face, in order, within tol of the point (tc_mvcd3d's test, with its near_d and far_d)
- * or with a corner within tol; in a face, when its barycentric coordinates b_i all exceed margin,
- * GX = sum_i gbar_i (E_i x n) / (2 area) and GP_i -= b_i GX (d lam_v / d p_j = -lam_j d lam_v / dx);
- * at a vertex nothing (lam is constant). Every other point is left to the caller's general path
- * (status 0, nothing accumulated): on the cage near an edge (some b_i <= margin), seeing a thin
- * face from a few widths or a face below 1/far_always of its distance, with face weights that
- * cancel (far outside), with more than one careful face holding its foot point, with the foot
- * point on an edge's line to rounding (the two forms would split c_i / h differently), or within
- * band times its distance to the nearest vertex of the line of an edge outside the edge
- * (ops._edge_line_offsets' rule, for which band is EDGE_LINE_BAND: a superset of the points that
- * rule takes).
+ * the largest face within tol of the point (tc_mvcd3d's test, with its near_d and far_d; the first
+ * of them on ties, as the torch kernel), or a corner within tol. In that face or on its edge, with
+ * b_i its barycentric coordinates (clamped at 0 and renormalised, as the values),
+ * GX = sum_i gbar_i (E_i x n) / (2 area) and GP_i -= b_i GX (d lam_v / d p_j = -lam_j d lam_v / dx:
+ * the interpolant is affine invariant); at a vertex nothing (lam is constant). On an edge the
+ * coordinates have a kink: GX and GP are both the derivatives of that one face's interpolant, so
+ * that they agree with each other (a common translation of the point and the cage changes nothing:
+ * GX + sum_j GP_j = 0) and with autograd of the torch kernel.
+ *
+ * Every other point is left to the caller's general path (status 0, nothing accumulated): seeing
+ * a thin face from a few widths or a face below 1/far_always of its distance, with face weights
+ * that cancel (far outside), with the foot point on an edge's line to rounding (the two forms
+ * would split c_i / h differently), or within band times its distance to the nearest vertex of
+ * the line of an edge outside the edge (ops._edge_line_offsets' rule, for which band is
+ * EDGE_LINE_BAND: a superset of the points that rule takes).
  *
  * P (V, 3) vertices; tri (T, 3) int32 corners; X (n, 3) points; G (n, V) the cotangent dL/dlam.
  * Outputs (rows of points with status 0 are zero): GX (n, 3), GP (V, 3) summed over the points
@@ -178,7 +186,7 @@ static void dual_split_face(const double *a_in, dual9 *r, dual9 *c, dual9 *hout)
 
 void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
                        double tol, double near_c, double cancel_c, double far_always, double band, double near_d,
-                       double far_d, double margin, int split_pairs, int nthreads, double *GX, double *GP,
+                       double far_d, int split_pairs, int nthreads, double *GX, double *GP,
                        unsigned char *status, unsigned char *PAIR, double *WB, double *SN, double *HS) {
     double *fc = (double *)malloc(sizeof(double) * F_SIZE * (size_t)(T > 0 ? T : 1));
     int any_thin = 0;
@@ -233,7 +241,8 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                 const double two_area = c[F_TWO_AREA];
                 /* on the cage, as tc_mvcd3d (whose values and derivatives the general path takes
                  * there): the first face, in order, whose corner is within tol, or which holds
-                 * the point within tol (its near-plane test, far faces skipped) */
+                 * the point within tol (its near-plane test, far faces skipped); below, the
+                 * largest face that holds it */
                 if (rmin <= tol) {
                     onv = tri[3 * f + (R[0] <= tol ? 0 : (R[1] <= tol ? 1 : 2))];
                     break;
@@ -285,13 +294,16 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                     if (!ok) break;
                     tc_stable_face(h, sv, dots, R, ell, c + F_GRAM, two_area, w);
                     s[Q_H] = h;
-                    if (wind != 0) {
-                        if (fstar >= 0) { /* a second face around the foot point */
-                            ok = 0;
-                            break;
-                        }
-                        fstar = f;
+                    if (wind != 0) { /* f* is the nearest face around the foot point, the others kind 3 */
                         s[Q_KIND] = 2.0;
+                        if (fstar < 0) {
+                            fstar = f;
+                        } else if (fabs(h) < fabs(S[(size_t)Q_SIZE * fstar + Q_H])) {
+                            S[(size_t)Q_SIZE * fstar + Q_KIND] = 3.0;
+                            fstar = f;
+                        } else {
+                            s[Q_KIND] = 3.0;
+                        }
                     } else {
                         s[Q_KIND] = 1.0;
                     }
@@ -320,20 +332,41 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                     status[p] = 2;
                     continue;
                 }
-                /* in a face: its barycentric coordinates b_i = n . (a_j x a_k) / (2 area), their
-                 * gradients (E_i x n) / (2 area), all b_i above margin (else the general path) */
-                const double *c = fc + F_SIZE * onf, *N = S + (size_t)Q_SIZE * onf + Q_N;
-                double b[3], gxf[3] = {0, 0, 0};
+                for (long f = onf + 1; f < T; ++f) { /* the largest face holding it (as tc_mvcd3d) */
+                    const double *c = fc + F_SIZE * f, *q[3] = {P + 3 * tri[3 * f], P + 3 * tri[3 * f + 1],
+                                                                P + 3 * tri[3 * f + 2]};
+                    double a[3][3], rmin = INFINITY;
+                    for (int i = 0; i < 3; ++i) {
+                        for (int k = 0; k < 3; ++k) a[i][k] = q[i][k] - x[k];
+                        rmin = fmin(rmin, sqrt(dot3(a[i], a[i])));
+                    }
+                    double h = fabs(dot3(c + F_N, a[0]));
+                    int holds = c[F_TWO_AREA] > fc[F_SIZE * onf + F_TWO_AREA] && !(c[F_LONGEST] <= far_d * rmin) &&
+                                h <= tol && h < near_d * rmin;
+                    for (int e = 0; e < 3 && holds; ++e) {
+                        double Ne[3];
+                        cross3(a[(e + 1) % 3], a[(e + 2) % 3], Ne);
+                        holds = dot3(c + F_N, Ne) >= -tol * c[F_ELL + e];
+                    }
+                    if (holds) onf = f;
+                }
+                /* in a face or on its edge: its barycentric coordinates b_i = n . (a_j x a_k) /
+                 * (2 area) (clamped at 0 and renormalised, as the values), their gradients
+                 * (E_i x n) / (2 area) */
+                const double *c = fc + F_SIZE * onf;
+                double b[3], bsum = 0.0, gxf[3] = {0, 0, 0};
                 for (int i = 0; i < 3; ++i) {
                     const double *pj = P + 3 * tri[3 * onf + (i + 1) % 3], *pk = P + 3 * tri[3 * onf + (i + 2) % 3];
-                    double E[3], En[3];
-                    for (int q = 0; q < 3; ++q) E[q] = pj[q] - pk[q];
+                    double E[3], En[3], aj[3], ak[3], Ne[3];
+                    for (int q = 0; q < 3; ++q) E[q] = pj[q] - pk[q], aj[q] = pj[q] - x[q], ak[q] = pk[q] - x[q];
                     cross3(E, c + F_N, En);
-                    b[i] = dot3(c + F_N, N + 3 * i) / c[F_TWO_AREA];
-                    if (!(b[i] > margin)) ok = 0;
+                    cross3(aj, ak, Ne);
+                    b[i] = fmax(dot3(c + F_N, Ne) / c[F_TWO_AREA], 0.0);
+                    bsum += b[i];
                     for (int q = 0; q < 3; ++q) gxf[q] += g[tri[3 * onf + i]] * En[q] / c[F_TWO_AREA];
                 }
-                if (!ok) continue;
+                if (!(bsum > 0.0)) continue;
+                for (int i = 0; i < 3; ++i) b[i] /= bsum;
                 status[p] = 2;
                 for (int q = 0; q < 3; ++q) GX[3 * p + q] = gxf[q];
                 for (int i = 0; i < 3; ++i)
@@ -381,6 +414,12 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                     for (int k = 0; k < 9; ++k) {
                         dl[k] += beta * h.d[k];
                         for (int i = 0; i < 3; ++i) dl[k] += wb[i] / h0 * c[i].d[k];
+                    }
+                } else if (s[Q_KIND] == 3.0) { /* another face around the foot: c / h as it is */
+                    double wc = wb[0] * c[0].v + wb[1] * c[1].v + wb[2] * c[2].v, hf = h.v;
+                    for (int k = 0; k < 9; ++k) {
+                        dl[k] -= wc / (hf * hf) * h.d[k];
+                        for (int i = 0; i < 3; ++i) dl[k] += wb[i] / hf * c[i].d[k];
                     }
                 }
                 for (int i = 0; i < 3; ++i) {

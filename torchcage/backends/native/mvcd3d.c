@@ -509,6 +509,20 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 }
             }
             on[p] = (unsigned char)flag;
+            if (flag && on_vertex < 0) {  // the largest face holding the point (the torch kernel's choice)
+                for (long t = on_face + 1; t < T; t++) {
+                    const int *ti = tri + 3 * t;
+                    double a[3][3], minR = INFINITY;
+                    for (int i = 0; i < 3; i++) {
+                        for (int c = 0; c < 3; c++) a[i][c] = av[4 * ti[i] + c];
+                        minR = fmin(minR, av[4 * ti[i] + 3]);
+                    }
+                    double h = fabs(dot3(nrm + 3 * t, a[0]));
+                    if (two_area[t] > two_area[on_face] && !(longest[t] <= far_c * minR) && h <= tol &&
+                        h < near_c * minR && in_face_prism(a, nrm + 3 * t, ell + 3 * t, tol))
+                        on_face = t;
+                }
+            }
             if (flag) {  // on the cage: the interpolant's values and (one-sided, tangential) derivatives
                 memset(L + p * V, 0, sizeof(double) * V);
                 memset(G + p * V * 3, 0, sizeof(double) * V * 3);

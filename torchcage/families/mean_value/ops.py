@@ -288,7 +288,7 @@ def _irregular_vjp(
     xi, gi = x.index_select(0, idx), g.index_select(0, idx)
     gxi, lam_i, inside = _on_face_vjp(xi, P, faces, gi)
     if bool(inside.any()):
-        # On a face (inside it) or at a vertex the coordinates are the interpolant's, and
+        # On the cage (a face, an edge, a vertex) the coordinates are the interpolant's, and
         # d lam_v / d p_j = -lam_j d lam_v / dx (barycentric coordinates are affine
         # invariant; zero at a vertex): no autograd of the torch kernel for those points.
         gP -= lam_i[inside].T.to(dt) @ gxi[inside].to(dt)
@@ -336,12 +336,14 @@ def _split_chunk(
     lib, x: Tensor, P: Tensor, faces: Tensor, g: Tensor, tol: float, in_kernel: bool
 ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_split_vjp` on one chunk of points."""
-    gx, gP, split, pair, wbar, sn, hs = native_vjp_near(lib, x, P, faces, g, tol, _ON_FACE_MARGIN, in_kernel)
+    gx, gP, split, pair, wbar, sn, hs = native_vjp_near(lib, x, P, faces, g, tol, in_kernel)
     p_idx, f_idx = torch.nonzero(pair, as_tuple=True)
     if p_idx.numel() == 0:
         return gx, gP, split
     corners = faces.index_select(0, f_idx)  # (M, 3)
-    star = pair[p_idx, f_idx] == 2  # the face around the point's foot
+    kind = pair[p_idx, f_idx]
+    star = kind == 2  # the nearest face around the point's foot
+    other = kind == 3  # another face around it (near an edge): its c / h as it is
     h0 = torch.where(star, hs.index_select(0, p_idx), 1.0)
     wb = wbar[p_idx[:, None], corners]  # (M, 3)
     with torch.enable_grad():
@@ -363,31 +365,25 @@ def _split_chunk(
         wr = wb[:, 0] * r[0] + wb[:, 1] * r[1] + wb[:, 2] * r[2]
         wc = wb[:, 0] * c[0] + wb[:, 1] * c[1] + wb[:, 2] * c[2]
         beta = (sn.index_select(0, p_idx) + wr.detach()) / h0
-        loss = wr + torch.where(star, wc / h0 + beta * h, 0.0)
+        safe_h = torch.where(other, h, 1.0)
+        loss = wr + torch.where(star, wc / h0 + beta * h, torch.where(other, wc / safe_h, 0.0))
         gxp, gpf = torch.autograd.grad(loss.sum(), (xp, pf))
     gx.index_add_(0, p_idx, gxp)
     gP.index_add_(0, corners.reshape(-1), gpf.reshape(-1, 3))
     return gx, gP, split
 
 
-#: Points on a face whose barycentric coordinates there are all above this take the closed form
-#: of :func:`_on_face_vjp` (nearer an edge, the interpolant's face and its derivatives are the
-#: edge's: they keep autograd of the torch kernel).
-_ON_FACE_MARGIN = 1e-6
-
-
 def _on_face_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The native analytic ``sum g * d lam / d points`` ``(n, 3)`` (as :func:`_point_grad`), the
-    coordinates ``(n, V)`` (float64) and the ``(n,)`` mask of the points on the cage inside a face
-    (barycentric coordinates above ``_ON_FACE_MARGIN``, off every edge's line:
-    :func:`_edge_line_offsets`) or at a vertex."""
+    coordinates ``(n, V)`` (float64) and the ``(n,)`` mask of the points on the cage (in a face, on
+    an edge or at a vertex; off every edge's line outside the edge: :func:`_edge_line_offsets`).
+    There the gradient is the interpolant's in the largest face that holds the point (``tc_mvcd3d``'s
+    choice, as the torch kernel's; on an edge, where the coordinates have a kink, the rest vertices'
+    products ``-lam_j gx`` are that face's too)."""
     lam, grad, _, on = derivatives_flat(x, _cage(P.detach(), faces), 1)
     grad = grad.to(x.device, torch.promote_types(x.dtype, P.dtype))
     gx = torch.einsum("nv,nvc->nc", g, grad)
-    nonzero = (lam != 0).sum(dim=1)
-    in_face = (nonzero == 3) & ((lam > _ON_FACE_MARGIN).sum(dim=1) == 3)
-    at_vertex = (nonzero == 1) & (lam == 1).any(dim=1)
-    inside = on.to(x.device) & (in_face | at_vertex)
+    inside = on.to(x.device)
     if bool(inside.any()):
         off = _edge_line_offsets(x, P, faces)
         if off is not None:

@@ -93,7 +93,6 @@ def native_vjp_near(
     tri: torch.Tensor,
     gbar: torch.Tensor,
     tol: float,
-    margin: float,
     split_pairs: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The joint product split per face for points near a face's support plane, and in closed
@@ -131,7 +130,6 @@ def native_vjp_near(
         band=EDGE_LINE_BAND,
         near_d=DERIVATIVE_SPLIT_FORM_RATIO,
         far_d=DERIVATIVE_FAR_FIELD_RATIO,
-        margin=margin,
         split_pairs=int(split_pairs),
         GX=gx,
         GP=gP,
