@@ -19,7 +19,7 @@ from reference import gradient_reference, mvc3d_reference
 import torchcage as tc
 from torchcage import functional as F
 from torchcage.families.mean_value import kernel3d, ops
-from torchcage.testing import icosphere
+from torchcage.testing import icosphere, twisted_bar
 
 D64 = torch.float64
 TARGET = 1e-7  # relative, as tests/test_gradient_references.py
@@ -166,23 +166,25 @@ def test_fused_backward_on_the_cage_matches_the_autograd_path():
         assert float((gx - ref_x).abs().max()) <= 1e-14 * max(float(ref_x.abs().max()), 1.0), i
 
 
+@pytest.mark.parametrize("cage_name", ["icosphere", "twisted bar"])
 @pytest.mark.parametrize("native", [True, False])
-def test_on_edge_gradients_are_one_faces_interpolant(monkeypatch, native):
+def test_on_edge_gradients_are_one_faces_interpolant(monkeypatch, native, cage_name):
     """On an edge the coordinates have a kink. The point's gradient and the rest vertices' are both
     those of the barycentric interpolant of the larger face holding the point (autograd of its
     closed form, as the torch kernel's values), so that they agree: moving the point and the cage
     together changes nothing (``gx + sum_j gP_j = 0``; the point's gradient used to come from the
-    first face and broke it). With ``native=False`` the kernel's closed form is bypassed
-    (``ops._on_face_vjp``)."""
+    first face and broke it). The twisted bar's quads are split into two halves of equal areas: of
+    areas within ``kernel3d.AREA_TIE`` the first face is taken, by every kernel. With
+    ``native=False`` the kernel's closed form is bypassed (``ops._on_face_vjp``)."""
     if native and not tc.backends.native.available():
         pytest.skip("needs the native kernels")
     if not native:
         _old_path(monkeypatch)
-    cage = _jittered_icosphere(6)
+    cage = _jittered_icosphere(6) if cage_name == "icosphere" else twisted_bar(quads=False).to(D64)
     g = torch.Generator().manual_seed(7)
-    f = torch.randint(0, cage.triangles.shape[0], (6,), generator=g)
+    f = torch.arange(cage.triangles.shape[0])  # (one edge of every face)
     p = cage.vertices[cage.triangles[f]]
-    t = 0.05 + 0.9 * torch.rand(6, 1, generator=g, dtype=D64)
+    t = 0.05 + 0.9 * torch.rand(f.shape[0], 1, generator=g, dtype=D64)
     x = p[:, 0] * t + p[:, 1] * (1 - t)
     cot = torch.randn(x.shape[0], cage.num_vertices, generator=g, dtype=D64)
     gx, gP = _grads(x, cage, cot)  # (all at once: gP sums over the points)
@@ -191,9 +193,10 @@ def test_on_edge_gradients_are_one_faces_interpolant(monkeypatch, native):
     V = cage.vertices.clone().requires_grad_()
     xr = x.clone().requires_grad_()
     lam = []
-    for i in range(x.shape[0]):  # the larger face holding the edge
+    for i in range(x.shape[0]):  # the larger face holding the edge (of two within AREA_TIE, the first)
         tri = cage.triangles
-        k = int((_holds_edge(cage, int(f[i])) * cage.triangle_normals(unit=False).norm(dim=-1)).argmax())
+        area = _holds_edge(cage, int(f[i])) * cage.triangle_normals(unit=False).norm(dim=-1)
+        k = int(torch.nonzero(area >= area.max() * (1 - kernel3d.AREA_TIE)).flatten().min())
         q = V[tri[k]]
         n = torch.linalg.cross(q[1] - q[0], q[2] - q[0], dim=-1)
         a = q - xr[i]

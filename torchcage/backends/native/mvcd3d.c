@@ -509,7 +509,8 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 }
             }
             on[p] = (unsigned char)flag;
-            if (flag && on_vertex < 0) {  // the largest face holding the point (the torch kernel's choice)
+            if (flag && on_vertex < 0) {  // the largest face holding the point (the torch kernel's choice;
+                                          // areas within TC_AREA_TIE of each other: the first)
                 for (long t = on_face + 1; t < T; t++) {
                     const int *ti = tri + 3 * t;
                     double a[3][3], minR = INFINITY;
@@ -518,7 +519,7 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                         minR = fmin(minR, av[4 * ti[i] + 3]);
                     }
                     double h = fabs(dot3(nrm + 3 * t, a[0]));
-                    if (two_area[t] > two_area[on_face] && !(longest[t] <= far_c * minR) && h <= tol &&
+                    if (two_area[t] > two_area[on_face] * (1 + TC_AREA_TIE) && !(longest[t] <= far_c * minR) && h <= tol &&
                         h < near_c * minR && in_face_prism(a, nrm + 3 * t, ell + 3 * t, tol))
                         on_face = t;
                 }

@@ -74,6 +74,11 @@ FAR_FIELD_RATIO = 1.0
 PART_FAR_FIELD_RATIO = 0.1
 #: Faces seen from more than ``FAR_ALWAYS_RATIO`` times their longest edge always take the far-field rule.
 FAR_ALWAYS_RATIO = 1e3
+#: A point on the cage (an edge: two faces) takes the barycentric interpolant of the largest face
+#: holding it; of faces whose areas are within this relative margin of the largest, the first (the
+#: native kernels' areas differ from these in their last digits, and a triangulated quad's two halves
+#: often tie; ``TC_AREA_TIE`` in ``backends/native/native.h``).
+AREA_TIE = 1e-9
 #: Gauss–Legendre order (per direction of the collapsed square) of the far-field rule: its error
 #: decays like ``(FAR_FIELD_RATIO / 4)^(2 * order)``.
 FAR_FIELD_ORDER = 14
@@ -478,8 +483,10 @@ def mvc3d_chunk(
         W = _gathered_weights(x, data, far, scaled, q)
     if any_on:
         cols = torch.nonzero(on_cage).squeeze(1)
-        # the largest face holding each point: its barycentric values are the best conditioned
-        f = (on_face[:, cols] * data.two_area).argmax(dim=0)
+        # the largest face holding each point: its barycentric values are the best conditioned (of
+        # areas within AREA_TIE, the first: argmax of the boolean takes the first True)
+        area = on_face[:, cols] * data.two_area  # (T, m)
+        f = (area >= area.amax(dim=0) * (1 - AREA_TIE)).to(torch.uint8).argmax(dim=0)
         if graph:  # (s of that face alone, as _pair_terms computes it: n . (a_j x a_k))
             xt = x.index_select(0, cols).T  # (3, m)
             a = [tuple(data.vertices[c].index_select(0, data.tri[f, i]) - xt[c] for c in range(3)) for i in range(3)]
@@ -487,7 +494,10 @@ def mvc3d_chunk(
             s_on = [_dot(_cross(a[(e + 1) % 3], a[(e + 2) % 3]), nrm) for e in range(3)]
         else:
             s_on = [q["s"][i][f, cols] for i in range(3)]
-        bary = torch.stack(s_on).clamp_min(0.0)  # (3, m)
+        s_face = torch.stack(s_on)  # (3, m)
+        # (clamped at 0 for the values; the derivatives are the face's interpolant's whatever the sign
+        # of a coordinate that rounds to either side of 0 on an edge, as the native kernels' are)
+        bary = s_face + (s_face.clamp_min(0.0) - s_face).detach() if graph else s_face.clamp_min(0.0)
         at_vertex = torch.stack([q["R"][i][f, cols] for i in range(3)]) <= data.tol
         bary = torch.where(at_vertex.any(dim=0, keepdim=True), at_vertex.to(bary.dtype), bary)
         bary = bary / bary.sum(dim=0, keepdim=True)
