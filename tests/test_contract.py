@@ -56,8 +56,8 @@ VMAP_OP = ("gc", "qmvc", "qgc")
 #: Why they do not map on a torch whose custom ops record no autograd through a vmap rule (2.5).
 VMAP_OLD_TORCH = "this torch records no autograd through a custom op's vmap rule (2.5): the eager path runs"
 VMAP_LOCATE = (
-    "vmap: .item() on a vmapped tensor: the point location chunks its candidate pairs by data "
-    "(torchcage/solvers/locate.py: int(torch.searchsorted(csum, ...)))"
+    "vmap: refused with a NotImplementedError naming what works (the point location reads the points' "
+    "values: torchcage/solvers/locate.py)"
 )
 
 
@@ -602,6 +602,34 @@ def test_vmap_over_point_sets(key) -> None:
     for b in range(X.shape[0]):
         for o, r in zip(outs, case.call(X[b]), strict=True):
             close(o[b], r, 1e-12, f"set {b}")
+
+
+@pytest.mark.parametrize("key", cases(lambda f: f.short in ("hc", "bbw")))
+def test_meshed_families_refuse_torch_func_transforms(key) -> None:
+    """Harmonic and bounded biharmonic coordinates locate the points in a meshed interior, which
+    reads their values: every ``torch.func`` transform raises an error naming what works instead
+    (it was an internal "Cannot access data pointer" or ``.item()`` error), and forward mode through
+    ``torch.autograd.forward_ad`` (which works) agrees with central differences."""
+    case = get_case(key)
+    f = case.fam.function()
+    x = case.inner_points(0.9)
+    transforms = {
+        "vmap": lambda: torch.func.vmap(lambda y: f(y, case.cage, **case.options))(x[None]),
+        "jvp": lambda: torch.func.jvp(lambda y: f(y, case.cage, **case.options), (x,), (torch.ones_like(x),)),
+        "jacrev": lambda: torch.func.jacrev(lambda y: f(y, case.cage, **case.options))(x),
+    }
+    for run in transforms.values():
+        with pytest.raises(NotImplementedError, match=r"torch\.func transforms"):
+            run()
+    import torch.autograd.forward_ad as fwAD
+
+    t = torch.zeros_like(x)
+    t[:, 0] = 1.0
+    with fwAD.dual_level():
+        tangent = fwAD.unpack_dual(f(fwAD.make_dual(x, t), case.cage, **case.options)).tangent
+    h = 1e-6
+    fd = (f(x + h * t, case.cage, **case.options) - f(x - h * t, case.cage, **case.options)) / (2 * h)
+    close(tangent, fd, 1e-6, "forward mode")
 
 
 @pytest.mark.parametrize("key", cases(lambda f: f.short in VMAP_OP))

@@ -20,8 +20,8 @@ import mmap
 import sys
 
 import torch
-from torch._C._functorch import is_functorch_wrapped_tensor
-from torch.autograd import forward_ad
+
+from torchcage._core.common import records_graph
 
 __all__ = ["HUGE_PAGE_MIN_BYTES", "advise_huge_pages", "cat_output", "empty_output", "zeros_output"]
 
@@ -102,11 +102,7 @@ def cat_output(parts: list[torch.Tensor], dim: int = 0) -> torch.Tensor:
         torch.Size([3, 3])
     """
     first = parts[0]
-    if (
-        (torch.is_grad_enabled() and any(p.requires_grad for p in parts))
-        or any(is_functorch_wrapped_tensor(p) or forward_ad.unpack_dual(p).tangent is not None for p in parts)
-        or any(p.dtype != first.dtype or p.device != first.device for p in parts)
-    ):
+    if records_graph(*parts) or any(p.dtype != first.dtype or p.device != first.device for p in parts):
         return torch.cat(parts, dim)
     shape = list(first.shape)
     shape[dim] = sum(p.shape[dim] for p in parts)

@@ -220,6 +220,23 @@ def records_graph(*tensors: torch.Tensor) -> bool:
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
 
+def refuse_transforms(points: torch.Tensor, cage: Cage, what: str) -> None:
+    """Families whose point location reads the points' values (meshed interiors) cannot run under
+    ``torch.func`` transforms, whose tensors hold no data.
+
+    Raises:
+        NotImplementedError: ``points`` or the cage's vertices wrapped by a ``torch.func``
+            transform (``vmap``, ``jvp``, ``jacrev``, ``jacfwd``, ``grad``), naming what works.
+    """
+    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
+        raise NotImplementedError(
+            f"{what} cannot run under torch.func transforms (vmap, jvp, jacrev, jacfwd, grad): locating the "
+            "points in the meshed interior reads their values. Call it once per point set (a loop instead of "
+            "vmap), and take derivatives with respect to the points with torch.autograd (backward, "
+            "torch.autograd.grad) or forward mode (torch.autograd.forward_ad), which both work"
+        )
+
+
 def no_vertex_tangent(dP: torch.Tensor | None) -> None:
     """Forward mode covers tangents of the points only (torch.func passes zeros for the others).
 

@@ -126,6 +126,7 @@ def select(
     check(op, backend)
     if graph is None:
         tensors = (points,) if cage_vertices is None else (points, cage_vertices)
+        # (_core.common.records_graph's test, written out: backends sit below _core)
         graph = any(
             is_functorch_wrapped_tensor(t) or forward_ad.unpack_dual(t).tangent is not None  # (forward mode)
             for t in tensors

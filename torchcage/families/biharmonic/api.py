@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 
-from torchcage._core.common import as_inputs, check_points
+from torchcage._core.common import as_inputs, check_points, refuse_transforms
 from torchcage.cage import Cage
 from torchcage.families.harmonic.api import check_mesh_solution, interpolate_on_mesh, refuse_options_with_solution
 from torchcage.solvers.biharmonic import BBWResult, solve_bbw
@@ -97,6 +97,7 @@ def bounded_biharmonic_weights(
         (True, True)
     """
     points, cage = as_inputs(points, cage)
+    refuse_transforms(points, cage, "bounded_biharmonic_weights")
     lead = points.shape[:-1]
     flat = check_points(points, cage)
     if solution is not None:

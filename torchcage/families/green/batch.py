@@ -90,8 +90,9 @@ def coordinates_batch(
             for b in outside:
                 parts[b] = extend_outside(x[b], cage._like(vc[b]), phi[b], psi[b])[:2]
             phi, psi = torch.stack([p for p, _ in parts]), torch.stack([s for _, s in parts])
-        for b in outside if not graph else ():
-            phi[b], psi[b], _ = extend_outside(x[b], cage._like(vc[b]), phi[b], psi[b])
+        else:  # (no graph: each element's rows rewritten in place)
+            for b in outside:
+                phi[b], psi[b], _ = extend_outside(x[b], cage._like(vc[b]), phi[b], psi[b])
     # (the sum made 1 where the caller multiplies by the vertices: about the origin)
     phi = unit_sum(phi, pts.to(compute), v)
     return phi.to(out_dtype).reshape(*batch, N, V), psi.to(out_dtype).reshape(*batch, N, T)

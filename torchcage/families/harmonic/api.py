@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from torchcage._core.common import as_inputs, check_points, has_tangent
+from torchcage._core.common import as_inputs, check_points, has_tangent, refuse_transforms
 from torchcage.cage import Cage
 from torchcage.errors import CageError
 from torchcage.solvers.domain import Domain, check_solution, domain_for
@@ -124,6 +124,7 @@ def harmonic_coordinates(
         (True, True)
     """
     points, cage = as_inputs(points, cage)
+    refuse_transforms(points, cage, "harmonic_coordinates")
     lead = points.shape[:-1]
     flat = check_points(points, cage)
     if solution is not None:
