@@ -101,10 +101,12 @@ class TriangleCageData:
     thin: torch.Tensor  # (k,) the faces THIN_ASPECT times longer than wide (module _thin_triangle)
 
 
+#: The end of the error for a cage with quads.
+TRIANGLE_CAGE_HINT = "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated() to split quads"
+
+
 def triangle_cage_data(cage: Cage, dtype: torch.dtype) -> TriangleCageData:
-    triangle_geometry(  # checks: a 3D triangle cage
-        cage, dtype, "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated() to split quads"
-    )
+    triangle_geometry(cage, dtype, TRIANGLE_CAGE_HINT)  # checks: a 3D triangle cage
     return triangle_data(cage.vertices.to(dtype), cage.triangles, on_cage_tolerance(cage))
 
 
