@@ -148,3 +148,27 @@ def test_ogre_mesh_vertices_outside_their_cage_are_reproduced() -> None:
     v = tc.load_mesh(data_path("qmvc", "Ogre.obj"))[0].to(D64)
     m = tc.GreenCoordinates(cage, v)
     assert float((m(cage.vertices) - v).norm(dim=1).max()) < 1e-9 * cage.scale
+
+
+def test_in_place_continuation_equals_the_copy_and_leaves_the_inputs_alone() -> None:
+    """``extend_outside(inplace=True)`` (the plain path: the kernel's fresh tables) gives the same
+    tables as the copying form, bit for bit; the copying form leaves the caller's tensors as they
+    were. The continuation terms (dot products component by component, the vertices' sums by rows of
+    the transpose) agree with a direct computation of the blend: the continued coordinates of an
+    outside point reproduce it at rest."""
+    from torchcage.families.green.exterior import extend_outside
+
+    cage = _cube()
+    g = torch.Generator().manual_seed(3)
+    x = torch.cat([0.3 * torch.randn(20, 3, generator=g, dtype=D64), 1.5 + torch.rand(20, 3, generator=g, dtype=D64)])
+    phi, psi = F.green_coordinates(x, cage, exterior="none")
+    before = phi.clone(), psi.clone()
+    a_phi, a_psi, a_d = extend_outside(x, cage, phi, psi)
+    assert torch.equal(phi, before[0]) and torch.equal(psi, before[1])
+    b_phi, b_psi, b_d = extend_outside(x, cage, phi, psi, inplace=True)
+    assert b_phi is phi and b_psi is psi
+    assert torch.equal(a_phi, b_phi) and torch.equal(a_psi, b_psi) and torch.equal(a_d, b_d)
+    assert bool((a_d[20:] > 0).all()) and bool((a_d[:20] == 0).all())
+    rec = a_phi @ cage.vertices + a_psi @ cage.triangle_normals()
+    assert float((rec - x).norm(dim=-1).max()) <= 1e-12 * cage.scale
+    assert float((a_phi.sum(-1) - 1).abs().max()) <= 1e-12

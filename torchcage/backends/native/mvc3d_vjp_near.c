@@ -24,7 +24,8 @@
  * cage take the interpolant's closed form (status 2), as tc_mvcd3d and ops._on_face_vjp define it:
  * the largest face within tol of the point (tc_mvcd3d's test, with its near_d and far_d; of areas
  * within TC_AREA_TIE of each other the first, as the torch kernel), or a corner within tol. In that face or on its edge, with
- * b_i its barycentric coordinates (clamped at 0 and renormalised, as the values),
+ * b_i its barycentric coordinates (clamped at 0 and renormalised: tc_mvcd3d's values, unclamped,
+ * differ from them by rounding),
  * GX = sum_i gbar_i (E_i x n) / (2 area) and GP_i -= b_i GX (d lam_v / d p_j = -lam_j d lam_v / dx:
  * the interpolant is affine invariant); at a vertex nothing (lam is constant). On an edge the
  * coordinates have a kink: GX and GP are both the derivatives of that one face's interpolant, so

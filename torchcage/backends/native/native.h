@@ -204,12 +204,13 @@ void tc_far_face(const gc_tables *g, long f, const double *x, double h, double *
 /* Thin faces (torchcage/_core/thin_triangle.py): THIN_ASPECT times longer than wide, seen from
  * THIN_DISTANCE widths or more from their longest edge, take the swept forms. */
 #define TC_THIN_ASPECT 100.0
-/* A point on the cage (an edge: two faces) takes the interpolant of the largest face holding it; of
- * faces whose areas are within this relative margin, the first (kernel3d.AREA_TIE: the kernels'
- * areas differ in their last digits, and a triangulated quad's two halves often tie). */
-#define TC_AREA_TIE 1e-9
 #define TC_THIN_DISTANCE 9.0
 int tc_thin_face(const double a[3][3], double two_area);
+/* The derivatives of mean value coordinates at a point on the cage (an edge: two faces) are those of
+ * the interpolant of the largest face holding it; of faces whose areas are within this relative
+ * margin, the first (kernel3d.AREA_TIE: the kernels' areas differ in their last digits, and a
+ * triangulated quad's two halves often tie). */
+#define TC_AREA_TIE 1e-9
 /* Mean value weights (w) of a thin face with their gradients (g) and Hessians (H, upper triangle) in
  * the point, by the swept form (mvcd3d.c). Returns 1. */
 int tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],

@@ -157,7 +157,8 @@ def green_coordinates(
     else:
         phi, psi = green_flat(x, cage_c, chunk_size, progress, backend)
     if exterior == "extend":
-        phi, psi, _ = extend_outside(x, cage_c, phi.to(compute), psi.to(compute))
+        own = not records_graph(phi, psi)  # (the kernel's fresh tables: continued in place)
+        phi, psi, _ = extend_outside(x, cage_c, phi.to(compute), psi.to(compute), inplace=own)
     # (the sum made 1 where the caller multiplies by the vertices: about the origin)
     phi = unit_sum(phi, flat.to(phi.dtype), cage.vertices.to(phi.dtype))
     lead = points.shape[:-1]

@@ -90,9 +90,9 @@ def coordinates_batch(
             for b in outside:
                 parts[b] = extend_outside(x[b], cage._like(vc[b]), phi[b], psi[b])[:2]
             phi, psi = torch.stack([p for p, _ in parts]), torch.stack([s for _, s in parts])
-        else:  # (no graph: each element's rows rewritten in place)
+        else:  # (no graph: each element's rows continued in place)
             for b in outside:
-                phi[b], psi[b], _ = extend_outside(x[b], cage._like(vc[b]), phi[b], psi[b])
+                extend_outside(x[b], cage._like(vc[b]), phi[b], psi[b], inplace=True)
     # (the sum made 1 where the caller multiplies by the vertices: about the origin)
     phi = unit_sum(phi, pts.to(compute), v)
     return phi.to(out_dtype).reshape(*batch, N, V), psi.to(out_dtype).reshape(*batch, N, T)

@@ -45,7 +45,12 @@ _PAIRS = 1 << 18
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a * b).sum(dim=-1)
+    """``(a * b).sum(-1)`` over the last axis (2 or 3 components), component by component: a
+    reduction over an axis of 3 took ten times as long (5 ms for 616 x 300 pairs)."""
+    out = a[..., 0] * b[..., 0]
+    for k in range(1, a.shape[-1]):
+        out = out + a[..., k] * b[..., k]
+    return out
 
 
 def _segment_distance2(y: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
@@ -53,8 +58,10 @@ def _segment_distance2(y: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
     ``[0, e]`` ``(T, D)``; ``(m, T)``."""
     ee = _dot(e, e)
     t = safe_div(_dot(y, e), ee, ee > 0).clamp(0.0, 1.0)
-    r = y - t[..., None] * e
-    return _dot(r, r)
+    out = (y[..., 0] - t * e[..., 0]).square()  # (|y - t e|^2, component by component)
+    for k in range(1, y.shape[-1]):
+        out = out + (y[..., k] - t * e[..., k]).square()
+    return out
 
 
 def _terms3d(x: torch.Tensor, P: torch.Tensor, tri: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -66,9 +73,10 @@ def _terms3d(x: torch.Tensor, P: torch.Tensor, tri: torch.Tensor) -> tuple[torch
     NN = _dot(N, N)
     ok = NN > 0
     y = x[:, None, :] - a[None]  # (m, T, 3)
-    # (u x w) . N = (u x w) . N for the in-plane parts only: affine barycentrics of the projection.
-    ab = safe_div(_dot(torch.linalg.cross(y, e2.expand_as(y), dim=-1), N), NN, ok)
-    ac = safe_div(_dot(torch.linalg.cross(e1.expand_as(y), y, dim=-1), N), NN, ok)
+    # (u x w) . N = (u x w) . N for the in-plane parts only: affine barycentrics of the projection,
+    # (y x e2) . N = y . (e2 x N) and (e1 x y) . N = y . (N x e1) (no (m, T, 3) cross products)
+    ab = safe_div(_dot(y, torch.linalg.cross(e2, N, dim=-1)), NN, ok)
+    ac = safe_div(_dot(y, torch.linalg.cross(N, e1, dim=-1)), NN, ok)
     alpha = torch.stack([1 - ab - ac, ab, ac], dim=-1)
     h = safe_div(_dot(y, N), safe_sqrt(NN), ok)
     inside = (alpha >= 0).all(dim=-1)
@@ -129,13 +137,15 @@ def exterior_terms(
     s = (1 - (dist_ok - dmin[:, None]) / width[:, None]).clamp_min(0.0)
     w = torch.where(ok, s * s * quality, 0.0)
     w = w / w.sum(dim=1, keepdim=True)  # the nearest face has a positive weight
-    dphi = torch.zeros(x.shape[0], vertices.shape[0], dtype=x.dtype, device=x.device)
-    dphi = dphi.index_add(1, faces.reshape(-1), (w[..., None] * alpha).reshape(x.shape[0], -1))
-    return dphi, w * h, dmin
+    # (summed into the vertices' rows of the transpose: index_add along the first axis adds
+    # contiguous rows; along the second it took 70 ms for 616 points on 300 faces)
+    dphi_t = torch.zeros(vertices.shape[0], x.shape[0], dtype=x.dtype, device=x.device)
+    dphi_t = dphi_t.index_add(0, faces.reshape(-1), (w[..., None] * alpha).reshape(x.shape[0], -1).T)
+    return dphi_t.T, w * h, dmin
 
 
 def extend_outside(
-    points: torch.Tensor, cage: Cage, phi: torch.Tensor, psi: torch.Tensor
+    points: torch.Tensor, cage: Cage, phi: torch.Tensor, psi: torch.Tensor, inplace: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Green coordinates continued outside the cage (module docstring).
 
@@ -143,12 +153,14 @@ def extend_outside(
         points: ``(N, D)`` checked points, in the compute dtype.
         cage: the (single) cage.
         phi: ``(N, V)`` Green coordinates of the points; ``psi`` ``(N, T)``.
+        inplace: add the continuation into ``phi`` and ``psi`` themselves (tensors without a graph
+            that the caller owns, such as a kernel's fresh outputs: no copy of the tables).
 
     Returns:
-        ``(phi, psi, distance)``: the coordinates with the outside rows continued (new tensors;
-        the inputs are not changed), and ``(N,)`` each point's distance outside the cage (0 for
-        points inside it or on it). Outside is where ``phi`` sums to less than 1/2 (the winding
-        number: 1 inside, 0 outside).
+        ``(phi, psi, distance)``: the coordinates with the outside rows continued (new tensors
+        unless ``inplace``), and ``(N,)`` each point's distance outside the cage (0 for points
+        inside it or on it). Outside is where ``phi`` sums to less than 1/2 (the winding number:
+        1 inside, 0 outside).
     """
     faces = cage.triangles if cage.dim == 3 else cage.edges
     rows = torch.nonzero(phi.detach().sum(dim=-1) < 0.5).squeeze(1)
@@ -159,6 +171,10 @@ def extend_outside(
     size = max(1, _PAIRS // max(1, faces.shape[0]))
     parts = [exterior_terms(points[rows[s : s + size]], P, faces) for s in range(0, rows.numel(), size)]
     dphi, dpsi, dist = (torch.cat(t) for t in zip(*parts, strict=True))
-    phi = phi.index_add(0, rows, dphi.to(phi.dtype))
-    psi = psi.index_add(0, rows, dpsi.to(psi.dtype))
+    if inplace:
+        phi.index_add_(0, rows, dphi.to(phi.dtype))
+        psi.index_add_(0, rows, dpsi.to(psi.dtype))
+    else:
+        phi = phi.index_add(0, rows, dphi.to(phi.dtype))
+        psi = psi.index_add(0, rows, dpsi.to(psi.dtype))
     return phi, psi, distance.index_copy(0, rows, dist.detach())

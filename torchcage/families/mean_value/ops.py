@@ -12,8 +12,9 @@
   folded into one kernel call), so ``torch.func.vmap`` and ``jacrev`` work too.
 * Third derivatives are not implemented (``MeanValueHessFunction.backward`` raises).
 * Points on the cage: the coordinates interpolate there and are not differentiable across it;
-  there the derivatives are those of the interpolant (barycentric in a face holding the point, its
-  gradient in the face's plane; linear along a polygon's edge; zero at a vertex), Hessians zero.
+  there the derivatives are those of the interpolant (barycentric in the largest face holding the
+  point, its gradient in the face's plane; linear along a polygon's edge; zero at a vertex),
+  Hessians zero.
 
 Derivations: ``torchcage/families/mean_value/derivatives.py`` and ``backends/native/mvcd3d.c``.
 """
@@ -229,7 +230,7 @@ def _joint_vjp(x: Tensor, P: Tensor, faces: Tensor, g: Tensor, need_x: bool) -> 
     """First-order products with respect to the points and the rest vertices of a 3D cage at once:
     the hand-derived reverse mode of the direct form (``vjp3d``) for the regular points, chunk
     by chunk; with the native kernel, those near a support plane split per face
-    (:func:`_split_vjp`) and those on a face or at a vertex in closed form; the others (near an
+    (:func:`_split_vjp`) and those on the cage in closed form; the others (near an
     edge's line, thin faces, far outside) as in :meth:`MeanValueFunction.backward`'s general path,
     restricted to them."""
     dt = torch.float64 if x.device.type != "mps" else x.dtype
@@ -272,7 +273,7 @@ def _irregular_vjp(
 ) -> None:
     """:func:`_joint_vjp`'s products for the points ``idx`` the native direct form left (not
     regular), added into ``gx`` ``(N, 3)`` and ``gP`` ``(V, 3)`` (float64): those near a support
-    plane split per face, those on a face or at a vertex in closed form, the others by autograd of
+    plane split per face, those on the cage in closed form, the others by autograd of
     the torch kernel."""
     if idx.numel() == 0:
         return
@@ -309,7 +310,7 @@ def _split_vjp(
     the faces regular for the point, and over the others (*careful* pairs) forward-mode derivatives
     of the split form; with ``in_kernel=False`` it leaves those to autograd of the torch split
     form (:func:`kernel3d._stable_face_weights`) here, over those point–face pairs only, all at
-    once (the same operations: the tests compare them). Points on a face or at a vertex take the
+    once (the same operations: the tests compare them). Points on the cage take the
     interpolant's closed form in the kernel (the values of :func:`_on_face_vjp`).
 
     Where a face holds the point's foot point its weights carry a term ``c_i / h``, whose

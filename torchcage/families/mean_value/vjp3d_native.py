@@ -96,19 +96,19 @@ def native_vjp_near(
     split_pairs: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The joint product split per face for points near a face's support plane, and in closed
-    form for points on a face or at a vertex (``torchcage/backends/native/mvc3d_vjp_near.c``):
-    float64 CPU ``x`` ``(n, 3)``, ``vertices`` ``(V, 3)``, ``tri`` ``(T, 3)``, ``gbar`` ``(n, V)``;
-    ``margin``: the smallest barycentric coordinate of a point on a face that the closed form takes;
-    ``split_pairs``: the kernel differentiates the careful pairs too (forward mode of the split
-    form), else it leaves them to the caller (``pair``).
+    form for points on the cage (a face, an edge, a vertex: the largest holding face's interpolant)
+    (``torchcage/backends/native/mvc3d_vjp_near.c``): float64 CPU ``x`` ``(n, 3)``, ``vertices``
+    ``(V, 3)``, ``tri`` ``(T, 3)``, ``gbar`` ``(n, V)``; ``split_pairs``: the kernel differentiates
+    the careful pairs too (forward mode of the split form), else it leaves them to the caller
+    (``pair``).
 
     Returns:
         ``(gx (n, 3), gP (V, 3), split (n,) bool, pair (n, T) uint8, wbar (n, V), sn (n,), hs (n,))``:
         the products over the faces regular for each point that takes the split, or the closed
         form's (``split``; the other points are left to the caller); the faces left to the caller
-        (``pair``: 1, or 2 for the face around the point's foot, whose distance is ``hs``);
-        ``wbar = (gbar - gbar . lam) / W``; ``sn`` the sum over every face but that one of
-        ``wbar . w_f``.
+        (``pair``: 1; 2 for the nearest face around the point's foot, whose distance is ``hs``; 3
+        for any other face around it, near an edge); ``wbar = (gbar - gbar . lam) / W``; ``sn``
+        the sum over every face but the one marked 2 of ``wbar . w_f``.
     """
     n, V, T = x.shape[0], vertices.shape[0], tri.shape[0]
     f64 = torch.float64
