@@ -21,25 +21,13 @@ if __name__ == "__main__":
 
 import argparse
 import functools
-import time
 from collections.abc import Callable
 
 import torch
-from harness import MODELS, add_data_argument, present_models
+from harness import MODELS, add_data_argument, cpu_best, present_models
 
 import torchcage.functional as F
 from torchcage._core import alloc
-
-
-def cpu_best(fns: list[Callable[[], object]], repeat: int) -> list[float]:
-    """The best CPU time of each function, called in turn ``repeat`` times."""
-    best = [float("inf")] * len(fns)
-    for _ in range(repeat):
-        for i, fn in enumerate(fns):
-            t = time.process_time()
-            fn()
-            best[i] = min(best[i], time.process_time() - t)
-    return best
 
 
 def fill(make: Callable[[], torch.Tensor]) -> Callable[[], None]:

@@ -17,28 +17,13 @@ from __future__ import annotations
 import argparse
 import functools
 import os
-import time
 import warnings
-from collections.abc import Callable
 
 import torch
-from harness import MODELS, add_data_argument, present_models
+from harness import MODELS, add_data_argument, cpu_best, present_models
 
 import torchcage.functional as F
 from torchcage.backends import native
-
-
-def cpu_best(fns: list[Callable[[], object]], repeat: int) -> list[float]:
-    """The best CPU time of each of ``fns``, called in turn in each of ``repeat`` rounds (each
-    result freed before the next call)."""
-    best = [float("inf")] * len(fns)
-    for _ in range(repeat):
-        for i, fn in enumerate(fns):
-            t = time.process_time()
-            out = fn()
-            best[i] = min(best[i], time.process_time() - t)
-            del out
-    return best
 
 
 def main() -> None:

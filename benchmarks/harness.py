@@ -13,7 +13,8 @@ import os
 import resource
 import subprocess
 import sys
-from collections.abc import Iterator, Sequence
+import time
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import torch
@@ -61,6 +62,18 @@ def present_models(data: str | Path, models: Sequence[str]) -> Iterator[tuple[st
             print(f"| {model} | (not in {data}) |")
             continue
         yield model, *loaded
+
+
+def cpu_best(fns: Sequence[Callable[[], object]], repeat: int) -> list[float]:
+    """The best CPU time of each of ``fns``, called in turn in each of ``repeat`` rounds (each
+    result dropped before the next call)."""
+    best = [float("inf")] * len(fns)
+    for _ in range(repeat):
+        for i, fn in enumerate(fns):
+            t = time.process_time()
+            fn()
+            best[i] = min(best[i], time.process_time() - t)
+    return best
 
 
 def rss_mb() -> float:
