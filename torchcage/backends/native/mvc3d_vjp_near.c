@@ -23,9 +23,9 @@
  * A point takes this path (status 1) only when every face is regular or careful. Points on the
  * cage take the interpolant's closed form (status 2), as tc_mvcd3d and ops._on_face_vjp define it:
  * the largest face within tol of the point (tc_mvcd3d's test, with its near_d and far_d; of areas
- * within TC_AREA_TIE of each other the first, as the torch kernel), or a corner within tol. In that face or on its edge, with
- * b_i its barycentric coordinates (clamped at 0 and renormalised: tc_mvcd3d's values, unclamped,
- * differ from them by rounding),
+ * within TC_AREA_TIE of each other the first, as the torch kernel), or a corner within tol. In that
+ * face or on its edge, with b_i its barycentric coordinates (clamped at 0 and renormalised:
+ * tc_mvcd3d's values, unclamped, differ from them by rounding),
  * GX = sum_i gbar_i (E_i x n) / (2 area) and GP_i -= b_i GX (d lam_v / d p_j = -lam_j d lam_v / dx:
  * the interpolant is affine invariant); at a vertex nothing (lam is constant). On an edge the
  * coordinates have a kink: GX and GP are both the derivatives of that one face's interpolant, so
@@ -342,15 +342,10 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                         rmin = fmin(rmin, sqrt(dot3(a[i], a[i])));
                     }
                     double h = fabs(dot3(c + F_N, a[0]));
-                    int holds = c[F_TWO_AREA] > fc[F_SIZE * onf + F_TWO_AREA] * (1 + TC_AREA_TIE) &&
-                                !(c[F_LONGEST] <= far_d * rmin) &&
-                                h <= tol && h < near_d * rmin;
-                    for (int e = 0; e < 3 && holds; ++e) {
-                        double Ne[3];
-                        cross3(a[(e + 1) % 3], a[(e + 2) % 3], Ne);
-                        holds = dot3(c + F_N, Ne) >= -tol * c[F_ELL + e];
-                    }
-                    if (holds) onf = f;
+                    if (c[F_TWO_AREA] > fc[F_SIZE * onf + F_TWO_AREA] * (1 + TC_AREA_TIE) &&
+                        !(c[F_LONGEST] <= far_d * rmin) && h <= tol && h < near_d * rmin &&
+                        tc_in_face_prism((const double(*)[3])a, c + F_N, c + F_ELL, tol))
+                        onf = f;
                 }
                 /* in a face or on its edge: its barycentric coordinates b_i = n . (a_j x a_k) /
                  * (2 area) (clamped at 0 and renormalised, as the values), their gradients

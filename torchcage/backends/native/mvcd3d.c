@@ -251,7 +251,7 @@ static int face_near_plane(const double a[3][3], const double E[3][3], const dou
 
 /* Whether the foot point of the point lies in the face (within tol): n.(a_j x a_k) >= -tol l_e for
  * every edge. With |h| <= tol, the point is on the face: the near-plane form flags it. */
-static int in_face_prism(const double a[3][3], const double *n, const double *ell, double tol) {
+int tc_in_face_prism(const double a[3][3], const double *n, const double *ell, double tol) {
     for (int e = 0; e < 3; e++) {
         double Ne[3];
         cross3(a[(e + 1) % 3], a[(e + 2) % 3], Ne);
@@ -464,7 +464,7 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 const double *nt = nrm + 3 * t;
                 double h = dot3(nt, a[0]);
                 if (thin[t] && tc_thin_face((const double(*)[3])a, two_area[t]) &&
-                    (fabs(h) > tol || !in_face_prism(a, nt, ell + 3 * t, tol))) {
+                    (fabs(h) > tol || !tc_in_face_prism(a, nt, ell + 3 * t, tol))) {
                     tc_thin_mvc((const double(*)[3])a, nt, h, two_area[t], w, g, Hh);
                 } else if (longest[t] <= far_c * minR) {
                     face_far(x, nt, h, far_nodes + 3 * Q * t, far_coef + 3 * Q * t, (int)Q, w, g, Hh);
@@ -519,8 +519,8 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                         minR = fmin(minR, av[4 * ti[i] + 3]);
                     }
                     double h = fabs(dot3(nrm + 3 * t, a[0]));
-                    if (two_area[t] > two_area[on_face] * (1 + TC_AREA_TIE) && !(longest[t] <= far_c * minR) && h <= tol &&
-                        h < near_c * minR && in_face_prism(a, nrm + 3 * t, ell + 3 * t, tol))
+                    if (two_area[t] > two_area[on_face] * (1 + TC_AREA_TIE) && !(longest[t] <= far_c * minR) &&
+                        h <= tol && h < near_c * minR && tc_in_face_prism(a, nrm + 3 * t, ell + 3 * t, tol))
                         on_face = t;
                 }
             }

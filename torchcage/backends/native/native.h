@@ -211,6 +211,9 @@ int tc_thin_face(const double a[3][3], double two_area);
  * margin, the first (kernel3d.AREA_TIE: the kernels' areas differ in their last digits, and a
  * triangulated quad's two halves often tie). */
 #define TC_AREA_TIE 1e-9
+/* Whether the foot point of a point (corners a = p_i - x) lies in the face of unit normal n and
+ * edge lengths ell, within tol: n . (a_j x a_k) >= -tol ell_e for every edge (mvcd3d.c). */
+int tc_in_face_prism(const double a[3][3], const double *n, const double *ell, double tol);
 /* Mean value weights (w) of a thin face with their gradients (g) and Hessians (H, upper triangle) in
  * the point, by the swept form (mvcd3d.c). Returns 1. */
 int tc_thin_mvc(const double a[3][3], const double *n, double h, double two_area, double *w, double g[3][3],
