@@ -96,9 +96,11 @@ def _gauss(m: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
     return tuple(0.5 * (1 + a) for a in t), tuple(0.5 * a for a in w)
 
 
+@functools.cache
 def gauss_table() -> torch.Tensor:
     """The rules of orders ``0..MAX_ORDER`` as a float64 table ``(MAX_ORDER + 1, 2, MAX_ORDER)``
-    (nodes, then weights, zero-padded; row 0 unused) for the native kernel."""
+    (nodes, then weights, zero-padded; row 0 unused) for the native kernel. Built once: every call
+    returns the same tensor, which the kernels only read (do not write into it)."""
     table = torch.zeros((MAX_ORDER + 1, 2, MAX_ORDER), dtype=torch.float64)
     for m in range(1, MAX_ORDER + 1):
         t, w = _gauss(m)

@@ -101,8 +101,8 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "HPSI:f64*!?[n,T,3,3] OK:i32*![n]"
     ),
     "tc_qmvc3d": _parse(
-        "P:f64*[V,3] V:i64 quads:i32*[Q,4] Q:i64 size:f64*[Q] X:f64*[npts,3] npts:i64 tol:f64 n:i32 qtol:f64 "
-        "gl:f64*[17,2,16] nthreads:i32 W:f64*![npts,V] on:u8*![npts]"
+        "B:i64 P:f64*[B,V,3] V:i64 quads:i32*[Q,4] Q:i64 size:f64*[B,Q] X:f64*[XB,npts,3] XB:i64 npts:i64 "
+        "tol:f64*[B] n:i32 qtol:f64 gl:f64*[17,2,16] nthreads:i32 W:f64*![B,npts,V] on:u8*![B,npts]"
     ),
     "tc_qgc3d": _parse(
         "P:f64*[V,3] V:i64 quads:i32*[Q,4] Q:i64 size:f64*[Q] pinv:f64*[Q,8,4] null:f64*[Q,8,4] origin:f64*[3] "

@@ -890,8 +890,9 @@ static inline int pair_weights(long V, const int *qi, const quad_const *qc, cons
  * on entry (rows with on[p] = 1 are final); on exit the normalised coordinates, on[p] = 1 for the
  * points on the cage.
  */
-void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *X, long npts,
-               double tol, int n, double qtol, const double *gl, int nthreads, double *W, unsigned char *on) {
+/* One cage of tc_qmvc3d's batch; returns 1 when a thread could not allocate its scratch. */
+static int qmvc3d_one(const double *P, long V, const int *quads, long Q, const double *size, const double *X, long npts,
+                      double tol, int n, double qtol, const double *gl, int nthreads, double *W, unsigned char *on) {
     const int K = 2 * n + 1, KP = (K + 3) & ~3;
     double centre[3];
     const double far2 = tc_far_centre(P, V, 3, 1, 3, centre);
@@ -1014,7 +1015,22 @@ void tc_qmvc3d(const double *P, long V, const int *quads, long Q, const double *
     done:
         free(un);
     }
-    if (failed) /* the glue's sign of a failed allocation (it raises MemoryError) */
-        for (long k = 0; k < npts * V; ++k) W[k] = NAN;
     free(QC);
+    return failed;
+}
+
+/* Quad mean value coordinates of a batch of B cages with one topology (vertices P (B, V, 3), the
+ * quads' sizes (B, Q), on-cage tolerances tol (B,)): points X (XB, npts, 3), XB = 1 (shared by every
+ * cage) or B; the quads' raw weights added into W (B, npts, V) (the triangles' raw weights, from
+ * tc_mvc3d, already there), then each row normalised; rows flagged in on (B, npts) hold their
+ * on-cage values and are skipped. The cages one after the other, each parallel over its points. */
+void tc_qmvc3d(long B, const double *P, long V, const int *quads, long Q, const double *size, const double *X, long XB,
+               long npts, const double *tol, int n, double qtol, const double *gl, int nthreads, double *W,
+               unsigned char *on) {
+    int failed = 0;
+    for (long b = 0; b < B && !failed; ++b)
+        failed = qmvc3d_one(P + b * V * 3, V, quads, Q, size + b * Q, X + (XB > 1 ? b : 0) * npts * 3, npts, tol[b], n,
+                            qtol, gl, nthreads, W + b * npts * V, on + b * npts);
+    if (failed) /* the glue's sign of a failed allocation (it raises MemoryError) */
+        for (long k = 0; k < B * npts * V; ++k) W[k] = NAN;
 }

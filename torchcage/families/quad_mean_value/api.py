@@ -10,26 +10,28 @@ from collections.abc import Callable
 import torch
 
 from torchcage._core.alloc import cat_output
-from torchcage._core.batch import over_cage_batch
-from torchcage._core.centre import centre_of
+from torchcage._core.batch import broadcast_batch, check_finite_batch, over_cage_batch
+from torchcage._core.centre import centre_of, centred_batch
 from torchcage._core.common import (
     as_inputs,
     check_points,
     chunks,
     far_unity,
+    may_be_far,
     normalise_weights,
     on_cage_tolerance,
+    on_cage_tolerances,
     outside_point,
     records_graph,
     result_dtype,
 )
 from torchcage._core.compiled import CompiledOp, through_op
 from torchcage.backends import Op, check, select
-from torchcage.cage import Cage
+from torchcage.cage import Cage, _batch_name
 from torchcage.errors import CageError, PointsError
 from torchcage.families.mean_value.kernel3d import TriangleCageData, mvc3d_chunk, triangle_data
 from torchcage.families.quad_mean_value.kernel import QuadData, project, qmvc3d_chunk, quad_data
-from torchcage.families.quad_mean_value.native import native_kernel
+from torchcage.families.quad_mean_value.native import native_coordinates
 
 __all__ = ["quad_mean_value_coordinates"]
 
@@ -83,6 +85,21 @@ def check_tol(tol: float | None) -> float | None:
 MIN_TOL = 1e-14
 
 
+def check_grid(n: int) -> None:
+    """Refuse a grid parameter ``n`` the quad functions do not take.
+
+    Raises:
+        ValueError: ``n`` not an integer in ``[1, MAX_GRID]``.
+    """
+    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    if n > MAX_GRID:
+        raise ValueError(
+            f"n = {n} is past {MAX_GRID}: the cost grows like n^2 per point and quad while the error falls "
+            "slowly (docs/qmvc.md); for accuracy pass tol= (the integrals to a tolerance) instead"
+        )
+
+
 def prepare_quad_call(
     points: torch.Tensor,
     cage: Cage,
@@ -97,13 +114,7 @@ def prepare_quad_call(
         ``(x (N, 3), out_dtype, vertices (V, 3), tol)``: the flattened points and the cage's
         vertices in the compute dtype, the dtype to return, and the absolute on-cage tolerance.
     """
-    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
-        raise ValueError(f"n must be a positive integer, got {n!r}")
-    if n > MAX_GRID:
-        raise ValueError(
-            f"n = {n} is past {MAX_GRID}: the cost grows like n^2 per point and quad while the error falls "
-            "slowly (docs/qmvc.md); for accuracy pass tol= (the integrals to a tolerance) instead"
-        )
+    check_grid(n)
     if cage.dim != 3:
         check_quads(cage, allow_invalid, what)
     flat = check_points(points, cage)
@@ -202,6 +213,10 @@ def quad_mean_value_coordinates(
         return lam
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
+        lam = _native_batch(points, cage, n, chunk_size, dtype, progress, backend, allow_invalid, tol)
+        if lam is not None:
+            return lam
+        # (the torch and Triton kernels, graphs, torch.func transforms: one call per element)
         return over_cage_batch(
             quad_mean_value_coordinates,
             points,
@@ -228,13 +243,18 @@ def quad_mean_value_coordinates(
         )
     choice = select(QMVC, backend, x, cage.vertices)
     use_triton, lib = choice.kind == "triton" and quad_tol is None, choice.lib  # (tol: torch on CUDA)
+    if lib is not None:
+        tols = torch.tensor([tol], dtype=torch.float64)
+        out = native_coordinates(
+            lib, x[None], verts[None], cage.triangles, cage.quads, tols, n, quad_tol, chunk_size, progress
+        )[0]
+        _refuse_undefined(out, torch.Size([1]), torch.Size([]))
+        (out,) = far_unity(out, x, verts)
+        return out.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
     T, Q = cage.triangles.shape[0], cage.quads.shape[0]
     tdata = triangle_data(verts, cage.triangles, tol) if T else None
     qdata = quad_data(verts, cage.quads, tol) if Q else None
-    if lib is not None:
-        kernel = native_kernel(lib, verts, tdata, qdata, n, quad_tol)
-        size = chunk_size or 1 << 14
-    elif use_triton:
+    if use_triton:
         kernel = _triton_kernel(verts, tdata, qdata, n)
         size = chunk_size or max(256, (1 << 23) // cage.num_vertices)
     else:
@@ -243,15 +263,75 @@ def quad_mean_value_coordinates(
         size = chunk_size or max(16, (1 << 19) // (max(Q, 1) * samples) + 1)
     parts = [kernel(x[sl]) for sl in chunks(x.shape[0], size, progress, desc="quad mean value coordinates")]
     out = cat_output(parts) if parts else x.new_zeros((0, cage.num_vertices))
-    bad = ~torch.isfinite(out.detach().sum(dim=1))
-    if bool(bad.any()):
-        idx = torch.nonzero(bad).flatten()[:10].tolist()
-        raise PointsError(
-            f"quad mean value coordinates are undefined at points {idx} (the total weight vanishes there, "
-            "which happens only outside the cage); move these points"
-        )
+    _refuse_undefined(out.detach()[None], torch.Size([1]), torch.Size([]))
     (out,) = far_unity(out, x, verts)
     return out.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
+
+
+def _native_batch(
+    points: torch.Tensor,
+    cage: Cage,
+    n: int,
+    chunk_size: int | None,
+    dtype: torch.dtype | None,
+    progress: bool | Callable[[int, int], None],
+    backend: str,
+    allow_invalid: bool,
+    tol: float | None,
+) -> torch.Tensor | None:
+    """Quad mean value coordinates ``(*B', N, V)`` of a batch of cages with one topology by the
+    native kernel: one call per chunk of points for every cage, the cages' tables built by one set
+    of tensor operations; element by element the numbers of the single-cage call. ``None`` where it
+    does not serve (another backend or device, a compute dtype other than float64, an autograd
+    graph or a ``torch.func`` transform, no native build): the caller then loops over the cages.
+
+    Raises:
+        ValueError: a wrong ``n``, ``tol`` or ``backend``.
+        CageError: invalid quads (unless ``allow_invalid``).
+        PointsError: points that do not broadcast with the cages, NaN or inf, or points where the
+            coordinates are undefined, naming the batch element.
+    """
+    check_grid(n)
+    quad_tol = check_tol(tol)
+    check(QMVC, backend)
+    if backend not in ("auto", "native") or records_graph(points, cage.vertices):
+        return None
+    pts, verts, batch = broadcast_batch(points, cage)
+    if not pts.is_floating_point() or pts.device.type != "cpu" or verts.device.type != "cpu":
+        return None  # (the per-element path raises the errors that name these)
+    compute, out_dtype = result_dtype(pts, cage, dtype)
+    if compute != torch.float64:
+        return None
+    lib = select(QMVC, backend, pts.new_empty((0, 3), dtype=compute), graph=False).lib
+    if lib is None:
+        return None
+    check_quads(cage, allow_invalid)
+    check_finite_batch(pts, batch)
+    tols = on_cage_tolerances(verts)  # (the uncentred cages', as the single-cage call)
+    x, v = centred_batch(pts, verts, compute)  # (each cage relative to its centre: module _core.centre)
+    out = native_coordinates(lib, x, v, cage.triangles, cage.quads, tols, n, quad_tol, chunk_size, progress)
+    _refuse_undefined(out, torch.Size([v.shape[0]]), batch)
+    if may_be_far(v, x):  # (else far_unity leaves every row as it is)
+        (out,) = far_unity(out, x.expand(v.shape[0], *x.shape[1:]), v)
+    return out.to(out_dtype).reshape(*batch, x.shape[1], cage.num_vertices)
+
+
+def _refuse_undefined(out: torch.Tensor, flat: torch.Size, batch: torch.Size) -> None:
+    """Raise for rows of ``out`` ``(B, N, V)`` that are not finite (the total weight vanishes),
+    naming the first batch element that has some (of ``batch``; none for one cage).
+
+    Raises:
+        PointsError: the points (first ten) and the batch element.
+    """
+    bad = ~torch.isfinite(out.sum(dim=-1))  # (B, N): a row sum is finite iff every entry is
+    if bool(bad.any()):
+        b = int(torch.nonzero(bad.any(dim=1))[0])
+        idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
+        where = _batch_name(torch.tensor(b), batch) if len(batch) else ""
+        raise PointsError(
+            f"quad mean value coordinates are undefined at points {idx}{where} (the total weight vanishes there, "
+            "which happens only outside the cage); move these points"
+        )
 
 
 def _triton_kernel(

@@ -88,13 +88,26 @@ ON_QUAD_BAND = 4.0
 HULL_FACES = ((0, 1, 3), (1, 2, 3), (0, 2, 1), (0, 3, 2))
 
 
+def quad_sizes(vertices: torch.Tensor, quads: torch.Tensor) -> torch.Tensor:
+    """Each quad's longest edge or diagonal: ``(*B, Q)`` for vertices ``(*B, V, 3)`` (one cage or a
+    batch with one topology) and quads ``(Q, 4)``.
+
+    Examples:
+        >>> v = torch.tensor([[0.0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0]], dtype=torch.float64)
+        >>> quad_sizes(v, torch.tensor([[0, 1, 2, 3]])).tolist()  # the diagonal, sqrt(5)
+        [2.23606797749979]
+    """
+    p = vertices[..., quads, :]  # (*B, Q, 4, 3)
+    diff = p[..., :, None, :] - p[..., None, :, :]
+    return diff.norm(dim=-1).flatten(-2).amax(dim=-1)
+
+
 def quad_data(vertices: torch.Tensor, quads: torch.Tensor, tol: float) -> QuadData:
     """Constants of the quads ``(Q, 4)`` of a cage with vertices ``(V, 3)`` (in their dtype)."""
     p = vertices[quads]  # (Q, 4, 3)
     hull_tri = torch.stack([quads[:, list(f)] for f in HULL_FACES], dim=1).reshape(-1, 3)
     split_tri = torch.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], dim=1).reshape(-1, 3)
-    diff = p[:, :, None, :] - p[:, None, :, :]
-    size = diff.norm(dim=-1).flatten(1).max(dim=1).values
+    size = quad_sizes(vertices, quads)
     corner_tri = [p[:, [(i + 1) % 4, (i + 2) % 4, (i + 3) % 4]] for i in range(4)]
     area2 = sum(torch.linalg.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], dim=-1).norm(dim=-1) for t in corner_tri)
     return QuadData(

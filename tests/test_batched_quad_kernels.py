@@ -1,0 +1,154 @@
+"""Batched rest cages of the quad families as one native kernel call per chunk of points: quad mean
+value coordinates of a batch of quad and triquad cages with one topology equal the single-cage
+calls (the same tables, the same kernel) on quads, edges and corners, near them, outside and far
+away, for the Riemann sum and the tolerance form; the batch's errors name the element."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from support import bent_box, box_points, quad_adversarial_points, triquad
+
+import torchcage
+from torchcage import functional as F
+from torchcage.backends import native as _native
+
+D64 = torch.float64
+
+
+def _batch(base: torchcage.Cage, B: int, seed: int = 0, shift: float = 0.0) -> torchcage.Cage:
+    """``B`` scaled and jittered copies of ``base`` (float64; quads stay valid); ``shift`` moves the
+    last one that far from the origin."""
+    g = torch.Generator().manual_seed(seed)
+    V = base.vertices * (1 + 0.3 * torch.rand(B, 1, 1, generator=g, dtype=D64))
+    V = V + 0.02 * torch.randn(B, *base.vertices.shape, generator=g, dtype=D64)
+    V[-1] += shift
+    return base._like(V)
+
+
+def _points(cage: torchcage.Cage, seed: int) -> torch.Tensor:
+    """``(N, 3)`` points of every kind for one cage: near and on its quads, edges and corners
+    (1e-15..1e-3 of the size, both sides), inside its box, and far away (1e4 and 1e7 sizes)."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.nn.functional.normalize(torch.randn(6, 3, generator=g, dtype=D64), dim=-1)
+    c = cage.vertices.mean(0)
+    far = torch.cat([c + 1e4 * cage.scale * d[:3], c + 1e7 * cage.scale * d[3:]])
+    return torch.cat([quad_adversarial_points(cage, seed), box_points(cage, 40, seed=seed), far])
+
+
+def _assert_same(out: torch.Tensor, ref: torch.Tensor) -> None:
+    """Equal to rounding: the same tables and kernel give the same numbers (bitwise here; a few
+    ulps are allowed for platforms whose batched tensor ops round differently)."""
+    assert out.shape == ref.shape and out.dtype == ref.dtype
+    eps = torch.finfo(out.dtype).eps
+    err = (out - ref).abs() / ref.abs().clamp_min(1.0)
+    assert torch.isfinite(out).all() and float(err.max()) <= 4 * eps, float(err.max())
+
+
+class _CountCalls:
+    """The batch size of each call of the native entry ``entry`` (through ``_native.call``)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, entry: str) -> None:
+        self.batches: list[int] = []
+        real = _native.call
+
+        def call(lib, name, **kw):
+            if name == entry:
+                self.batches.append(int(kw["B"]))
+            return real(lib, name, **kw)
+
+        monkeypatch.setattr(_native, "call", call)
+
+
+QMVC_CASES = [("quads", None), ("triquad", None), ("triquad", 1e-8)]
+
+
+@pytest.mark.native
+@pytest.mark.parametrize("dtype", [torch.float32, D64])
+@pytest.mark.parametrize("B", [1, 3])
+@pytest.mark.parametrize("shift", [0.0, 1e3])
+@pytest.mark.parametrize("faces, tol", QMVC_CASES)
+def test_batched_qmvc_equals_the_loop(dtype, B, shift, faces, tol, monkeypatch):
+    base = bent_box() if faces == "quads" else triquad()
+    cage64 = _batch(base, B, shift=shift)
+    cage = cage64._like(cage64.vertices.to(dtype))
+    per_cage = torch.stack([_points(cage64[b], seed=b) for b in range(B)]).to(dtype)  # (B, N, 3)
+    count = _CountCalls(monkeypatch, "tc_qmvc3d")
+    for pts in (per_cage, per_cage[0]):  # one set per cage; one set shared by every cage
+        count.batches.clear()
+        out = F.quad_mean_value_coordinates(pts, cage, n=2, tol=tol)
+        assert count.batches == [B]  # the whole batch in one native call
+        ref = torch.stack(
+            [F.quad_mean_value_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], n=2, tol=tol) for b in range(B)]
+        )
+        _assert_same(out, ref)
+    # the coordinates themselves: rows sum to one and reproduce the points (linear precision)
+    W = F.quad_mean_value_coordinates(per_cage.double(), cage64, n=2, tol=tol)
+    near = (per_cage.double() - cage64.vertices.mean(1, keepdim=True)).norm(dim=-1) < 10
+    assert ((W.sum(-1) - 1).abs()[near]).max() < 1e-9  # (far rows extrapolate: weights of 1e6 and more)
+    assert ((W @ cage64.vertices - per_cage.double()).norm(dim=-1)[near]).max() < 1e-9 * (1 + shift)
+
+
+@pytest.mark.native
+def test_batched_qmvc_two_batch_dimensions_and_chunks(monkeypatch):
+    cage = _batch(triquad(), 6, seed=3)
+    cage = cage._like(cage.vertices.reshape(2, 3, *cage.vertices.shape[1:]))
+    pts = torch.stack([_points(cage[i, j], seed=3 * i + j) for i in range(2) for j in range(3)])
+    pts = pts.reshape(2, 3, -1, 3)
+    count = _CountCalls(monkeypatch, "tc_qmvc3d")
+    out = F.quad_mean_value_coordinates(pts, cage, n=2, chunk_size=50)
+    N = pts.shape[-2]
+    assert out.shape == (2, 3, N, cage.num_vertices) and count.batches == [6] * -(-N // 50)
+    for i in range(2):
+        for j in range(3):
+            _assert_same(out[i, j], F.quad_mean_value_coordinates(pts[i, j], cage[i, j], n=2))
+    out = F.quad_mean_value_coordinates(pts[0], cage, n=2)  # (3, N, 3) broadcast against cages (2, 3)
+    for i in range(2):
+        for j in range(3):
+            _assert_same(out[i, j], F.quad_mean_value_coordinates(pts[0, j], cage[i, j], n=2))
+
+
+@pytest.mark.native
+def test_batched_qmvc_edge_cases():
+    cage = _batch(triquad(), 2)
+    assert F.quad_mean_value_coordinates(torch.zeros(0, 3, dtype=D64), cage).shape == (2, 0, cage.num_vertices)
+    x = torch.zeros(2, 4, 3, dtype=D64)
+    x[1, 2, 0] = float("nan")
+    with pytest.raises(torchcage.PointsError, match=r"indices \[2\].*batch element \(1,\)"):
+        F.quad_mean_value_coordinates(x, cage)
+    with pytest.raises(ValueError, match="n must be a positive integer"):
+        F.quad_mean_value_coordinates(x[0], cage, n=0)
+    # an invalid quad in one element: refused for the batch, or computed with a warning when allowed
+    V = cage.vertices.clone()
+    q = cage.quads[0]
+    V[1, q[2]] = V[1, q[0]] + 0.1 * (V[1, q[0]] - V[1, q[2]])  # the quad folds over
+    bad = cage._like(V)
+    with pytest.raises(torchcage.CageError, match="not valid"):
+        F.quad_mean_value_coordinates(x[0], bad)
+
+
+@pytest.mark.native
+def test_batched_qmvc_undefined_points_are_named_by_element(monkeypatch):
+    from torchcage.families.quad_mean_value import api
+
+    real = api.native_coordinates
+
+    def kernel(*args, **kwargs):
+        out = real(*args, **kwargs)
+        out[1, 3] = float("inf")  # as a row whose total weight vanishes
+        return out
+
+    monkeypatch.setattr(api, "native_coordinates", kernel)
+    cage = _batch(triquad(), 3)
+    with pytest.raises(torchcage.PointsError, match=r"undefined at points \[3\] in batch element \(1,\)"):
+        F.quad_mean_value_coordinates(torch.zeros(5, 3, dtype=D64), cage)
+
+
+def test_batched_qmvc_with_a_graph_still_loops():
+    """A batch that records a graph (the torch kernel, differentiable) equals the loop too."""
+    cage = _batch(triquad(), 2)
+    V = cage.vertices.clone().requires_grad_()
+    x = torch.stack([box_points(cage[b], 20, spread=0.5, seed=b) for b in range(2)])
+    out = F.quad_mean_value_coordinates(x, cage._like(V), n=2)
+    ref = torch.stack([F.quad_mean_value_coordinates(x[b], cage[b], n=2, backend="torch") for b in range(2)])
+    assert out.requires_grad and torch.allclose(out.detach(), ref, atol=1e-12, rtol=0)
