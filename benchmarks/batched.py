@@ -1,7 +1,8 @@
 """Benchmark of batched rest cages: one native call for the whole batch against a loop of
 single-cage calls, mean value and Green coordinates forward (no graph, CPU), and forward and
 backward (``mvc-grad``, ``gc-grad``: the gradients of a loss with respect to the points and the rest
-cages, as a training step takes them).
+cages, as a training step takes them), and quad mean value coordinates forward (``qmvc``: the
+bundled bar's 14-quad cage, jittered per shape, n = 4).
 
 The setting of ``learnable.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each, a 42-vertex /
 80-triangle icosphere cage per shape (each jittered), points inside. *loop*: ``over_cage_batch``
@@ -19,7 +20,7 @@ implementations interleaved, best of ``--repeat``; *speed-up* is against the fir
 method and dtype.
 
 Usage: ``python benchmarks/batched.py [--batch 8] [--points 5000] [--repeat 10] [--baseline REV]
-[--methods mvc gc mvc-grad gc-grad]``
+[--methods mvc gc mvc-grad gc-grad qmvc]``
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 KERNEL = [0.0]
@@ -69,9 +71,14 @@ def _child(args: argparse.Namespace) -> None:
         KERNEL[0] += time.perf_counter() - t
 
     _native.call = timed_call  # every glue module calls it through the module attribute
-    x, P, faces, _ = problem(args.batch, args.points, getattr(torch, args.dtype), "cpu")
+    if args.method == "qmvc":
+        x, P, faces = quad_problem(args.batch, args.points, getattr(torch, args.dtype))
+    else:
+        x, P, faces, _ = problem(args.batch, args.points, getattr(torch, args.dtype), "cpu")
     green = args.method.startswith("gc")
     fn = green_coordinates if green else mean_value_coordinates
+    if args.method == "qmvc":
+        fn = torchcage.functional.quad_mean_value_coordinates
     width = P.shape[-2] + (faces.shape[0] if green else 0)  # (Green: phi and psi, joined)
     cot = torch.randn(args.batch, args.points, width, generator=torch.Generator().manual_seed(1)).to(x.dtype)
 
@@ -112,6 +119,22 @@ def _child(args: argparse.Namespace) -> None:
     print(json.dumps({"best": best, "diff": diff, "threads": torch.get_num_threads()}))
 
 
+def quad_problem(B: int, N: int, dtype: Any) -> tuple[Any, Any, list[list[int]]]:
+    """Quad mean value coordinates' problem: ``B`` jittered copies ``(B, 16, 3)`` of the bundled
+    bar's 14-quad cage, ``N`` points inside each ``(B, N, 3)``, and the quads."""
+    import torch
+
+    import torchcage
+
+    bar = torchcage.load_cage(torchcage.data.path("bar_cage.obj"))
+    g = torch.Generator().manual_seed(0)
+    V = bar.vertices.to(torch.float64)
+    P = V * (1 + 0.1 * torch.rand(B, 1, 1, generator=g, dtype=torch.float64))
+    P = P + 0.02 * torch.randn(B, *V.shape, generator=g, dtype=torch.float64)
+    x = (torch.rand(B, N, 3, generator=g, dtype=torch.float64) - 0.5) * 1.6 * V.amax(0)
+    return x.to(dtype), P.to(dtype), bar.quads.tolist()
+
+
 def _run(tree: Path, args: argparse.Namespace, dtype: str, impl: str, method: str) -> dict:
     env = {**os.environ, "PYTHONPATH": str(tree)}
     cmd = [sys.executable, __file__, "--child", "--impl", impl, "--dtype", dtype, "--method", method]
@@ -131,7 +154,7 @@ def main() -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--impl", default="loop,batched", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
-    methods = ["mvc", "gc", "mvc-grad", "gc-grad"]
+    methods = ["mvc", "gc", "mvc-grad", "gc-grad", "qmvc"]
     ap.add_argument("--method", default="mvc", choices=methods, help=argparse.SUPPRESS)
     ap.add_argument("--methods", nargs="+", default=methods, choices=methods)
     args = ap.parse_args()
@@ -158,7 +181,8 @@ def main() -> None:
                 runs += [("loop", *r["best"]["loop"]), ("batched", *r["best"]["batched"])]
                 rows.append((f"{method} {dtype}", runs, r["diff"]["batched"], r["threads"]))
     print(
-        f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages, CPU, "
+        f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages (qmvc: 16-vertex / "
+        f"14-quad, n = 4), CPU, "
         f"{rows[0][3]} threads, best of {args.repeat}\n"
     )
     print("| method, dtype | path | time | kernel | set-up | set-up share | speed-up |")
