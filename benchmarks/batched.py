@@ -2,7 +2,8 @@
 single-cage calls, mean value and Green coordinates forward (no graph, CPU), and forward and
 backward (``mvc-grad``, ``gc-grad``: the gradients of a loss with respect to the points and the rest
 cages, as a training step takes them), and quad mean value coordinates forward (``qmvc``: the
-bundled bar's 14-quad cage, jittered per shape, n = 4).
+bundled bar's 14-quad cage, jittered per shape, n = 4) and the mean value derivatives (``mvcd``:
+values, gradients and Hessians, ``order=2``).
 
 The setting of ``learnable.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each, a 42-vertex /
 80-triangle icosphere cage per shape (each jittered), points inside. *loop*: ``over_cage_batch``
@@ -20,7 +21,7 @@ implementations interleaved, best of ``--repeat``; *speed-up* is against the fir
 method and dtype.
 
 Usage: ``python benchmarks/batched.py [--batch 8] [--points 5000] [--repeat 10] [--baseline REV]
-[--methods mvc gc mvc-grad gc-grad qmvc]``
+[--methods mvc gc mvc-grad gc-grad qmvc mvcd]``
 """
 
 from __future__ import annotations
@@ -79,11 +80,20 @@ def _child(args: argparse.Namespace) -> None:
     fn = green_coordinates if green else mean_value_coordinates
     if args.method == "qmvc":
         fn = torchcage.functional.quad_mean_value_coordinates
+    if args.method == "mvcd":  # values, gradients and Hessians
+
+        def fn(x: torch.Tensor, cage: torchcage.Cage) -> tuple[torch.Tensor, ...]:
+            return torchcage.functional.mean_value_derivatives(x, cage, order=2)  # type: ignore[return-value]
+
     width = P.shape[-2] + (faces.shape[0] if green else 0)  # (Green: phi and psi, joined)
     cot = torch.randn(args.batch, args.points, width, generator=torch.Generator().manual_seed(1)).to(x.dtype)
 
     def joined(out: torch.Tensor | tuple[torch.Tensor, ...]) -> torch.Tensor:  # (Green's phi and psi, for the diff)
-        return out if isinstance(out, torch.Tensor) else torch.cat(out, dim=-1)
+        if isinstance(out, torch.Tensor):
+            return out
+        if args.method == "mvcd":  # (values, gradients, Hessians: flattened)
+            return torch.cat([o.reshape(-1) for o in out])
+        return torch.cat(out, dim=-1)
 
     def call(batched: bool) -> torch.Tensor | tuple[torch.Tensor, ...]:
         if not args.method.endswith("-grad"):
@@ -154,7 +164,7 @@ def main() -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--impl", default="loop,batched", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
-    methods = ["mvc", "gc", "mvc-grad", "gc-grad", "qmvc"]
+    methods = ["mvc", "gc", "mvc-grad", "gc-grad", "qmvc", "mvcd"]
     ap.add_argument("--method", default="mvc", choices=methods, help=argparse.SUPPRESS)
     ap.add_argument("--methods", nargs="+", default=methods, choices=methods)
     args = ap.parse_args()

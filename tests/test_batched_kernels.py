@@ -1,7 +1,7 @@
 """Batched rest cages as one native kernel call: mean value and Green coordinates of a batch of 3D
-triangle cages with one topology agree with the loop of single-cage calls (the same tables, the same
-kernel), for points inside, outside, on faces, edges and vertices and far away, and the batch's
-errors name the element."""
+triangle cages with one topology, and the mean value derivatives, agree with the loop of single-cage
+calls (the same tables, the same kernel), for points inside, outside, on faces, edges and vertices
+and far away, and the batch's errors name the element."""
 
 from __future__ import annotations
 
@@ -511,3 +511,88 @@ def test_batched_green_in_forward_mode_equals_the_loop(rest_grad):
     minus = F.green_coordinates(x - h * tangent, torchcage.Cage(V, tri))
     for tan, p, m in zip(outs[0], plus, minus, strict=True):
         assert float((tan - (p - m) / (2 * h)).abs().max()) < 1e-7
+
+
+# ----------------------------------------------------------------------- mean value derivatives
+
+
+def _off_cage(V: torch.Tensor, tri: torch.Tensor, seed: int) -> torch.Tensor:
+    """:func:`_points` without those on the cage (vertices, edges, faces): where the coordinates
+    are differentiable."""
+    p = _points(V, tri, seed)
+    return torch.cat([p[:60], p[104:]])
+
+
+@pytest.mark.native
+@pytest.mark.parametrize("dtype", [torch.float32, D64])
+@pytest.mark.parametrize("B", [1, 3])
+@pytest.mark.parametrize("shift", [0.0, 1e3])
+@pytest.mark.parametrize("order", [1, 2])
+def test_batched_derivatives_equal_the_loop(dtype, B, shift, order, monkeypatch):
+    V, tri = _cages(B, shift=shift)
+    cage = torchcage.Cage(V.to(dtype), tri)
+    per_cage = torch.stack([_off_cage(V[b], tri, seed=b) for b in range(B)]).to(dtype)
+    count = _CountCalls(monkeypatch, "tc_mvcd3d")
+    for pts in (per_cage, per_cage[0]):  # one set per cage; one set shared (off cage 0, near the others')
+        count.batches.clear()
+        out = F.mean_value_derivatives(pts, cage, order=order)
+        assert count.batches == [B]  # the whole batch in one native call
+        refs = [F.mean_value_derivatives(pts if pts.ndim == 2 else pts[b], cage[b], order=order) for b in range(B)]
+        for k in range(2 if order == 1 else 3):
+            _assert_same(out[k], torch.stack([r[k] for r in refs]))
+        assert (out[2] is None) == (order == 1)
+    # the derivatives themselves: they sum to zero over the vertices and reproduce the identity
+    # (gradients of linear precision, sum_v grad_v V_v^T = I) on the points near the cages
+    _, grad, hess = F.mean_value_derivatives(per_cage.double(), torchcage.Cage(V, tri), order=order)
+    near = (per_cage.double() - V.mean(1, keepdim=True)).norm(dim=-1) < 10
+    eye = torch.einsum("bnvc,bvd->bncd", grad, V)[near]
+    assert (eye - torch.eye(3, dtype=D64)).abs().max() < 1e-8 * (1 + shift)
+    assert grad.sum(2)[near].abs().max() < 1e-10
+    if order == 2:
+        assert torch.einsum("bnvcd,bve->bnecd", hess, V)[near].abs().max() < 1e-7 * (1 + shift)
+
+
+@pytest.mark.native
+def test_batched_derivatives_two_batch_dimensions_and_chunks(monkeypatch):
+    V, tri = _cages(6, seed=3)
+    cage = torchcage.Cage(V.reshape(2, 3, 42, 3), tri)
+    pts = torch.stack([_off_cage(V[b], tri, seed=b) for b in range(6)]).reshape(2, 3, -1, 3)
+    count = _CountCalls(monkeypatch, "tc_mvcd3d")
+    lam, grad, hess = F.mean_value_derivatives(pts, cage, chunk_size=40)
+    N = pts.shape[-2]
+    assert hess.shape == (2, 3, N, 42, 3, 3) and count.batches == [6] * -(-N // 40)
+    for i in range(2):
+        for j in range(3):
+            ref = F.mean_value_derivatives(pts[i, j], cage[i, j])
+            for k in range(3):
+                _assert_same((lam, grad, hess)[k][i, j], ref[k])
+
+
+@pytest.mark.native
+def test_batched_derivatives_name_the_element():
+    V, tri = _cages(3)
+    cage = torchcage.Cage(V, tri)
+    x = torch.zeros(3, 4, 3, dtype=D64)
+    x[2, 1] = V[2, 5]  # on a vertex of cage 2: not differentiable there
+    with pytest.raises(torchcage.PointsError, match=r"points \[1\] in batch element \(2,\) lie on the cage"):
+        F.mean_value_derivatives(x, cage)
+    x[2, 1] = 0.0
+    x[1, 3, 0] = float("inf")
+    with pytest.raises(torchcage.PointsError, match=r"indices \[3\].*batch element \(1,\)"):
+        F.mean_value_derivatives(x, cage)
+
+
+@pytest.mark.native
+def test_batched_derivatives_undefined_points_are_named_by_element(monkeypatch):
+    from torchcage.families.mean_value import derivatives_native
+
+    real = derivatives_native.native_chunk
+
+    def chunk(x, tables, lib, order, lam, grad, hess, on):
+        real(x, tables, lib, order, lam, grad, hess, on)
+        on[1, 2] = 2  # as the kernel marks a row whose total weight vanishes
+
+    monkeypatch.setattr(derivatives_native, "native_chunk", chunk)
+    V, tri = _cages(3)
+    with pytest.raises(torchcage.PointsError, match=r"undefined at points \[2\] in batch element \(1,\)"):
+        F.mean_value_derivatives(torch.zeros(4, 3, dtype=D64), torchcage.Cage(V, tri))

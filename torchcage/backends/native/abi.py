@@ -112,10 +112,11 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "s_ell:f64*[2*Q,3] s_edir:f64*[2*Q,3,3] s_eout:f64*[2*Q,3,3] s_gbary:f64*[2*Q,3,3]"
     ),
     "tc_mvcd3d": _parse(
-        "P:f64*[V,3] V:i64 tri:i32*[T,3] T:i64 fe:i32*[T,3] NE:i64 E:f64*[T,3,3] nrm:f64*[T,3] two_area:f64*[T] "
-        "ell:f64*[T,3] gram:f64*[T,3,3] longest:f64*[T] far_nodes:f64*[T,Q,3] far_coef:f64*[T,Q,3] Q:i64 "
-        "far_c:f64 near_c:f64 gl_y:f64*[ng] gl_w:f64*[ng] ng:i32 X:f64*[n,3] n:i64 tol:f64 order:i32 "
-        "nthreads:i32 L:f64*![n,V] G:f64*![n,V,3] H:f64*!?[n,V,3,3] on:u8*![n]"
+        "B:i64 P:f64*[B,V,3] V:i64 tri:i32*[T,3] T:i64 fe:i32*[T,3] NE:i64 E:f64*[B,T,3,3] nrm:f64*[B,T,3] "
+        "two_area:f64*[B,T] ell:f64*[B,T,3] gram:f64*[B,T,3,3] longest:f64*[B,T] far_nodes:f64*[B,T,Q,3] "
+        "far_coef:f64*[B,T,Q,3] Q:i64 far_c:f64 near_c:f64 gl_y:f64*[ng] gl_w:f64*[ng] ng:i32 X:f64*[XB,n,3] "
+        "XB:i64 n:i64 tol:f64*[B] order:i32 nthreads:i32 L:f64*![B,n,V] G:f64*![B,n,V,3] H:f64*!?[B,n,V,3,3] "
+        "on:u8*![B,n]"
     ),
     "tc_mvcd2d": _parse(
         "P:f64*[V,2] V:i64 edges:i32*[NE,2] NE:i64 X:f64*[n,2] n:i64 tol:f64 order:i32 nthreads:i32 "

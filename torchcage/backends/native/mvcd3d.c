@@ -420,21 +420,30 @@ static inline void store_lam(jet lam, long p, long V, long v, int order, double 
  * Writes L (n, V), G (n, V, 3) and, for order 2, H (n, V, 3, 3). on[p] = 1 for points on the cage
  * (rows: the barycentric interpolant of a face holding the point, its gradient in the face's
  * plane, Hessian 0; Lagrange at a vertex, derivatives 0), 2 where the total weight vanishes. */
-void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, long NE, const double *E,
-               const double *nrm, const double *two_area, const double *ell, const double *gram,
-               const double *longest, const double *far_nodes, const double *far_coef, long Q, double far_c,
-               double near_c, const double *gl_y, const double *gl_w, int ng, const double *X, long n, double tol,
-               int order, int nthreads, double *L, double *G, double *H, unsigned char *on) {
+/* One cage of tc_mvcd3d's batch; returns 1 when its scratch could not be allocated. */
+static int mvcd3d_one(const double *P, long V, const int *tri, long T, const int *fe, long NE, const double *E,
+                      const double *nrm, const double *two_area, const double *ell, const double *gram,
+                      const double *longest, const double *far_nodes, const double *far_coef, long Q, double far_c,
+                      double near_c, const double *gl_y, const double *gl_w, int ng, const double *X, long n,
+                      double tol, int order, int nthreads, double *L, double *G, double *H, unsigned char *on) {
     double centre[3];
     const double far2 = tc_far_centre(P, V, 3, 1, 3, centre);
     unsigned char *thin = (unsigned char *)malloc((size_t)(T > 0 ? T : 1));
+    if (!thin) return 1;
     for (long t = 0; t < T; t++) thin[t] = two_area[t] > 0 && longest[t] * longest[t] > TC_THIN_ASPECT * two_area[t];
+    int failed = 0; /* a thread could not allocate its scratch */
 #pragma omp parallel num_threads(nthreads)
     {
-        double *acc = (double *)malloc(sizeof(double) * 10 * V);
-        double *av = (double *)malloc(sizeof(double) * 4 * V);  // p_v - x and |p_v - x|
-        jet *ephi = (jet *)malloc(sizeof(jet) * NE);             // edge jets, computed on demand
-        long *stamp = (long *)malloc(sizeof(long) * NE);
+        double *acc = (double *)malloc(sizeof(double) * 10 * (size_t)V);
+        double *av = (double *)malloc(sizeof(double) * 4 * (size_t)V);  // p_v - x and |p_v - x|
+        jet *ephi = (jet *)malloc(sizeof(jet) * (size_t)(NE > 0 ? NE : 1)); // edge jets, computed on demand
+        long *stamp = (long *)malloc(sizeof(long) * (size_t)(NE > 0 ? NE : 1));
+        if (!acc || !av || !ephi || !stamp) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp barrier
+        if (failed) goto done; /* (every thread: none enters the worksharing loop) */
         for (long e = 0; e < NE; e++) stamp[e] = -1;
 #pragma omp for schedule(dynamic, 16)
         for (long p = 0; p < n; p++) {
@@ -620,10 +629,35 @@ void tc_mvcd3d(const double *P, long V, const int *tri, long T, const int *fe, l
                 }
             }
         }
+    done:
         free(acc);
         free(av);
         free(ephi);
         free(stamp);
     }
     free(thin);
+    return failed;
+}
+
+/* Mean value coordinates with their gradients and (order 2) Hessians for a batch of B cages with one
+ * topology: the geometric tables carry a leading batch axis (P (B, V, 3), E (B, T, 3, 3), nrm, two_area,
+ * ell, gram, longest, far_nodes, far_coef, tol (B,)), the topology ones (tri, fe) are shared; points X
+ * (XB, n, 3) with XB = 1 (shared by every cage) or B; outputs L (B, n, V), G (B, n, V, 3), H (B, n, V,
+ * 3, 3) or NULL, on (B, n). The cages one after the other, each parallel over its points. A failed
+ * allocation fills L with NaN (the glue raises MemoryError). */
+void tc_mvcd3d(long B, const double *P, long V, const int *tri, long T, const int *fe, long NE, const double *E,
+               const double *nrm, const double *two_area, const double *ell, const double *gram,
+               const double *longest, const double *far_nodes, const double *far_coef, long Q, double far_c,
+               double near_c, const double *gl_y, const double *gl_w, int ng, const double *X, long XB, long n,
+               const double *tol, int order, int nthreads, double *L, double *G, double *H, unsigned char *on) {
+    int failed = 0;
+    for (long b = 0; b < B && !failed; ++b) {
+        const long t3 = b * T * 3, t9 = b * T * 9, tq = b * T * Q * 3, nv = b * n * V;
+        failed = mvcd3d_one(P + b * V * 3, V, tri, T, fe, NE, E + t9, nrm + t3, two_area + b * T, ell + t3, gram + t9,
+                            longest + b * T, far_nodes + tq, far_coef + tq, Q, far_c, near_c, gl_y, gl_w, ng,
+                            X + (XB > 1 ? b : 0) * n * 3, n, tol[b], order, nthreads, L + nv, G + 3 * nv,
+                            H ? H + 9 * nv : NULL, on + b * n);
+    }
+    if (failed)
+        for (long k = 0; k < B * n * V; ++k) L[k] = NAN;
 }

@@ -40,11 +40,18 @@ import torch
 from torch._C._functorch import is_functorch_wrapped_tensor
 
 from torchcage._core.alloc import empty_output
-from torchcage._core.batch import over_cage_batch
-from torchcage._core.centre import centred, extent_of, keep_extent
-from torchcage._core.common import as_inputs, check_points, chunks, far_unity, triangle_geometry
+from torchcage._core.batch import broadcast_batch, check_finite_batch, over_cage_batch
+from torchcage._core.centre import centred, centred_batch, extent_of, keep_extent
+from torchcage._core.common import (
+    as_inputs,
+    check_points,
+    chunks,
+    far_unity,
+    on_cage_tolerances,
+    triangle_geometry,
+)
 from torchcage.backends import Op, select
-from torchcage.cage import Cage
+from torchcage.cage import Cage, _batch_name
 from torchcage.errors import PointsError
 from torchcage.families.mean_value import derivatives_native as _mvcd_native
 from torchcage.families.mean_value.derivatives_torch import torch_derivatives
@@ -110,22 +117,80 @@ def _derivatives_flat(
     lib = choice.lib
     D, V = cage.dim, cage.num_vertices
     x = x.detach().to("cpu", torch.float64)
+    tables = _mvcd_native.native_tables(cage)
+    if D == 3:  # (a batch of one)
+        lam, grad, hess, flags = native_batch(x[None], tables, lib, order, chunk_size, progress)
+        _refuse(flags, torch.Size([]))
+        return lam[0], grad[0], hess[0] if order == 2 else hess, flags[0] == 1
     n = x.shape[0]
     lam = empty_output(n, V, dtype=torch.float64)
     grad = empty_output(n, V, D, dtype=torch.float64)
     hess = empty_output(*((n, V, D, D) if order == 2 else (0,)), dtype=torch.float64)
-    tables = _mvcd_native.native_tables(cage)
     flags = torch.empty(n, dtype=torch.uint8)
     size = chunk_size if chunk_size is not None else 4096
     for sl in chunks(n, size, progress, desc="mean value derivatives"):
         H = hess[sl] if order == 2 else None
         _mvcd_native.native_chunk(x[sl], tables, lib, order, lam[sl], grad[sl], H, flags[sl])
-    bad = torch.nonzero(flags == 2).flatten()[:10].tolist()
-    if bad:
-        raise PointsError(
-            f"mean value coordinates are undefined at points {bad} (the total weight vanishes there); move these points"
-        )
+    _refuse(flags[None], torch.Size([]))
     return lam, grad, hess, flags == 1
+
+
+def native_batch(
+    x: torch.Tensor,
+    tables: dict[str, object],
+    lib: object,
+    order: int,
+    chunk_size: int | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The native 3D kernel on a batch of cages with one topology: centred float64 CPU points ``x``
+    ``(B or 1, N, 3)``, the tables of :func:`derivatives_native.batch_tables` -> float64 ``lam (B,
+    N, V)``, ``grad (B, N, V, 3)``, ``hess (B, N, V, 3, 3)`` (empty for ``order=1``) and the uint8
+    flags ``(B, N)`` (1 on the cage, 2 where the total weight vanishes). The kernel writes into the
+    outputs: one call for every cage and point, or with ``chunk_size`` (or a progress bar: chunks
+    of ``4096 / B`` points) one call per chunk of points for every cage, through temporaries
+    copied into place (a chunk's rows are not contiguous in a batch).
+
+    Raises:
+        MemoryError: the kernel could not allocate its per-thread scratch.
+    """
+    B, V, N = int(tables["B"]), int(tables["V"]), x.shape[1]  # type: ignore[call-overload]
+    lam = empty_output(B, N, V, dtype=torch.float64)
+    grad = empty_output(B, N, V, 3, dtype=torch.float64)
+    hess = empty_output(*((B, N, V, 3, 3) if order == 2 else (0,)), dtype=torch.float64)
+    flags = torch.empty((B, N), dtype=torch.uint8)
+    size = chunk_size if chunk_size is not None else (max(64, 4096 // B) if progress else max(N, 1))
+    for sl in chunks(N, size, progress, desc="mean value derivatives"):
+        direct = B == 1 or (sl.start == 0 and sl.stop == N)  # (the slices are contiguous: written in place)
+        outs = [lam[:, sl], grad[:, sl], hess[:, sl] if order == 2 else None, flags[:, sl]]
+        parts = (
+            outs
+            if direct
+            else [None if o is None else torch.empty_like(o, memory_format=torch.contiguous_format) for o in outs]
+        )
+        _mvcd_native.native_chunk(x[:, sl], tables, lib, order, *parts)  # type: ignore[arg-type]
+        if not direct:
+            for o, part in zip(outs, parts, strict=True):
+                if o is not None:
+                    o.copy_(part)  # type: ignore[arg-type]
+    return lam, grad, hess, flags
+
+
+def _refuse(flags: torch.Tensor, batch: torch.Size) -> None:
+    """Raise for the points whose total weight vanishes (flag 2 in ``flags`` ``(B, N)``), naming
+    the first batch element that has some (of ``batch``; none for one cage).
+
+    Raises:
+        PointsError: the points (first ten) and the batch element.
+    """
+    bad = flags == 2
+    if bool(bad.any()):
+        b = int(torch.nonzero(bad.any(dim=1))[0])
+        idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
+        raise PointsError(
+            f"mean value coordinates are undefined at points {idx}{_batch_name(torch.tensor(b), batch)} (the total "
+            "weight vanishes there); move these points"
+        )
 
 
 def _triton_derivatives(
@@ -211,6 +276,10 @@ def mean_value_derivatives(
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order}")
     if cage.is_batched:
+        out = _native_derivatives_batch(points, cage, order, chunk_size, progress, backend)
+        if out is not None:
+            return out
+        # (2D, the torch and Triton kernels, torch.func transforms: one call per element)
         return over_cage_batch(
             mean_value_derivatives, points, cage, order=order, chunk_size=chunk_size, progress=progress, backend=backend
         )
@@ -232,6 +301,58 @@ def mean_value_derivatives(
     out_g = grad.to(flat.device, dt).reshape(*lead, V, D)
     out_h = hess.to(flat.device, dt).reshape(*lead, V, D, D) if order == 2 else None
     return out_l, out_g, out_h
+
+
+def _native_derivatives_batch(
+    points: torch.Tensor,
+    cage: Cage,
+    order: int,
+    chunk_size: int | None,
+    progress: bool | Callable[[int, int], None],
+    backend: str,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None:
+    """:func:`mean_value_derivatives` of a batch of 3D triangle cages with one topology by the
+    native kernel: one call per chunk of points for every cage, the tables of the batch built by
+    one set of tensor operations; element by element the numbers of the single-cage call. ``None``
+    where it does not serve (2D, quads, another backend or device, ``torch.func`` transforms, no
+    native build): the caller then loops over the cages.
+
+    Raises:
+        PointsError: points that do not broadcast with the cages, NaN or inf, points on the cage or
+            where the coordinates are undefined, naming the batch element.
+    """
+    if cage.dim != 3 or cage.has_quads or backend not in ("auto", "native"):
+        return None
+    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
+        return None
+    pts, verts, batch = broadcast_batch(points, cage)
+    if not pts.is_floating_point() or pts.device.type != "cpu" or verts.device.type != "cpu":
+        return None  # (the per-element path raises the errors that name these)
+    lib = select(MVC_DERIVATIVES, backend, pts.new_empty((0, 3), dtype=torch.float64), graph=False).lib
+    if lib is None:
+        return None
+    check_finite_batch(pts, batch)
+    tols = on_cage_tolerances(verts)  # (the uncentred cages', as the single-cage call's)
+    x, v = centred_batch(pts.detach(), verts.detach(), torch.float64)  # (each relative to its centre)
+    tables = _mvcd_native.batch_tables(v, cage.triangles.cpu(), tols)
+    lam, grad, hess, flags = native_batch(x, tables, lib, order, chunk_size, progress)
+    _refuse(flags, batch)
+    grad.sub_(grad.mean(dim=2, keepdim=True))  # (as derivatives_flat: the kernels' rounding of the sum)
+    if order == 2:
+        hess.sub_(hess.mean(dim=2, keepdim=True))
+    on = flags == 1
+    if bool(on.any()):
+        b = int(torch.nonzero(on.any(dim=1))[0])
+        idx = torch.nonzero(on[b]).flatten()[:10].tolist()
+        raise PointsError(
+            f"points {idx}{_batch_name(torch.tensor(b), batch)} lie on the cage, where mean value coordinates are not "
+            "differentiable; move them off the cage"
+        )
+    B, N, V = v.shape[0], x.shape[1], v.shape[1]
+    lam, grad, h = far_unity(lam, x.expand(B, N, 3), v, grad, hess if order == 2 else None)
+    dt = pts.dtype
+    out_h = h.to(dt).reshape(*batch, N, V, 3, 3) if h is not None else None
+    return lam.to(dt).reshape(*batch, N, V), grad.to(dt).reshape(*batch, N, V, 3), out_h  # type: ignore[union-attr]
 
 
 def mean_value_gradients(points: torch.Tensor, cage: Cage, **kwargs: object) -> torch.Tensor:

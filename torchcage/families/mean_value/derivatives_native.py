@@ -15,7 +15,7 @@ from torchcage.backends import native as _native
 from torchcage.cage import Cage
 
 __all__ = ["DERIVATIVE_FAR_FIELD_ORDER", "DERIVATIVE_FAR_FIELD_RATIO", "DERIVATIVE_SPLIT_FORM_RATIO", "G_ORDER",
-           "native_chunk", "native_tables"]  # fmt: skip
+           "batch_tables", "native_chunk", "native_tables", "one_cage"]  # fmt: skip
 
 #: Faces whose longest edge is below ``DERIVATIVE_FAR_FIELD_RATIO`` times their distance use the
 #: far-field rule (measured against 60-digit references: the direct form's Hessians lose up to
@@ -42,26 +42,46 @@ def _leggauss(order: int):
 
 
 def native_tables(cage: Cage) -> dict[str, object]:
-    """``tc_mvcd3d``'s (3D) or ``tc_mvcd2d``'s (2D) per-cage arguments, float64 on the CPU."""
+    """``tc_mvcd3d``'s (3D: a batch of one, see :func:`batch_tables`) or ``tc_mvcd2d``'s (2D)
+    arguments for one cage, float64 on the CPU.
+
+    Raises:
+        CageError: a 3D cage with quads.
+    """
     P = cage.vertices.detach().to("cpu", torch.float64).contiguous()
     tol = on_cage_tolerance(cage)
     if cage.dim == 2:
         edges = cage.edges.cpu().to(torch.int32).contiguous()
         return {"P": P, "V": P.shape[0], "edges": edges, "NE": edges.shape[0], "tol": tol}
-    p, normal, two_area = triangle_geometry(
+    triangle_geometry(
         cage, torch.float64, "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated()"
     )
-    p, normal, two_area = p.cpu(), normal.cpu(), two_area.cpu()
-    E = p.roll(-1, dims=1) - p.roll(-2, dims=1)  # (T, 3, 3): E_e = p_{e+1} - p_{e+2}
+    return batch_tables(P[None], cage.triangles.cpu(), torch.tensor([tol], dtype=torch.float64))
+
+
+def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """``tc_mvcd3d``'s arguments for a batch of triangle cages with one topology: the geometric
+    tables of the ``B`` cages by one set of tensor operations, with a leading batch axis.
+
+    Args:
+        vertices: ``(B, V, 3)`` float64 CPU vertices.
+        tri: ``(T, 3)`` the shared triangles.
+        tol: ``(B,)`` float64 absolute on-cage tolerances.
+    """
+    p = vertices[:, tri]  # (B, T, 3, 3)
+    cross = torch.linalg.cross(p[:, :, 1] - p[:, :, 0], p[:, :, 2] - p[:, :, 0], dim=-1)
+    two_area = cross.norm(dim=-1)
+    normal = cross / two_area[..., None]
+    E = p.roll(-1, dims=2) - p.roll(-2, dims=2)  # (B, T, 3, 3): E_e = p_{e+1} - p_{e+2}
     ell = E.norm(dim=-1)
     bary, qw = collapsed_gauss(DERIVATIVE_FAR_FIELD_ORDER, torch.float64, torch.device("cpu"))
     gy, gw = _gauss01(G_ORDER)
-    tri = cage.triangles.cpu()
     edges, face_edge, _ = unique_face_edges(tri)
-    far_nodes = torch.einsum("qi,tic->tqc", bary, p).contiguous()
+    far_nodes = torch.einsum("qi,btic->btqc", bary, p).contiguous()
     return {
-        "P": P,
-        "V": P.shape[0],
+        "B": vertices.shape[0],
+        "P": vertices.contiguous(),
+        "V": vertices.shape[1],
         "tri": tri.to(torch.int32).contiguous(),
         "T": tri.shape[0],
         "fe": face_edge.to(torch.int32).contiguous(),
@@ -70,18 +90,30 @@ def native_tables(cage: Cage) -> dict[str, object]:
         "nrm": normal.contiguous(),
         "two_area": two_area.contiguous(),
         "ell": ell.contiguous(),
-        "gram": (E @ E.transpose(1, 2)).contiguous(),
-        "longest": ell.max(dim=1).values.contiguous(),
+        "gram": (E @ E.transpose(-1, -2)).contiguous(),
+        "longest": ell.amax(dim=-1).contiguous(),
         "far_nodes": far_nodes,
-        "far_coef": ((two_area[:, None, None] * qw[None, :, None]) * bary[None]).contiguous(),
-        "Q": far_nodes.shape[1],
+        "far_coef": ((two_area[..., None, None] * qw[:, None]) * bary).contiguous(),
+        "Q": far_nodes.shape[2],
         "far_c": DERIVATIVE_FAR_FIELD_RATIO,
         "near_c": DERIVATIVE_SPLIT_FORM_RATIO,
         "gl_y": gy.contiguous(),
         "gl_w": gw.contiguous(),
         "ng": G_ORDER,
-        "tol": tol,
+        "tol": tol.to(torch.float64).contiguous(),
     }
+
+
+#: The keys of :func:`batch_tables` that carry the batch axis.
+BATCHED_KEYS = ("P", "E", "nrm", "two_area", "ell", "gram", "longest", "far_nodes", "far_coef", "tol")
+
+
+def one_cage(tables: dict[str, object]) -> dict[str, object]:
+    """The tables of a batch of one (:func:`native_tables` of a 3D cage) without their batch axis,
+    ``tol`` a float: the per-cage arguments other kernels take (the Triton kernel's)."""
+    out = {k: (v[0] if k in BATCHED_KEYS else v) for k, v in tables.items() if k != "B"}  # type: ignore[index]
+    out["tol"] = float(out["tol"])  # type: ignore[arg-type]
+    return out
 
 
 def native_chunk(
@@ -94,8 +126,21 @@ def native_chunk(
     hess: torch.Tensor | None,
     on: torch.Tensor,
 ) -> None:
-    """The kernel on a chunk ``x`` ``(n, D)`` float64 into the contiguous ``lam (n, V)``, ``grad
-    (n, V, D)``, ``hess (n, V, D, D)`` (``None`` for ``order=1``) and the uint8 flags ``on (n,)``
-    (1: on the cage, 2: the total weight vanishes)."""
-    name = "tc_mvcd3d" if x.shape[1] == 3 else "tc_mvcd2d"
-    _native.call(lib, name, **tables, X=x.contiguous(), n=x.shape[0], order=order, L=lam, G=grad, H=hess, on=on)
+    """The kernel on a chunk into the contiguous outputs. 2D (one cage): ``x`` ``(n, 2)``, ``lam (n,
+    V)``, ``grad (n, V, 2)``, ``hess (n, V, 2, 2)``, flags ``on (n,)``. 3D, a batch of ``B`` cages
+    (:func:`batch_tables`): ``x`` ``(B or 1, n, 3)``, ``lam (B, n, V)``, ``grad (B, n, V, 3)``,
+    ``hess (B, n, V, 3, 3)``, flags ``on (B, n)``. ``hess`` is ``None`` for ``order=1``; the uint8
+    flags are 1 on the cage, 2 where the total weight vanishes.
+
+    Raises:
+        MemoryError: the kernel could not allocate its per-thread scratch.
+    """
+    if x.shape[-1] == 2:
+        _native.call(lib, "tc_mvcd2d", **tables, X=x.contiguous(), n=x.shape[0], order=order, L=lam, G=grad, H=hess,
+                     on=on)  # fmt: skip
+        return
+    X = x.contiguous()
+    _native.call(
+        lib, "tc_mvcd3d", **tables, X=X, XB=X.shape[0], n=X.shape[1], order=order, L=lam, G=grad, H=hess, on=on
+    )
+    _native.check_workspace(lam, "mean value derivatives")

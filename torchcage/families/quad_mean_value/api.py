@@ -327,7 +327,7 @@ def _refuse_undefined(out: torch.Tensor, flat: torch.Size, batch: torch.Size) ->
     if bool(bad.any()):
         b = int(torch.nonzero(bad.any(dim=1))[0])
         idx = torch.nonzero(bad[b]).flatten()[:10].tolist()
-        where = _batch_name(torch.tensor(b), batch) if len(batch) else ""
+        where = _batch_name(torch.tensor(b), batch)
         raise PointsError(
             f"quad mean value coordinates are undefined at points {idx}{where} (the total weight vanishes there, "
             "which happens only outside the cage); move these points"

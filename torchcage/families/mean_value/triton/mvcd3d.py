@@ -34,7 +34,7 @@ from torchcage._core.thin_triangle import THIN_ASPECT, THIN_DISTANCE
 from torchcage.backends.triton import device_function, interpreted, warps
 from torchcage.backends.triton.common import atan, atan2
 from torchcage.cage import Cage
-from torchcage.families.mean_value.derivatives_native import native_tables
+from torchcage.families.mean_value.derivatives_native import native_tables, one_cage
 from torchcage.families.mean_value.derivatives_torch import torch_derivatives
 from torchcage.families.mean_value.triton.jet3 import (
     atan_over,
@@ -603,7 +603,7 @@ def _mvcd3d_kernel(
 
 def derivative_tables(cage: Cage, device: torch.device) -> dict[str, object]:
     """The kernel's per-cage arguments: the native kernel's tables (float64) on ``device``."""
-    t = native_tables(cage)
+    t = one_cage(native_tables(cage))
     out = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in t.items() if k not in ("fe", "NE", "E")}
     out["thin"] = ((out["two_area"] > 0) & (out["longest"] ** 2 > THIN_ASPECT * out["two_area"])).to(torch.int32)
     out["thin_distance"] = THIN_DISTANCE
