@@ -373,3 +373,29 @@ def contract_solution(short: str, cage: torchcage.Cage):
         return solvers[short](cage, target_cells=CONTRACT_CELLS)
     finally:
         torch.set_num_threads(threads)
+
+
+def assert_same_to_rounding(out: torch.Tensor, ref: torch.Tensor) -> None:
+    """Equal to rounding: the same tables and kernel give the same numbers (bitwise here; a few
+    ulps are allowed for platforms whose batched tensor ops round differently)."""
+    assert out.shape == ref.shape and out.dtype == ref.dtype
+    eps = torch.finfo(out.dtype).eps
+    err = (out - ref).abs() / ref.abs().clamp_min(1.0)
+    assert torch.isfinite(out).all() and float(err.max()) <= 4 * eps, float(err.max())
+
+
+class CountNativeCalls:
+    """Counts ``tc_mvc3d`` calls (or those of ``entry``, with their batch size) through ``_native.call``."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, entry: str = "tc_mvc3d") -> None:
+        from torchcage.backends import native as _native
+
+        self.batches: list[int] = []
+        real = _native.call
+
+        def call(lib, name, **kw):
+            if name == entry:
+                self.batches.append(int(kw["B"]))
+            return real(lib, name, **kw)
+
+        monkeypatch.setattr(_native, "call", call)

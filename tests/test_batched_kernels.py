@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from support import cube
+from support import CountNativeCalls, assert_same_to_rounding, cube
 
 import torchcage
 from torchcage import functional as F
@@ -59,30 +59,6 @@ def _points(V: torch.Tensor, tri: torch.Tensor, seed: int = 1) -> torch.Tensor:
     )
 
 
-def _assert_same(out: torch.Tensor, ref: torch.Tensor) -> None:
-    """Equal to rounding: the same tables and kernel give the same numbers (bitwise here; a few
-    ulps are allowed for platforms whose batched tensor ops round differently)."""
-    assert out.shape == ref.shape and out.dtype == ref.dtype
-    eps = torch.finfo(out.dtype).eps
-    err = (out - ref).abs() / ref.abs().clamp_min(1.0)
-    assert torch.isfinite(out).all() and float(err.max()) <= 4 * eps, float(err.max())
-
-
-class _CountCalls:
-    """Counts ``tc_mvc3d`` calls (or those of ``entry``, with their batch size) through ``_native.call``."""
-
-    def __init__(self, monkeypatch: pytest.MonkeyPatch, entry: str = "tc_mvc3d") -> None:
-        self.batches: list[int] = []
-        real = _native.call
-
-        def call(lib, name, **kw):
-            if name == entry:
-                self.batches.append(int(kw["B"]))
-            return real(lib, name, **kw)
-
-        monkeypatch.setattr(_native, "call", call)
-
-
 @pytest.mark.native
 @pytest.mark.parametrize("dtype", [torch.float32, D64])
 @pytest.mark.parametrize("B", [1, 3])
@@ -92,14 +68,14 @@ def test_batched_call_equals_the_loop(dtype, B, shift, monkeypatch):
     cage = torchcage.Cage(V.to(dtype), tri)
     per_cage = torch.stack([_points(V[b], tri, seed=b) for b in range(B)]).to(dtype)  # (B, N, 3)
     shared = per_cage[0]  # (N, 3): on cage 0's faces, near the others'
-    count = _CountCalls(monkeypatch)
+    count = CountNativeCalls(monkeypatch)
     for pts in (per_cage, shared):
         count.batches.clear()
         out = F.mean_value_coordinates(pts, cage)
         assert count.batches == [B]  # the whole batch in one native call
         ref = torch.stack([F.mean_value_coordinates(pts if pts.ndim == 2 else pts[b], cage[b]) for b in range(B)])
-        _assert_same(out, ref)
-        _assert_same(out, over_cage_batch(F.mean_value_coordinates, pts, cage))
+        assert_same_to_rounding(out, ref)
+        assert_same_to_rounding(out, over_cage_batch(F.mean_value_coordinates, pts, cage))
     # rows sum to one and reproduce the points (the coordinates themselves, not only their agreement)
     W = F.mean_value_coordinates(per_cage.double(), torchcage.Cage(V, tri))
     near = (per_cage.double() - V.mean(1, keepdim=True)).norm(dim=-1) < 10
@@ -112,18 +88,18 @@ def test_two_batch_dimensions_and_chunks(monkeypatch):
     V, tri = _cages(6, seed=3)
     cage = torchcage.Cage(V.reshape(2, 3, 42, 3), tri)
     pts = torch.stack([_points(V[b], tri, seed=b) for b in range(6)]).reshape(2, 3, -1, 3)
-    count = _CountCalls(monkeypatch)
+    count = CountNativeCalls(monkeypatch)
     out = F.mean_value_coordinates(pts, cage, chunk_size=100)
     N = pts.shape[-2]
     assert out.shape == (2, 3, N, 42) and count.batches == [6] * -(-N // 100)  # one call per chunk
     for i in range(2):
         for j in range(3):
-            _assert_same(out[i, j], F.mean_value_coordinates(pts[i, j], cage[i, j]))
+            assert_same_to_rounding(out[i, j], F.mean_value_coordinates(pts[i, j], cage[i, j]))
     # points broadcast over the first batch axis: (3, N, 3) against cages (2, 3)
     out = F.mean_value_coordinates(pts[0], cage)
     for i in range(2):
         for j in range(3):
-            _assert_same(out[i, j], F.mean_value_coordinates(pts[0, j], cage[i, j]))
+            assert_same_to_rounding(out[i, j], F.mean_value_coordinates(pts[0, j], cage[i, j]))
 
 
 def test_no_points():
@@ -232,14 +208,14 @@ def test_batched_green_equals_the_loop(dtype, B, shift, exterior, monkeypatch):
         dtype
     )  # (B, N, 3)
     shared = per_cage[0]  # (N, 3): on cage 0's faces, near the others'
-    count = _CountCalls(monkeypatch, "tc_gc3d_batch")
+    count = CountNativeCalls(monkeypatch, "tc_gc3d_batch")
     for pts in (per_cage, shared):
         count.batches.clear()
         phi, psi = F.green_coordinates(pts, cage, exterior=exterior)
         assert count.batches == [B]  # the whole batch in one native call
         refs = [F.green_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], exterior=exterior) for b in range(B)]
-        _assert_same(phi, torch.stack([r[0] for r in refs]))
-        _assert_same(psi, torch.stack([r[1] for r in refs]))
+        assert_same_to_rounding(phi, torch.stack([r[0] for r in refs]))
+        assert_same_to_rounding(psi, torch.stack([r[1] for r in refs]))
     # the coordinates themselves: phi @ V + psi @ n reproduces the points inside (and, extended,
     # outside), and phi sums to one there
     phi, psi = F.green_coordinates(per_cage.double(), torchcage.Cage(V, tri), exterior=exterior)
@@ -257,7 +233,7 @@ def test_batched_green_two_batch_dimensions_and_chunks(monkeypatch):
     V, tri = _cages(6, seed=3)
     cage = torchcage.Cage(V.reshape(2, 3, 42, 3), tri)
     pts = torch.stack([_points(V[b], tri, seed=b) for b in range(6)]).reshape(2, 3, -1, 3)
-    count = _CountCalls(monkeypatch, "tc_gc3d_batch")
+    count = CountNativeCalls(monkeypatch, "tc_gc3d_batch")
     seen = []
     phi, psi = F.green_coordinates(pts, cage, chunk_size=100, progress=lambda done, total: seen.append(done))
     N = pts.shape[-2]
@@ -266,13 +242,13 @@ def test_batched_green_two_batch_dimensions_and_chunks(monkeypatch):
     for i in range(2):
         for j in range(3):
             ref = F.green_coordinates(pts[i, j], cage[i, j])
-            _assert_same(phi[i, j], ref[0])
-            _assert_same(psi[i, j], ref[1])
+            assert_same_to_rounding(phi[i, j], ref[0])
+            assert_same_to_rounding(psi[i, j], ref[1])
     # points broadcast over the first batch axis: (3, N, 3) against cages (2, 3)
     phi, psi = F.green_coordinates(pts[0], cage)
     for i in range(2):
         for j in range(3):
-            _assert_same(phi[i, j], F.green_coordinates(pts[0, j], cage[i, j])[0])
+            assert_same_to_rounding(phi[i, j], F.green_coordinates(pts[0, j], cage[i, j])[0])
 
 
 def test_batched_green_edge_cases():
@@ -285,8 +261,8 @@ def test_batched_green_edge_cases():
     phi, psi = F.green_coordinates(pts, cage)
     for b in range(3):
         ref = F.green_coordinates(pts[b], cage[b])
-        _assert_same(phi[b], ref[0])
-        _assert_same(psi[b], ref[1])
+        assert_same_to_rounding(phi[b], ref[0])
+        assert_same_to_rounding(psi[b], ref[1])
     for pts in (torch.zeros(0, 3, dtype=D64), torch.zeros(3, 0, 3, dtype=D64)):
         phi, psi = F.green_coordinates(pts, cage)
         assert phi.shape == (3, 0, 42) and psi.shape == (3, 0, 80)
@@ -362,8 +338,8 @@ def test_batched_call_with_a_graph_equals_the_loop(dtype, shift, wrt, monkeypatc
     B = 3
     V, tri = _cages(B, shift=shift)
     per_cage = torch.stack([_points(V[b], tri, seed=b) for b in range(B)])  # on faces, edges, vertices ...
-    count = _CountCalls(monkeypatch)
-    vjp = _CountCalls(monkeypatch, "tc_mvc3d_vjp_batch")
+    count = CountNativeCalls(monkeypatch)
+    vjp = CountNativeCalls(monkeypatch, "tc_mvc3d_vjp_batch")
     for pts in (per_cage, per_cage[0]):
         cot = torch.randn(B, pts.shape[-2], 42, generator=torch.Generator().manual_seed(2), dtype=D64).to(dtype)
         count.batches.clear(), vjp.batches.clear()
@@ -375,7 +351,7 @@ def test_batched_call_with_a_graph_equals_the_loop(dtype, shift, wrt, monkeypatc
         ref = _loss_grads(
             lambda x, c: over_cage_batch(F.mean_value_coordinates, x, c), pts.to(dtype), V.to(dtype), tri, cot, wrt
         )
-        _assert_same(lam, ref[0])
+        assert_same_to_rounding(lam, ref[0])
         for got, want in zip((gx, gP), ref[1:], strict=True):
             assert (got is None) == (want is None)
             if got is not None:  # (vertex gradients summed in another order: rounding apart)
@@ -415,7 +391,7 @@ def test_batched_call_in_forward_mode_equals_the_loop():
         with fwAD.dual_level():
             lam = fn(fwAD.make_dual(x, tangent), torchcage.Cage(rest, tri))
             outs.append(fwAD.unpack_dual(lam).tangent.detach().clone())
-    _assert_same(outs[0], outs[1])
+    assert_same_to_rounding(outs[0], outs[1])
     # and against finite differences of the coordinates themselves
     h = 1e-6
     fd = (
@@ -444,8 +420,8 @@ def test_batched_green_with_a_graph_equals_the_loop(dtype, shift, wrt, exterior,
     B = 3
     V, tri = _cages(B, shift=shift)
     per_cage = torch.stack([torch.cat([_points(V[b], tri, seed=b), _near_vertices(V[b], b)]) for b in range(B)])
-    values = _CountCalls(monkeypatch, "tc_gc3d_batch")
-    vjp = _CountCalls(monkeypatch, "tc_gc3d_vjp_batch")
+    values = CountNativeCalls(monkeypatch, "tc_gc3d_batch")
+    vjp = CountNativeCalls(monkeypatch, "tc_gc3d_vjp_batch")
     g = torch.Generator().manual_seed(2)
     for pts in (per_cage, per_cage[0]):
         N = pts.shape[-2]
@@ -463,8 +439,8 @@ def test_batched_green_with_a_graph_equals_the_loop(dtype, shift, wrt, exterior,
             lambda x, c, **kw: over_cage_batch(F.green_coordinates, x, c, **kw),
             pts.to(dtype), V.to(dtype), tri, cots, wrt, exterior,
         )  # fmt: skip
-        _assert_same(phi, ref[0])
-        _assert_same(psi, ref[1])
+        assert_same_to_rounding(phi, ref[0])
+        assert_same_to_rounding(psi, ref[1])
         for got, want in zip((gx, gP), ref[2:], strict=True):
             assert (got is None) == (want is None)
             if got is not None:  # (sums over the points in another order: rounding apart)
@@ -504,7 +480,7 @@ def test_batched_green_in_forward_mode_equals_the_loop(rest_grad):
             phi, psi = fn(fwAD.make_dual(x, tangent), torchcage.Cage(rest, tri))
             outs.append([fwAD.unpack_dual(o).tangent.detach().clone() for o in (phi, psi)])
     for a, b in zip(*outs, strict=True):
-        _assert_same(a, b)
+        assert_same_to_rounding(a, b)
     # and against central differences of the coordinates themselves
     h = 1e-6
     plus = F.green_coordinates(x + h * tangent, torchcage.Cage(V, tri))
@@ -532,14 +508,14 @@ def test_batched_derivatives_equal_the_loop(dtype, B, shift, order, monkeypatch)
     V, tri = _cages(B, shift=shift)
     cage = torchcage.Cage(V.to(dtype), tri)
     per_cage = torch.stack([_off_cage(V[b], tri, seed=b) for b in range(B)]).to(dtype)
-    count = _CountCalls(monkeypatch, "tc_mvcd3d")
+    count = CountNativeCalls(monkeypatch, "tc_mvcd3d")
     for pts in (per_cage, per_cage[0]):  # one set per cage; one set shared (off cage 0, near the others')
         count.batches.clear()
         out = F.mean_value_derivatives(pts, cage, order=order)
         assert count.batches == [B]  # the whole batch in one native call
         refs = [F.mean_value_derivatives(pts if pts.ndim == 2 else pts[b], cage[b], order=order) for b in range(B)]
         for k in range(2 if order == 1 else 3):
-            _assert_same(out[k], torch.stack([r[k] for r in refs]))
+            assert_same_to_rounding(out[k], torch.stack([r[k] for r in refs]))
         assert (out[2] is None) == (order == 1)
     # the derivatives themselves: they sum to zero over the vertices and reproduce the identity
     # (gradients of linear precision, sum_v grad_v V_v^T = I) on the points near the cages
@@ -557,7 +533,7 @@ def test_batched_derivatives_two_batch_dimensions_and_chunks(monkeypatch):
     V, tri = _cages(6, seed=3)
     cage = torchcage.Cage(V.reshape(2, 3, 42, 3), tri)
     pts = torch.stack([_off_cage(V[b], tri, seed=b) for b in range(6)]).reshape(2, 3, -1, 3)
-    count = _CountCalls(monkeypatch, "tc_mvcd3d")
+    count = CountNativeCalls(monkeypatch, "tc_mvcd3d")
     lam, grad, hess = F.mean_value_derivatives(pts, cage, chunk_size=40)
     N = pts.shape[-2]
     assert hess.shape == (2, 3, N, 42, 3, 3) and count.batches == [6] * -(-N // 40)
@@ -565,7 +541,7 @@ def test_batched_derivatives_two_batch_dimensions_and_chunks(monkeypatch):
         for j in range(3):
             ref = F.mean_value_derivatives(pts[i, j], cage[i, j])
             for k in range(3):
-                _assert_same((lam, grad, hess)[k][i, j], ref[k])
+                assert_same_to_rounding((lam, grad, hess)[k][i, j], ref[k])
 
 
 @pytest.mark.native

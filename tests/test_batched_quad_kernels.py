@@ -7,11 +7,17 @@ from __future__ import annotations
 
 import pytest
 import torch
-from support import bent_box, box_points, quad_adversarial_points, triquad
+from support import (
+    CountNativeCalls,
+    assert_same_to_rounding,
+    bent_box,
+    box_points,
+    quad_adversarial_points,
+    triquad,
+)
 
 import torchcage
 from torchcage import functional as F
-from torchcage.backends import native as _native
 
 D64 = torch.float64
 
@@ -36,30 +42,6 @@ def _points(cage: torchcage.Cage, seed: int) -> torch.Tensor:
     return torch.cat([quad_adversarial_points(cage, seed), box_points(cage, 40, seed=seed), far])
 
 
-def _assert_same(out: torch.Tensor, ref: torch.Tensor) -> None:
-    """Equal to rounding: the same tables and kernel give the same numbers (bitwise here; a few
-    ulps are allowed for platforms whose batched tensor ops round differently)."""
-    assert out.shape == ref.shape and out.dtype == ref.dtype
-    eps = torch.finfo(out.dtype).eps
-    err = (out - ref).abs() / ref.abs().clamp_min(1.0)
-    assert torch.isfinite(out).all() and float(err.max()) <= 4 * eps, float(err.max())
-
-
-class _CountCalls:
-    """The batch size of each call of the native entry ``entry`` (through ``_native.call``)."""
-
-    def __init__(self, monkeypatch: pytest.MonkeyPatch, entry: str) -> None:
-        self.batches: list[int] = []
-        real = _native.call
-
-        def call(lib, name, **kw):
-            if name == entry:
-                self.batches.append(int(kw["B"]))
-            return real(lib, name, **kw)
-
-        monkeypatch.setattr(_native, "call", call)
-
-
 QMVC_CASES = [("quads", None), ("triquad", None), ("triquad", 1e-8)]
 
 
@@ -73,7 +55,7 @@ def test_batched_qmvc_equals_the_loop(dtype, B, shift, faces, tol, monkeypatch):
     cage64 = _batch(base, B, shift=shift)
     cage = cage64._like(cage64.vertices.to(dtype))
     per_cage = torch.stack([_points(cage64[b], seed=b) for b in range(B)]).to(dtype)  # (B, N, 3)
-    count = _CountCalls(monkeypatch, "tc_qmvc3d")
+    count = CountNativeCalls(monkeypatch, "tc_qmvc3d")
     for pts in (per_cage, per_cage[0]):  # one set per cage; one set shared by every cage
         count.batches.clear()
         out = F.quad_mean_value_coordinates(pts, cage, n=2, tol=tol)
@@ -81,7 +63,7 @@ def test_batched_qmvc_equals_the_loop(dtype, B, shift, faces, tol, monkeypatch):
         ref = torch.stack(
             [F.quad_mean_value_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], n=2, tol=tol) for b in range(B)]
         )
-        _assert_same(out, ref)
+        assert_same_to_rounding(out, ref)
     # the coordinates themselves: rows sum to one and reproduce the points (linear precision)
     W = F.quad_mean_value_coordinates(per_cage.double(), cage64, n=2, tol=tol)
     near = (per_cage.double() - cage64.vertices.mean(1, keepdim=True)).norm(dim=-1) < 10
@@ -95,17 +77,17 @@ def test_batched_qmvc_two_batch_dimensions_and_chunks(monkeypatch):
     cage = cage._like(cage.vertices.reshape(2, 3, *cage.vertices.shape[1:]))
     pts = torch.stack([_points(cage[i, j], seed=3 * i + j) for i in range(2) for j in range(3)])
     pts = pts.reshape(2, 3, -1, 3)
-    count = _CountCalls(monkeypatch, "tc_qmvc3d")
+    count = CountNativeCalls(monkeypatch, "tc_qmvc3d")
     out = F.quad_mean_value_coordinates(pts, cage, n=2, chunk_size=50)
     N = pts.shape[-2]
     assert out.shape == (2, 3, N, cage.num_vertices) and count.batches == [6] * -(-N // 50)
     for i in range(2):
         for j in range(3):
-            _assert_same(out[i, j], F.quad_mean_value_coordinates(pts[i, j], cage[i, j], n=2))
+            assert_same_to_rounding(out[i, j], F.quad_mean_value_coordinates(pts[i, j], cage[i, j], n=2))
     out = F.quad_mean_value_coordinates(pts[0], cage, n=2)  # (3, N, 3) broadcast against cages (2, 3)
     for i in range(2):
         for j in range(3):
-            _assert_same(out[i, j], F.quad_mean_value_coordinates(pts[0, j], cage[i, j], n=2))
+            assert_same_to_rounding(out[i, j], F.quad_mean_value_coordinates(pts[0, j], cage[i, j], n=2))
 
 
 @pytest.mark.native

@@ -14,11 +14,12 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
+from torch._C._functorch import is_functorch_wrapped_tensor
 
 from torchcage.cage import Cage, _batch_name
 from torchcage.errors import PointsError
 
-__all__ = ["broadcast_batch", "check_finite_batch", "over_cage_batch"]
+__all__ = ["broadcast_batch", "check_finite_batch", "native_batch_inputs", "over_cage_batch"]
 
 
 def over_cage_batch(fn: Callable[..., Any], points: torch.Tensor, cage: Cage, **kwargs: Any) -> Any:
@@ -42,6 +43,27 @@ def over_cage_batch(fn: Callable[..., Any], points: torch.Tensor, cage: Cage, **
     if isinstance(results[0], tuple):
         return tuple(_stack([r[k] for r in results], batch) for k in range(len(results[0])))
     return _stack(results, batch)
+
+
+def native_batch_inputs(
+    points: torch.Tensor, cage: Cage, backend: str, quads: bool = False
+) -> tuple[torch.Tensor, torch.Tensor, torch.Size] | None:
+    """:func:`broadcast_batch` of a call that a batched native kernel may serve: a 3D cage (with
+    quads only where ``quads``), ``backend`` ``"auto"`` or ``"native"``, floating-point points and
+    vertices on the CPU, no ``torch.func`` transform. ``None`` otherwise: the caller then loops over
+    the cages, whose path raises the errors that name what does not serve.
+
+    Raises:
+        PointsError: points without a point axis, or a batch shape that does not broadcast.
+    """
+    if cage.dim != 3 or (cage.has_quads and not quads) or backend not in ("auto", "native"):
+        return None
+    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
+        return None
+    pts, verts, batch = broadcast_batch(points, cage)
+    if not pts.is_floating_point() or pts.device.type != "cpu" or verts.device.type != "cpu":
+        return None
+    return pts, verts, batch
 
 
 def broadcast_batch(points: Any, cage: Cage) -> tuple[torch.Tensor, torch.Tensor, torch.Size]:

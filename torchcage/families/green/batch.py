@@ -7,9 +7,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-from torch._C._functorch import is_functorch_wrapped_tensor
 
-from torchcage._core.batch import broadcast_batch, check_finite_batch
+from torchcage._core.batch import check_finite_batch, native_batch_inputs
 from torchcage._core.common import (
     ON_CAGE_TOLERANCE,
     VERTEX_SNAP,
@@ -54,13 +53,10 @@ def coordinates_batch(
         PointsError: points that do not broadcast with the cages, or points holding NaN or inf; the
             batch element is named.
     """
-    if cage.dim != 3 or cage.has_quads or backend not in ("auto", "native"):
+    inputs = native_batch_inputs(points, cage, backend)
+    if inputs is None:
         return None
-    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
-        return None
-    pts, verts, batch = broadcast_batch(points, cage)
-    if not pts.is_floating_point() or pts.device.type != "cpu" or verts.device.type != "cpu":
-        return None
+    pts, verts, batch = inputs
     compute, out_dtype = result_dtype(pts, cage, dtype)
     if compute != torch.float64:
         return None

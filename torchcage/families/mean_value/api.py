@@ -10,9 +10,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-from torch._C._functorch import is_functorch_wrapped_tensor
 
-from torchcage._core.batch import broadcast_batch, check_finite_batch, over_cage_batch
+from torchcage._core.batch import check_finite_batch, native_batch_inputs, over_cage_batch
 from torchcage._core.centre import centre_of, centred
 from torchcage._core.common import as_inputs, check_points, far_unity, records_graph, result_dtype
 from torchcage._core.compiled import CompiledOp
@@ -147,13 +146,10 @@ def _batch_with_graph(
     where it does not serve (another backend or device, a torch.func transform, 2D or quads, no
     native build): the caller then loops over the cages. Element by element the numbers of the
     single-cage call: the same centring, kernels and far-field normalisation."""
-    if cage.dim != 3 or cage.has_quads or backend not in ("auto", "native"):
+    inputs = native_batch_inputs(points, cage, backend)
+    if inputs is None:
         return None
-    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
-        return None
-    pts, verts, batch = broadcast_batch(points, cage)
-    if not pts.is_floating_point() or pts.device.type != "cpu" or verts.device.type != "cpu":
-        return None
+    pts, verts, batch = inputs
     compute, out_dtype = result_dtype(pts, cage, dtype, backend)
     if compute != torch.float64 or select(MVC, backend, pts.new_empty((0, 3), dtype=compute), graph=False).lib is None:
         return None

@@ -40,7 +40,7 @@ import torch
 from torch._C._functorch import is_functorch_wrapped_tensor
 
 from torchcage._core.alloc import empty_output
-from torchcage._core.batch import broadcast_batch, check_finite_batch, over_cage_batch
+from torchcage._core.batch import check_finite_batch, native_batch_inputs, over_cage_batch
 from torchcage._core.centre import centred, centred_batch, extent_of, keep_extent
 from torchcage._core.common import (
     as_inputs,
@@ -321,13 +321,10 @@ def _native_derivatives_batch(
         PointsError: points that do not broadcast with the cages, NaN or inf, points on the cage or
             where the coordinates are undefined, naming the batch element.
     """
-    if cage.dim != 3 or cage.has_quads or backend not in ("auto", "native"):
+    inputs = native_batch_inputs(points, cage, backend)
+    if inputs is None:
         return None
-    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
-        return None
-    pts, verts, batch = broadcast_batch(points, cage)
-    if not pts.is_floating_point() or pts.device.type != "cpu" or verts.device.type != "cpu":
-        return None  # (the per-element path raises the errors that name these)
+    pts, verts, batch = inputs
     lib = select(MVC_DERIVATIVES, backend, pts.new_empty((0, 3), dtype=torch.float64), graph=False).lib
     if lib is None:
         return None

@@ -10,7 +10,7 @@ from collections.abc import Callable
 import torch
 
 from torchcage._core.alloc import cat_output
-from torchcage._core.batch import broadcast_batch, check_finite_batch, over_cage_batch
+from torchcage._core.batch import check_finite_batch, native_batch_inputs, over_cage_batch
 from torchcage._core.centre import centre_of, centred_batch
 from torchcage._core.common import (
     as_inputs,
@@ -294,11 +294,10 @@ def _native_batch(
     check_grid(n)
     quad_tol = check_tol(tol)
     check(QMVC, backend)
-    if backend not in ("auto", "native") or records_graph(points, cage.vertices):
+    inputs = None if records_graph(points, cage.vertices) else native_batch_inputs(points, cage, backend, quads=True)
+    if inputs is None:
         return None
-    pts, verts, batch = broadcast_batch(points, cage)
-    if not pts.is_floating_point() or pts.device.type != "cpu" or verts.device.type != "cpu":
-        return None  # (the per-element path raises the errors that name these)
+    pts, verts, batch = inputs
     compute, out_dtype = result_dtype(pts, cage, dtype)
     if compute != torch.float64:
         return None
