@@ -18,6 +18,7 @@ from support import (
 
 import torchcage
 from torchcage import functional as F
+from torchcage.backends import native as _native
 
 D64 = torch.float64
 
@@ -134,3 +135,44 @@ def test_batched_qmvc_with_a_graph_still_loops():
     out = F.quad_mean_value_coordinates(x, cage._like(V), n=2)
     ref = torch.stack([F.quad_mean_value_coordinates(x[b], cage[b], n=2, backend="torch") for b in range(2)])
     assert out.requires_grad and torch.allclose(out.detach(), ref, atol=1e-12, rtol=0)
+
+
+@pytest.mark.native
+def test_qmvc_undefined_points_of_one_cage_are_refused(monkeypatch):
+    """One cage on the native kernel: rows that are not finite are refused by index."""
+    from torchcage.families.quad_mean_value import api
+
+    real = api.native_coordinates
+
+    def kernel(*args, **kwargs):
+        out = real(*args, **kwargs)
+        out[0, 2] = float("inf")  # as a row whose total weight vanishes
+        return out
+
+    monkeypatch.setattr(api, "native_coordinates", kernel)
+    with pytest.raises(torchcage.PointsError, match=r"undefined at points \[2\] \(the total weight"):
+        F.quad_mean_value_coordinates(torch.zeros(4, 3, dtype=D64), triquad(), backend="native")
+
+
+@pytest.mark.native
+def test_the_batched_kernels_refuse_a_point_batch_that_is_neither_one_nor_the_cages():
+    from torchcage.families.mean_value import derivatives_native
+    from torchcage.families.quad_mean_value.native import native_coordinates
+
+    cage = _batch(triquad(), 3)
+    v, lib = cage.vertices, _native.library()
+    with pytest.raises(ValueError, match="points for 2 cages"):
+        native_coordinates(
+            lib, torch.zeros(2, 5, 3, dtype=D64), v, cage.triangles, cage.quads, torch.ones(3) * 1e-12, 2
+        )
+    tri = cage.triangulated()
+    tables = derivatives_native.batch_tables(v, tri.triangles, torch.full((3,), 1e-12, dtype=D64))
+    V = v.shape[1]
+    outs = [
+        torch.empty(3, 5, V, dtype=D64),
+        torch.empty(3, 5, V, 3, dtype=D64),
+        None,
+        torch.empty(3, 5, dtype=torch.uint8),
+    ]
+    with pytest.raises(ValueError, match="points for 2 cages"):
+        derivatives_native.native_chunk(torch.zeros(2, 5, 3, dtype=D64), tables, lib, 1, *outs)

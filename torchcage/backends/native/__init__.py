@@ -200,8 +200,30 @@ def check_workspace(out: torch.Tensor, kernel: str, size: str = "") -> None:
         >>> check_workspace(torch.zeros(2, 3), "quad mean value")  # a filled output: no error
     """
     if out.numel() and math.isnan(float(out.reshape(-1)[0])):
-        raise MemoryError(
-            f"the native {kernel} kernel could not allocate its per-thread workspace"
-            f"{f' ({size})' if size else ''}; use fewer threads (torch.set_num_threads), fewer points per "
-            "chunk (chunk_size) or backend='torch'"
-        )
+        _refuse_workspace(kernel, size)
+
+
+#: The flag value of every point of a call whose kernel could not allocate its workspace (kernels
+#: whose outputs may hold NaN of their own, rows where the total weight vanishes, say so in their
+#: uint8 flags instead: see :func:`check_workspace_flags`).
+WORKSPACE_FAILED = 3
+
+
+def check_workspace_flags(flags: torch.Tensor, kernel: str) -> None:
+    """Raise ``MemoryError`` when the kernel named ``kernel`` could not allocate its workspace: the
+    kernels say so by :data:`WORKSPACE_FAILED` in every entry of their uint8 ``flags``, a value
+    they never give otherwise.
+
+    Examples:
+        >>> check_workspace_flags(torch.zeros(4, dtype=torch.uint8), "mean value derivatives")
+    """
+    if flags.numel() and int(flags.reshape(-1)[0]) == WORKSPACE_FAILED:
+        _refuse_workspace(kernel, "")
+
+
+def _refuse_workspace(kernel: str, size: str) -> None:
+    raise MemoryError(
+        f"the native {kernel} kernel could not allocate its per-thread workspace"
+        f"{f' ({size})' if size else ''}; use fewer threads (torch.set_num_threads), fewer points per "
+        "chunk (chunk_size) or backend='torch'"
+    )

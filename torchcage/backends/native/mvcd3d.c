@@ -644,7 +644,8 @@ static int mvcd3d_one(const double *P, long V, const int *tri, long T, const int
  * ell, gram, longest, far_nodes, far_coef, tol (B,)), the topology ones (tri, fe) are shared; points X
  * (XB, n, 3) with XB = 1 (shared by every cage) or B; outputs L (B, n, V), G (B, n, V, 3), H (B, n, V,
  * 3, 3) or NULL, on (B, n). The cages one after the other, each parallel over its points. A failed
- * allocation fills L with NaN (the glue raises MemoryError). */
+ * allocation sets every flag to 3 (and L to NaN; the glue raises MemoryError). XB must be 1 or B (the
+ * glue checks). */
 void tc_mvcd3d(long B, const double *P, long V, const int *tri, long T, const int *fe, long NE, const double *E,
                const double *nrm, const double *two_area, const double *ell, const double *gram,
                const double *longest, const double *far_nodes, const double *far_coef, long Q, double far_c,
@@ -658,6 +659,8 @@ void tc_mvcd3d(long B, const double *P, long V, const int *tri, long T, const in
                             X + (XB > 1 ? b : 0) * n * 3, n, tol[b], order, nthreads, L + nv, G + 3 * nv,
                             H ? H + 9 * nv : NULL, on + b * n);
     }
-    if (failed)
+    if (failed) {
         for (long k = 0; k < B * n * V; ++k) L[k] = NAN;
+        memset(on, 3, (size_t)(B * n)); /* (WORKSPACE_FAILED: the glue raises MemoryError) */
+    }
 }

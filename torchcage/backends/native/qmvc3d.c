@@ -1023,7 +1023,8 @@ static int qmvc3d_one(const double *P, long V, const int *quads, long Q, const d
  * quads' sizes (B, Q), on-cage tolerances tol (B,)): points X (XB, npts, 3), XB = 1 (shared by every
  * cage) or B; the quads' raw weights added into W (B, npts, V) (the triangles' raw weights, from
  * tc_mvc3d, already there), then each row normalised; rows flagged in on (B, npts) hold their
- * on-cage values and are skipped. The cages one after the other, each parallel over its points. */
+ * on-cage values and are skipped. The cages one after the other, each parallel over its points. A
+ * failed allocation sets every flag to 3 (and W to NaN). XB must be 1 or B (the glue checks). */
 void tc_qmvc3d(long B, const double *P, long V, const int *quads, long Q, const double *size, const double *X, long XB,
                long npts, const double *tol, int n, double qtol, const double *gl, int nthreads, double *W,
                unsigned char *on) {
@@ -1031,6 +1032,8 @@ void tc_qmvc3d(long B, const double *P, long V, const int *quads, long Q, const 
     for (long b = 0; b < B && !failed; ++b)
         failed = qmvc3d_one(P + b * V * 3, V, quads, Q, size + b * Q, X + (XB > 1 ? b : 0) * npts * 3, npts, tol[b], n,
                             qtol, gl, nthreads, W + b * npts * V, on + b * npts);
-    if (failed) /* the glue's sign of a failed allocation (it raises MemoryError) */
+    if (failed) { /* the glue's sign of a failed allocation (it raises MemoryError) */
         for (long k = 0; k < B * npts * V; ++k) W[k] = NAN;
+        memset(on, 3, (size_t)(B * npts)); /* (WORKSPACE_FAILED: NaN rows also mean a vanishing total) */
+    }
 }

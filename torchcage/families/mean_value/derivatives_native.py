@@ -133,6 +133,7 @@ def native_chunk(
     flags are 1 on the cage, 2 where the total weight vanishes.
 
     Raises:
+        ValueError: points for neither one nor ``B`` cages.
         MemoryError: the kernel could not allocate its per-thread scratch.
     """
     if x.shape[-1] == 2:
@@ -140,7 +141,10 @@ def native_chunk(
                      on=on)  # fmt: skip
         return
     X = x.contiguous()
+    B = int(tables["B"])  # type: ignore[call-overload]
+    if X.shape[0] not in (1, B):
+        raise ValueError(f"tc_mvcd3d: points for {X.shape[0]} cages, but the tables hold {B}: give 1 (shared) or {B}")
     _native.call(
         lib, "tc_mvcd3d", **tables, X=X, XB=X.shape[0], n=X.shape[1], order=order, L=lam, G=grad, H=hess, on=on
     )
-    _native.check_workspace(lam, "mean value derivatives")
+    _native.check_workspace_flags(on, "mean value derivatives")

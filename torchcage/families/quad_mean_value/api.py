@@ -248,7 +248,7 @@ def quad_mean_value_coordinates(
         out = native_coordinates(
             lib, x[None], verts[None], cage.triangles, cage.quads, tols, n, quad_tol, chunk_size, progress
         )[0]
-        _refuse_undefined(out, torch.Size([1]), torch.Size([]))
+        _refuse_undefined(out[None], torch.Size([]))
         (out,) = far_unity(out, x, verts)
         return out.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
     T, Q = cage.triangles.shape[0], cage.quads.shape[0]
@@ -263,7 +263,7 @@ def quad_mean_value_coordinates(
         size = chunk_size or max(16, (1 << 19) // (max(Q, 1) * samples) + 1)
     parts = [kernel(x[sl]) for sl in chunks(x.shape[0], size, progress, desc="quad mean value coordinates")]
     out = cat_output(parts) if parts else x.new_zeros((0, cage.num_vertices))
-    _refuse_undefined(out.detach()[None], torch.Size([1]), torch.Size([]))
+    _refuse_undefined(out.detach()[None], torch.Size([]))
     (out,) = far_unity(out, x, verts)
     return out.to(out_dtype).reshape(*points.shape[:-1], cage.num_vertices)
 
@@ -309,13 +309,13 @@ def _native_batch(
     tols = on_cage_tolerances(verts)  # (the uncentred cages', as the single-cage call)
     x, v = centred_batch(pts, verts, compute)  # (each cage relative to its centre: module _core.centre)
     out = native_coordinates(lib, x, v, cage.triangles, cage.quads, tols, n, quad_tol, chunk_size, progress)
-    _refuse_undefined(out, torch.Size([v.shape[0]]), batch)
+    _refuse_undefined(out, batch)
     if may_be_far(v, x):  # (else far_unity leaves every row as it is)
         (out,) = far_unity(out, x.expand(v.shape[0], *x.shape[1:]), v)
     return out.to(out_dtype).reshape(*batch, x.shape[1], cage.num_vertices)
 
 
-def _refuse_undefined(out: torch.Tensor, flat: torch.Size, batch: torch.Size) -> None:
+def _refuse_undefined(out: torch.Tensor, batch: torch.Size) -> None:
     """Raise for rows of ``out`` ``(B, N, V)`` that are not finite (the total weight vanishes),
     naming the first batch element that has some (of ``batch``; none for one cage).
 

@@ -19,7 +19,7 @@ from torchcage.families.quad_mean_value.kernel import quad_sizes
 
 __all__ = ["native_coordinates", "native_tables"]
 
-#: Points per chunk of the native kernels (every cage of a batch takes the chunk at once).
+#: Points per chunk (over the cages of a batch) when a progress bar asks for chunks.
 NATIVE_CHUNK = 1 << 14
 
 
@@ -74,13 +74,16 @@ def native_coordinates(
         triangles: ``(T, 3)`` and ``quads``: ``(Q, 4)`` the shared faces.
         tol: ``(B,)`` float64 absolute on-cage tolerances (the uncentred cages').
         n: the Riemann sum's grid parameter; ``qtol``: the quadrature's tolerance (``tol=``) or ``None``.
-        chunk_size: points per chunk (default 16,384); chunks pace the progress bar.
+        chunk_size: points per chunk. By default one call for every point, or with a progress
+            bar chunks of ``16,384 / B`` points (a batch's chunks go through temporaries: their
+            rows are not contiguous).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
 
     Returns:
         ``(B, N, V)`` float64 coordinates (rows whose total weight vanishes are not finite).
 
     Raises:
+        ValueError: points for neither one nor ``B`` cages.
         MemoryError: the kernel could not allocate its per-thread scratch.
 
     Examples:
@@ -95,6 +98,8 @@ def native_coordinates(
         True
     """
     B, V, N = vertices.shape[0], vertices.shape[1], x.shape[1]
+    if x.shape[0] not in (1, B):
+        raise ValueError(f"tc_qmvc3d: points for {x.shape[0]} cages, but {B} cages: give 1 (shared) or {B}")
     tri_tables = _mvc3d_native.batch_tables(vertices, triangles, tol) if triangles.shape[0] else None
     quad_tables = native_tables(vertices, quads, tol, n, qtol) if quads.shape[0] else None
     if tri_tables is not None and quad_tables is not None:
@@ -103,17 +108,18 @@ def native_coordinates(
         tri_tables["cancel_c"] = 0.0
         tri_tables["far_c"] = PART_FAR_FIELD_RATIO
     out = zeros_output(B, N, V, dtype=torch.float64)
-    for sl in chunks(N, chunk_size or NATIVE_CHUNK, progress, desc="quad mean value coordinates"):
-        whole = sl.start == 0 and sl.stop == N
+    size = chunk_size or (max(64, NATIVE_CHUNK // B) if progress else max(N, 1))
+    for sl in chunks(N, size, progress, desc="quad mean value coordinates"):
+        direct = B == 1 or (sl.start == 0 and sl.stop == N)  # (contiguous rows: written in place)
         xs = x[:, sl].contiguous()
-        W = out if whole else torch.zeros((B, xs.shape[1], V), dtype=torch.float64)
+        W = out[:, sl] if direct else torch.zeros((B, xs.shape[1], V), dtype=torch.float64)
         if tri_tables is not None:
             on = _mvc3d_native.native_chunk(xs, tri_tables, lib, W, normalize=quad_tables is None)
         else:
             on = torch.zeros((B, xs.shape[1]), dtype=torch.uint8)
         if quad_tables is not None:
             _native.call(lib, "tc_qmvc3d", **quad_tables, X=xs, XB=xs.shape[0], npts=xs.shape[1], W=W, on=on)
-            _native.check_workspace(W, "quad mean value")
-        if not whole:
+            _native.check_workspace_flags(on, "quad mean value")
+        if not direct:
             out[:, sl] = W
     return out
