@@ -93,6 +93,7 @@ void tc_stable_face(double h, const double *s, const double *dots, const double 
  * Output W: (B, n, V) coordinates, normalised when normalize != 0, else the raw weights (on[b, p] = 1
  * marks points on the cage, whose rows hold their interpolating values either way; with normalize,
  * on[b, p] = 2 marks rows that are not finite: the total weight vanishes there, outside the cage).
+ * A workspace that could not be allocated sets every flag to 3 and every row to NaN.
  */
 
 /* One cage's tables (the batch element's slices of tc_mvc3d's arguments) and what is derived from
@@ -596,6 +597,12 @@ static int mvc3d_has_avx512(void) {
 }
 #endif
 
+/* A workspace not allocated: every row NaN, every flag 3 (the glue raises MemoryError). */
+static void mvc3d_failed(long nw, long nflags, double *W, unsigned char *on) {
+    for (long i = 0; i < nw; ++i) W[i] = NAN;
+    memset(on, 3, (size_t)nflags);
+}
+
 void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int *edges, long E, const int *fe,
               const int *inc_ptr, const int *inc_idx, const double *fs, const double *nrm, const double *two_area,
               const double *ell, const double *gram, const double *far_bary, const double *far_qw,
@@ -611,6 +618,12 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
     mvc3d_cage *cages = (mvc3d_cage *)malloc(sizeof(mvc3d_cage) * (size_t)B);
     /* Thin faces (tc_thin_face) of each cage: their pairs seen from a few widths take the swept form. */
     long *thin = (long *)malloc(sizeof(long) * (size_t)(T > 0 ? T : 1) * (size_t)B);
+    if (cages == NULL || thin == NULL) {
+        free(cages);
+        free(thin);
+        mvc3d_failed(B * n * V, B * n, W, on);
+        return;
+    }
     for (long b = 0; b < B; ++b) {
         mvc3d_cage *g = cages + b;
         g->P = P + 3 * V * b;
@@ -634,9 +647,15 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
 #ifdef MVC3D_AVX512
     const int avx512 = nb > 0 && mvc3d_has_avx512();
 #endif
+    int failed = 0; /* a thread could not allocate its scratch */
 #pragma omp parallel num_threads(nthreads)
     {
         double *buf = (double *)malloc(sizeof(double) * (4 * (size_t)V + 8 * (size_t)E + 5 * (size_t)T));
+        if (buf == NULL) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp barrier
         mvc3d_scratch sc;
         sc.Ax = buf, sc.Ay = sc.Ax + V, sc.Az = sc.Ay + V, sc.RA = sc.Az + V;
         sc.Nx = sc.RA + V, sc.Ny = sc.Nx + E, sc.Nz = sc.Ny + E, sc.Nn = sc.Nz + E, sc.D = sc.Nn + E;
@@ -648,6 +667,7 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
         if (nb > 0) bbuf = malloc(sizeof(double) * mvc3d_block_doubles(V, E, T) + 64);
         if (bbuf != NULL) mvc3d_block_carve((double *)(((size_t)bbuf + 63) & ~(size_t)63), V, E, T, &bs);
         bs.near = near;
+        if (failed) goto done; /* (every thread: none enters the worksharing loop) */
 #pragma omp for schedule(dynamic, 8)
         for (long i = 0; i < B * per; ++i) {
             const long b = i / per, k = i - b * per;
@@ -671,10 +691,12 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
                                                        far_c, cancel_c, near_c, x[3 * r], x[3 * r + 1], x[3 * r + 2],
                                                        normalize, &sc, W + (o + r) * V);
         }
+    done:
         free(near);
         free(bbuf);
         free(buf);
     }
     free(thin);
     free(cages);
+    if (failed) mvc3d_failed(B * n * V, B * n, W, on);
 }

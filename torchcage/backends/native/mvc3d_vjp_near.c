@@ -190,6 +190,11 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
                        double far_d, int split_pairs, int nthreads, double *GX, double *GP,
                        unsigned char *status, unsigned char *PAIR, double *WB, double *SN, double *HS) {
     double *fc = (double *)malloc(sizeof(double) * F_SIZE * (size_t)(T > 0 ? T : 1));
+    if (fc == NULL) { /* no point taken (status 0): the caller computes them all */
+        memset(GP, 0, sizeof(double) * 3 * (size_t)V);
+        memset(status, 0, (size_t)n);
+        return;
+    }
     int any_thin = 0;
     for (long f = 0; f < T; ++f) {
         const double *p[3] = {P + 3 * tri[3 * f], P + 3 * tri[3 * f + 1], P + 3 * tri[3 * f + 2]};
@@ -210,9 +215,16 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
         any_thin |= ta > 0 && l > TC_THIN_ASPECT * ta;
     }
     memset(GP, 0, sizeof(double) * 3 * (size_t)V);
+    int failed = 0; /* a thread could not allocate its scratch */
 #pragma omp parallel num_threads(nthreads)
     {
         double *S = (double *)malloc(sizeof(double) * ((size_t)Q_SIZE * (size_t)T + 5 * (size_t)V));
+        if (S == NULL) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp barrier
+        if (failed) goto done; /* (every thread: none enters the worksharing loop) */
         double *Wv = S + (size_t)Q_SIZE * T, *gp = Wv + V, *scratch_gx = gp + 3 * V;
         memset(gp, 0, sizeof(double) * 3 * (size_t)V);
 #pragma omp for schedule(dynamic, 8)
@@ -434,7 +446,12 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
         }
 #pragma omp critical
         for (long k = 0; k < 3 * V; ++k) GP[k] += gp[k];
+    done:
         free(S);
     }
     free(fc);
+    if (failed) { /* no point taken (status 0): the caller computes them all */
+        memset(GP, 0, sizeof(double) * 3 * (size_t)V);
+        memset(status, 0, (size_t)n);
+    }
 }

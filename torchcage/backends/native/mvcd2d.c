@@ -26,9 +26,16 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
                int nthreads, double *L, double *G, double *H, unsigned char *on) {
     double centre[2];
     const double far2 = tc_far_centre(P, V, 2, 1, 2, centre);
+    int failed = 0; /* a thread could not allocate its scratch */
 #pragma omp parallel num_threads(nthreads)
     {
-        double *acc = (double *)malloc(sizeof(double) * 6 * V);
+        double *acc = (double *)malloc(sizeof(double) * 6 * (size_t)(V > 0 ? V : 1));
+        if (acc == NULL) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp barrier
+        if (failed) goto done; /* (every thread: none enters the worksharing loop) */
 #pragma omp for schedule(dynamic, 64)
         for (long p = 0; p < n; p++) {
             const double x0 = X[2 * p], x1 = X[2 * p + 1];
@@ -152,6 +159,11 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
                 }
             }
         }
+    done:
         free(acc);
+    }
+    if (failed) { /* every row NaN, every flag 3 (the glue raises MemoryError) */
+        for (long k = 0; k < n * V; ++k) L[k] = NAN;
+        memset(on, 3, (size_t)n);
     }
 }

@@ -139,6 +139,7 @@ def native_chunk(
     if x.shape[-1] == 2:
         _native.call(lib, "tc_mvcd2d", **tables, X=x.contiguous(), n=x.shape[0], order=order, L=lam, G=grad, H=hess,
                      on=on)  # fmt: skip
+        _native.check_workspace_flags(on, "mean value derivatives")
         return
     X = x.contiguous()
     B = int(tables["B"])  # type: ignore[call-overload]

@@ -138,6 +138,7 @@ def native_chunk(
 
     Raises:
         ValueError: points whose batch is neither 1 nor the cages' (or a wrong shape: ``_native.call``).
+        MemoryError: the kernel could not allocate its per-thread scratch.
     """
     batched = x.dim() == 3
     X = x.contiguous() if batched else x.contiguous()[None]
@@ -147,4 +148,5 @@ def native_chunk(
         raise ValueError(f"tc_mvc3d: points for {XB} cages, but the tables hold {B}: give 1 (shared) or {B}")
     on = torch.empty((B, n), dtype=torch.uint8)
     _native.call(lib, "tc_mvc3d", **tables, X=X, XB=XB, n=n, W=Wb, on=on, normalize=int(normalize))
+    _native.check_workspace_flags(on, "mean value")
     return on if batched else on[0]
