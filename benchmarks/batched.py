@@ -2,7 +2,8 @@
 single-cage calls, mean value and Green coordinates forward (no graph, CPU), and forward and
 backward (``mvc-grad``, ``gc-grad``: the gradients of a loss with respect to the points and the rest
 cages, as a training step takes them), and quad mean value coordinates forward (``qmvc``: the
-bundled bar's 14-quad cage, jittered per shape, n = 4) and the mean value derivatives (``mvcd``:
+bundled bar's 14-quad cage, jittered per shape, n = 4), quad Green coordinates forward (``qgc``: the
+same cages, n = 2) and the mean value derivatives (``mvcd``:
 values, gradients and Hessians, ``order=2``).
 
 The setting of ``learnable.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each, a 42-vertex /
@@ -21,7 +22,7 @@ implementations interleaved, best of ``--repeat``; *speed-up* is against the fir
 method and dtype.
 
 Usage: ``python benchmarks/batched.py [--batch 8] [--points 5000] [--repeat 10] [--baseline REV]
-[--methods mvc gc mvc-grad gc-grad qmvc mvcd]``
+[--methods mvc gc mvc-grad gc-grad qmvc qgc mvcd]``
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ def _child(args: argparse.Namespace) -> None:
         KERNEL[0] += time.perf_counter() - t
 
     _native.call = timed_call  # every glue module calls it through the module attribute
-    if args.method == "qmvc":
+    if args.method in ("qmvc", "qgc"):
         x, P, faces = quad_problem(args.batch, args.points, getattr(torch, args.dtype))
     else:
         x, P, faces, _ = problem(args.batch, args.points, getattr(torch, args.dtype), "cpu")
@@ -80,6 +81,8 @@ def _child(args: argparse.Namespace) -> None:
     fn = green_coordinates if green else mean_value_coordinates
     if args.method == "qmvc":
         fn = torchcage.functional.quad_mean_value_coordinates
+    if args.method == "qgc":
+        fn = torchcage.functional.quad_green_coordinates
     if args.method == "mvcd":  # values, gradients and Hessians
 
         def fn(x: torch.Tensor, cage: torchcage.Cage) -> tuple[torch.Tensor, ...]:
@@ -164,7 +167,7 @@ def main() -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--impl", default="loop,batched", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
-    methods = ["mvc", "gc", "mvc-grad", "gc-grad", "qmvc", "mvcd"]
+    methods = ["mvc", "gc", "mvc-grad", "gc-grad", "qmvc", "qgc", "mvcd"]
     ap.add_argument("--method", default="mvc", choices=methods, help=argparse.SUPPRESS)
     ap.add_argument("--methods", nargs="+", default=methods, choices=methods)
     args = ap.parse_args()
@@ -191,8 +194,8 @@ def main() -> None:
                 runs += [("loop", *r["best"]["loop"]), ("batched", *r["best"]["batched"])]
                 rows.append((f"{method} {dtype}", runs, r["diff"]["batched"], r["threads"]))
     print(
-        f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages (qmvc: 16-vertex / "
-        f"14-quad, n = 4), CPU, "
+        f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages (qmvc, qgc: 16-vertex / "
+        f"14-quad, n = 4 and 2), CPU, "
         f"{rows[0][3]} threads, best of {args.repeat}\n"
     )
     print("| method, dtype | path | time | kernel | set-up | set-up share | speed-up |")

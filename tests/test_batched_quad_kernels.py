@@ -1,7 +1,8 @@
 """Batched rest cages of the quad families as one native kernel call per chunk of points: quad mean
-value coordinates of a batch of quad and triquad cages with one topology equal the single-cage
-calls (the same tables, the same kernel) on quads, edges and corners, near them, outside and far
-away, for the Riemann sum and the tolerance form; the batch's errors name the element."""
+value and quad Green coordinates of a batch of quad and triquad cages with one topology equal the
+single-cage calls (the same tables, the same kernel) on quads, edges and corners, near them,
+outside and far away, for the Riemann sum and the tolerance form, and reproduce the points (linear
+precision); the batch's errors name the element."""
 
 from __future__ import annotations
 
@@ -176,3 +177,65 @@ def test_the_batched_kernels_refuse_a_point_batch_that_is_neither_one_nor_the_ca
     ]
     with pytest.raises(ValueError, match="points for 2 cages"):
         derivatives_native.native_chunk(torch.zeros(2, 5, 3, dtype=D64), tables, lib, 1, *outs)
+
+
+# ------------------------------------------------------------------------- quad Green coordinates
+
+
+@pytest.mark.native
+@pytest.mark.filterwarnings("ignore::torchcage.errors.OutsideCageWarning")
+@pytest.mark.parametrize("dtype", [torch.float32, D64])
+@pytest.mark.parametrize("B", [1, 3])
+@pytest.mark.parametrize("shift", [0.0, 1e3])
+@pytest.mark.parametrize("faces, tol", QMVC_CASES)
+def test_batched_qgc_equals_the_loop(dtype, B, shift, faces, tol, monkeypatch):
+    base = bent_box() if faces == "quads" else triquad()
+    cage64 = _batch(base, B, shift=shift)
+    cage = cage64._like(cage64.vertices.to(dtype))
+    per_cage = torch.stack([_points(cage64[b], seed=b) for b in range(B)]).to(dtype)  # (B, N, 3)
+    count = CountNativeCalls(monkeypatch, "tc_qgc3d")
+    for pts in (per_cage, per_cage[0]):  # one set per cage; one set shared by every cage
+        count.batches.clear()
+        phi, psi = F.quad_green_coordinates(pts, cage, n=1, tol=tol)
+        assert count.batches == [B]  # the whole batch in one native call
+        refs = [F.quad_green_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], n=1, tol=tol) for b in range(B)]
+        assert_same_to_rounding(phi, torch.stack([r[0] for r in refs]))
+        assert_same_to_rounding(psi, torch.stack([r[1] for r in refs]))
+    if faces == "quads":  # the coordinates themselves: inside, phi @ V + psi @ N = x (linear precision)
+        x = torch.stack([box_points(cage64[b], 30, spread=0.5, seed=b) for b in range(B)])
+        phi, psi = F.quad_green_coordinates(x, cage64, n=1, tol=tol)
+        N = torch.stack([cage64[b].quad_corner_normals().reshape(-1, 3) for b in range(B)])
+        rebuilt = phi @ cage64.vertices + psi @ N
+        assert (rebuilt - x).abs().max() < 1e-9 * (1 + shift)
+
+
+@pytest.mark.native
+@pytest.mark.filterwarnings("ignore::torchcage.errors.OutsideCageWarning")
+def test_batched_qgc_two_batch_dimensions_and_chunks(monkeypatch):
+    cage = _batch(triquad(), 4, seed=5)
+    cage = cage._like(cage.vertices.reshape(2, 2, *cage.vertices.shape[1:]))
+    pts = torch.stack([box_points(cage[i, j], 90, spread=0.9, seed=2 * i + j) for i in range(2) for j in range(2)])
+    pts = pts.reshape(2, 2, -1, 3)
+    count = CountNativeCalls(monkeypatch, "tc_qgc3d")
+    phi, psi = F.quad_green_coordinates(pts, cage, n=1, chunk_size=40)
+    assert phi.shape == (2, 2, 90, cage.num_vertices) and count.batches == [4] * 3
+    for i in range(2):
+        for j in range(2):
+            ref = F.quad_green_coordinates(pts[i, j], cage[i, j], n=1)
+            assert_same_to_rounding(phi[i, j], ref[0])
+            assert_same_to_rounding(psi[i, j], ref[1])
+
+
+@pytest.mark.native
+def test_batched_qgc_edge_cases():
+    cage = _batch(triquad(), 2)
+    T4 = cage.triangles.shape[0] + 4 * cage.quads.shape[0]
+    phi, psi = F.quad_green_coordinates(torch.zeros(0, 3, dtype=D64), cage)
+    assert phi.shape == (2, 0, cage.num_vertices) and psi.shape == (2, 0, T4)
+    x = torch.zeros(2, 4, 3, dtype=D64)
+    x[1, 2, 1] = float("nan")
+    with pytest.raises(torchcage.PointsError, match=r"indices \[2\].*batch element \(1,\)"):
+        F.quad_green_coordinates(x, cage)
+    far = torch.full((2, 3, 3), 50.0, dtype=D64)
+    with pytest.warns(torchcage.errors.OutsideCageWarning, match="6 of 6 points"):
+        F.quad_green_coordinates(far, cage)

@@ -1,6 +1,6 @@
 """Batched rest cages in the functional API: one call per batch element, results stacked (where no
-batched kernel serves: mean value, Green and quad mean value coordinates and the mean value
-derivatives on the native kernels take a batch in one call).
+batched kernel serves: mean value, Green, quad mean value and quad Green coordinates and the
+mean value derivatives on the native kernels take a batch in one call).
 
 A batched cage ``(*B, V, D)`` takes points ``(*Bp, N, D)`` whose batch shape broadcasts with
 ``B`` (``(N, D)``: one point set shared by every cage) and gives ``(*B', N, ...)`` with ``B'`` the

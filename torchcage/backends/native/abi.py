@@ -84,7 +84,8 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "B:i64 Pv:f64*[B,3,V] V:i64 tri:i32*[3,T] T:i64 edges:i32*[2,E] E:i64 eu:f64*[B,3,E] fe:i32*[3,T] "
         "nrm:f64*[B,T,3] two_area:f64*[B,T] ell:f64*[B,T,3] edir:f64*[B,T,3,3] eout:f64*[B,T,3,3] "
         "gbary:f64*[B,T,3,3] longest:f64*[B,T] far_nodes:f64*[B,T,Q,3] far_w:f64*[B,T,Q] far_bary:f64*[Q,3] Q:i64 "
-        "far_c:f64 X:f64*[B,n,3] n:i64 tol:f64*[B] nthreads:i32 PHI:f64*![B,n,V] PSI:f64*![B,n,T]"
+        "far_c:f64 X:f64*[B,n,3] n:i64 tol:f64*[B] nthreads:i32 PHI:f64*![B,n,V] PSI:f64*![B,n,T] "
+        "ONF:i32*!?[B,n] AL:f64*!?[B,n,3]"
     ),
     "tc_gc3d_vjp_batch": _parse(
         "B:i64 P:f64*[B,V,3] V:i64 tri:i32*[T,3] T:i64 nrm:f64*[B,T,3] edir:f64*[B,T,3,3] eout:f64*[B,T,3,3] "
@@ -105,11 +106,12 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "tol:f64*[B] n:i32 qtol:f64 gl:f64*[17,2,16] nthreads:i32 W:f64*![B,npts,V] on:u8*![B,npts]"
     ),
     "tc_qgc3d": _parse(
-        "P:f64*[V,3] V:i64 quads:i32*[Q,4] Q:i64 size:f64*[Q] pinv:f64*[Q,8,4] null:f64*[Q,8,4] origin:f64*[3] "
-        "pattern:i32*[Pn,3,2] Pn:i64 K:i32 X:f64*[n,3] n:i64 tol:f64 qtol:f64 gl:f64*[17,2,16] nthreads:i32 "
-        "PHI:f64*![n,V] PSIQ:f64*![n,4*Q] ONQ:i32*![n] UV:f64*![n,2] s_Pv:f64*[3,V] s_tri:i32*[3,2*Q] "
-        "s_edges:i32*[2,s_E] s_E:i64 s_eu:f64*[3,s_E] s_fe:i32*[3,2*Q] s_nrm:f64*[2*Q,3] s_two_area:f64*[2*Q] "
-        "s_ell:f64*[2*Q,3] s_edir:f64*[2*Q,3,3] s_eout:f64*[2*Q,3,3] s_gbary:f64*[2*Q,3,3]"
+        "B:i64 P:f64*[B,V,3] V:i64 quads:i32*[Q,4] Q:i64 size:f64*[B,Q] pinv:f64*[B,Q,8,4] null:f64*[B,Q,8,4] "
+        "origin:f64*[B,3] pattern:i32*[Pn,3,2] Pn:i64 K:i32 X:f64*[XB,n,3] XB:i64 n:i64 tol:f64*[B] qtol:f64 "
+        "gl:f64*[17,2,16] nthreads:i32 PHI:f64*![B,n,V] PSIQ:f64*![B,n,4*Q] ONQ:i32*![B,n] UV:f64*![B,n,2] "
+        "s_Pv:f64*[B,3,V] s_tri:i32*[3,2*Q] s_edges:i32*[2,s_E] s_E:i64 s_eu:f64*[B,3,s_E] s_fe:i32*[3,2*Q] "
+        "s_nrm:f64*[B,2*Q,3] s_two_area:f64*[B,2*Q] s_ell:f64*[B,2*Q,3] s_edir:f64*[B,2*Q,3,3] "
+        "s_eout:f64*[B,2*Q,3,3] s_gbary:f64*[B,2*Q,3,3]"
     ),
     "tc_mvcd3d": _parse(
         "B:i64 P:f64*[B,V,3] V:i64 tri:i32*[T,3] T:i64 fe:i32*[T,3] NE:i64 E:f64*[B,T,3,3] nrm:f64*[B,T,3] "

@@ -818,8 +818,8 @@ static void gc_block(const gc_tables *g, const unsigned char *thin, const double
 }
 
 /* The blocks of GL points of B cages with one topology: element b's tables gs[b] (prepared; thin:
- * its flags at thin + T b), points X + 3 n b, tolerance tol[b], rows PHI + V n b, PSI + T n b (ONF,
- * AL: B = 1 only). One parallel loop over every element's blocks; failed: every output NaN. */
+ * its flags at thin + T b), points X + 3 n b, tolerance tol[b], rows PHI + V n b, PSI + T n b (ONF
+ * + n b, AL + 3 n b). One parallel loop over every element's blocks; failed: every output NaN. */
 static void gc3d_run(long B, const gc_tables *gs, const unsigned char *thin, const double *X, long n, const double *tol,
                      int nthreads, int failed, double *PHI, double *PSI, int *ONF, double *AL) {
     const long V = gs[0].V, T = gs[0].T;
@@ -879,12 +879,14 @@ void tc_gc3d(const double *Pv, long V, const int *tri, long T, const int *edges,
 /* tc_gc3d for B cages with one topology (tri, edges, fe shared): each per-cage table has a leading
  * batch axis (Pv (B, 3, V), eu (B, 3, E), nrm (B, T, 3) ..., far_nodes (B, T, Q, 3), far_w (B, T, Q);
  * far_bary is shared), X (B, n, 3), tol (B,), outputs PHI (B, n, V), PSI (B, n, T) (closed cages:
- * the jump is added here). Element by element the numbers of tc_gc3d. */
+ * the jump is added here; with ONF (B, n) and AL (B, n, 3) given, the faces are part of larger cages,
+ * as in tc_gc3d). Element by element the numbers of tc_gc3d. */
 void tc_gc3d_batch(long B, const double *Pv, long V, const int *tri, long T, const int *edges, long E,
                    const double *eu, const int *fe, const double *nrm, const double *two_area, const double *ell,
                    const double *edir, const double *eout, const double *gbary, const double *longest,
                    const double *far_nodes, const double *far_w, const double *far_bary, long Q, double far_c,
-                   const double *X, long n, const double *tol, int nthreads, double *PHI, double *PSI) {
+                   const double *X, long n, const double *tol, int nthreads, double *PHI, double *PSI, int *ONF,
+                   double *AL) {
     gc_tables *gs = (gc_tables *)calloc((size_t)(B > 0 ? B : 1), sizeof(gc_tables));
     unsigned char *thin = (unsigned char *)calloc((size_t)(B * T > 0 ? B * T : 1), 1);
     if (gs == NULL || thin == NULL) { /* every output NaN (the glue raises) */
@@ -902,7 +904,7 @@ void tc_gc3d_batch(long B, const double *Pv, long V, const int *tri, long T, con
         gs[b] = g;
         failed = !gc_prepare_thin(&gs[b], thin + T * b);
     }
-    if (B > 0) gc3d_run(B, gs, thin, X, n, tol, nthreads, failed, PHI, PSI, NULL, NULL);
+    if (B > 0) gc3d_run(B, gs, thin, X, n, tol, nthreads, failed, PHI, PSI, ONF, AL);
     for (long b = 0; b < B; ++b) tc_gc_free(&gs[b]);
     free(gs);
     free(thin);

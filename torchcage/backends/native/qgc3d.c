@@ -439,13 +439,12 @@ static void pair_one(const qgc_ctx *C, long q, const quad_const *qc, const doubl
  * quad a point lies on (or -1) and UV (n, 2) its projection there. s_*: the Green-kernel tables
  * (as tc_gc3d's arguments) of the quads' split triangles, 2q: (q0 q1 q2) and 2q + 1: (q0 q2 q3).
  */
-void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *size, const double *pinv,
-              const double *null, const double *origin, const int *pattern, long Pn, int K, const double *X, long n,
-              double tol, double qtol, const double *gl, int nthreads, double *PHI, double *PSIQ, int *ONQ, double *UV,
-              const double *s_Pv, const int *s_tri, const int *s_edges, long s_E, const double *s_eu, const int *s_fe,
-              const double *s_nrm,
-              const double *s_two_area, const double *s_ell, const double *s_edir, const double *s_eout,
-              const double *s_gbary) {
+static int qgc3d_one(const double *P, long V, const int *quads, long Q, const double *size, const double *pinv,
+                     const double *null, const double *origin, const int *pattern, long Pn, int K, const double *X,
+                     long n, double tol, double qtol, const double *gl, int nthreads, double *PHI, double *PSIQ,
+                     int *ONQ, double *UV, const double *s_Pv, const int *s_tri, const int *s_edges, long s_E,
+                     const double *s_eu, const int *s_fe, const double *s_nrm, const double *s_two_area,
+                     const double *s_ell, const double *s_edir, const double *s_eout, const double *s_gbary) {
     const int G = 2 * K + 1;
     (void)size; /* (in the ABI; the per-quad table holds what the pairs need) */
     /* The split triangles (q0 q1 q2), (q0 q2 q3) of every quad (2q, 2q + 1), as a set for the
@@ -464,11 +463,10 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
     int *seen = (int *)malloc(sizeof(int) * 25 * (size_t)G * G); /* (node, offset to the other node) */
     double *UA = (double *)malloc(sizeof(double) * (7 * (size_t)Pn + 4 * (size_t)G * G));
     double *ga = (double *)malloc(sizeof(double) * 2 * (size_t)G);
-    if (!prepared || !node || !EJ || !seen || !UA || !ga) { /* the glue's sign of a failed allocation (MemoryError) */
-        for (long k = 0; k < n * V; ++k) PHI[k] = NAN;
+    if (!prepared || !node || !EJ || !seen || !UA || !ga) { /* (the caller fills PHI with NaN) */
         free(node), free(EJ), free(seen), free(UA), free(ga);
         tc_gc_free(&sg);
-        return;
+        return 1;
     }
     double *UB = UA + Pn, *VA = UB + Pn, *VB = VA + Pn, *TS = VB + Pn, *GA = TS + 3 * Pn, *GB = GA + 2 * G * G;
     for (long i = 0; i < 25 * (long)G * G; ++i) seen[i] = -1;
@@ -623,11 +621,34 @@ void tc_qgc3d(const double *P, long V, const int *quads, long Q, const double *s
         free(buf);
         free(sbuf);
     }
-    if (failed)
-        for (long k = 0; k < n * V; ++k) PHI[k] = NAN;
     tc_gc_free(&sg);
     free(QC);
     free(node);
     free(EJ);
     free(UA);
+    return failed;
+}
+
+/* tc_qgc3d for B cages with one topology (quads, pattern, s_tri, s_edges, s_fe shared): each per-cage
+ * table has a leading batch axis (P (B, V, 3), size (B, Q), pinv and null (B, Q, 8, 4), origin (B, 3),
+ * tol (B,), s_Pv (B, 3, V), s_eu (B, 3, s_E), s_nrm (B, 2Q, 3) ...), points X (XB, n, 3) with XB = 1
+ * (shared by every cage) or B (the glue checks), outputs PHI (B, n, V), PSIQ (B, n, 4Q), ONQ (B, n),
+ * UV (B, n, 2). The cages one after the other, each parallel over its points; element by element the
+ * numbers of one cage. A failed allocation: every PHI NaN (the glue raises MemoryError). */
+void tc_qgc3d(long B, const double *P, long V, const int *quads, long Q, const double *size, const double *pinv,
+              const double *null, const double *origin, const int *pattern, long Pn, int K, const double *X, long XB,
+              long n, const double *tol, double qtol, const double *gl, int nthreads, double *PHI, double *PSIQ,
+              int *ONQ, double *UV, const double *s_Pv, const int *s_tri, const int *s_edges, long s_E,
+              const double *s_eu, const int *s_fe, const double *s_nrm, const double *s_two_area, const double *s_ell,
+              const double *s_edir, const double *s_eout, const double *s_gbary) {
+    const long T2 = 2 * Q;
+    int failed = 0;
+    for (long b = 0; b < B && !failed; ++b)
+        failed = qgc3d_one(P + b * V * 3, V, quads, Q, size + b * Q, pinv + b * Q * 32, null + b * Q * 32, origin + 3 * b,
+                           pattern, Pn, K, X + (XB > 1 ? b : 0) * n * 3, n, tol[b], qtol, gl, nthreads,
+                           PHI + b * n * V, PSIQ + b * n * 4 * Q, ONQ + b * n, UV + b * n * 2, s_Pv + b * 3 * V, s_tri,
+                           s_edges, s_E, s_eu + b * 3 * s_E, s_fe, s_nrm + b * T2 * 3, s_two_area + b * T2,
+                           s_ell + b * T2 * 3, s_edir + b * T2 * 9, s_eout + b * T2 * 9, s_gbary + b * T2 * 9);
+    if (failed) /* the glue's sign of a failed allocation (it raises MemoryError) */
+        for (long k = 0; k < B * n * V; ++k) PHI[k] = NAN;
 }

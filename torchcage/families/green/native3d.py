@@ -13,7 +13,14 @@ from torchcage.backends import native as _native
 from torchcage.families.green.far_triangle import FAR_RATIO, far_nodes
 from torchcage.families.green.kernel3d import TriangleGreenData, triangle_green_geometry
 
-__all__ = ["batch_chunk", "batch_tables", "native_chunk", "native_subset_tables", "native_tables"]
+__all__ = [
+    "batch_chunk",
+    "batch_subset_tables",
+    "batch_tables",
+    "native_chunk",
+    "native_subset_tables",
+    "native_tables",
+]
 
 
 def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, object]:
@@ -120,11 +127,57 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
     }
 
 
+def batch_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """:func:`native_subset_tables` for a batch of cages with one topology (``tc_gc3d_batch``'s
+    arguments, without the far-field rule): ``vertices`` ``(B, V, 3)`` float64, triangles ``tri``
+    ``(T, 3)`` that need not close a cage, ``tol`` ``(B,)``. Element by element the same tables."""
+    edges, face_edge, _ = unique_face_edges(tri)
+    p = vertices[:, tri]  # (B, T, 3, 3)
+    normal, two_area, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
+    edges = edges.T  # (2, E)
+    direction = vertices[:, edges[1]] - vertices[:, edges[0]]  # (B, E, 3)
+    B, T = vertices.shape[0], tri.shape[0]
+    return {
+        "B": B,
+        "Pv": vertices.transpose(1, 2).contiguous(),
+        "V": vertices.shape[1],
+        "tri": tri.T.to(torch.int32).contiguous(),
+        "T": T,
+        "edges": edges.to(torch.int32).contiguous(),
+        "E": edges.shape[1],
+        "eu": (direction / direction.norm(dim=-1, keepdim=True)).transpose(1, 2).contiguous(),
+        "fe": face_edge.T.to(torch.int32).contiguous(),
+        "nrm": normal.contiguous(),
+        "two_area": two_area.contiguous(),
+        "ell": (grad_bary.norm(dim=-1) * two_area[..., None]).contiguous(),
+        "edir": edge_dir.contiguous(),
+        "eout": edge_out.contiguous(),
+        "gbary": grad_bary.contiguous(),
+        "longest": two_area.contiguous(),  # (no far-field rule: Q = 0, as native_tables without one)
+        "far_nodes": vertices.new_zeros(B, T, 0, 3),
+        "far_w": vertices.new_zeros(B, T, 0),
+        "far_bary": vertices.new_zeros(0, 3),
+        "Q": 0,
+        "far_c": FAR_RATIO,
+        "tol": tol.to(torch.float64).contiguous(),
+    }
+
+
 def batch_chunk(
-    x: torch.Tensor, tables: dict[str, object], lib: ctypes.CDLL, phi: torch.Tensor, psi: torch.Tensor
+    x: torch.Tensor,
+    tables: dict[str, object],
+    lib: ctypes.CDLL,
+    phi: torch.Tensor,
+    psi: torch.Tensor,
+    on_face: torch.Tensor | None = None,
+    alpha: torch.Tensor | None = None,
 ) -> None:
     """The native kernel on a chunk of every cage's points: ``x`` ``(B, n, 3)`` float64 into ``phi``
-    ``(B, n, V)`` and ``psi`` ``(B, n, T)`` (contiguous float64 CPU tensors, written in place)."""
-    _native.call(lib, "tc_gc3d_batch", **tables, X=x.contiguous(), n=x.shape[1], PHI=phi, PSI=psi)
+    ``(B, n, V)`` and ``psi`` ``(B, n, T)`` (contiguous float64 CPU tensors, written in place). With
+    ``on_face`` ``(B, n)`` int32 and ``alpha`` ``(B, n, 3)`` given, the triangles are part of larger
+    cages, as in :func:`native_chunk`."""
+    _native.call(
+        lib, "tc_gc3d_batch", **tables, X=x.contiguous(), n=x.shape[1], PHI=phi, PSI=psi, ONF=on_face, AL=alpha
+    )
     mb = 8 * 8 * (5 * phi.shape[-1] + 4 * psi.shape[-1]) / 2**20
     _native.check_workspace(phi, "Green", f"about {mb:.0f} MB per thread")

@@ -8,17 +8,27 @@ from collections.abc import Callable
 import torch
 
 from torchcage._core.alloc import cat_output
-from torchcage._core.batch import over_cage_batch
-from torchcage._core.common import ON_CAGE_TOLERANCE, VERTEX_SNAP, as_inputs, chunks, snap_to_vertices, unit_sum
+from torchcage._core.batch import check_finite_batch, native_batch_inputs, over_cage_batch
+from torchcage._core.common import (
+    ON_CAGE_TOLERANCE,
+    VERTEX_SNAP,
+    as_inputs,
+    chunks,
+    on_cage_tolerances,
+    records_graph,
+    result_dtype,
+    snap_to_vertices,
+    snap_to_vertices_batch,
+    unit_sum,
+)
 from torchcage._core.compiled import CompiledOp, through_op
-from torchcage.backends import Op, select
+from torchcage.backends import Op, check, select
 from torchcage.cage import Cage
 from torchcage.errors import warn_outside
 from torchcage.families.green.kernel3d import triangle_green_geometry, triangle_integrals
-from torchcage.families.green.native3d import native_subset_tables
 from torchcage.families.quad_green.kernel import QuadGreenData, qgc3d_chunk, quad_green_data
-from torchcage.families.quad_green.native import native_quad_part, native_quad_tables, native_tri_part
-from torchcage.families.quad_mean_value.api import check_tol, prepare_quad_call
+from torchcage.families.quad_green.native import native_coordinates
+from torchcage.families.quad_mean_value.api import check_grid, check_quads, check_tol, prepare_quad_call
 
 __all__ = ["quad_green_coordinates"]
 
@@ -112,6 +122,64 @@ def _chunk(x: torch.Tensor, tri_part, quad_part, V: int) -> tuple[torch.Tensor, 
     return phi, torch.cat(psis, dim=1)
 
 
+def _native_batch(
+    points: torch.Tensor,
+    cage: Cage,
+    n: int,
+    chunk_size: int | None,
+    dtype: torch.dtype | None,
+    progress: bool | Callable[[int, int], None],
+    backend: str,
+    allow_invalid: bool,
+    tol: float | None,
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Quad Green coordinates ``(phi (*B', N, V), psi (*B', N, T + 4Q))`` of a batch of cages with
+    one topology by the native kernels: one call of each per chunk of points for every cage, the
+    cages' tables built by one set of tensor operations; element by element the numbers of the
+    single-cage call (the same tolerances, centring, vertex snap, kernels and unit sum). ``None``
+    where it does not serve (another backend or device, a compute dtype other than float64, an
+    autograd graph or a ``torch.func`` transform, no native build): the caller then loops.
+
+    Raises:
+        ValueError: a wrong ``n``, ``tol`` or ``backend``.
+        CageError: invalid quads (unless ``allow_invalid``).
+        PointsError: points that do not broadcast with the cages, NaN or inf, naming the element.
+    """
+    check_grid(n)
+    quad_tol = check_tol(tol)
+    check(QGC, backend)
+    inputs = None if records_graph(points, cage.vertices) else native_batch_inputs(points, cage, backend, quads=True)
+    if inputs is None:
+        return None
+    pts, verts, batch = inputs
+    compute, out_dtype = result_dtype(pts, cage, dtype)
+    if compute != torch.float64:
+        return None
+    lib = select(QGC, backend, pts.new_empty((0, 3), dtype=compute), graph=False).lib
+    if lib is None:
+        return None
+    check_quads(cage, allow_invalid, "quad Green coordinates")
+    check_finite_batch(pts, batch)
+    # as the single-cage call, element by element: the on-cage tolerance of the uncentred cage, at
+    # least the rounding of the points' dtype (INPUT_ROUNDING); the box's middle as the centre
+    scales = cage._scales().reshape(-1)  # (B,)
+    eps = torch.finfo(pts.dtype).eps
+    coarse = eps > torch.finfo(torch.float64).eps
+    v0 = verts.to(compute)
+    rounding = INPUT_ROUNDING * eps * (scales + v0.abs().amax(dim=(-2, -1))) if coarse else torch.zeros_like(scales)
+    tols = torch.maximum(on_cage_tolerances(verts), rounding)
+    x0 = pts.to(compute)
+    centre = (v0.amax(dim=-2) + v0.amin(dim=-2)) / 2  # (B, 3)
+    v = v0 - centre[:, None]
+    x = snap_to_vertices_batch(
+        x0 - centre[:, None], v, torch.maximum(VERTEX_SNAP * ON_CAGE_TOLERANCE * scales, rounding)
+    )
+    phi, psi = native_coordinates(lib, x, v, cage.triangles, cage.quads, tols, n, quad_tol, chunk_size, progress)
+    phi = unit_sum(phi, x0, v0)
+    N, K = x.shape[1], psi.shape[-1]
+    return phi.to(out_dtype).reshape(*batch, N, v.shape[1]), psi.to(out_dtype).reshape(*batch, N, K)
+
+
 #: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
 COMPILED = CompiledOp(
     "qgc",
@@ -196,6 +264,12 @@ def quad_green_coordinates(
         return phi, psi
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
+        out = _native_batch(points, cage, n, chunk_size, dtype, progress, backend, allow_invalid, tol)
+        if out is not None:
+            phi, psi = out
+            warn_outside(phi.detach().sum(dim=-1).reshape(-1), "quad Green coordinates")
+            return phi, psi
+        # (the torch kernel, graphs, torch.func transforms: one call per element)
         return over_cage_batch(
             quad_green_coordinates,
             points,
@@ -221,28 +295,31 @@ def quad_green_coordinates(
     x, verts = x - centre, verts - centre
     x = snap_to_vertices(x, verts, max(VERTEX_SNAP * ON_CAGE_TOLERANCE * cage.scale, rounding))  # (the limit there)
     T, Q, V = cage.triangles.shape[0], cage.quads.shape[0], cage.num_vertices
-    tri_p = verts[cage.triangles]
-    tri_geometry = triangle_green_geometry(tri_p)
-    qdata = quad_green_data(verts, cage.quads, tol, n) if Q else None
     lib = select(QGC, backend, x, cage.vertices).lib
-    tri_part = quad_part = None
-    if T and lib is not None:
-        tables = native_subset_tables(verts, cage.triangles, tol)
-        tri_part = functools.partial(native_tri_part, tables=tables, triangles=cage.triangles, lib=lib)
-    elif T:
-        tri_part = functools.partial(
-            _tri_part_torch, tri_p=tri_p, tri_geometry=tri_geometry, triangles=cage.triangles, V=V, tol=tol
+    lead = points.shape[:-1]
+    if lib is not None:  # (a batch of one)
+        tols = torch.tensor([tol], dtype=torch.float64)
+        phi, psi = native_coordinates(
+            lib, x[None], verts[None], cage.triangles, cage.quads, tols, n, quad_tol, chunk_size, progress
         )
-    if qdata is not None:
-        if lib is not None:
-            tables_q = native_quad_tables(verts, qdata, quad_tol)
-            quad_part = functools.partial(native_quad_part, qdata=qdata, tables=tables_q, lib=lib)
-        else:
-            quad_part = functools.partial(_quad_part_torch, qdata=qdata, V=V, quad_tol=quad_tol)
-    if lib is not None:
-        size = chunk_size or 1 << 14
-    else:
-        size = chunk_size or max(8, (1 << 17) // (max(Q, 1) * 4 * (n + 1) ** 2 + T))
+        phi = unit_sum(phi[0], x0, verts0)
+        warn_outside(phi.sum(dim=-1), "quad Green coordinates")  # (as QuadGreenCoordinates and deform)
+        return phi.to(out_dtype).reshape(*lead, V), psi[0].to(out_dtype).reshape(*lead, T + 4 * Q)
+    tri_part = quad_part = None
+    if T:
+        tri_p = verts[cage.triangles]
+        tri_part = functools.partial(
+            _tri_part_torch,
+            tri_p=tri_p,
+            tri_geometry=triangle_green_geometry(tri_p),
+            triangles=cage.triangles,
+            V=V,
+            tol=tol,
+        )
+    if Q:
+        qdata = quad_green_data(verts, cage.quads, tol, n)
+        quad_part = functools.partial(_quad_part_torch, qdata=qdata, V=V, quad_tol=quad_tol)
+    size = chunk_size or max(8, (1 << 17) // (max(Q, 1) * 4 * (n + 1) ** 2 + T))
     phis, psis = [], []
     for sl in chunks(x.shape[0], size, progress, desc="quad Green coordinates"):
         ph, ps = _chunk(x[sl], tri_part, quad_part, V)
@@ -252,5 +329,4 @@ def quad_green_coordinates(
     if phis:  # (as QuadGreenCoordinates and deform: quad Green coordinates are defined inside the cage)
         warn_outside(phi.detach().sum(dim=-1), "quad Green coordinates")
     psi = cat_output(psis) if psis else x.new_zeros((0, T + 4 * Q))
-    lead = points.shape[:-1]
     return phi.to(out_dtype).reshape(*lead, V), psi.to(out_dtype).reshape(*lead, T + 4 * Q)

@@ -93,17 +93,31 @@ def grid_nodes(t: torch.Tensor, K: int, m: int = 3) -> torch.Tensor:
     return torch.where(i < K, below, torch.where(i > K, above, t_))
 
 
+def quad_systems(vertices: torch.Tensor, quads: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Each quad's linear system ``A_q`` ``(*B, Q, 4, 8)`` (its corners relative to ``origin``, the
+    middle of the cage's bounding box, then its corner normals, over a row of ones), the least-norm
+    solution's pseudo-inverse ``(*B, Q, 8, 4)`` and a null-space basis ``(*B, Q, 8, 4)`` (columns),
+    from the SVD of ``A_q`` (no graph); for vertices ``(*B, V, 3)`` (one cage, or a batch with one
+    topology: element by element the same numbers).
+
+    Returns:
+        ``(origin (*B, 3), A, pinv, null)``.
+    """
+    origin = (vertices.amax(dim=-2) + vertices.amin(dim=-2)) / 2
+    p = vertices[..., quads, :] - origin[..., None, None, :]  # (*B, Q, 4, 3)
+    A = torch.zeros(*p.shape[:-2], 4, 8, dtype=vertices.dtype, device=vertices.device)
+    A[..., :3, :4] = p.transpose(-1, -2)
+    A[..., :3, 4:] = corner_normals(p).transpose(-1, -2)
+    A[..., 3, :4] = 1.0
+    U, S, Vh = torch.linalg.svd(A.detach(), full_matrices=True)
+    pinv = Vh[..., :4, :].transpose(-1, -2) @ (U.transpose(-1, -2) / S[..., None])
+    null = Vh[..., 4:, :].transpose(-1, -2)
+    return origin, A, pinv, null
+
+
 def quad_green_data(vertices: torch.Tensor, quads: torch.Tensor, tol: float, n: int) -> QuadGreenData:
     """Constants of the quads ``(Q, 4)`` of a cage with vertices ``(V, 3)``."""
-    origin = (vertices.max(dim=0).values + vertices.min(dim=0).values) / 2
-    p = vertices[quads] - origin  # (Q, 4, 3)
-    A = torch.zeros(quads.shape[0], 4, 8, dtype=vertices.dtype, device=vertices.device)
-    A[:, :3, :4] = p.transpose(1, 2)
-    A[:, :3, 4:] = corner_normals(p).transpose(1, 2)
-    A[:, 3, :4] = 1.0
-    U, S, Vh = torch.linalg.svd(A.detach(), full_matrices=True)
-    pinv = Vh[:, :4].transpose(1, 2) @ (U.transpose(1, 2) / S[:, :, None])
-    null = Vh[:, 4:].transpose(1, 2)
+    origin, A, pinv, null = quad_systems(vertices, quads)
     null_proj = None
     if records_graph(A):
         # The null-space basis is not unique (the SVD's backward is NaN there): differentiate the
