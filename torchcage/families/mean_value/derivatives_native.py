@@ -10,9 +10,10 @@ import functools
 import numpy as np
 import torch
 
-from torchcage._core.common import collapsed_gauss, on_cage_tolerance, triangle_geometry, unique_face_edges
+from torchcage._core.common import collapsed_gauss, on_cage_tolerance, unique_face_edges
 from torchcage.backends import native as _native
 from torchcage.cage import Cage
+from torchcage.errors import CageError
 
 __all__ = ["DERIVATIVE_FAR_FIELD_ORDER", "DERIVATIVE_FAR_FIELD_RATIO", "DERIVATIVE_SPLIT_FORM_RATIO", "G_ORDER",
            "batch_tables", "native_chunk", "native_tables", "one_cage"]  # fmt: skip
@@ -53,9 +54,11 @@ def native_tables(cage: Cage) -> dict[str, object]:
     if cage.dim == 2:
         edges = cage.edges.cpu().to(torch.int32).contiguous()
         return {"P": P, "V": P.shape[0], "edges": edges, "NE": edges.shape[0], "tol": tol}
-    triangle_geometry(
-        cage, torch.float64, "use quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated()"
-    )
+    if cage.has_quads:  # (as triangle_geometry refuses them)
+        raise CageError(
+            f"this needs a triangle cage, but the cage has {cage.quads.shape[0]} quads; use "
+            "quad_mean_value_coordinates for quad/triquad cages, or cage.triangulated()"
+        )
     return batch_tables(P[None], cage.triangles.cpu(), torch.tensor([tol], dtype=torch.float64))
 
 
