@@ -239,3 +239,23 @@ def test_batched_qgc_edge_cases():
     far = torch.full((2, 3, 3), 50.0, dtype=D64)
     with pytest.warns(torchcage.errors.OutsideCageWarning, match="6 of 6 points"):
         F.quad_green_coordinates(far, cage)
+
+
+@pytest.mark.native
+@pytest.mark.filterwarnings("ignore::torchcage.errors.OutsideCageWarning")
+@pytest.mark.parametrize("dtype", [torch.float32, D64])
+def test_batched_quad_families_broadcast_the_points_batch(dtype):
+    """Points whose batch shape adds to the cages' (cages ``(2, 1)``, points ``(3, N, 3)``: the
+    broadcast batch ``(2, 3)``) equal the calls on each pair."""
+    cage = _batch(triquad(), 2, seed=7)
+    cage = cage._like(cage.vertices[:, None].to(dtype))
+    pts = torch.stack([box_points(cage[0, 0], 25, spread=0.9, seed=s) for s in range(3)]).to(dtype)
+    for f in (F.quad_green_coordinates, F.quad_mean_value_coordinates):
+        out = f(pts, cage, n=1)
+        out = out if isinstance(out, tuple) else (out,)
+        for i in range(2):
+            for j in range(3):
+                ref = f(pts[j], cage[i, 0], n=1)
+                ref = ref if isinstance(ref, tuple) else (ref,)
+                for o, r in zip(out, ref, strict=True):
+                    assert_same_to_rounding(o[i, j], r)

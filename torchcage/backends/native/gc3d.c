@@ -842,7 +842,7 @@ static void gc3d_run(long B, const gc_tables *gs, const unsigned char *thin, con
             const long row = n * b + p;
             if (buf == NULL) continue;
             gc_block(&gs[b], thin + T * b, X + 3 * row, cnt, tol[b], buf, stream, PHI + row * V, PSI + row * T,
-                     ONF ? ONF + row : NULL, ONF ? AL + 3 * row : NULL);
+                     ONF && AL ? ONF + row : NULL, ONF && AL ? AL + 3 * row : NULL);
         }
 #ifdef GC_STREAM
         _mm_sfence(); /* the streamed stores before this thread's part is read */

@@ -656,6 +656,10 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
             failed = 1;
         }
 #pragma omp barrier
+        if (failed) { /* (every thread: none enters the worksharing loop) */
+            free(buf);
+            goto done;
+        }
         mvc3d_scratch sc;
         sc.Ax = buf, sc.Ay = sc.Ax + V, sc.Az = sc.Ay + V, sc.RA = sc.Az + V;
         sc.Nx = sc.RA + V, sc.Ny = sc.Nx + E, sc.Nz = sc.Ny + E, sc.Nn = sc.Nz + E, sc.D = sc.Nn + E;
@@ -667,7 +671,6 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
         if (nb > 0) bbuf = malloc(sizeof(double) * mvc3d_block_doubles(V, E, T) + 64);
         if (bbuf != NULL) mvc3d_block_carve((double *)(((size_t)bbuf + 63) & ~(size_t)63), V, E, T, &bs);
         bs.near = near;
-        if (failed) goto done; /* (every thread: none enters the worksharing loop) */
 #pragma omp for schedule(dynamic, 8)
         for (long i = 0; i < B * per; ++i) {
             const long b = i / per, k = i - b * per;
@@ -691,10 +694,10 @@ void tc_mvc3d(long B, const double *P, long V, const int *tri, long T, const int
                                                        far_c, cancel_c, near_c, x[3 * r], x[3 * r + 1], x[3 * r + 2],
                                                        normalize, &sc, W + (o + r) * V);
         }
-    done:
         free(near);
         free(bbuf);
         free(buf);
+    done:;
     }
     free(thin);
     free(cages);

@@ -185,14 +185,26 @@ static void dual_split_face(const double *a_in, dual9 *r, dual9 *c, dual9 *hout)
     *hout = h;
 }
 
+/* A workspace not allocated: no point taken (status 0) and no pair left (PAIR 0), every output
+ * zero: the caller computes every point by its fallback. */
+static void vjp_near_failed(long V, long T, long n, double *GX, double *GP, unsigned char *status, unsigned char *PAIR,
+                            double *WB, double *SN, double *HS) {
+    memset(GX, 0, sizeof(double) * 3 * (size_t)n);
+    memset(GP, 0, sizeof(double) * 3 * (size_t)V);
+    memset(status, 0, (size_t)n);
+    memset(PAIR, 0, (size_t)n * (size_t)T);
+    memset(WB, 0, sizeof(double) * (size_t)n * (size_t)V);
+    memset(SN, 0, sizeof(double) * (size_t)n);
+    memset(HS, 0, sizeof(double) * (size_t)n);
+}
+
 void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const double *X, long n, const double *G,
                        double tol, double near_c, double cancel_c, double far_always, double band, double near_d,
                        double far_d, int split_pairs, int nthreads, double *GX, double *GP,
                        unsigned char *status, unsigned char *PAIR, double *WB, double *SN, double *HS) {
     double *fc = (double *)malloc(sizeof(double) * F_SIZE * (size_t)(T > 0 ? T : 1));
-    if (fc == NULL) { /* no point taken (status 0): the caller computes them all */
-        memset(GP, 0, sizeof(double) * 3 * (size_t)V);
-        memset(status, 0, (size_t)n);
+    if (fc == NULL) {
+        vjp_near_failed(V, T, n, GX, GP, status, PAIR, WB, SN, HS);
         return;
     }
     int any_thin = 0;
@@ -450,8 +462,5 @@ void tc_mvc3d_vjp_near(const double *P, long V, const int *tri, long T, const do
         free(S);
     }
     free(fc);
-    if (failed) { /* no point taken (status 0): the caller computes them all */
-        memset(GP, 0, sizeof(double) * 3 * (size_t)V);
-        memset(status, 0, (size_t)n);
-    }
+    if (failed) vjp_near_failed(V, T, n, GX, GP, status, PAIR, WB, SN, HS);
 }

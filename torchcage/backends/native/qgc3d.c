@@ -632,7 +632,7 @@ static int qgc3d_one(const double *P, long V, const int *quads, long Q, const do
 /* tc_qgc3d for B cages with one topology (quads, pattern, s_tri, s_edges, s_fe shared): each per-cage
  * table has a leading batch axis (P (B, V, 3), size (B, Q), pinv and null (B, Q, 8, 4), origin (B, 3),
  * tol (B,), s_Pv (B, 3, V), s_eu (B, 3, s_E), s_nrm (B, 2Q, 3) ...), points X (XB, n, 3) with XB = 1
- * (shared by every cage) or B (the glue checks), outputs PHI (B, n, V), PSIQ (B, n, 4Q), ONQ (B, n),
+ * (shared by every cage) or B, outputs PHI (B, n, V), PSIQ (B, n, 4Q), ONQ (B, n),
  * UV (B, n, 2). The cages one after the other, each parallel over its points; element by element the
  * numbers of one cage. A failed allocation: every PHI NaN (the glue raises MemoryError). */
 void tc_qgc3d(long B, const double *P, long V, const int *quads, long Q, const double *size, const double *pinv,
@@ -642,7 +642,7 @@ void tc_qgc3d(long B, const double *P, long V, const int *quads, long Q, const d
               const double *s_eu, const int *s_fe, const double *s_nrm, const double *s_two_area, const double *s_ell,
               const double *s_edir, const double *s_eout, const double *s_gbary) {
     const long T2 = 2 * Q;
-    int failed = 0;
+    int failed = XB != 1 && XB != B; /* (the glue never passes this; never read past X: NaN, MemoryError) */
     for (long b = 0; b < B && !failed; ++b)
         failed = qgc3d_one(P + b * V * 3, V, quads, Q, size + b * Q, pinv + b * Q * 32, null + b * Q * 32, origin + 3 * b,
                            pattern, Pn, K, X + (XB > 1 ? b : 0) * n * 3, n, tol[b], qtol, gl, nthreads,

@@ -18,7 +18,6 @@ __all__ = [
     "batch_subset_tables",
     "batch_tables",
     "native_chunk",
-    "native_subset_tables",
     "native_tables",
 ]
 
@@ -58,13 +57,6 @@ def native_tables(data: TriangleGreenData, vertices: torch.Tensor) -> dict[str, 
         "far_c": FAR_RATIO,
         "tol": data.tol,
     }
-
-
-def native_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: float) -> dict[str, object]:
-    """:func:`native_tables` of triangles ``tri`` ``(T, 3)`` over ``vertices`` ``(V, 3)`` float64
-    that need not close a cage (a triquad cage's triangles, the split triangles of its quads)."""
-    p = vertices[tri]
-    return native_tables(TriangleGreenData(p, *triangle_green_geometry(p), tri, tol), vertices)
 
 
 def native_chunk(
@@ -128,9 +120,11 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
 
 
 def batch_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
-    """:func:`native_subset_tables` for a batch of cages with one topology (``tc_gc3d_batch``'s
-    arguments, without the far-field rule): ``vertices`` ``(B, V, 3)`` float64, triangles ``tri``
-    ``(T, 3)`` that need not close a cage, ``tol`` ``(B,)``. Element by element the same tables."""
+    """``tc_gc3d_batch``'s arguments, without the far-field rule (``Q = 0``), for triangles ``tri``
+    ``(T, 3)`` that need not close a cage (a triquad cage's triangles, the split triangles of its
+    quads) over a batch of cages ``vertices`` ``(B, V, 3)`` float64 with tolerances ``tol`` ``(B,)``:
+    :func:`native_tables` of each element's ``TriangleGreenData`` without a far-field rule, by one
+    set of tensor operations."""
     edges, face_edge, _ = unique_face_edges(tri)
     p = vertices[:, tri]  # (B, T, 3, 3)
     normal, two_area, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)

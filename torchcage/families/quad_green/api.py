@@ -162,10 +162,10 @@ def _native_batch(
     check_finite_batch(pts, batch)
     # as the single-cage call, element by element: the on-cage tolerance of the uncentred cage, at
     # least the rounding of the points' dtype (INPUT_ROUNDING); the box's middle as the centre
-    scales = cage._scales().reshape(-1)  # (B,)
     eps = torch.finfo(pts.dtype).eps
     coarse = eps > torch.finfo(torch.float64).eps
-    v0 = verts.to(compute)
+    v0 = verts.to(compute)  # (B', V, 3): the broadcast batch's cages
+    scales = (v0.amax(dim=-2) - v0.amin(dim=-2)).norm(dim=-1)  # (B',), as Cage.scale of each
     rounding = INPUT_ROUNDING * eps * (scales + v0.abs().amax(dim=(-2, -1))) if coarse else torch.zeros_like(scales)
     tols = torch.maximum(on_cage_tolerances(verts), rounding)
     x0 = pts.to(compute)

@@ -20,7 +20,7 @@ from torchcage.families.quad_mean_value.kernel import quad_sizes
 
 __all__ = ["native_coordinates", "native_quad_tables"]
 
-#: Points per chunk (over the cages of a batch) when a progress bar asks for chunks.
+#: Points per chunk, over the cages of a batch.
 NATIVE_CHUNK = 1 << 14
 
 _SPLIT_KEYS = ("Pv", "tri", "edges", "eu", "fe", "nrm", "two_area", "ell", "edir", "eout", "gbary")
@@ -92,8 +92,8 @@ def native_coordinates(
         triangles: ``(T, 3)`` and ``quads``: ``(Q, 4)`` the shared faces.
         tol: ``(B,)`` float64 absolute on-cage tolerances.
         n: the Riemann sum's tessellation parameter; ``qtol``: the quadrature's tolerance or ``None``.
-        chunk_size: points per chunk. By default one call for every point, or with a progress bar
-            chunks of ``16,384 / B`` points.
+        chunk_size: points per chunk (default ``16,384 / B``: the chunk's temporaries, several of
+            ``(B, chunk, V)``, stay those of 16,384 points of one cage).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
 
     Returns:
@@ -118,7 +118,7 @@ def native_coordinates(
     x = x.expand(B, N, 3)
     tri_tables = batch_subset_tables(vertices, triangles, tol) if T else None
     quad_tables = native_quad_tables(vertices, quads, tol, n, qtol) if Q else None
-    size = chunk_size or (max(64, NATIVE_CHUNK // B) if progress else max(N, 1))
+    size = chunk_size or max(64, NATIVE_CHUNK // B)  # (bounds the chunk's temporaries, as for one cage)
     parts = [
         _chunk(lib, x[:, sl].contiguous(), V, triangles, quads, tri_tables, quad_tables)
         for sl in chunks(N, size, progress, desc="quad Green coordinates")
@@ -151,7 +151,6 @@ def _chunk(
         onf = torch.empty(B, m, dtype=torch.int32)
         alpha = torch.empty(B, m, 3, dtype=f64)
         batch_chunk(x, tri_tables, lib, phi, psi_t, onf, alpha)
-        _native.check_workspace(phi, "Green")
         onf = onf.long()
         hat = torch.zeros(B, m, V, dtype=f64).scatter_add(2, triangles[onf.clamp_min(0)], alpha)
         on = onf >= 0
