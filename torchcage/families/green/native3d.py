@@ -83,14 +83,43 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
     ``(B, V, 3)`` float64 (centred), ``tri`` ``(T, 3)``, ``tol`` ``(B,)`` the on-cage tolerances.
     Element by element the tables :func:`native_tables` builds for one cage (the same operations,
     over a leading batch axis)."""
-    edges, face_edge, _ = unique_face_edges(tri)
     p = vertices[:, tri]  # (B, T, 3, 3)
     cross = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
     two_area = cross.norm(dim=-1)  # (as triangle_geometry)
     normal = cross / two_area[..., None]
     _, _, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
     longest = (p.roll(-1, dims=-2) - p).norm(dim=-1).amax(dim=-1)  # (as triangle_green_data)
-    nodes, weights, bary = far_nodes(p, two_area)
+    far = far_nodes(p, two_area)
+    return _batch_arguments(vertices, tri, tol, (normal, two_area, edge_dir, edge_out, grad_bary), longest, far)
+
+
+def batch_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """``tc_gc3d_batch``'s arguments, without the far-field rule (``Q = 0``), for triangles ``tri``
+    ``(T, 3)`` that need not close a cage (a triquad cage's triangles, the split triangles of its
+    quads) over a batch of cages ``vertices`` ``(B, V, 3)`` float64 with tolerances ``tol`` ``(B,)``:
+    :func:`native_tables` of each element's ``TriangleGreenData`` without a far-field rule, by one
+    set of tensor operations."""
+    p = vertices[:, tri]  # (B, T, 3, 3)
+    geometry = triangle_green_geometry(p)
+    B, T, two_area = vertices.shape[0], tri.shape[0], geometry[1]
+    none = (vertices.new_zeros(B, T, 0, 3), vertices.new_zeros(B, T, 0), vertices.new_zeros(0, 3))
+    return _batch_arguments(vertices, tri, tol, geometry, two_area, none)  # (longest: unread without a rule)
+
+
+def _batch_arguments(
+    vertices: torch.Tensor,
+    tri: torch.Tensor,
+    tol: torch.Tensor,
+    geometry: tuple[torch.Tensor, ...],
+    longest: torch.Tensor,
+    far: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+) -> dict[str, object]:
+    """``tc_gc3d_batch``'s arguments from the faces' ``geometry`` ``(normal, two_area, edge_dir,
+    edge_out, grad_bary)`` (each ``(B, T, ...)``), ``longest`` ``(B, T)`` and the far-field rule
+    ``far`` ``(nodes (B, T, Q, 3), weights (B, T, Q), bary (Q, 3))``."""
+    normal, two_area, edge_dir, edge_out, grad_bary = geometry
+    nodes, weights, bary = far
+    edges, face_edge, _ = unique_face_edges(tri)
     edges = edges.T  # (2, E)
     direction = vertices[:, edges[1]] - vertices[:, edges[0]]  # (B, E, 3)
     return {
@@ -114,44 +143,6 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
         "far_w": weights.contiguous(),
         "far_bary": bary.contiguous(),
         "Q": bary.shape[0],
-        "far_c": FAR_RATIO,
-        "tol": tol.to(torch.float64).contiguous(),
-    }
-
-
-def batch_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
-    """``tc_gc3d_batch``'s arguments, without the far-field rule (``Q = 0``), for triangles ``tri``
-    ``(T, 3)`` that need not close a cage (a triquad cage's triangles, the split triangles of its
-    quads) over a batch of cages ``vertices`` ``(B, V, 3)`` float64 with tolerances ``tol`` ``(B,)``:
-    :func:`native_tables` of each element's ``TriangleGreenData`` without a far-field rule, by one
-    set of tensor operations."""
-    edges, face_edge, _ = unique_face_edges(tri)
-    p = vertices[:, tri]  # (B, T, 3, 3)
-    normal, two_area, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
-    edges = edges.T  # (2, E)
-    direction = vertices[:, edges[1]] - vertices[:, edges[0]]  # (B, E, 3)
-    B, T = vertices.shape[0], tri.shape[0]
-    return {
-        "B": B,
-        "Pv": vertices.transpose(1, 2).contiguous(),
-        "V": vertices.shape[1],
-        "tri": tri.T.to(torch.int32).contiguous(),
-        "T": T,
-        "edges": edges.to(torch.int32).contiguous(),
-        "E": edges.shape[1],
-        "eu": (direction / direction.norm(dim=-1, keepdim=True)).transpose(1, 2).contiguous(),
-        "fe": face_edge.T.to(torch.int32).contiguous(),
-        "nrm": normal.contiguous(),
-        "two_area": two_area.contiguous(),
-        "ell": (grad_bary.norm(dim=-1) * two_area[..., None]).contiguous(),
-        "edir": edge_dir.contiguous(),
-        "eout": edge_out.contiguous(),
-        "gbary": grad_bary.contiguous(),
-        "longest": two_area.contiguous(),  # (no far-field rule: Q = 0, as native_tables without one)
-        "far_nodes": vertices.new_zeros(B, T, 0, 3),
-        "far_w": vertices.new_zeros(B, T, 0),
-        "far_bary": vertices.new_zeros(0, 3),
-        "Q": 0,
         "far_c": FAR_RATIO,
         "tol": tol.to(torch.float64).contiguous(),
     }

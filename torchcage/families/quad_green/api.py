@@ -8,27 +8,25 @@ from collections.abc import Callable
 import torch
 
 from torchcage._core.alloc import cat_output
-from torchcage._core.batch import check_finite_batch, native_batch_inputs, over_cage_batch
+from torchcage._core.batch import over_cage_batch
 from torchcage._core.common import (
     ON_CAGE_TOLERANCE,
     VERTEX_SNAP,
     as_inputs,
     chunks,
     on_cage_tolerances,
-    records_graph,
-    result_dtype,
     snap_to_vertices,
     snap_to_vertices_batch,
     unit_sum,
 )
 from torchcage._core.compiled import CompiledOp, through_op
-from torchcage.backends import Op, check, select
+from torchcage.backends import Op, select
 from torchcage.cage import Cage
 from torchcage.errors import warn_outside
 from torchcage.families.green.kernel3d import triangle_green_geometry, triangle_integrals
 from torchcage.families.quad_green.kernel import QuadGreenData, qgc3d_chunk, quad_green_data
 from torchcage.families.quad_green.native import native_coordinates
-from torchcage.families.quad_mean_value.api import check_grid, check_quads, check_tol, prepare_quad_call
+from torchcage.families.quad_mean_value.api import check_tol, prepare_quad_call, quad_batch_call
 
 __all__ = ["quad_green_coordinates"]
 
@@ -145,21 +143,11 @@ def _native_batch(
         CageError: invalid quads (unless ``allow_invalid``).
         PointsError: points that do not broadcast with the cages, NaN or inf, naming the element.
     """
-    check_grid(n)
-    quad_tol = check_tol(tol)
-    check(QGC, backend)
-    inputs = None if records_graph(points, cage.vertices) else native_batch_inputs(points, cage, backend, quads=True)
-    if inputs is None:
+    call = quad_batch_call(QGC, points, cage, n, dtype, backend, allow_invalid, tol, "quad Green coordinates")
+    if call is None:
         return None
-    pts, verts, batch = inputs
-    compute, out_dtype = result_dtype(pts, cage, dtype)
-    if compute != torch.float64:
-        return None
-    lib = select(QGC, backend, pts.new_empty((0, 3), dtype=compute), graph=False).lib
-    if lib is None:
-        return None
-    check_quads(cage, allow_invalid, "quad Green coordinates")
-    check_finite_batch(pts, batch)
+    pts, verts, batch, out_dtype, lib, quad_tol = call
+    compute = torch.float64
     # as the single-cage call, element by element: the on-cage tolerance of the uncentred cage, at
     # least the rounding of the points' dtype (INPUT_ROUNDING); the box's middle as the centre
     eps = torch.finfo(pts.dtype).eps

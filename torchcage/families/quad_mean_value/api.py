@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import warnings
 from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import torch
 
@@ -291,21 +292,11 @@ def _native_batch(
         PointsError: points that do not broadcast with the cages, NaN or inf, or points where the
             coordinates are undefined, naming the batch element.
     """
-    check_grid(n)
-    quad_tol = check_tol(tol)
-    check(QMVC, backend)
-    inputs = None if records_graph(points, cage.vertices) else native_batch_inputs(points, cage, backend, quads=True)
-    if inputs is None:
+    call = quad_batch_call(QMVC, points, cage, n, dtype, backend, allow_invalid, tol, "quad mean value coordinates")
+    if call is None:
         return None
-    pts, verts, batch = inputs
-    compute, out_dtype = result_dtype(pts, cage, dtype)
-    if compute != torch.float64:
-        return None
-    lib = select(QMVC, backend, pts.new_empty((0, 3), dtype=compute), graph=False).lib
-    if lib is None:
-        return None
-    check_quads(cage, allow_invalid)
-    check_finite_batch(pts, batch)
+    pts, verts, batch, out_dtype, lib, quad_tol = call
+    compute = torch.float64
     tols = on_cage_tolerances(verts)  # (the uncentred cages', as the single-cage call)
     x, v = centred_batch(pts, verts, compute)  # (each cage relative to its centre: module _core.centre)
     out = native_coordinates(lib, x, v, cage.triangles, cage.quads, tols, n, quad_tol, chunk_size, progress)
@@ -313,6 +304,58 @@ def _native_batch(
     if may_be_far(v, x):  # (else far_unity leaves every row as it is)
         (out,) = far_unity(out, x.expand(v.shape[0], *x.shape[1:]), v)
     return out.to(out_dtype).reshape(*batch, x.shape[1], cage.num_vertices)
+
+
+class QuadBatchCall(NamedTuple):
+    """What :func:`quad_batch_call` found: the broadcast points ``(B' or 1, N, 3)`` and cages
+    ``(B', V, 3)`` (views), the caller's batch shape, the output dtype, the native library and the
+    quadrature's tolerance (``None``: the Riemann sum)."""
+
+    points: torch.Tensor
+    vertices: torch.Tensor
+    batch: torch.Size
+    out_dtype: torch.dtype
+    lib: Any
+    quad_tol: float | None
+
+
+def quad_batch_call(
+    op: Op,
+    points: torch.Tensor,
+    cage: Cage,
+    n: int,
+    dtype: torch.dtype | None,
+    backend: str,
+    allow_invalid: bool,
+    tol: float | None,
+    what: str,
+) -> QuadBatchCall | None:
+    """The checks of a quad family's batched native call (``op``: QMVC or QGC): ``n``, ``tol`` and
+    ``backend`` first (they raise whichever path serves), then whether the native kernel serves (a
+    3D cage on the CPU, float64 compute, no graph or ``torch.func`` transform, a native build; else
+    ``None``: the caller loops over the cages), then the quads and the points.
+
+    Raises:
+        ValueError: a wrong ``n``, ``tol`` or ``backend``.
+        CageError: invalid quads (unless ``allow_invalid``).
+        PointsError: points that do not broadcast with the cages, NaN or inf, naming the element.
+    """
+    check_grid(n)
+    quad_tol = check_tol(tol)
+    check(op, backend)
+    inputs = None if records_graph(points, cage.vertices) else native_batch_inputs(points, cage, backend, quads=True)
+    if inputs is None:
+        return None
+    pts, verts, batch = inputs
+    compute, out_dtype = result_dtype(pts, cage, dtype)
+    if compute != torch.float64:
+        return None
+    lib = select(op, backend, pts.new_empty((0, 3), dtype=compute), graph=False).lib
+    if lib is None:
+        return None
+    check_quads(cage, allow_invalid, what)
+    check_finite_batch(pts, batch)
+    return QuadBatchCall(pts, verts, batch, out_dtype, lib, quad_tol)
 
 
 def _refuse_undefined(out: torch.Tensor, batch: torch.Size) -> None:
