@@ -19,12 +19,11 @@ import os
 if __name__ == "__main__":
     os.environ["OMP_NUM_THREADS"] = "1"  # before torch and the native kernels load
 
-import argparse
 import functools
 from collections.abc import Callable
 
 import torch
-from harness import MODELS, add_data_argument, cpu_best, present_models
+from harness import cpu_best, model_parser, present_models
 
 import torchcage.functional as F
 from torchcage._core import alloc
@@ -66,11 +65,7 @@ def row(n: int, cols: int, call: Callable[[], object], repeat: int) -> list[floa
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--models", nargs="+", default=["FireHydrant", "Beast"], choices=MODELS)
-    ap.add_argument("--repeat", type=int, default=7)
-    add_data_argument(ap)
-    args = ap.parse_args()
+    args = model_parser(__doc__, repeat=7).parse_args()
     torch.set_num_threads(1)
     print(f"torch {torch.__version__}, one thread, float64; huge-page advice available: {alloc._madvise is not None}")
     print("| model | table | MB | fresh, 4 KiB pages | fresh, advised | reused | call, advice off | call, advice on |")

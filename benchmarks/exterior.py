@@ -14,24 +14,19 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import functools
 import os
 import warnings
 
 import torch
-from harness import MODELS, add_data_argument, cpu_best, present_models
+from harness import cpu_best, model_parser, present_models
 
 import torchcage.functional as F
 from torchcage.backends import native
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--models", nargs="+", default=["FireHydrant", "Beast"], choices=MODELS)
-    ap.add_argument("--repeat", type=int, default=7)
-    add_data_argument(ap)
-    args = ap.parse_args()
+    args = model_parser(__doc__, repeat=7).parse_args()
     torch.set_num_threads(1)
     os.environ["OMP_NUM_THREADS"] = "1"
     warnings.simplefilter("ignore")  # (points outside the cage: the continuation is what is timed)

@@ -36,6 +36,16 @@ def add_data_argument(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--data", default=os.environ.get("TORCHCAGE_DATA", str(DEFAULT_DATA)))
 
 
+def model_parser(doc: str, repeat: int) -> argparse.ArgumentParser:
+    """The model benchmarks' parser: ``--models`` (default FireHydrant and Beast), ``--repeat`` and
+    :func:`add_data_argument`'s ``--data``; described by the first paragraph of ``doc``."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--models", nargs="+", default=["FireHydrant", "Beast"], choices=MODELS)
+    ap.add_argument("--repeat", type=int, default=repeat)
+    add_data_argument(ap)
+    return ap
+
+
 def qmvc_root(data: str | Path) -> Path:
     """``<data>/qmvc``; exits with a message naming the folder when it is absent."""
     root = Path(data) / "qmvc"

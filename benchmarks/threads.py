@@ -15,14 +15,13 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import functools
 import os
 import time
 from collections.abc import Callable
 
 import torch
-from harness import MODELS, add_data_argument, present_models
+from harness import model_parser, present_models
 
 import torchcage
 import torchcage.functional as F
@@ -59,11 +58,8 @@ def methods(points: torch.Tensor, cage: torchcage.Cage) -> dict[str, Callable[[]
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--models", nargs="+", default=["FireHydrant", "Beast"], choices=MODELS)
+    ap = model_parser(__doc__, repeat=5)
     ap.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
-    ap.add_argument("--repeat", type=int, default=5)
-    add_data_argument(ap)
     args = ap.parse_args()
     counts = [1, args.threads]
     print(f"torch {torch.__version__}, float64, native library: {native.variant()}, {os.cpu_count()} CPUs")
