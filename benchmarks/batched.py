@@ -4,7 +4,8 @@ backward (``mvc-grad``, ``gc-grad``: the gradients of a loss with respect to the
 cages, as a training step takes them), and quad mean value coordinates forward (``qmvc``: the
 bundled bar's 14-quad cage, jittered per shape, n = 4), quad Green coordinates forward (``qgc``: the
 same cages, n = 2) and the mean value derivatives (``mvcd``:
-values, gradients and Hessians, ``order=2``).
+values, gradients and Hessians, ``order=2``); in 2D, mean value coordinates (``mvc2d``) and their
+derivatives (``mvcd2d``) of 32-vertex polygons (jittered circles, per shape).
 
 The setting of ``learnable.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each, a 42-vertex /
 80-triangle icosphere cage per shape (each jittered), points inside. *loop*: ``over_cage_batch``
@@ -22,7 +23,7 @@ implementations interleaved, best of ``--repeat``; *speed-up* is against the fir
 method and dtype.
 
 Usage: ``python benchmarks/batched.py [--batch 8] [--points 5000] [--repeat 10] [--baseline REV]
-[--methods mvc gc mvc-grad gc-grad qmvc qgc mvcd]``
+[--methods mvc gc mvc-grad gc-grad qmvc qgc mvcd mvc2d mvcd2d]``
 """
 
 from __future__ import annotations
@@ -75,6 +76,8 @@ def _child(args: argparse.Namespace) -> None:
     _native.call = timed_call  # every glue module calls it through the module attribute
     if args.method in ("qmvc", "qgc"):
         x, P, faces = quad_problem(args.batch, args.points, getattr(torch, args.dtype))
+    elif args.method.endswith("2d"):
+        x, P, faces = polygon_problem(args.batch, args.points, getattr(torch, args.dtype))
     else:
         x, P, faces, _ = problem(args.batch, args.points, getattr(torch, args.dtype), "cpu")
     green = args.method.startswith("gc")
@@ -83,7 +86,7 @@ def _child(args: argparse.Namespace) -> None:
         fn = torchcage.functional.quad_mean_value_coordinates
     if args.method == "qgc":
         fn = torchcage.functional.quad_green_coordinates
-    if args.method == "mvcd":  # values, gradients and Hessians
+    if args.method in ("mvcd", "mvcd2d"):  # values, gradients and Hessians
 
         def fn(x: torch.Tensor, cage: torchcage.Cage) -> tuple[torch.Tensor, ...]:
             return torchcage.functional.mean_value_derivatives(x, cage, order=2)  # type: ignore[return-value]
@@ -94,7 +97,7 @@ def _child(args: argparse.Namespace) -> None:
     def joined(out: torch.Tensor | tuple[torch.Tensor, ...]) -> torch.Tensor:  # (Green's phi and psi, for the diff)
         if isinstance(out, torch.Tensor):
             return out
-        if args.method == "mvcd":  # (values, gradients, Hessians: flattened)
+        if args.method in ("mvcd", "mvcd2d"):  # (values, gradients, Hessians: flattened)
             return torch.cat([o.reshape(-1) for o in out])
         return torch.cat(out, dim=-1)
 
@@ -148,6 +151,24 @@ def quad_problem(B: int, N: int, dtype: Any) -> tuple[Any, Any, list[list[int]]]
     return x.to(dtype), P.to(dtype), bar.quads.tolist()
 
 
+def polygon_problem(B: int, N: int, dtype: Any) -> tuple[Any, Any, list[list[int]]]:
+    """2D problem: ``B`` jittered 32-gons around the unit circle ``(B, 32, 2)``, ``N`` points
+    inside each ``(B, N, 2)`` (within radius 0.8), and the edges."""
+    import math
+
+    import torch
+
+    V = 32
+    g = torch.Generator().manual_seed(0)
+    angle = torch.arange(V, dtype=torch.float64) * (2 * math.pi / V)
+    radius = 1 + 0.2 * torch.rand(B, V, generator=g, dtype=torch.float64)
+    P = radius[..., None] * torch.stack([angle.cos(), angle.sin()], dim=-1)
+    r = 0.8 * torch.rand(B, N, 1, generator=g, dtype=torch.float64).sqrt()
+    a = 2 * math.pi * torch.rand(B, N, generator=g, dtype=torch.float64)
+    x = r * torch.stack([a.cos(), a.sin()], dim=-1)
+    return x.to(dtype), P.to(dtype), [[i, (i + 1) % V] for i in range(V)]
+
+
 def _run(tree: Path, args: argparse.Namespace, dtype: str, impl: str, method: str) -> dict:
     env = {**os.environ, "PYTHONPATH": str(tree)}
     cmd = [sys.executable, __file__, "--child", "--impl", impl, "--dtype", dtype, "--method", method]
@@ -167,7 +188,7 @@ def main() -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--impl", default="loop,batched", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
-    methods = ["mvc", "gc", "mvc-grad", "gc-grad", "qmvc", "qgc", "mvcd"]
+    methods = ["mvc", "gc", "mvc-grad", "gc-grad", "qmvc", "qgc", "mvcd", "mvc2d", "mvcd2d"]
     ap.add_argument("--method", default="mvc", choices=methods, help=argparse.SUPPRESS)
     ap.add_argument("--methods", nargs="+", default=methods, choices=methods)
     args = ap.parse_args()
@@ -195,7 +216,7 @@ def main() -> None:
                 rows.append((f"{method} {dtype}", runs, r["diff"]["batched"], r["threads"]))
     print(
         f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages (qmvc, qgc: 16-vertex / "
-        f"14-quad, n = 4 and 2), CPU, "
+        f"14-quad, n = 4 and 2; mvc2d, mvcd2d: 32-gons), CPU, "
         f"{rows[0][3]} threads, best of {args.repeat}\n"
     )
     print("| method, dtype | path | time | kernel | set-up | set-up share | speed-up |")

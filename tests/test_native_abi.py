@@ -61,16 +61,18 @@ def test_shapes_name_only_scalar_arguments() -> None:
 
 def _mvc2d_args(**over: object) -> dict[str, object]:
     args: dict[str, object] = {
-        "P": torch.zeros(4, 2, dtype=torch.float64),
+        "B": 1,
+        "P": torch.zeros(1, 4, 2, dtype=torch.float64),
         "V": 4,
         "edges": torch.zeros(4, 2, dtype=torch.int32),
         "E": 4,
-        "X": torch.zeros(3, 2, dtype=torch.float64),
+        "X": torch.zeros(1, 3, 2, dtype=torch.float64),
+        "XB": 1,
         "n": 3,
-        "tol": 1e-12,
+        "tol": torch.full((1,), 1e-12, dtype=torch.float64),
         "nthreads": 1,
-        "W": torch.zeros(3, 4, dtype=torch.float64),
-        "on": torch.zeros(3, dtype=torch.uint8),
+        "W": torch.zeros(1, 3, 4, dtype=torch.float64),
+        "on": torch.zeros(1, 3, dtype=torch.uint8),
     }
     args.update(over)
     return args
@@ -79,15 +81,16 @@ def _mvc2d_args(**over: object) -> dict[str, object]:
 def test_a_valid_call_becomes_pointers_and_scalars() -> None:
     args = _mvc2d_args()
     flat = abi.check_arguments("tc_mvc2d", args)
-    assert flat[0] == args["P"].data_ptr() and flat[1] == 4 and flat[6] == 1e-12  # type: ignore[union-attr]
+    assert flat[0] == 1 and flat[1] == args["P"].data_ptr() and flat[2] == 4  # type: ignore[union-attr]
+    assert flat[8] == args["tol"].data_ptr()  # type: ignore[union-attr]
 
 
 @pytest.mark.parametrize(
     ("over", "error", "match"),
     [
-        ({"P": torch.zeros(4, 2, dtype=torch.float32)}, ValueError, "'P' must be a contiguous CPU torch.float64"),
-        ({"P": torch.zeros(2, 4, dtype=torch.float64).T}, ValueError, "contiguous: False"),
-        ({"W": torch.zeros(3, 5, dtype=torch.float64)}, ValueError, "'W' must have shape"),
+        ({"P": torch.zeros(1, 4, 2, dtype=torch.float32)}, ValueError, "'P' must be a contiguous CPU torch.float64"),
+        ({"P": torch.zeros(1, 2, 4, dtype=torch.float64).transpose(1, 2)}, ValueError, "contiguous: False"),
+        ({"W": torch.zeros(1, 3, 5, dtype=torch.float64)}, ValueError, "'W' must have shape"),
         ({"edges": torch.zeros(4, 2, dtype=torch.int64)}, ValueError, "'edges'"),
         ({"V": torch.tensor(4)}, TypeError, "'V' is a scalar"),
         ({"X": [[0.0, 0.0]]}, TypeError, "'X' must be a tensor"),

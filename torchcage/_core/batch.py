@@ -46,17 +46,20 @@ def over_cage_batch(fn: Callable[..., Any], points: torch.Tensor, cage: Cage, **
 
 
 def native_batch_inputs(
-    points: torch.Tensor, cage: Cage, backend: str, quads: bool = False
+    points: torch.Tensor, cage: Cage, backend: str, quads: bool = False, planar: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Size] | None:
     """:func:`broadcast_batch` of a call that a batched native kernel may serve: a 3D cage (with
-    quads only where ``quads``), ``backend`` ``"auto"`` or ``"native"``, floating-point points and
-    vertices on the CPU, no ``torch.func`` transform. ``None`` otherwise: the caller then loops over
-    the cages, whose path raises the errors that name what does not serve.
+    quads only where ``quads``) or a polygon (only where ``planar``), ``backend`` ``"auto"`` or
+    ``"native"``, floating-point points and vertices on the CPU, no ``torch.func`` transform.
+    ``None`` otherwise: the caller then loops over the cages, whose path raises the errors that
+    name what does not serve.
 
     Raises:
         PointsError: points without a point axis, or a batch shape that does not broadcast.
     """
-    if cage.dim != 3 or (cage.has_quads and not quads) or backend not in ("auto", "native"):
+    if cage.dim != 3 and not (planar and cage.dim == 2):
+        return None
+    if (cage.has_quads and not quads) or backend not in ("auto", "native"):
         return None
     if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
         return None

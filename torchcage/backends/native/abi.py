@@ -72,7 +72,8 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "X:f64*[XB,n,3] XB:i64 n:i64 tol:f64*[B] near_c:f64 nthreads:i32 W:f64*![B,n,V] on:u8*![B,n] normalize:i32"
     ),
     "tc_mvc2d": _parse(
-        "P:f64*[V,2] V:i64 edges:i32*[E,2] E:i64 X:f64*[n,2] n:i64 tol:f64 nthreads:i32 W:f64*![n,V] on:u8*![n]"
+        "B:i64 P:f64*[B,V,2] V:i64 edges:i32*[E,2] E:i64 X:f64*[XB,n,2] XB:i64 n:i64 tol:f64*[B] nthreads:i32 "
+        "W:f64*![B,n,V] on:u8*![B,n]"
     ),
     "tc_gc3d": _parse(
         "Pv:f64*[3,V] V:i64 tri:i32*[3,T] T:i64 edges:i32*[2,E] E:i64 eu:f64*[3,E] fe:i32*[3,T] nrm:f64*[T,3] "
@@ -121,8 +122,8 @@ SIGNATURES: dict[str, tuple[Arg, ...]] = {
         "on:u8*![B,n]"
     ),
     "tc_mvcd2d": _parse(
-        "P:f64*[V,2] V:i64 edges:i32*[NE,2] NE:i64 X:f64*[n,2] n:i64 tol:f64 order:i32 nthreads:i32 "
-        "L:f64*![n,V] G:f64*![n,V,2] H:f64*!?[n,V,2,2] on:u8*![n]"
+        "B:i64 P:f64*[B,V,2] V:i64 edges:i32*[NE,2] NE:i64 X:f64*[XB,n,2] XB:i64 n:i64 tol:f64*[B] order:i32 "
+        "nthreads:i32 L:f64*![B,n,V] G:f64*![B,n,V,2] H:f64*!?[B,n,V,2,2] on:u8*![B,n]"
     ),
     "tc_mvc3d_vjp": _parse(
         "P:f64*[V,3] V:i64 tri:i32*[T,3] T:i64 X:f64*[n,3] n:i64 G:f64*[n,V] tol:f64 near_c:f64 cancel_c:f64 "

@@ -9,12 +9,11 @@
 
 #include "native.h"
 
-/*
- * P: (V, 2) vertices; edges: (E, 2) int32 directed edges (counter-clockwise); X: (n, 2) points.
- * Output W: (n, V) normalised coordinates; on[p] = 1 for points on the polygon.
- */
-void tc_mvc2d(const double *P, long V, const int *edges, long E, const double *X, long n, double tol,
-              int nthreads, double *W, unsigned char *on) {
+/* One polygon: P (V, 2) vertices; edges (E, 2) int32 directed edges (counter-clockwise); X (n, 2)
+ * points. Output W (n, V) normalised coordinates; on[p] = 1 for points on the polygon, 2 where a
+ * coordinate is not finite (the total weight vanishes: only outside the polygon). */
+static void mvc2d_one(const double *P, long V, const int *edges, long E, const double *X, long n, double tol,
+                      int nthreads, double *W, unsigned char *on) {
     double centre[2];
     const double far2 = tc_far_centre(P, V, 2, 1, 2, centre);
 #pragma omp parallel for num_threads(nthreads) schedule(static)
@@ -45,6 +44,22 @@ void tc_mvc2d(const double *P, long V, const int *edges, long E, const double *X
         }
         if (on[p]) continue;
         double inv = 1.0 / tc_mv_total(w, V, P, 2, 1, 2, X + 2 * p, centre, far2);
-        for (long v = 0; v < V; ++v) w[v] *= inv;
+        int finite = 1;
+        for (long v = 0; v < V; ++v) {
+            w[v] *= inv;
+            finite &= isfinite(w[v]) != 0;
+        }
+        if (!finite) on[p] = 2;
     }
+}
+
+/* 2D mean value coordinates of a batch of B polygons with one topology (vertices P (B, V, 2),
+ * on-polygon tolerances tol (B,)): points X (XB, n, 2), XB = 1 (shared by every polygon) or B;
+ * W (B, n, V) and the flags on (B, n) as in mvc2d_one. The polygons one after the other, each
+ * parallel over its points. XB must be 1 or B (the glue checks). */
+void tc_mvc2d(long B, const double *P, long V, const int *edges, long E, const double *X, long XB, long n,
+              const double *tol, int nthreads, double *W, unsigned char *on) {
+    for (long b = 0; b < B; ++b)
+        mvc2d_one(P + b * V * 2, V, edges, E, X + (XB > 1 ? b : 0) * n * 2, n, tol[b], nthreads, W + b * n * V,
+                  on + b * n);
 }

@@ -21,9 +21,10 @@ static inline jet j2(double v, double gx, double gy, double hxx, double hyy, dou
     return r;
 }
 
-/* P (V, 2); edges (E, 2) int32; X (n, 2). Writes L (n, V), G (n, V, 2), H (n, V, 2, 2) (order 2). */
-void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double *X, long n, double tol, int order,
-               int nthreads, double *L, double *G, double *H, unsigned char *on) {
+/* One polygon: P (V, 2); edges (E, 2) int32; X (n, 2). Writes L (n, V), G (n, V, 2), H (n, V, 2, 2)
+ * (order 2) and the flags on (n,). Returns 1 where a thread could not allocate its scratch. */
+static int mvcd2d_one(const double *P, long V, const int *edges, long NE, const double *X, long n, double tol,
+                      int order, int nthreads, double *L, double *G, double *H, unsigned char *on) {
     double centre[2];
     const double far2 = tc_far_centre(P, V, 2, 1, 2, centre);
     int failed = 0; /* a thread could not allocate its scratch */
@@ -162,8 +163,22 @@ void tc_mvcd2d(const double *P, long V, const int *edges, long NE, const double 
     done:
         free(acc);
     }
-    if (failed) { /* every row NaN, every flag 3 (the glue raises MemoryError) */
-        for (long k = 0; k < n * V; ++k) L[k] = NAN;
-        memset(on, 3, (size_t)n);
+    return failed;
+}
+
+/* The derivatives of a batch of B polygons with one topology (vertices P (B, V, 2), on-polygon
+ * tolerances tol (B,)) at points X (XB, n, 2), XB = 1 (shared) or B: L (B, n, V), G (B, n, V, 2),
+ * H (B, n, V, 2, 2) (order 2) and on (B, n) as in mvcd2d_one, the polygons one after the other,
+ * each parallel over its points. A failed allocation makes every row NaN and every flag 3 (the
+ * glue raises MemoryError). XB must be 1 or B (the glue checks). */
+void tc_mvcd2d(long B, const double *P, long V, const int *edges, long NE, const double *X, long XB, long n,
+               const double *tol, int order, int nthreads, double *L, double *G, double *H, unsigned char *on) {
+    int failed = 0;
+    for (long b = 0; b < B && !failed; ++b)
+        failed = mvcd2d_one(P + b * V * 2, V, edges, NE, X + (XB > 1 ? b : 0) * n * 2, n, tol[b], order, nthreads,
+                            L + b * n * V, G + b * n * V * 2, order >= 2 ? H + b * n * V * 4 : H, on + b * n);
+    if (failed) {
+        for (long k = 0; k < B * n * V; ++k) L[k] = NAN;
+        memset(on, 3, (size_t)(B * n));
     }
 }

@@ -105,15 +105,16 @@ def mean_value_coordinates(
         return lam
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
-        # One native call / Triton launch for the whole batch (a triangle cage; with an autograd
-        # graph, the native kernels forward and backward) ...
+        # One native call / Triton launch for the whole batch (a triangle cage, or without an
+        # autograd graph a polygon on the CPU; with a graph, the native kernels forward and
+        # backward) ...
         if records_graph(points, cage.vertices):
             lam = _batch_with_graph(points, cage, chunk_size, dtype, progress, backend)
         else:
             lam = coordinates_batch(points, cage, chunk_size, dtype, progress, backend)
         if lam is not None:
             return lam
-        # ... elsewhere (the torch kernel, torch.func transforms, 2D) one call per element for
+        # ... elsewhere (the torch kernel, torch.func transforms, 2D with a graph) one call per element for
         # now (_batch.over_cage_batch): those paths have no batched kernel yet.
         return over_cage_batch(
             mean_value_coordinates, points, cage, chunk_size=chunk_size, dtype=dtype, progress=progress, backend=backend

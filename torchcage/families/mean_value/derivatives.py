@@ -115,24 +115,11 @@ def _derivatives_flat(
     if choice.lib is None:
         return torch_derivatives(x, cage, order, chunk_size, progress)
     lib = choice.lib
-    D, V = cage.dim, cage.num_vertices
     x = x.detach().to("cpu", torch.float64)
     tables = _mvcd_native.native_tables(cage)
-    if D == 3:  # (a batch of one)
-        lam, grad, hess, flags = native_batch(x[None], tables, lib, order, chunk_size, progress)
-        _refuse(flags, torch.Size([]))
-        return lam[0], grad[0], hess[0] if order == 2 else hess, flags[0] == 1
-    n = x.shape[0]
-    lam = empty_output(n, V, dtype=torch.float64)
-    grad = empty_output(n, V, D, dtype=torch.float64)
-    hess = empty_output(*((n, V, D, D) if order == 2 else (0,)), dtype=torch.float64)
-    flags = torch.empty(n, dtype=torch.uint8)
-    size = chunk_size if chunk_size is not None else 4096
-    for sl in chunks(n, size, progress, desc="mean value derivatives"):
-        H = hess[sl] if order == 2 else None
-        _mvcd_native.native_chunk(x[sl], tables, lib, order, lam[sl], grad[sl], H, flags[sl])
-    _refuse(flags[None], torch.Size([]))
-    return lam, grad, hess, flags == 1
+    lam, grad, hess, flags = native_batch(x[None], tables, lib, order, chunk_size, progress)  # (a batch of one)
+    _refuse(flags, torch.Size([]))
+    return lam[0], grad[0], hess[0] if order == 2 else hess, flags[0] == 1
 
 
 def native_batch(
@@ -143,9 +130,10 @@ def native_batch(
     chunk_size: int | None = None,
     progress: bool | Callable[[int, int], None] = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The native 3D kernel on a batch of cages with one topology: centred float64 CPU points ``x``
-    ``(B or 1, N, 3)``, the tables of :func:`derivatives_native.batch_tables` -> float64 ``lam (B,
-    N, V)``, ``grad (B, N, V, 3)``, ``hess (B, N, V, 3, 3)`` (empty for ``order=1``) and the uint8
+    """The native kernel on a batch of cages of dimension ``D`` with one topology: centred float64
+    CPU points ``x`` ``(B or 1, N, D)``, the tables of :func:`derivatives_native.batch_tables` (3D)
+    or :func:`derivatives_native.polygon_tables` (2D) -> float64 ``lam (B, N, V)``, ``grad (B, N,
+    V, D)``, ``hess (B, N, V, D, D)`` (empty for ``order=1``) and the uint8
     flags ``(B, N)`` (1 on the cage, 2 where the total weight vanishes). The kernel writes into the
     outputs: one call for every cage and point, or with ``chunk_size`` (or a progress bar: chunks
     of ``4096 / B`` points) one call per chunk of points for every cage, through temporaries
@@ -154,10 +142,10 @@ def native_batch(
     Raises:
         MemoryError: the kernel could not allocate its per-thread scratch.
     """
-    B, V, N = int(tables["B"]), int(tables["V"]), x.shape[1]  # type: ignore[call-overload]
+    B, V, N, D = int(tables["B"]), int(tables["V"]), x.shape[1], x.shape[2]  # type: ignore[call-overload]
     lam = empty_output(B, N, V, dtype=torch.float64)
-    grad = empty_output(B, N, V, 3, dtype=torch.float64)
-    hess = empty_output(*((B, N, V, 3, 3) if order == 2 else (0,)), dtype=torch.float64)
+    grad = empty_output(B, N, V, D, dtype=torch.float64)
+    hess = empty_output(*((B, N, V, D, D) if order == 2 else (0,)), dtype=torch.float64)
     flags = torch.empty((B, N), dtype=torch.uint8)
     size = chunk_size if chunk_size is not None else (max(64, 4096 // B) if progress else max(N, 1))
     for sl in chunks(N, size, progress, desc="mean value derivatives"):
@@ -281,7 +269,7 @@ def mean_value_derivatives(
         out = _native_derivatives_batch(points, cage, order, chunk_size, progress, backend)
         if out is not None:
             return out
-        # (2D, the torch and Triton kernels, torch.func transforms: one call per element)
+        # (the torch and Triton kernels, torch.func transforms: one call per element)
         return over_cage_batch(
             mean_value_derivatives, points, cage, order=order, chunk_size=chunk_size, progress=progress, backend=backend
         )
@@ -313,27 +301,31 @@ def _native_derivatives_batch(
     progress: bool | Callable[[int, int], None],
     backend: str,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None:
-    """:func:`mean_value_derivatives` of a batch of 3D triangle cages with one topology by the
-    native kernel: one call per chunk of points for every cage, the tables of the batch built by
-    one set of tensor operations; element by element the numbers of the single-cage call. ``None``
-    where it does not serve (2D, quads, another backend or device, ``torch.func`` transforms, no
-    native build): the caller then loops over the cages.
+    """:func:`mean_value_derivatives` of a batch of 3D triangle cages or polygons with one topology
+    by the native kernel: one call per chunk of points for every cage, the tables of the batch
+    built by one set of tensor operations; element by element the numbers of the single-cage call.
+    ``None`` where it does not serve (quads, another backend or device, ``torch.func`` transforms,
+    no native build): the caller then loops over the cages.
 
     Raises:
         PointsError: points that do not broadcast with the cages, NaN or inf, points on the cage or
             where the coordinates are undefined, naming the batch element.
     """
-    inputs = native_batch_inputs(points, cage, backend)
+    inputs = native_batch_inputs(points, cage, backend, planar=True)
     if inputs is None:
         return None
     pts, verts, batch = inputs
-    lib = select(MVC_DERIVATIVES, backend, pts.new_empty((0, 3), dtype=torch.float64), graph=False).lib
+    D = cage.dim
+    lib = select(MVC_DERIVATIVES, backend, pts.new_empty((0, D), dtype=torch.float64), graph=False).lib
     if lib is None:
         return None
     check_finite_batch(pts, batch)
     tols = on_cage_tolerances(verts)  # (the uncentred cages', as the single-cage call's)
     x, v = centred_batch(pts.detach(), verts.detach(), torch.float64)  # (each relative to its centre)
-    tables = _mvcd_native.batch_tables(v, cage.triangles.cpu(), tols)
+    if D == 2:
+        tables = _mvcd_native.polygon_tables(v, cage.edges, tols)
+    else:
+        tables = _mvcd_native.batch_tables(v, cage.triangles.cpu(), tols)
     lam, grad, hess, flags = native_batch(x, tables, lib, order, chunk_size, progress)
     _refuse(flags, batch)
     grad.sub_(grad.mean(dim=2, keepdim=True))  # (as derivatives_flat: the kernels' rounding of the sum)
@@ -348,10 +340,10 @@ def _native_derivatives_batch(
             "differentiable; move them off the cage"
         )
     B, N, V = v.shape[0], x.shape[1], v.shape[1]
-    lam, grad, h = far_unity(lam, x.expand(B, N, 3), v, grad, hess if order == 2 else None)
+    lam, grad, h = far_unity(lam, x.expand(B, N, D), v, grad, hess if order == 2 else None)
     dt = pts.dtype
-    out_h = h.to(dt).reshape(*batch, N, V, 3, 3) if h is not None else None
-    return lam.to(dt).reshape(*batch, N, V), grad.to(dt).reshape(*batch, N, V, 3), out_h  # type: ignore[union-attr]
+    out_h = h.to(dt).reshape(*batch, N, V, D, D) if h is not None else None
+    return lam.to(dt).reshape(*batch, N, V), grad.to(dt).reshape(*batch, N, V, D), out_h  # type: ignore[union-attr]
 
 
 def mean_value_gradients(points: torch.Tensor, cage: Cage, **kwargs: object) -> torch.Tensor:

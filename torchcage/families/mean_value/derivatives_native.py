@@ -16,7 +16,7 @@ from torchcage.cage import Cage
 from torchcage.errors import CageError
 
 __all__ = ["DERIVATIVE_FAR_FIELD_ORDER", "DERIVATIVE_FAR_FIELD_RATIO", "DERIVATIVE_SPLIT_FORM_RATIO", "G_ORDER",
-           "batch_tables", "native_chunk", "native_tables", "one_cage"]  # fmt: skip
+           "batch_tables", "native_chunk", "native_tables", "one_cage", "polygon_tables"]  # fmt: skip
 
 #: Faces whose longest edge is below ``DERIVATIVE_FAR_FIELD_RATIO`` times their distance use the
 #: far-field rule (measured against 60-digit references: the direct form's Hessians lose up to
@@ -43,8 +43,8 @@ def _leggauss(order: int):
 
 
 def native_tables(cage: Cage) -> dict[str, object]:
-    """``tc_mvcd3d``'s (3D: a batch of one, see :func:`batch_tables`) or ``tc_mvcd2d``'s (2D)
-    arguments for one cage, float64 on the CPU.
+    """``tc_mvcd3d``'s or ``tc_mvcd2d``'s arguments for one cage, float64 on the CPU: a batch of
+    one (:func:`batch_tables`, :func:`polygon_tables`).
 
     Raises:
         CageError: a 3D cage with quads.
@@ -52,8 +52,7 @@ def native_tables(cage: Cage) -> dict[str, object]:
     P = cage.vertices.detach().to("cpu", torch.float64).contiguous()
     tol = on_cage_tolerance(cage)
     if cage.dim == 2:
-        edges = cage.edges.cpu().to(torch.int32).contiguous()
-        return {"P": P, "V": P.shape[0], "edges": edges, "NE": edges.shape[0], "tol": tol}
+        return polygon_tables(P[None], cage.edges, torch.tensor([tol], dtype=torch.float64))
     if cage.has_quads:  # (as triangle_geometry refuses them)
         raise CageError(
             f"this needs a triangle cage, but the cage has {cage.quads.shape[0]} quads; use "
@@ -107,6 +106,26 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
     }
 
 
+def polygon_tables(vertices: torch.Tensor, edges: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """``tc_mvcd2d``'s arguments for a batch of polygons with one topology.
+
+    Args:
+        vertices: ``(B, V, 2)`` vertices (cast to float64 on the CPU).
+        edges: ``(E, 2)`` the shared directed edges.
+        tol: ``(B,)`` absolute on-polygon tolerances.
+
+    Examples:
+        >>> square = torch.tensor([[[0.0, 0], [1, 0], [1, 1], [0, 1]]] * 2, dtype=torch.float64)
+        >>> t = polygon_tables(square, torch.tensor([[0, 1], [1, 2], [2, 3], [3, 0]]), torch.full((2,), 1e-12))
+        >>> t["B"], t["V"], t["NE"]
+        (2, 4, 4)
+    """
+    P = vertices.detach().to("cpu", torch.float64).contiguous()
+    e = edges.to("cpu", torch.int32).contiguous()
+    tol = tol.to("cpu", torch.float64).contiguous()
+    return {"B": P.shape[0], "P": P, "V": P.shape[1], "edges": e, "NE": e.shape[0], "tol": tol}
+
+
 #: The keys of :func:`batch_tables` that carry the batch axis.
 BATCHED_KEYS = ("P", "E", "nrm", "two_area", "ell", "gram", "longest", "far_nodes", "far_coef", "tol")
 
@@ -129,26 +148,19 @@ def native_chunk(
     hess: torch.Tensor | None,
     on: torch.Tensor,
 ) -> None:
-    """The kernel on a chunk into the contiguous outputs. 2D (one cage): ``x`` ``(n, 2)``, ``lam (n,
-    V)``, ``grad (n, V, 2)``, ``hess (n, V, 2, 2)``, flags ``on (n,)``. 3D, a batch of ``B`` cages
-    (:func:`batch_tables`): ``x`` ``(B or 1, n, 3)``, ``lam (B, n, V)``, ``grad (B, n, V, 3)``,
-    ``hess (B, n, V, 3, 3)``, flags ``on (B, n)``. ``hess`` is ``None`` for ``order=1``; the uint8
-    flags are 1 on the cage, 2 where the total weight vanishes.
+    """The kernel on a chunk into the contiguous outputs, for a batch of ``B`` cages of dimension
+    ``D`` (:func:`batch_tables`, :func:`polygon_tables`; one cage is a batch of one): ``x`` ``(B or
+    1, n, D)``, ``lam (B, n, V)``, ``grad (B, n, V, D)``, ``hess (B, n, V, D, D)`` (``None`` for
+    ``order=1``), uint8 flags ``on (B, n)``: 1 on the cage, 2 where the total weight vanishes.
 
     Raises:
         ValueError: points for neither one nor ``B`` cages.
         MemoryError: the kernel could not allocate its per-thread scratch.
     """
-    if x.shape[-1] == 2:
-        _native.call(lib, "tc_mvcd2d", **tables, X=x.contiguous(), n=x.shape[0], order=order, L=lam, G=grad, H=hess,
-                     on=on)  # fmt: skip
-        _native.check_workspace_flags(on, "mean value derivatives")
-        return
     X = x.contiguous()
     B = int(tables["B"])  # type: ignore[call-overload]
+    name = "tc_mvcd2d" if X.shape[-1] == 2 else "tc_mvcd3d"
     if X.shape[0] not in (1, B):
-        raise ValueError(f"tc_mvcd3d: points for {X.shape[0]} cages, but the tables hold {B}: give 1 (shared) or {B}")
-    _native.call(
-        lib, "tc_mvcd3d", **tables, X=X, XB=X.shape[0], n=X.shape[1], order=order, L=lam, G=grad, H=hess, on=on
-    )
+        raise ValueError(f"{name}: points for {X.shape[0]} cages, but the tables hold {B}: give 1 (shared) or {B}")
+    _native.call(lib, name, **tables, X=X, XB=X.shape[0], n=X.shape[1], order=order, L=lam, G=grad, H=hess, on=on)
     _native.check_workspace_flags(on, "mean value derivatives")

@@ -1,8 +1,8 @@
 """Mean value coordinates of checked points without an autograd graph: the one place that picks a
 kernel (native C, Triton or torch) and runs it over chunks of points. Both the public function
 (:mod:`.api`) and the autograd Functions (:mod:`.ops`) import it;
-it imports neither. A batch of 3D triangle cages with one topology is one native call (CPU) or
-one Triton launch (CUDA) per chunk of points (:func:`coordinates_batch`)."""
+it imports neither. A batch of cages with one topology is one native call (CPU: 3D triangle
+cages and polygons) or one Triton launch (CUDA: 3D) per chunk of points (:func:`coordinates_batch`)."""
 
 from __future__ import annotations
 
@@ -75,7 +75,8 @@ def coordinates_flat(
     else:
         data = polygon_data(cage, x.dtype)
         nf, glue, torch_chunk = data.edges.shape[0], _mvc2d_native, mvc2d_chunk
-        tables = glue.native_tables(cage) if lib is not None else {}
+        tol = torch.tensor([on_cage_tolerance(cage)], dtype=torch.float64)  # (a batch of one)
+        tables = glue.batch_tables(cage.vertices[None], cage.edges, tol) if lib is not None else {}
         if use_triton:
             from torchcage.families.mean_value.triton.mvc2d import triton_tables
 
@@ -85,8 +86,7 @@ def coordinates_flat(
         """Writes the chunk's coordinates into ``out``; returns the rows that are not finite
         where the kernel marks them (3D native: flag 2), else ``None`` (the caller checks)."""
         if lib is not None:
-            flags = glue.native_chunk(c, tables, lib, out)
-            return flags == 2 if cage.dim == 3 else None
+            return glue.native_chunk(c, tables, lib, out) == 2
         if use_triton and cage.dim == 2:
             from torchcage.families.mean_value.triton.mvc2d import mvc2d_triton
 
@@ -136,15 +136,15 @@ def coordinates_batch(
     progress: bool | Callable[[int, int], None] = False,
     backend: str = "auto",
 ) -> torch.Tensor | None:
-    """Mean value coordinates ``(*B', N, V)`` of points ``(N, 3)`` or ``(*Bp, N, 3)`` for a batch
-    of 3D triangle cages with one topology (batch shape ``B``, ``B'`` the broadcast shape) by the
-    native kernel (CPU) or the Triton kernel (CUDA, or ``backend="triton"``): one call per chunk of
-    points for every cage at once, the per-cage tables built by one set of tensor operations.
-    Element by element the numbers of the public function on ``cage[b]`` (the same tables, the
-    same kernel, the same far-field correction).
+    """Mean value coordinates ``(*B', N, V)`` of points ``(N, D)`` or ``(*Bp, N, D)`` for a batch
+    of 3D triangle cages or polygons with one topology (batch shape ``B``, ``B'`` the broadcast
+    shape) by the native kernel (CPU) or the Triton kernel (3D; CUDA, or ``backend="triton"``):
+    one call per chunk of points for every cage at once, the per-cage tables built by one set of
+    tensor operations. Element by element the numbers of the public function on ``cage[b]`` (the
+    same tables, the same kernel, the same far-field correction).
 
-    ``None`` where neither serves (the torch kernel, an autograd graph, 2D or quad cages, another
-    device or compute dtype, no native build): the caller then computes element by element
+    ``None`` where neither serves (the torch kernel, an autograd graph, quad cages, polygons on
+    the Triton kernel, another device or compute dtype, no native build): the caller then computes element by element
     (``_batch.over_cage_batch``), which also raises the errors of those paths.
     The cages' geometry is checked by the caller (``as_inputs``: ``Cage.check_geometry``, vectorised
     over the batch, naming the element).
@@ -154,8 +154,10 @@ def coordinates_batch(
             points where the coordinates are undefined (the total weight vanishes); the batch
             element is named.
     """
-    if cage.dim != 3 or cage.has_quads or backend == "torch" or records_graph(points, cage.vertices):
+    if cage.has_quads or backend == "torch" or records_graph(points, cage.vertices):
         return None
+    if cage.dim == 2 and backend == "triton":
+        return None  # (no batched 2D Triton kernel yet: the caller loops over the polygons)
     pts, verts, batch = broadcast_batch(points, cage)
     if not pts.is_floating_point() or pts.device != cage.device:
         return None  # (the per-element path raises the errors that name these)
@@ -166,16 +168,18 @@ def coordinates_batch(
     # relative to each cage's centre, as the single-cage function does (module _centre)
     x, v = centred_batch(pts, verts, compute)
     choice = select(MVC, backend, x, v, graph=False)
+    if choice.kind == "triton" and cage.dim == 2:
+        return None
     if choice.kind == "triton":
         out = _triton_batch(x, v, cage.triangles, chunk_size, progress, batch)
         return out.to(out_dtype).reshape(*batch, x.shape[1], v.shape[1])
     lib = choice.lib
     if lib is None:
         return None
-    B, N, V = v.shape[0], x.shape[1], v.shape[1]
-    out = native_batch(x, v, cage.triangles, lib, chunk_size, progress, batch)
+    B, N, V, D = v.shape[0], x.shape[1], v.shape[1], v.shape[2]
+    out = native_batch(x, v, cage.triangles if D == 3 else cage.edges, lib, chunk_size, progress, batch)
     if may_be_far(v, x):  # (else far_unity leaves every row as it is: a pass over the points spared)
-        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
+        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, D), v)[0])
     return out.to(out_dtype).reshape(*batch, N, V)
 
 
@@ -189,25 +193,27 @@ def native_batch(
     batch: torch.Size | None = None,
 ) -> torch.Tensor:
     """The native kernel's coordinates ``(B, N, V)`` (before the far field's normalisation) of
-    centred float64 CPU points ``x`` ``(B or 1, N, 3)`` for the centred cages ``v`` ``(B, V, 3)``
-    with triangles ``tri``: one call per chunk of points for every cage at once (chunks only pace
-    the progress bar), the per-cage tables built by one set of tensor operations.
+    centred float64 CPU points ``x`` ``(B or 1, N, D)`` for the centred cages ``v`` ``(B, V, D)``
+    with triangles ``tri`` (3D) or directed edges (2D, polygons): one call per chunk of points for
+    every cage at once (chunks only pace the progress bar), the per-cage tables built by one set
+    of tensor operations.
 
     Raises:
         PointsError: points where the coordinates are undefined, naming the batch element (of
             ``batch``, the caller's batch shape).
     """
     B, N, V = v.shape[0], x.shape[1], v.shape[1]
-    tables = _mvc3d_native.batch_tables(v, tri, on_cage_tolerances(v))
+    glue = _mvc3d_native if v.shape[2] == 3 else _mvc2d_native
+    tables = glue.batch_tables(v, tri, on_cage_tolerances(v))
     size = chunk_size if chunk_size is not None else default_chunk(B * tri.shape[0], 1 << 23)
     out = empty_output(B, N, V, dtype=torch.float64)
     flags = torch.empty((B, N), dtype=torch.uint8)
     for sl in chunks(N, size, progress, desc="mean value coordinates"):
         if sl.start == 0 and sl.stop == N:
-            flags = _mvc3d_native.native_chunk(x, tables, lib, out)
+            flags = glue.native_chunk(x, tables, lib, out)
         else:
             part = torch.empty((B, sl.stop - sl.start, V), dtype=torch.float64)
-            flags[:, sl] = _mvc3d_native.native_chunk(x[:, sl], tables, lib, part)
+            flags[:, sl] = glue.native_chunk(x[:, sl], tables, lib, part)
             out[:, sl] = part
     bad = flags == 2  # (B, N): rows whose sum is not finite (the kernel checks them, sparing a pass here)
     _refuse_undefined(bad, torch.Size([B]) if batch is None else batch)
