@@ -197,6 +197,8 @@ def test_batched_derivatives_equal_the_loop(dtype, B, shift, order, monkeypatch)
     assert ((grad - grad_t)[inside] / scale).abs().max() < 1e-7
     if order == 2:
         assert torch.einsum("bnvcd,bve->bnecd", hess, V)[near].abs().max() < 1e-6 * (1 + shift)
+        scale = hess_t[inside].abs().amax(dim=(-1, -2, -3), keepdim=True).clamp_min(1.0)
+        assert ((hess - hess_t)[inside] / scale).abs().max() < 1e-6
 
 
 @pytest.mark.native
