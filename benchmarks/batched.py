@@ -5,7 +5,8 @@ cages, as a training step takes them), and quad mean value coordinates forward (
 bundled bar's 14-quad cage, jittered per shape, n = 4), quad Green coordinates forward (``qgc``: the
 same cages, n = 2) and the mean value derivatives (``mvcd``:
 values, gradients and Hessians, ``order=2``); in 2D, mean value coordinates (``mvc2d``) and their
-derivatives (``mvcd2d``) of 32-vertex polygons (jittered circles, per shape).
+derivatives (``mvcd2d``) and Green coordinates (``gc2d``: the torch kernel, vectorised over the
+batch) of 32-vertex polygons (jittered circles, per shape).
 
 The setting of ``learnable.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each, a 42-vertex /
 80-triangle icosphere cage per shape (each jittered), points inside. *loop*: ``over_cage_batch``
@@ -23,7 +24,7 @@ implementations interleaved, best of ``--repeat``; *speed-up* is against the fir
 method and dtype.
 
 Usage: ``python benchmarks/batched.py [--batch 8] [--points 5000] [--repeat 10] [--baseline REV]
-[--methods mvc gc mvc-grad gc-grad qmvc qgc mvcd mvc2d mvcd2d]``
+[--methods mvc gc mvc-grad gc-grad qmvc qgc mvcd mvc2d mvcd2d gc2d]``
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ def _child(args: argparse.Namespace) -> None:
         x, P, faces = polygon_problem(args.batch, args.points, getattr(torch, args.dtype))
     else:
         x, P, faces, _ = problem(args.batch, args.points, getattr(torch, args.dtype), "cpu")
-    green = args.method.startswith("gc")
+    green = args.method.startswith("gc")  # (gc, gc-grad, gc2d)
     fn = green_coordinates if green else mean_value_coordinates
     if args.method == "qmvc":
         fn = torchcage.functional.quad_mean_value_coordinates
@@ -91,7 +92,7 @@ def _child(args: argparse.Namespace) -> None:
         def fn(x: torch.Tensor, cage: torchcage.Cage) -> tuple[torch.Tensor, ...]:
             return torchcage.functional.mean_value_derivatives(x, cage, order=2)  # type: ignore[return-value]
 
-    width = P.shape[-2] + (faces.shape[0] if green else 0)  # (Green: phi and psi, joined)
+    width = P.shape[-2] + (len(faces) if green else 0)  # (Green: phi and psi, joined)
     cot = torch.randn(args.batch, args.points, width, generator=torch.Generator().manual_seed(1)).to(x.dtype)
 
     def joined(out: torch.Tensor | tuple[torch.Tensor, ...]) -> torch.Tensor:  # (Green's phi and psi, for the diff)
@@ -188,7 +189,7 @@ def main() -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--impl", default="loop,batched", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
-    methods = ["mvc", "gc", "mvc-grad", "gc-grad", "qmvc", "qgc", "mvcd", "mvc2d", "mvcd2d"]
+    methods = ["mvc", "gc", "mvc-grad", "gc-grad", "qmvc", "qgc", "mvcd", "mvc2d", "mvcd2d", "gc2d"]
     ap.add_argument("--method", default="mvc", choices=methods, help=argparse.SUPPRESS)
     ap.add_argument("--methods", nargs="+", default=methods, choices=methods)
     args = ap.parse_args()
@@ -216,7 +217,7 @@ def main() -> None:
                 rows.append((f"{method} {dtype}", runs, r["diff"]["batched"], r["threads"]))
     print(
         f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages (qmvc, qgc: 16-vertex / "
-        f"14-quad, n = 4 and 2; mvc2d, mvcd2d: 32-gons), CPU, "
+        f"14-quad, n = 4 and 2; mvc2d, mvcd2d, gc2d: 32-gons), CPU, "
         f"{rows[0][3]} threads, best of {args.repeat}\n"
     )
     print("| method, dtype | path | time | kernel | set-up | set-up share | speed-up |")

@@ -224,3 +224,95 @@ def test_batched_derivatives_name_the_element_of_a_point_on_the_polygon():
     x[2, 1] = 0.5 * (V[2, 6] + V[2, 7])  # on an edge of polygon 2: not differentiable there
     with pytest.raises(torchcage.PointsError, match=r"points \[1\] in batch element \(2,\) lie on the cage"):
         F.mean_value_derivatives(x, torchcage.Cage(V, edges))
+
+
+# ----------------------------------------------------------------------------------- Green
+
+
+def _normals(V: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Outward unit normals ``(..., E, 2)`` of counter-clockwise polygons ``V`` ``(..., V, 2)``."""
+    e = V[..., edges[:, 1], :] - V[..., edges[:, 0], :]
+    return torch.stack([e[..., 1], -e[..., 0]], dim=-1) / e.norm(dim=-1, keepdim=True)
+
+
+class CountGreenCalls:
+    """Counts the calls of the batched 2D Green kernel, with their batch sizes."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        from torchcage.families.green import batch2d
+
+        self.batches: list[int] = []
+        real = batch2d.green2d_batch
+
+        def kernel(points, vertices, edges, tol):
+            self.batches.append(vertices.shape[0])
+            return real(points, vertices, edges, tol)
+
+        monkeypatch.setattr(batch2d, "green2d_batch", kernel)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, D64])
+@pytest.mark.parametrize("B", [1, 3])
+@pytest.mark.parametrize("shift", [0.0, 1e3])
+@pytest.mark.parametrize("exterior", ["extend", "none"])
+def test_batched_green_equals_the_loop(dtype, B, shift, exterior, monkeypatch):
+    V, edges, cage, per_cage = _cases(B, shift, dtype)
+    count = CountGreenCalls(monkeypatch)
+    for pts in (per_cage, per_cage[0]):
+        count.batches.clear()
+        phi, psi = F.green_coordinates(pts, cage, exterior=exterior)
+        assert count.batches == [B]  # the whole batch in one kernel call
+        refs = [F.green_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], exterior=exterior) for b in range(B)]
+        assert_same_to_rounding(phi, torch.stack([r[0] for r in refs]))
+        assert_same_to_rounding(psi, torch.stack([r[1] for r in refs]))
+    # the coordinates themselves: phi @ V + psi @ N reproduces the points inside (and outside, extended)
+    phi, psi = F.green_coordinates(per_cage.double(), torchcage.Cage(V, edges), exterior=exterior)
+    rebuilt = phi @ V + psi @ _normals(V, edges)
+    dist = (per_cage.double() - V.mean(1, keepdim=True)).norm(dim=-1)
+    keep = dist < (10 if exterior == "extend" else 0.7)
+    assert (rebuilt - per_cage.double()).norm(dim=-1)[keep].max() < 1e-9 * (1 + shift)
+
+
+def test_batched_green_two_batch_dimensions_chunks_and_broadcast_points(monkeypatch):
+    V, edges = _polygons(6, seed=3)
+    cage = torchcage.Cage(V.reshape(2, 3, V_COUNT, 2), edges)
+    pts = torch.stack([_points(V[b], seed=b) for b in range(6)]).reshape(2, 3, -1, 2)
+    N = pts.shape[-2]
+    count = CountGreenCalls(monkeypatch)
+    phi, psi = F.green_coordinates(pts, cage, chunk_size=40)
+    assert phi.shape == (2, 3, N, V_COUNT) and psi.shape == (2, 3, N, V_COUNT)
+    assert count.batches == [6] * -(-N // 40)  # one call per chunk
+    shared = F.green_coordinates(pts[0], cage)  # points (3, N, 2) broadcast against polygons (2, 3)
+    for i in range(2):
+        for j in range(3):
+            for k, ref in enumerate(F.green_coordinates(pts[i, j], cage[i, j])):
+                assert_same_to_rounding((phi, psi)[k][i, j], ref)
+            for k, ref in enumerate(F.green_coordinates(pts[0, j], cage[i, j])):
+                assert_same_to_rounding(shared[k][i, j], ref)
+
+
+def test_batched_green_with_a_graph_equals_the_loop():
+    """With an autograd graph the batch goes element by element (the analytic Function): the same
+    values and gradients as the loop."""
+    V, edges = _polygons(3)
+    pts = torch.stack([_points(V[b], seed=b, on=False)[:50] for b in range(3)])  # inside
+    cot = torch.randn(3, 50, 2 * V_COUNT, generator=torch.Generator().manual_seed(5), dtype=D64)
+    grads = []
+    for batched in (True, False):
+        VV, xx = V.clone().requires_grad_(), pts.clone().requires_grad_()
+        cage = torchcage.Cage(VV, edges)
+        out = F.green_coordinates(xx, cage) if batched else over_cage_batch(F.green_coordinates, xx, cage)
+        (torch.cat(out, dim=-1) * cot).sum().backward()
+        grads.append((xx.grad, VV.grad))
+    for g, h in zip(*grads, strict=True):
+        assert_same_to_rounding(g, h)
+
+
+def test_batched_green_errors_are_those_of_the_loop():
+    V, edges = _polygons(3)
+    x = torch.zeros(3, 5, 2, dtype=D64)
+    x[2, 1, 1] = float("inf")
+    with pytest.raises(torchcage.PointsError, match=r"indices \[1\].*batch element \(2,\)"):
+        F.green_coordinates(x, torchcage.Cage(V, edges))
+    with pytest.raises(ValueError, match="backend='native' for Green coordinates serves 3D points"):
+        F.green_coordinates(x[:, :0], torchcage.Cage(V, edges), backend="native")

@@ -24,6 +24,7 @@ from torchcage._core.common import (
 from torchcage._core.compiled import CompiledOp, through_op
 from torchcage.cage import Cage
 from torchcage.families.green.batch import coordinates_batch
+from torchcage.families.green.batch2d import polygons_batch
 from torchcage.families.green.dispatch import green_flat
 from torchcage.families.green.exterior import extend_outside
 from torchcage.families.green.kernel3d import triangle_green_data
@@ -128,9 +129,12 @@ def green_coordinates(
         # One native call for the whole batch (a triangle cage, the CPU; with a graph, one more
         # for the backward pass) ...
         batched = coordinates_batch(points, cage, chunk_size, dtype, progress, backend, exterior)
+        if batched is None:  # (polygons without a graph: the torch kernel vectorised over the batch)
+            batched = polygons_batch(points, cage, chunk_size, dtype, progress, backend, exterior)
         if batched is not None:
             return batched
-        # ... elsewhere (the torch or Triton kernels, torch.func transforms, 2D) one call per element.
+        # ... elsewhere (the torch or Triton kernels in 3D, a graph in 2D, torch.func transforms)
+        # one call per element.
         return over_cage_batch(
             green_coordinates,
             points,

@@ -61,15 +61,44 @@ def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor,
     """
     if cage.dim != 2:
         raise CageError("green2d_coordinates needs a 2D cage")
-    v = cage.vertices.to(points.dtype)
-    j, k = cage.edges[:, 0], cage.edges[:, 1]
-    a = (v[k] - v[j])[None]  # (1, E, 2)
+    tol = torch.tensor([on_cage_tolerance(cage)], dtype=torch.float64, device=points.device)
+    phi, psi = green2d_batch(points[None], cage.vertices[None], cage.edges, tol)
+    return phi[0], psi[0]
+
+
+def green2d_batch(
+    points: torch.Tensor, vertices: torch.Tensor, edges: torch.Tensor, tol: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`green2d_coordinates` of a batch of ``B`` polygons with one topology, by one set of
+    tensor operations (element by element the numbers of the call on one polygon; differentiable).
+
+    Args:
+        points: ``(B, n, 2)`` points, one set per polygon, or ``(1, n, 2)`` shared.
+        vertices: ``(B, V, 2)`` the polygons' vertices (cast to the points' dtype).
+        edges: ``(E, 2)`` the shared directed edges (counter-clockwise polygons).
+        tol: ``(B,)`` absolute on-polygon tolerances (:func:`on_cage_tolerance` of each).
+
+    Returns:
+        ``(phi (B, n, V), psi (B, n, E))`` in the points' dtype.
+
+    Examples:
+        >>> import torch
+        >>> V = torch.tensor([[0.0, 0], [2, 0], [2, 1], [0, 1]], dtype=torch.float64)
+        >>> V = torch.stack([V, 2 * V])  # (2, 4, 2)
+        >>> E = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 0]])
+        >>> phi, psi = green2d_batch(torch.tensor([[[0.5, 0.25]]], dtype=torch.float64), V, E, torch.zeros(2))
+        >>> phi.shape, psi.shape
+        (torch.Size([2, 1, 4]), torch.Size([2, 1, 4]))
+    """
+    v = vertices.to(points.dtype)
+    j, k = edges[:, 0], edges[:, 1]
+    a = (v[:, k] - v[:, j])[:, None]  # (B, 1, E, 2)
     # Both ends relative to the point, formed once: every product below that vanishes as the point
     # nears an end (or the edge's line near an end) is a product of these, so it keeps its relative
     # accuracy there (b x a with b = v_j - x of the size's order cancelled to eps * size: a point
     # 1e-14 of the size from the end v_k took the wrong side of the edge, phi off by 0.1).
-    b = v[j][None] - points[:, None]  # (n, E, 2)
-    bp = v[k][None] - points[:, None]  # b + a
+    b = v[:, j][:, None] - points[:, :, None]  # (B, n, E, 2)
+    bp = v[:, k][:, None] - points[:, :, None]  # b + a
     Q = (a * a).sum(-1)
     S = (b * b).sum(-1)
     Sp = (bp * bp).sum(-1)
@@ -77,7 +106,7 @@ def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor,
     abp = (a * bp).sum(-1)  # = Q (1 - t)
     cross = b[..., 0] * bp[..., 1] - b[..., 1] * bp[..., 0]  # = b x a = c |a|, > 0 on the inner side
     norm_a = torch.sqrt(Q)
-    tol = on_cage_tolerance(cage)
+    tol = tol.to(points.device, points.dtype)[:, None, None]  # (B, 1, 1)
     # Edges that hold the point (within the tolerance) contribute their principal value (no angle
     # term); off the segment, near its line, the angle is small and computed as it is.
     t = -ab / Q  # projection parameter of the point on each edge
@@ -99,20 +128,21 @@ def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor,
     int_1 = sigma * theta
     int_t = moment - int_1 * ab / Q
     int_s = int_1 * abp / Q - moment
-    phi = torch.zeros(points.shape[0], cage.num_vertices, dtype=points.dtype, device=points.device)
-    phi.index_add_(1, k, int_t / (2 * math.pi))
-    phi.index_add_(1, j, int_s / (2 * math.pi))
+    B, n, V = b.shape[0], b.shape[1], v.shape[1]
+    phi = torch.zeros(B, n, V, dtype=points.dtype, device=points.device)
+    phi.index_add_(2, k, int_t / (2 * math.pi))
+    phi.index_add_(2, j, int_s / (2 * math.pi))
     # Points on the polygon: the hat values with the jump weight 1 - omega / (2 pi), omega the angle
     # the rest of the polygon subtends (pi on an edge, the interior angle at a vertex).
-    on_cage = on_edge.any(dim=1)
+    on_cage = on_edge.any(dim=2)  # (B, n)
     if bool(on_cage.any()):
-        rows = torch.nonzero(on_cage).squeeze(1)
-        e = on_edge[rows].to(torch.int8).argmax(dim=1)
-        tt = t[rows, e].clamp(0.0, 1.0)
-        omega = int_1[rows].sum(dim=1, keepdim=True)
-        hat = torch.zeros(rows.shape[0], cage.num_vertices, dtype=points.dtype, device=points.device)
+        bi, pi = torch.nonzero(on_cage, as_tuple=True)
+        e = on_edge[bi, pi].to(torch.int8).argmax(dim=1)
+        tt = t[bi, pi, e].clamp(0.0, 1.0)
+        omega = int_1[bi, pi].sum(dim=1, keepdim=True)
+        hat = torch.zeros(bi.shape[0], V, dtype=points.dtype, device=points.device)
         hat.scatter_add_(1, torch.stack([j[e], k[e]], dim=1), torch.stack([1 - tt, tt], dim=1))
-        phi[rows] = phi[rows] + (1 - omega / (2 * math.pi)) * hat
+        phi[bi, pi] = phi[bi, pi] + (1 - omega / (2 * math.pi)) * hat
     return phi, psi
 
 
