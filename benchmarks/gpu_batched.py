@@ -1,5 +1,6 @@
 """GPU benchmark of batched rest cages: mean value coordinates of B cages with one topology as one
-Triton launch, against the loop of single-cage calls and the dense batched torch formula.
+Triton launch, against the loop of single-cage calls and the dense batched torch formula; Green
+coordinates (the exterior continued) likewise, batched launch against the loop.
 
 The setting of ``learnable.py`` / ``batched.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each,
 a jittered 42-vertex / 80-triangle icosphere cage per shape, float32 inputs, on CUDA. Rows:
@@ -100,6 +101,21 @@ def main() -> None:
         results = {k: timed(fn) for k, fn in forward.items()}
     ref = results["batched (float64 compute)"][1].double()
     _table("forward", results, ref, ("loop (float64 compute)", "loop (float32 compute)"))
+
+    def green(batched: bool) -> Callable[[], torch.Tensor]:
+        def run() -> torch.Tensor:
+            c = cage(P)
+            phi, psi = (
+                F.green_coordinates(x, c, **f64) if batched else over_cage_batch(F.green_coordinates, x, c, **f64)
+            )
+            return torch.cat([phi, psi], dim=-1)
+
+        return run
+
+    with torch.no_grad():
+        results = {"loop (float64 compute)": timed(green(False)), "batched (float64 compute)": timed(green(True))}
+    print()
+    _table("Green forward", results, results["batched (float64 compute)"][1].double(), ("loop (float64 compute)",))
 
     cot = torch.randn(args.batch, args.points, 42, generator=torch.Generator().manual_seed(1)).to(device)
 

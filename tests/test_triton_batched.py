@@ -1,5 +1,5 @@
-"""Batched rest cages in one Triton launch: mean value coordinates of a batch of 3D triangle cages
-with one topology (the kernel's cage axis, tables built for the batch at once) agree with the loop
+"""Batched rest cages in one Triton launch: mean value and Green coordinates of a batch of 3D
+triangle cages with one topology (the kernel's cage axis, tables built for the batch at once) agree with the loop
 of single-cage Triton calls, for points inside, outside, on faces, edges and vertices and far away,
 shared by every cage or one set per cage. Run by Triton's interpreter on CPU tensors
 (``TRITON_INTERPRET=1``) or on a GPU when there is one, as ``tests/test_triton.py``."""
@@ -19,6 +19,7 @@ pytestmark = pytest.mark.triton
 
 require_triton()
 
+from torchcage.families.green.triton import gc3d as _gc3d  # noqa: E402
 from torchcage.families.mean_value.triton import mvc3d as _mvc3d  # noqa: E402
 
 DEVICE = TRITON_DEVICE
@@ -197,3 +198,107 @@ def test_no_points() -> None:
     cage = torchcage.Cage(V.to(DEVICE), tri.to(DEVICE))
     for pts in (torch.zeros(0, 3, dtype=D64), torch.zeros(2, 0, 3, dtype=D64)):
         assert F.mean_value_coordinates(pts.to(DEVICE), cage, backend="triton").shape == (2, 0, 8)
+
+
+# ----------------------------------------------------------------------------------- Green
+
+
+class _GreenLaunches:
+    """Counts the calls of the Triton Green kernel's wrapper, with their batch sizes."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.batches: list[int] = []
+        real = _gc3d.gc3d_triton
+
+        def wrapper(x, tables, *args, **kwargs):
+            self.batches.append(int(tables["P"].shape[0]))
+            return real(x, tables, *args, **kwargs)
+
+        monkeypatch.setattr(_gc3d, "gc3d_triton", wrapper)
+
+
+def _normals(V: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
+    """Outward unit normals ``(B, T, 3)`` of the cages ``V`` ``(B, V, 3)``."""
+    p = V[:, tri]
+    return torch.nn.functional.normalize(
+        torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]), dim=-1
+    )
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, D64], ids=["float32", "float64"])
+@pytest.mark.parametrize("B", [1, 2])
+def test_batched_green_launch_equals_the_loop(dtype: torch.dtype, B: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Green coordinates (the exterior continued) of points one set per cage and shared, on and near
+    the cages, the last cage 1e3 from the origin: one launch for the whole batch and element by
+    element the single-cage Triton call; in float64, ``phi @ V + psi @ N`` reproduces the points."""
+    V, tri = _cages(B, shift=1e3 if B > 1 else 0.0)
+    cage = torchcage.Cage(V.to(dtype).to(DEVICE), tri.to(DEVICE))
+    per_cage = torch.stack([_points(V[b], tri, seed=b) for b in range(B)]).to(dtype).to(DEVICE)
+    launches = _GreenLaunches(monkeypatch)
+    for pts in (per_cage, per_cage[0]):
+        launches.batches.clear()
+        phi, psi = F.green_coordinates(pts, cage, backend="triton")
+        assert launches.batches == [B]  # one launch for the whole batch
+        refs = [F.green_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], backend="triton") for b in range(B)]
+        _assert_close(phi, torch.stack([r[0] for r in refs]))
+        _assert_close(psi, torch.stack([r[1] for r in refs]))
+        if dtype == D64:
+            X = (pts if pts.ndim == 3 else pts.expand(B, -1, -1)).cpu()
+            rebuilt = phi.cpu() @ V + psi.cpu() @ _normals(V, tri)
+            assert float((rebuilt - X).norm(dim=-1).max()) < 1e-9 * (1 + V.abs().max())
+
+
+def test_batched_green_far_points_and_thin_faces() -> None:
+    """Points from 2 to 1e9 radii (the far-field rule) shared by two cages, one 1e3 from the origin;
+    and the sliver cube with a stretched copy, whose points that see the sliver from a few widths
+    are flagged and redone per cage by the torch kernel: element by element the single-cage call,
+    and the torch kernel's values."""
+    V, tri = _cages(2, seed=5, shift=1e3)
+    cage = torchcage.Cage(V.to(DEVICE), tri.to(DEVICE))
+    x = _points(V[0], tri, far=True).to(DEVICE)
+    phi, psi = F.green_coordinates(x, cage, backend="triton")
+    for b in range(2):
+        ref = F.green_coordinates(x, cage[b], backend="triton")
+        _assert_close(phi[b], ref[0])
+        _assert_close(psi[b], ref[1])
+    one = sliver_cube()
+    V = torch.stack([one.vertices, one.vertices * torch.tensor([1.0, 1.5, 0.8], dtype=D64)])
+    cage = torchcage.Cage(V.to(DEVICE), one.triangles.to(DEVICE))
+    g = torch.Generator().manual_seed(0)
+    x = (torch.rand(20, 3, generator=g, dtype=D64) - 0.5) * 1.6 * one.vertices.abs().amax()
+    x = torch.cat([x, one.vertices[:6] * 1.001]).to(DEVICE)
+    tables = _gc3d.batch_tables(cage.vertices, cage.triangles, torch.full((2,), 1e-13, dtype=D64))
+    assert int((_gc3d.gc3d_triton(x[None], tables)[2] == 2).sum()) > 0  # (the kernel flags some)
+    phi, psi = F.green_coordinates(x, cage, backend="triton")
+    for b in range(2):
+        ref = F.green_coordinates(x.cpu(), cage[b].to("cpu"), backend="torch")
+        for out, r in ((phi[b], ref[0]), (psi[b], ref[1])):
+            assert float(((out.cpu() - r).abs() / r.abs().clamp_min(1.0)).max()) < 1e-10
+
+
+def test_batched_green_kernel_blocks_and_point_batches() -> None:
+    """The kernel itself with small blocks (13 points, blocks of 8: two programs per cage, the last
+    partial), points one set per cage and shared, against the kernel on each cage's own tables;
+    a point batch that is neither 1 nor the cages' is refused."""
+    from torchcage.families.green.kernel3d import triangle_green_data
+
+    V, tri = _cages(2, seed=4, shift=5.0)
+    V, tri = V.to(DEVICE), tri.to(DEVICE)
+    x = torch.stack([_points(V[b].cpu(), tri.cpu(), seed=7 + b)[6:19] for b in range(2)]).to(DEVICE)
+    tol = torch.full((2,), 1e-13, dtype=D64)
+    tables = _gc3d.batch_tables(V, tri, tol)
+    outs = _gc3d.gc3d_triton(x, tables, block=8)
+    shared = _gc3d.gc3d_triton(x[:1], tables, block=8)
+    assert outs[0].shape == (2, 13, 8) and outs[1].shape == (2, 13, 12) and outs[2].shape == (2, 13)
+    assert int((outs[2] == 1).sum()) > 0 and int((outs[2] == 0).sum()) > 0  # on the cage and off it
+    for b in range(2):
+        cage = torchcage.Cage(V[b], tri)
+        one = _gc3d.triton_tables(triangle_green_data(cage, D64), cage.vertices)
+        one["tol"] = tol[b : b + 1].to(DEVICE)
+        for X, got in ((x[b], [o[b] for o in outs]), (x[0], [o[b] for o in shared])):
+            ref = _gc3d.gc3d_triton(X, one, block=8)
+            _assert_close(got[0], ref[0])
+            _assert_close(got[1], ref[1])
+            assert torch.equal(got[2], ref[2])
+    with pytest.raises(ValueError, match="for tables of 2 cages"):
+        _gc3d.gc3d_triton(torch.zeros(3, 5, 3, dtype=D64, device=DEVICE), tables)

@@ -88,6 +88,10 @@ def _kernels() -> list[tuple[str, object, dict[str, object]]]:
         k, a = _recorded(gc3d, "_gc3d_kernel", lambda c=c, dt=dt: gc3d.gc3d_triton(
             x3.to(dt), gc3d.triton_tables(triangle_green_data(c, dt), c.vertices)))  # fmt: skip
         out.append((f"gc3d {dt}", k, a))
+    two = torch.stack([cube.vertices, 1.5 * cube.vertices])  # (a batch of two cages: the BATCHED kernel)
+    k, a = _recorded(gc3d, "_gc3d_kernel", lambda: gc3d.gc3d_triton(
+        x3[None], gc3d.batch_tables(two, cube.triangles, torch.full((2,), 1e-13, dtype=D))))  # fmt: skip
+    out.append(("gc3d batched", k, a))
     quads = tc.load_cage(tc.data.path("cube.obj")).to(D)
     k, a = _recorded(mvc3d, "_mvc3d_kernel", lambda: mvc3d.mvc3d_triton(
         x3, mvc3d.part_tables(triangle_cage_data(cube, D)), normalize=False))  # fmt: skip

@@ -1,17 +1,22 @@
-"""Green coordinates of a batch of 3D triangle cages with one topology in native calls: one call
-for the values of every cage (chunk by chunk of points) and, when the call records an autograd
-graph, one for the first-order backward pass (:class:`.ops.GreenBatchFunction`)."""
+"""Green coordinates of a batch of 3D triangle cages with one topology in native calls (CPU): one
+call for the values of every cage (chunk by chunk of points) and, when the call records an autograd
+graph, one for the first-order backward pass (:class:`.ops.GreenBatchFunction`); or, without a
+graph, in Triton launches (CUDA, or ``backend="triton"``): one per chunk of points for every cage."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
 import torch
+from torch._C._functorch import is_functorch_wrapped_tensor
 
-from torchcage._core.batch import check_finite_batch, native_batch_inputs
+from torchcage._core.batch import broadcast_batch, check_finite_batch
 from torchcage._core.common import (
     ON_CAGE_TOLERANCE,
     VERTEX_SNAP,
+    chunks,
+    default_chunk,
+    on_cage_tolerances,
     records_graph,
     result_dtype,
     snap_to_vertices_batch,
@@ -21,6 +26,7 @@ from torchcage.backends import select
 from torchcage.cage import Cage
 from torchcage.families.green.dispatch import GC, batch_integrals
 from torchcage.families.green.exterior import extend_outside
+from torchcage.families.green.kernel3d import green3d_coordinates, triangle_green_data
 from torchcage.families.green.ops import GreenBatchFunction
 
 __all__ = ["coordinates_batch"]
@@ -37,15 +43,16 @@ def coordinates_batch(
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Green coordinates ``(phi (*B', N, V), psi (*B', N, T))`` of points ``(N, 3)`` or
     ``(*Bp, N, 3)`` for a batch of 3D triangle cages with one topology (batch shape ``B``, ``B'``
-    the broadcast shape) by the native kernel: one call per chunk of points for every cage at once,
-    the per-cage tables built by one set of tensor operations, and with an autograd graph (points or
+    the broadcast shape) by the native kernel (CPU) or, without an autograd graph, the Triton kernel
+    (CUDA, or ``backend="triton"``): one call per chunk of points for every cage at once, the
+    per-cage tables built by one set of tensor operations, and with an autograd graph (points or
     rest vertices that require grad) one native call for the first-order backward pass. Element by
     element the numbers of the public function on ``cage[b]``: the same centring, vertex snap,
     tables and kernels, the exterior continuation (for the elements that have points outside) and
     the unit sum.
 
-    ``None`` where the native kernel does not serve (another backend, a torch.func transform, 2D or
-    quad cages, another device or compute dtype, no native build): the caller then computes element
+    ``None`` where neither serves (the torch kernel, a torch.func transform, 2D or quad cages, a
+    graph off the native kernel, another compute dtype, no native build): the caller then computes element
     by element (``_batch.over_cage_batch``), which also raises the errors of those paths. The cages'
     geometry is checked by the caller (``as_inputs``).
 
@@ -53,10 +60,13 @@ def coordinates_batch(
         PointsError: points that do not broadcast with the cages, or points holding NaN or inf; the
             batch element is named.
     """
-    inputs = native_batch_inputs(points, cage, backend)
-    if inputs is None:
+    if cage.dim != 3 or cage.has_quads or backend == "torch":
         return None
-    pts, verts, batch = inputs
+    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
+        return None
+    pts, verts, batch = broadcast_batch(points, cage)
+    if not pts.is_floating_point() or pts.device != verts.device:
+        return None  # (the per-element path raises the errors that name these)
     compute, out_dtype = result_dtype(pts, cage, dtype)
     if compute != torch.float64:
         return None
@@ -71,11 +81,14 @@ def coordinates_batch(
     if not graph:
         x, vc, v = x.detach(), vc.detach(), v.detach()
     choice = select(GC, backend, x.detach(), vc.detach(), graph=False)
-    if choice.kind != "native" or choice.lib is None:
+    triton = choice.kind == "triton" and not graph
+    if not triton and (choice.kind != "native" or choice.lib is None):
         return None
     N, V, T = x.shape[1], vc.shape[1], cage.triangles.shape[0]
     x = snap_to_vertices_batch(x, vc, VERTEX_SNAP * ON_CAGE_TOLERANCE * scale)
-    if graph:
+    if triton:
+        phi, psi = _triton_integrals(x, vc, cage, chunk_size, progress)
+    elif graph:
         phi, psi = GreenBatchFunction.apply(x, vc, cage.triangles, chunk_size or 0, progress, backend)
     else:
         phi, psi = batch_integrals(x, vc, cage.triangles, choice.lib, chunk_size, progress)
@@ -92,3 +105,36 @@ def coordinates_batch(
     # (the sum made 1 where the caller multiplies by the vertices: about the origin)
     phi = unit_sum(phi, pts.to(compute), v)
     return phi.to(out_dtype).reshape(*batch, N, V), psi.to(out_dtype).reshape(*batch, N, T)
+
+
+def _triton_integrals(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    cage: Cage,
+    chunk_size: int | None,
+    progress: bool | Callable[[int, int], None],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The bare Green integrals ``(phi (B, N, V), psi (B, N, T))`` of centred, snapped points ``x``
+    ``(B, N, 3)`` for the centred cages ``v`` ``(B, V, 3)`` (the compute dtype, the kernel's device)
+    by the Triton kernel: one launch per chunk of points for every cage, the tables of the batch
+    built by one set of tensor operations. Points that see a thin face from a few widths are redone
+    by the torch kernel's swept form (a loop over the cages that have such points, as the
+    single-cage path does for one). Element by element the numbers of the single-cage Triton path."""
+    from torchcage.families.green.triton.gc3d import batch_tables, gc3d_triton
+
+    B, N, V, T = v.shape[0], x.shape[1], v.shape[1], cage.triangles.shape[0]
+    tables = batch_tables(v, cage.triangles, on_cage_tolerances(v))  # (each centred cage's tolerance)
+    size = chunk_size if chunk_size is not None else default_chunk(B * T, 1 << 23)
+    phi = torch.empty((B, N, V), dtype=x.dtype, device=x.device)
+    psi = torch.empty((B, N, T), dtype=x.dtype, device=x.device)
+    flags = torch.empty((B, N), dtype=torch.int32, device=x.device)
+    for sl in chunks(N, size, progress, desc="Green coordinates"):
+        phi[:, sl], psi[:, sl], flags[:, sl] = gc3d_triton(x[:, sl], tables)
+    redo = flags == 2  # (B, N): a thin face seen from a few widths (the torch kernel's swept form)
+    if bool(redo.any()):
+        for b in torch.nonzero(redo.any(dim=1)).flatten().tolist():
+            idx = torch.nonzero(redo[b]).flatten()
+            data = triangle_green_data(cage._like(v[b]), x.dtype)
+            pr, sr = green3d_coordinates(x[b].index_select(0, idx), data, V)
+            phi[b, idx], psi[b, idx] = pr, sr
+    return phi, psi
