@@ -35,8 +35,8 @@ def polygons_batch(
     """Green coordinates ``(phi (*B', N, V), psi (*B', N, E))`` of points ``(N, 2)`` or
     ``(*Bp, N, 2)`` for a batch of polygons with one topology (batch shape ``B``, ``B'`` the
     broadcast shape), without an autograd graph: element by element the numbers of the public
-    function on ``cage[b]`` (the same centring, kernel, exterior continuation for the elements
-    that have points outside, and unit sum).
+    function on ``cage[b]`` to rounding (the same centring, kernel, exterior continuation for the
+    elements that have points outside, and unit sum; a vectorised ``log`` may round apart).
 
     ``None`` where this does not serve (3D cages, an autograd graph or a ``torch.func`` transform,
     points of another device or not floating point, a backend other than the torch kernel): the
@@ -68,7 +68,8 @@ def polygons_batch(
         return None
     check_finite_batch(pts, batch)
     B, N, V, E = vc.shape[0], x.shape[1], vc.shape[1], cage.edges.shape[0]
-    tol = on_cage_tolerances(vc).to(x.device)  # (B,): each centred polygon's, as the single call's
+    # (B,): each centred polygon's, as the single call's (computed on the CPU for MPS: no float64 there)
+    tol = on_cage_tolerances(vc if vc.device.type != "mps" else vc.cpu()).to(x.device, compute)
     edges = cage.edges.to(x.device)
     size = chunk_size if chunk_size is not None else default_chunk(B * E, _PAIRS)
     phi = empty_output(B, N, V, dtype=compute, device=x.device)

@@ -66,7 +66,7 @@ def green2d_coordinates(points: torch.Tensor, cage: Cage) -> tuple[torch.Tensor,
     """
     if cage.dim != 2:
         raise CageError("green2d_coordinates needs a 2D cage")
-    tol = torch.tensor([on_cage_tolerance(cage)], dtype=torch.float64, device=points.device)
+    tol = torch.tensor([on_cage_tolerance(cage)], dtype=points.dtype, device=points.device)  # (MPS: no float64)
     phi, psi = green2d_batch(points[None], cage.vertices[None], cage.edges, tol)
     return phi[0], psi[0]
 
@@ -75,13 +75,15 @@ def green2d_batch(
     points: torch.Tensor, vertices: torch.Tensor, edges: torch.Tensor, tol: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`green2d_coordinates` of a batch of ``B`` polygons with one topology, by one set of
-    tensor operations (element by element the numbers of the call on one polygon; differentiable).
+    tensor operations (element by element the numbers of the call on one polygon to rounding: a
+    vectorised ``log`` or ``atan2`` may round its tail lanes apart; differentiable).
 
     Args:
         points: ``(B, n, 2)`` points, one set per polygon, or ``(1, n, 2)`` shared.
         vertices: ``(B, V, 2)`` the polygons' vertices (cast to the points' dtype).
         edges: ``(E, 2)`` the shared directed edges (counter-clockwise polygons).
-        tol: ``(B,)`` absolute on-polygon tolerances (:func:`on_cage_tolerance` of each).
+        tol: ``(B,)`` absolute on-polygon tolerances (:func:`on_cage_tolerance` of each), cast to
+            the points' dtype and device.
 
     Returns:
         ``(phi (B, n, V), psi (B, n, E))`` in the points' dtype.

@@ -52,10 +52,11 @@ def mean_value_coordinates(
             :func:`torchcage.functional.quad_mean_value_coordinates` or ``cage.triangulated()``.
             Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
             ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
-            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md). For
-            a triangle cage without an autograd graph, the whole batch is one native kernel
-            call (CPU) or one Triton launch (CUDA) per chunk of points; elsewhere, one call per
-            element.
+            (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
+            Without an autograd graph, the whole batch is one native kernel call (CPU: triangle
+            cages and polygons) or one Triton launch (CUDA: triangle cages) per chunk of points;
+            with a graph, a batch of triangle cages takes one native call forward and one
+            backward (CPU); elsewhere, one call per element.
         chunk_size: points per chunk; peak memory grows with ``chunk_size x faces``. Default: about
             130k (3D) or 260k (2D) point–face pairs per chunk in the torch kernel.
         dtype: dtype of the result (default: that of the inputs). The kernels compute in float64

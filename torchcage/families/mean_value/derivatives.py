@@ -230,7 +230,7 @@ def mean_value_derivatives(
             (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
         order: 1 (gradients) or 2 (gradients and Hessians).
         chunk_size: points per chunk (memory grows with ``chunk_size x V x D^2``). Default: 4096
-            (3D on the native kernel: every point in one call, written into the outputs; with a
+            (on the native kernel: every point in one call, written into the outputs; with a
             progress bar, chunks of ``4096 / B`` points for a batch of ``B`` cages).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): the native kernel for CPU points when it is loadable; for

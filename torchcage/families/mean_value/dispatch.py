@@ -84,7 +84,7 @@ def coordinates_flat(
 
     def kernel(c: torch.Tensor, out: torch.Tensor) -> torch.Tensor | None:
         """Writes the chunk's coordinates into ``out``; returns the rows that are not finite
-        where the kernel marks them (3D native: flag 2), else ``None`` (the caller checks)."""
+        where the kernel marks them (native: flag 2), else ``None`` (the caller checks)."""
         if lib is not None:
             return glue.native_chunk(c, tables, lib, out) == 2
         if use_triton and cage.dim == 2:
