@@ -302,3 +302,93 @@ def test_batched_green_kernel_blocks_and_point_batches() -> None:
             assert torch.equal(got[2], ref[2])
     with pytest.raises(ValueError, match="for tables of 2 cages"):
         _gc3d.gc3d_triton(torch.zeros(3, 5, 3, dtype=D64, device=DEVICE), tables)
+
+
+# ----------------------------------------------------------------------------------- polygons
+
+
+def _polygons(B: int, shift: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(B, 8, 2)`` jittered star-shaped octagons (float64, counter-clockwise) and their edges;
+    ``shift`` moves the last one that far from the origin."""
+    g = torch.Generator().manual_seed(3)
+    angle = torch.arange(8, dtype=D64) * (torch.pi / 4)
+    V = (1 + 0.25 * torch.rand(B, 8, 1, generator=g, dtype=D64)) * torch.stack([angle.cos(), angle.sin()], dim=-1)
+    V[-1] += shift
+    return V, torch.stack([torch.arange(8), torch.arange(8).roll(-1)], dim=1)
+
+
+def _polygon_points(V: torch.Tensor, seed: int) -> torch.Tensor:
+    """Points for the polygon ``V`` ``(8, 2)``: inside, on vertices and edges, just off the edges,
+    outside, far (1e4) and very far (1e7: the first-moment normaliser)."""
+    g = torch.Generator().manual_seed(seed)
+    c = V.mean(0)
+    d = torch.nn.functional.normalize(torch.randn(12, 2, generator=g, dtype=D64), dim=1)
+    edge = V + 0.3 * (V.roll(-1, 0) - V)
+    return torch.cat([c + 0.5 * d[:6], V[:3], edge[:3], edge[3:6] * (1 + 1e-9), c + 3 * d[6:8],
+                      c + 1e4 * d[8:10], c + 1e7 * d[10:12]])  # fmt: skip
+
+
+class _PolygonLaunches:
+    """Counts the calls of the 2D Triton kernel's wrapper, with their batch sizes."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        from torchcage.families.mean_value.triton import mvc2d
+
+        self.batches: list[int] = []
+        real = mvc2d.mvc2d_triton
+
+        def wrapper(x, tables, *args, **kwargs):
+            self.batches.append(int(tables["P"].shape[0]))
+            return real(x, tables, *args, **kwargs)
+
+        monkeypatch.setattr(mvc2d, "mvc2d_triton", wrapper)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, D64], ids=["float32", "float64"])
+def test_batched_polygons_in_one_launch_equal_the_loop(dtype: torch.dtype, monkeypatch: pytest.MonkeyPatch) -> None:
+    """2D mean value coordinates of three polygons (the last 1e3 from the origin), points one set
+    per polygon and shared: one launch for the batch and element by element the single-polygon
+    Triton call; in float64 the rows sum to one and reproduce the points."""
+    V, edges = _polygons(3, shift=1e3)
+    cage = torchcage.Cage(V.to(dtype).to(DEVICE), edges.to(DEVICE))
+    per = torch.stack([_polygon_points(V[b], seed=b) for b in range(3)]).to(dtype).to(DEVICE)
+    opts = {"backend": "triton", "dtype": dtype}
+    launches = _PolygonLaunches(monkeypatch)
+    for pts in (per, per[0]):
+        launches.batches.clear()
+        out = F.mean_value_coordinates(pts, cage, **opts)
+        assert launches.batches == [3]  # one launch for the whole batch
+        ref = torch.stack(
+            [F.mean_value_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], **opts) for b in range(3)]
+        )
+        _assert_close(out, ref)
+        if dtype == D64:
+            W, X = out.cpu(), (pts if pts.ndim == 3 else pts.expand(3, -1, -1)).cpu()
+            near = (X - V.mean(1, keepdim=True)).norm(dim=-1) < 10
+            # (far away the coordinates are of size distance / size: their sum is 1 to their rounding)
+            assert bool(((W.sum(-1) - 1).abs() <= 1e-13 * W.abs().sum(-1).clamp_min(1.0)).all())
+            assert float((W @ V - X).norm(dim=-1)[near].max()) < 1e-9 * (1 + V.abs().max())
+
+
+def test_batched_polygon_kernel_blocks_and_point_batches() -> None:
+    """The 2D kernel with small blocks (two programs per polygon, the last partial) against each
+    polygon's own tables, points one set per polygon and shared; a point batch that is neither 1 nor
+    the polygons' is refused."""
+    from torchcage.families.mean_value.triton import mvc2d
+
+    V, edges = _polygons(2, shift=5.0)
+    V, edges = V.to(DEVICE), edges.to(DEVICE)
+    x = torch.stack([_polygon_points(V[b].cpu(), seed=4 + b)[:13] for b in range(2)]).to(DEVICE)  # (2, 13, 2)
+    tol = torch.full((2,), 1e-13, dtype=D64)
+    tables = mvc2d.batch_tables(V, edges, tol)
+    W, flags = mvc2d.mvc2d_triton(x, tables, block=8)
+    Ws, fs = mvc2d.mvc2d_triton(x[:1], tables, block=8)
+    assert W.shape == (2, 13, 8) and int((flags == 1).sum()) > 0 and int((flags == 0).sum()) > 0
+    for b in range(2):
+        one = mvc2d.batch_tables(V[b : b + 1], edges, tol[b : b + 1])
+        for X, got, gf in ((x[b], W[b], flags[b]), (x[0], Ws[b], fs[b])):
+            ref, rf = mvc2d.mvc2d_triton(X, one, block=8)
+            _assert_close(got, ref)
+            assert torch.equal(gf, rf)
+    with pytest.raises(ValueError, match="for tables of 2 polygons"):
+        mvc2d.mvc2d_triton(torch.zeros(3, 5, 2, dtype=D64, device=DEVICE), tables)

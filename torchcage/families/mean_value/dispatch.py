@@ -1,8 +1,8 @@
 """Mean value coordinates of checked points without an autograd graph: the one place that picks a
 kernel (native C, Triton or torch) and runs it over chunks of points. Both the public function
 (:mod:`.api`) and the autograd Functions (:mod:`.ops`) import it;
-it imports neither. A batch of cages with one topology is one native call (CPU: 3D triangle
-cages and polygons) or one Triton launch (CUDA: 3D) per chunk of points (:func:`coordinates_batch`)."""
+it imports neither. A batch of cages with one topology (3D triangle cages or polygons) is one
+native call (CPU) or one Triton launch (CUDA) per chunk of points (:func:`coordinates_batch`)."""
 
 from __future__ import annotations
 
@@ -138,13 +138,13 @@ def coordinates_batch(
 ) -> torch.Tensor | None:
     """Mean value coordinates ``(*B', N, V)`` of points ``(N, D)`` or ``(*Bp, N, D)`` for a batch
     of 3D triangle cages or polygons with one topology (batch shape ``B``, ``B'`` the broadcast
-    shape) by the native kernel (CPU) or the Triton kernel (3D; CUDA, or ``backend="triton"``):
+    shape) by the native kernel (CPU) or the Triton kernel (CUDA, or ``backend="triton"``):
     one call per chunk of points for every cage at once, the per-cage tables built by one set of
     tensor operations. Element by element the numbers of the public function on ``cage[b]`` (the
     same tables, the same kernel, the same far-field correction).
 
-    ``None`` where neither serves (the torch kernel, an autograd graph, quad cages, polygons on
-    the Triton kernel, another device or compute dtype, no native build): the caller then computes element by element
+    ``None`` where neither serves (the torch kernel, an autograd graph, quad cages, another
+    device or compute dtype, no native build): the caller then computes element by element
     (``_batch.over_cage_batch``), which also raises the errors of those paths.
     The cages' geometry is checked by the caller (``as_inputs``: ``Cage.check_geometry``, vectorised
     over the batch, naming the element).
@@ -156,8 +156,6 @@ def coordinates_batch(
     """
     if cage.has_quads or backend == "torch" or records_graph(points, cage.vertices):
         return None
-    if cage.dim == 2 and backend == "triton":
-        return None  # (no batched 2D Triton kernel yet: the caller loops over the polygons)
     pts, verts, batch = broadcast_batch(points, cage)
     if not pts.is_floating_point() or pts.device != cage.device:
         return None  # (the per-element path raises the errors that name these)
@@ -168,10 +166,9 @@ def coordinates_batch(
     # relative to each cage's centre, as the single-cage function does (module _centre)
     x, v = centred_batch(pts, verts, compute)
     choice = select(MVC, backend, x, v, graph=False)
-    if choice.kind == "triton" and cage.dim == 2:
-        return None
     if choice.kind == "triton":
-        out = _triton_batch(x, v, cage.triangles, chunk_size, progress, batch)
+        faces = cage.triangles if cage.dim == 3 else cage.edges
+        out = _triton_batch(x, v, faces, chunk_size, progress, batch)
         return out.to(out_dtype).reshape(*batch, x.shape[1], v.shape[1])
     lib = choice.lib
     if lib is None:
@@ -228,30 +225,32 @@ def _triton_batch(
     progress: bool | Callable[[int, int], None],
     batch: torch.Size,
 ) -> torch.Tensor:
-    """:func:`coordinates_batch` by the Triton kernel: centred points ``x`` ``(B or 1, N, 3)`` and
-    vertices ``v`` ``(B, V, 3)`` in the compute dtype (float64, or float32 when asked) on the
-    kernel's device -> ``(B, N, V)``; one launch per chunk of points for every cage, the tables of
-    the batch built by one set of tensor operations. Points that see a thin face from a few widths
-    are redone by the torch kernel (a loop over the cages that have such points, as
-    :func:`coordinates_flat` does for one), then the far points' sums are restored (``far_unity``).
-    Element by element the numbers of the single-cage Triton path.
+    """:func:`coordinates_batch` by the Triton kernel: centred points ``x`` ``(B or 1, N, D)`` and
+    vertices ``v`` ``(B, V, D)`` in the compute dtype (float64, or float32 when asked) on the
+    kernel's device, ``tri`` the triangles (3D) or the directed edges (2D) -> ``(B, N, V)``; one
+    launch per chunk of points for every cage, the tables of the batch built by one set of tensor
+    operations. 3D points that see a thin face from a few widths are redone by the torch kernel (a
+    loop over the cages that have such points, as :func:`coordinates_flat` does for one), then the
+    far points' sums are restored (``far_unity``). Element by element the numbers of the
+    single-cage Triton path.
 
     Raises:
         PointsError: points where the coordinates are undefined, naming the batch element.
     """
-    from torchcage.families.mean_value.triton.mvc3d import batch_tables, mvc3d_triton
+    from torchcage.families.mean_value.triton import mvc2d, mvc3d
 
-    B, N, V = v.shape[0], x.shape[1], v.shape[1]
+    B, N, V, D = v.shape[0], x.shape[1], v.shape[1], v.shape[2]
     tol = on_cage_tolerances(v)  # (B,) float64, as on_cage_tolerance of each centred cage
-    tables = batch_tables(v, tri, tol)
+    tables = (mvc3d.batch_tables if D == 3 else mvc2d.batch_tables)(v, tri, tol)
+    launch = mvc3d.mvc3d_triton if D == 3 else mvc2d.mvc2d_triton
     size = chunk_size if chunk_size is not None else default_chunk(B * tri.shape[0], 1 << 23)
     out = torch.empty((B, N, V), dtype=x.dtype, device=x.device)
     flags = torch.empty((B, N), dtype=torch.int32, device=x.device)
     for sl in chunks(N, size, progress, desc="mean value coordinates"):
-        Wc, fc = mvc3d_triton(x[:, sl], tables)
+        Wc, fc = launch(x[:, sl], tables)
         out[:, sl] = Wc
         flags[:, sl] = fc
-    redo = flags == 2  # (B, N): a thin face seen from a few widths (the torch kernel's swept form)
+    redo = flags == 2  # (B, N): a thin face seen from a few widths (3D: the torch kernel's swept form)
     if bool(redo.any()):
         for b in torch.nonzero(redo.any(dim=1)).flatten().tolist():
             idx = torch.nonzero(redo[b]).flatten()
@@ -262,7 +261,7 @@ def _triton_batch(
     bad = ~torch.isfinite(out.sum(dim=-1))  # (B, N): a row sum is finite iff every entry is
     _refuse_undefined(bad, batch)
     if may_be_far(v, x):  # (else far_unity leaves every row as it is)
-        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, 3), v)[0])
+        out = cast(torch.Tensor, far_unity(out, x.expand(B, N, D), v)[0])
     return out
 
 

@@ -3,8 +3,9 @@
 interpolation on the polygon, the first moment as the total far away), a block of points per
 program and a loop over the edges.
 
-Shapes: ``P (V, 2)``, ``edges (E, 2)`` int32 (counter-clockwise), ``X (n, 2)`` -> ``W (n, V)``
-(normalised) and ``flags (n,)`` int32 (1: on the polygon).
+Shapes: a batch of ``B`` polygons with one topology (one polygon: ``B = 1``), ``P (B, V, 2)``,
+``edges (E, 2)`` int32 (counter-clockwise), per-polygon ``cen (B, 2)``, ``far2``, ``tol (B,)``,
+``X (B or 1, n, 2)`` -> ``W (B, n, V)`` (normalised) and ``flags (B, n)`` int32 (1: on the polygon).
 """
 
 from __future__ import annotations
@@ -17,16 +18,28 @@ from torchcage._core.common import FAR_MOMENT, on_cage_tolerance
 from torchcage.backends.triton import interpreted, warps
 from torchcage.cage import Cage
 
-__all__ = ["mvc2d_triton", "triton_tables"]
+__all__ = ["batch_tables", "mvc2d_triton", "triton_tables"]
 
 
 @triton.jit
-def _mvc2d_kernel(X, n, P, V, edges, E, c0, c1, far2, tol, W, flags, BLOCK: tl.constexpr):
-    offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+def _mvc2d_kernel(X, xs, n, P, V, edges, E, cen, far2, tol, W, flags, BLOCK: tl.constexpr):
+    # one program: a block of points against polygon b (program index b * blocks + block); the
+    # edges are shared, every other table has a leading polygon axis
+    pid = tl.program_id(0)
+    nblk = tl.cdiv(n, BLOCK)
+    b = (pid // nblk).to(tl.int64)
+    offs = (pid % nblk) * BLOCK + tl.arange(0, BLOCK)
     live = offs < n
+    P += b * V * 2
+    c0 = tl.load(cen + 2 * b)
+    c1 = tl.load(cen + 2 * b + 1)
+    far2 = tl.load(far2 + b)
+    tol = tl.load(tol + b)
+    X += b * xs
     x0 = tl.load(X + 2 * offs, mask=live, other=0.0)
     x1 = tl.load(X + 2 * offs + 1, mask=live, other=0.0)
-    row = W + offs.to(tl.int64) * V
+    point = b * n + offs.to(tl.int64)
+    row = W + point * V
     for v in range(V):
         tl.store(row + v, tl.zeros_like(x0), mask=live)
     on = offs < 0
@@ -85,31 +98,60 @@ def _mvc2d_kernel(X, n, P, V, edges, E, c0, c1, far2, tol, W, flags, BLOCK: tl.c
         tl.store(row + v, tl.where(on, 0.0, wv * inv), mask=live)
     tl.store(row + oj, tl.load(row + oj, mask=live & on, other=0.0) + (1.0 - ot), mask=live & on)
     tl.store(row + ok, tl.load(row + ok, mask=live & on, other=0.0) + ot, mask=live & on)
-    tl.store(flags + offs, tl.where(on, 1, 0), mask=live)
+    tl.store(flags + point, tl.where(on, 1, 0), mask=live)
 
 
 def triton_tables(cage: Cage, dtype: torch.dtype) -> dict[str, object]:
-    """The kernel's per-polygon arguments (``dtype``, the cage's device)."""
-    v = cage.vertices.to(dtype).contiguous()
-    lo, hi = v.min(dim=0).values, v.max(dim=0).values
-    c = 0.5 * (lo + hi)
-    r2 = float(((v - c) ** 2).sum(dim=1).max())
-    edges = cage.edges.to(torch.int32).contiguous()
-    return {"P": v, "V": v.shape[0], "edges": edges, "E": edges.shape[0], "c0": float(c[0]), "c1": float(c[1]),
-            "far2": FAR_MOMENT * FAR_MOMENT * r2, "tol": on_cage_tolerance(cage)}  # fmt: skip
+    """The kernel's arguments for one polygon (a batch of one; ``dtype``, the cage's device)."""
+    tol = torch.tensor([on_cage_tolerance(cage)], dtype=dtype, device=cage.device)
+    return batch_tables(cage.vertices.to(dtype)[None], cage.edges, tol)
+
+
+def batch_tables(vertices: torch.Tensor, edges: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """The kernel's arguments for a batch of polygons with one topology, by one set of tensor
+    operations (no host synchronisation).
+
+    Args:
+        vertices: ``(B, V, 2)`` vertices in the compute dtype, on the kernel's device.
+        edges: ``(E, 2)`` the shared directed edges.
+        tol: ``(B,)`` absolute on-polygon tolerances.
+    """
+    v = vertices.contiguous()
+    c = 0.5 * (v.amin(dim=1) + v.amax(dim=1))  # (B, 2): each bounding box's centre
+    r2 = ((v - c[:, None]) ** 2).sum(dim=-1).amax(dim=-1)  # (B,)
+    e = edges.to(v.device, torch.int32).contiguous()
+    far2 = (FAR_MOMENT * FAR_MOMENT * r2).contiguous()
+    return {"P": v, "V": v.shape[1], "edges": e, "E": e.shape[0], "cen": c.contiguous(), "far2": far2,
+            "tol": tol.to(v.device, v.dtype).contiguous()}  # fmt: skip
 
 
 def mvc2d_triton(
     x: torch.Tensor, tables: dict[str, object], block: int | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normalised 2D mean value coordinates ``(n, V)`` of points ``x`` ``(n, 2)`` (the tables' dtype
-    and device) and their flags ``(n,)`` int32 (1 on the polygon)."""
-    n = x.shape[0]
+    """Normalised 2D mean value coordinates of points ``x`` (the tables' dtype and device) and
+    their flags, int32 (1 on the polygon). One launch for every polygon of the tables.
+
+    One polygon (tables of a batch of one): ``x`` ``(n, 2)`` -> ``W`` ``(n, V)``, flags ``(n,)``. A
+    batch of ``B`` polygons (:func:`batch_tables`): ``x`` ``(B, n, 2)``, or ``(1, n, 2)`` shared by
+    every polygon -> ``W`` ``(B, n, V)``, flags ``(B, n)``.
+
+    Raises:
+        ValueError: points whose batch is neither 1 nor the polygons'.
+    """
+    batched = x.dim() == 3
+    X = x.contiguous() if batched else x.contiguous()[None]
+    B, XB, n = tables["P"].shape[0], X.shape[0], X.shape[1]  # type: ignore[attr-defined]
+    if XB not in (1, B) or (not batched and B != 1):
+        raise ValueError(
+            f"mvc2d_triton: points of shape {tuple(x.shape)} for tables of {B} polygons: give (1 or {B}, n, 2)"
+            + (" or (n, 2)" if B == 1 else "")
+        )
     if block is None:
         block = min(4096, triton.next_power_of_2(max(n, 16))) if interpreted() else 128
-    W = torch.empty((n, tables["V"]), dtype=x.dtype, device=x.device)
-    flags = torch.empty(n, dtype=torch.int32, device=x.device)
+    W = torch.empty((B, n, tables["V"]), dtype=x.dtype, device=x.device)
+    flags = torch.empty((B, n), dtype=torch.int32, device=x.device)
     if n:
-        grid = (triton.cdiv(n, block),)
-        _mvc2d_kernel[grid](x.contiguous(), n, **tables, W=W, flags=flags, BLOCK=block, num_warps=warps(block))
-    return W, flags
+        grid = (B * triton.cdiv(n, block),)
+        _mvc2d_kernel[grid](X, 0 if XB == 1 else 2 * n, n, **tables, W=W, flags=flags, BLOCK=block,
+                            num_warps=warps(block))  # fmt: skip
+    return (W, flags) if batched else (W[0], flags[0])
