@@ -1,6 +1,7 @@
 """GPU benchmark of batched rest cages: mean value coordinates of B cages with one topology as one
 Triton launch, against the loop of single-cage calls and the dense batched torch formula; Green
-coordinates (the exterior continued) likewise, batched launch against the loop.
+coordinates (the exterior continued) and 2D mean value coordinates of 32-gons likewise, batched
+launch against the loop.
 
 The setting of ``learnable.py`` / ``batched.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each,
 a jittered 42-vertex / 80-triangle icosphere cage per shape, float32 inputs, on CUDA. Rows:
@@ -116,6 +117,20 @@ def main() -> None:
         results = {"loop (float64 compute)": timed(green(False)), "batched (float64 compute)": timed(green(True))}
     print()
     _table("Green forward", results, results["batched (float64 compute)"][1].double(), ("loop (float64 compute)",))
+
+    from batched import polygon_problem
+
+    x2, P2, edges = polygon_problem(args.batch, args.points, torch.float32)
+    x2, P2, edges = x2.to(device), P2.to(device), torch.tensor(edges, device=device)
+    polygons = torchcage.Cage(P2, edges)
+    with torch.no_grad():
+        results = {
+            "loop (float64 compute)": timed(lambda: over_cage_batch(F.mean_value_coordinates, x2, polygons, **f64)),
+            "batched (float64 compute)": timed(lambda: F.mean_value_coordinates(x2, polygons, **f64)),
+        }
+    print()
+    ref2 = results["batched (float64 compute)"][1].double()
+    _table("2D forward (32-gons)", results, ref2, ("loop (float64 compute)",))
 
     cot = torch.randn(args.batch, args.points, 42, generator=torch.Generator().manual_seed(1)).to(device)
 
