@@ -20,6 +20,7 @@ pytestmark = pytest.mark.triton
 require_triton()
 
 from torchcage.families.green.triton import gc3d as _gc3d  # noqa: E402
+from torchcage.families.mean_value.triton import mvc2d as _mvc2d  # noqa: E402
 from torchcage.families.mean_value.triton import mvc3d as _mvc3d  # noqa: E402
 
 DEVICE = TRITON_DEVICE
@@ -76,17 +77,18 @@ def _assert_close(out: torch.Tensor, ref: torch.Tensor) -> None:
 
 
 class _Launches:
-    """Counts the batched calls of the Triton kernel's wrapper, with their batch sizes."""
+    """Counts the calls of a Triton kernel's wrapper (``module.name``: the mean value kernel's by
+    default), with their batch sizes."""
 
-    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, module: object = _mvc3d, name: str = "mvc3d_triton") -> None:
         self.batches: list[int] = []
-        real = _mvc3d.mvc3d_triton
+        real = getattr(module, name)
 
         def wrapper(x, tables, *args, **kwargs):
             self.batches.append(int(tables["P"].shape[0]))
             return real(x, tables, *args, **kwargs)
 
-        monkeypatch.setattr(_mvc3d, "mvc3d_triton", wrapper)
+        monkeypatch.setattr(module, name, wrapper)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, D64], ids=["float32", "float64"])
@@ -203,20 +205,6 @@ def test_no_points() -> None:
 # ----------------------------------------------------------------------------------- Green
 
 
-class _GreenLaunches:
-    """Counts the calls of the Triton Green kernel's wrapper, with their batch sizes."""
-
-    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        self.batches: list[int] = []
-        real = _gc3d.gc3d_triton
-
-        def wrapper(x, tables, *args, **kwargs):
-            self.batches.append(int(tables["P"].shape[0]))
-            return real(x, tables, *args, **kwargs)
-
-        monkeypatch.setattr(_gc3d, "gc3d_triton", wrapper)
-
-
 def _normals(V: torch.Tensor, tri: torch.Tensor) -> torch.Tensor:
     """Outward unit normals ``(B, T, 3)`` of the cages ``V`` ``(B, V, 3)``."""
     p = V[:, tri]
@@ -234,7 +222,7 @@ def test_batched_green_launch_equals_the_loop(dtype: torch.dtype, B: int, monkey
     V, tri = _cages(B, shift=1e3 if B > 1 else 0.0)
     cage = torchcage.Cage(V.to(dtype).to(DEVICE), tri.to(DEVICE))
     per_cage = torch.stack([_points(V[b], tri, seed=b) for b in range(B)]).to(dtype).to(DEVICE)
-    launches = _GreenLaunches(monkeypatch)
+    launches = _Launches(monkeypatch, _gc3d, "gc3d_triton")
     for pts in (per_cage, per_cage[0]):
         launches.batches.clear()
         phi, psi = F.green_coordinates(pts, cage, backend="triton")
@@ -328,22 +316,6 @@ def _polygon_points(V: torch.Tensor, seed: int) -> torch.Tensor:
                       c + 1e4 * d[8:10], c + 1e7 * d[10:12]])  # fmt: skip
 
 
-class _PolygonLaunches:
-    """Counts the calls of the 2D Triton kernel's wrapper, with their batch sizes."""
-
-    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        from torchcage.families.mean_value.triton import mvc2d
-
-        self.batches: list[int] = []
-        real = mvc2d.mvc2d_triton
-
-        def wrapper(x, tables, *args, **kwargs):
-            self.batches.append(int(tables["P"].shape[0]))
-            return real(x, tables, *args, **kwargs)
-
-        monkeypatch.setattr(mvc2d, "mvc2d_triton", wrapper)
-
-
 @pytest.mark.parametrize("dtype", [torch.float32, D64], ids=["float32", "float64"])
 def test_batched_polygons_in_one_launch_equal_the_loop(dtype: torch.dtype, monkeypatch: pytest.MonkeyPatch) -> None:
     """2D mean value coordinates of three polygons (the last 1e3 from the origin), points one set
@@ -353,7 +325,7 @@ def test_batched_polygons_in_one_launch_equal_the_loop(dtype: torch.dtype, monke
     cage = torchcage.Cage(V.to(dtype).to(DEVICE), edges.to(DEVICE))
     per = torch.stack([_polygon_points(V[b], seed=b) for b in range(3)]).to(dtype).to(DEVICE)
     opts = {"backend": "triton", "dtype": dtype}
-    launches = _PolygonLaunches(monkeypatch)
+    launches = _Launches(monkeypatch, _mvc2d, "mvc2d_triton")
     for pts in (per, per[0]):
         launches.batches.clear()
         out = F.mean_value_coordinates(pts, cage, **opts)
@@ -374,21 +346,19 @@ def test_batched_polygon_kernel_blocks_and_point_batches() -> None:
     """The 2D kernel with small blocks (two programs per polygon, the last partial) against each
     polygon's own tables, points one set per polygon and shared; a point batch that is neither 1 nor
     the polygons' is refused."""
-    from torchcage.families.mean_value.triton import mvc2d
-
     V, edges = _polygons(2, shift=5.0)
     V, edges = V.to(DEVICE), edges.to(DEVICE)
     x = torch.stack([_polygon_points(V[b].cpu(), seed=4 + b)[:13] for b in range(2)]).to(DEVICE)  # (2, 13, 2)
     tol = torch.full((2,), 1e-13, dtype=D64)
-    tables = mvc2d.batch_tables(V, edges, tol)
-    W, flags = mvc2d.mvc2d_triton(x, tables, block=8)
-    Ws, fs = mvc2d.mvc2d_triton(x[:1], tables, block=8)
+    tables = _mvc2d.batch_tables(V, edges, tol)
+    W, flags = _mvc2d.mvc2d_triton(x, tables, block=8)
+    Ws, fs = _mvc2d.mvc2d_triton(x[:1], tables, block=8)
     assert W.shape == (2, 13, 8) and int((flags == 1).sum()) > 0 and int((flags == 0).sum()) > 0
     for b in range(2):
-        one = mvc2d.batch_tables(V[b : b + 1], edges, tol[b : b + 1])
+        one = _mvc2d.batch_tables(V[b : b + 1], edges, tol[b : b + 1])
         for X, got, gf in ((x[b], W[b], flags[b]), (x[0], Ws[b], fs[b])):
-            ref, rf = mvc2d.mvc2d_triton(X, one, block=8)
+            ref, rf = _mvc2d.mvc2d_triton(X, one, block=8)
             _assert_close(got, ref)
             assert torch.equal(gf, rf)
     with pytest.raises(ValueError, match="for tables of 2 polygons"):
-        mvc2d.mvc2d_triton(torch.zeros(3, 5, 2, dtype=D64, device=DEVICE), tables)
+        _mvc2d.mvc2d_triton(torch.zeros(3, 5, 2, dtype=D64, device=DEVICE), tables)

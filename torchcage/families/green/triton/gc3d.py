@@ -24,7 +24,7 @@ import triton
 import triton.language as tl
 
 from torchcage._core.thin_triangle import THIN_ASPECT, THIN_DISTANCE
-from torchcage.backends.triton import interpreted, warps
+from torchcage.backends.triton import interpreted, point_batch, warps
 from torchcage.backends.triton.common import atan2, log
 from torchcage.families.green.far_triangle import FAR_RATIO, far_nodes
 from torchcage.families.green.kernel3d import (
@@ -398,14 +398,9 @@ def gc3d_triton(
     Raises:
         ValueError: points whose batch is neither 1 nor the cages'.
     """
-    batched = x.dim() == 3
-    X = x.contiguous() if batched else x.contiguous()[None]
-    B, XB, n = tables["P"].shape[0], X.shape[0], X.shape[1]  # type: ignore[attr-defined]
-    if XB not in (1, B) or (not batched and B != 1):
-        raise ValueError(
-            f"gc3d_triton: points of shape {tuple(x.shape)} for tables of {B} cages: give (1 or {B}, n, 3)"
-            + (" or (n, 3)" if B == 1 else "")
-        )
+    B = tables["P"].shape[0]  # type: ignore[attr-defined]
+    X, batched = point_batch(x, B, "gc3d_triton")
+    XB, n = X.shape[0], X.shape[1]
     if block is None:
         block = min(4096, triton.next_power_of_2(max(n, 16))) if interpreted() else 64
     phi = torch.empty((B, n, tables["V"]), dtype=x.dtype, device=x.device)

@@ -15,7 +15,7 @@ import triton
 import triton.language as tl
 
 from torchcage._core.common import FAR_MOMENT, on_cage_tolerance
-from torchcage.backends.triton import interpreted, warps
+from torchcage.backends.triton import interpreted, point_batch, warps
 from torchcage.cage import Cage
 
 __all__ = ["batch_tables", "mvc2d_triton", "triton_tables"]
@@ -138,14 +138,9 @@ def mvc2d_triton(
     Raises:
         ValueError: points whose batch is neither 1 nor the polygons'.
     """
-    batched = x.dim() == 3
-    X = x.contiguous() if batched else x.contiguous()[None]
-    B, XB, n = tables["P"].shape[0], X.shape[0], X.shape[1]  # type: ignore[attr-defined]
-    if XB not in (1, B) or (not batched and B != 1):
-        raise ValueError(
-            f"mvc2d_triton: points of shape {tuple(x.shape)} for tables of {B} polygons: give (1 or {B}, n, 2)"
-            + (" or (n, 2)" if B == 1 else "")
-        )
+    B = tables["P"].shape[0]  # type: ignore[attr-defined]
+    X, batched = point_batch(x, B, "mvc2d_triton", "polygons")
+    XB, n = X.shape[0], X.shape[1]
     if block is None:
         block = min(4096, triton.next_power_of_2(max(n, 16))) if interpreted() else 128
     W = torch.empty((B, n, tables["V"]), dtype=x.dtype, device=x.device)
