@@ -259,3 +259,23 @@ def test_batched_quad_families_broadcast_the_points_batch(dtype):
                 ref = ref if isinstance(ref, tuple) else (ref,)
                 for o, r in zip(out, ref, strict=True):
                     assert_same_to_rounding(o[i, j], r)
+
+
+def test_invalid_quads_name_the_batch_element():
+    """A quad that folds over in some elements of a batch: the error (and, when allowed, the
+    warning) names the first such element and counts the others, for both quad families."""
+    cage = _batch(triquad(), 4)
+    q = cage.quads[0]
+    V = cage.vertices.clone()
+    V[2, q[2]] = V[2, q[0]] + 0.1 * (V[2, q[0]] - V[2, q[2]])  # the quad folds over in element 2
+    x = torch.zeros(3, 3, dtype=D64)
+    for fn in (F.quad_mean_value_coordinates, F.quad_green_coordinates):
+        with pytest.raises(torchcage.CageError, match=r"not valid in batch element \(2,\) \(Thiery"):
+            fn(x, cage._like(V))
+    V[3] = V[2]
+    with pytest.raises(torchcage.CageError, match=r"not valid in batch element \(2,\) and 1 other element\(s\)"):
+        F.quad_mean_value_coordinates(x, cage._like(V))
+    with pytest.warns(UserWarning, match=r"in batch element \(1, 0\) and 1 other element"):
+        F.quad_mean_value_coordinates(x, cage._like(V.reshape(2, 2, *V.shape[1:])), allow_invalid=True)
+    with pytest.raises(torchcage.CageError, match=r"quad\(s\) of the cage are not valid \(Thiery"):
+        F.quad_mean_value_coordinates(x, cage[2]._like(V[2]))  # (one cage: no element to name)

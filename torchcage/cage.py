@@ -452,13 +452,18 @@ class Cage:
         """
         if self.dim == 2 or not self.has_quads:
             return torch.zeros(0, dtype=torch.long, device=self.device)
+        bad = self._invalid_quad_mask()  # (*B, Q): invalid in any batch element
+        return torch.nonzero(bad.reshape(-1, bad.shape[-1]).any(dim=0)).flatten()
+
+    def _invalid_quad_mask(self) -> torch.Tensor:
+        """``(*B, Q)`` bool: the quads of each batch element that fail :meth:`invalid_quads`'s test
+        (a 3D cage with quads)."""
         p = self.vertices.detach().to(torch.float64)[..., self.quads, :]  # (*B, Q, 4, 3)
         e = p.roll(-1, dims=-2) - p  # e_k = q_{k+1} - q_k
         c = torch.linalg.cross(e.roll(1, dims=-2), e, dim=-1)  # corner normals c_k = e_{k-1} x e_k
         c = torch.nn.functional.normalize(c, dim=-1)
         cosines = c @ c.transpose(-1, -2)  # (*B, Q, 4, 4)
-        bad = (cosines <= 1e-12).flatten(-2).any(dim=-1)  # (*B, Q): invalid in any batch element
-        return torch.nonzero(bad.reshape(-1, bad.shape[-1]).any(dim=0)).flatten()
+        return (cosines <= 1e-12).flatten(-2).any(dim=-1)
 
     def triangle_normals(self, unit: bool = True) -> torch.Tensor:
         """Outward normals of the triangles of :meth:`triangulated`, shape ``(*B, T + 2Q, 3)``.

@@ -55,8 +55,14 @@ def check_quads(cage: Cage, allow_invalid: bool, what: str = "quad mean value co
     bad = cage.invalid_quads()
     if bad.numel():
         shown = bad[:10].tolist()
+        where = ""
+        if cage.is_batched:  # (the elements that hold them: the first named, the others counted)
+            mask = cage._invalid_quad_mask().reshape(-1, cage.quads.shape[0]).any(dim=1)
+            first = torch.nonzero(mask).flatten()
+            more = int(mask.sum()) - 1
+            where = _batch_name(first[0], cage.batch_shape) + (f" and {more} other element(s)" if more else "")
         msg = (
-            f"{bad.numel()} quad(s) of the cage are not valid (Thiery et al. 2018, Definition 1: the "
+            f"{bad.numel()} quad(s) of the cage are not valid{where} (Thiery et al. 2018, Definition 1: the "
             f"projection of a quad onto the planes of its corner triangles must be convex), e.g. quads "
             f"{shown} (indices into cage.quads)"
         )
