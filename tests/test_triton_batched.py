@@ -162,15 +162,21 @@ def test_blocks_and_cages_in_one_grid() -> None:
         _mvc3d.mvc3d_triton(torch.zeros(3, 5, 3, dtype=D64, device=DEVICE), tables)
 
 
-def test_thin_faces_in_a_batch_are_redone_by_the_torch_kernel() -> None:
-    """The sliver cube and a stretched copy: points that see the sliver from a few widths are
-    flagged by the kernel and redone, per cage, by the torch kernel's swept form, as one cage."""
+def _sliver_batch() -> tuple[torchcage.Cage, torch.Tensor]:
+    """The sliver cube and a stretched copy (a batch of two, on the device), and 26 points shared by
+    both: inside the box, and just outside six of its vertices (some see the sliver from a few widths)."""
     one = sliver_cube()
     V = torch.stack([one.vertices, one.vertices * torch.tensor([1.0, 1.5, 0.8], dtype=D64)])
     cage = torchcage.Cage(V.to(DEVICE), one.triangles.to(DEVICE))
     g = torch.Generator().manual_seed(0)
     x = (torch.rand(20, 3, generator=g, dtype=D64) - 0.5) * 1.6 * one.vertices.abs().amax()
-    x = torch.cat([x, one.vertices[:6] * 1.001]).to(DEVICE)
+    return cage, torch.cat([x, one.vertices[:6] * 1.001]).to(DEVICE)
+
+
+def test_thin_faces_in_a_batch_are_redone_by_the_torch_kernel() -> None:
+    """The sliver cube and a stretched copy: points that see the sliver from a few widths are
+    flagged by the kernel and redone, per cage, by the torch kernel's swept form, as one cage."""
+    cage, x = _sliver_batch()
     tables = _mvc3d.batch_tables(cage.vertices, cage.triangles, torch.full((2,), 1e-13, dtype=D64))
     assert int((_mvc3d.mvc3d_triton(x[None], tables)[1] == 2).sum()) > 0
     out = F.mean_value_coordinates(x, cage, backend="triton")
@@ -249,12 +255,7 @@ def test_batched_green_far_points_and_thin_faces() -> None:
         ref = F.green_coordinates(x, cage[b], backend="triton")
         _assert_close(phi[b], ref[0])
         _assert_close(psi[b], ref[1])
-    one = sliver_cube()
-    V = torch.stack([one.vertices, one.vertices * torch.tensor([1.0, 1.5, 0.8], dtype=D64)])
-    cage = torchcage.Cage(V.to(DEVICE), one.triangles.to(DEVICE))
-    g = torch.Generator().manual_seed(0)
-    x = (torch.rand(20, 3, generator=g, dtype=D64) - 0.5) * 1.6 * one.vertices.abs().amax()
-    x = torch.cat([x, one.vertices[:6] * 1.001]).to(DEVICE)
+    cage, x = _sliver_batch()
     tables = _gc3d.batch_tables(cage.vertices, cage.triangles, torch.full((2,), 1e-13, dtype=D64))
     assert int((_gc3d.gc3d_triton(x[None], tables)[2] == 2).sum()) > 0  # (the kernel flags some)
     phi, psi = F.green_coordinates(x, cage, backend="triton")

@@ -84,6 +84,31 @@ def triangle_green_data(cage: Cage, dtype: torch.dtype) -> TriangleGreenData:
     )
 
 
+def batch_face_tables(
+    vertices: torch.Tensor, tri: torch.Tensor
+) -> tuple[tuple[torch.Tensor, ...], torch.Tensor, tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """The per-face tables of a batch of cages with one topology, by one set of tensor operations
+    (element by element those of :func:`triangle_green_data`): the native and Triton kernels'
+    batched tables start from them.
+
+    Args:
+        vertices: ``(B, V, 3)`` vertices (centred), in the compute dtype.
+        tri: ``(T, 3)`` the shared triangles, on the vertices' device.
+
+    Returns:
+        ``((normal, two_area, edge_dir, edge_out, grad_bary), longest, far)``: each ``(B, T, ...)``,
+        the longest edges ``(B, T)`` and the far-field rule ``(nodes (B, T, Q, 3), weights (B, T,
+        Q), bary (Q, 3))``.
+    """
+    p = vertices[:, tri]  # (B, T, 3, 3)
+    cross = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
+    two_area = cross.norm(dim=-1)  # (as triangle_geometry)
+    _, _, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
+    longest = (p.roll(-1, dims=-2) - p).norm(dim=-1).amax(dim=-1)  # (as triangle_green_data)
+    geometry = (cross / two_area[..., None], two_area, edge_dir, edge_out, grad_bary)
+    return geometry, longest, far_nodes(p, two_area)
+
+
 def triangle_green_geometry(p: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """``(normal (..., 3), two_area (...), edge_dir, edge_out, grad_bary (..., 3, 3))`` of triangles
     with corners ``p`` ``(..., 3, 3)``: unit normal, twice the area, and for the edge opposite each

@@ -10,8 +10,8 @@ import torch
 
 from torchcage._core.common import unique_face_edges
 from torchcage.backends import native as _native
-from torchcage.families.green.far_triangle import FAR_RATIO, far_nodes
-from torchcage.families.green.kernel3d import TriangleGreenData, triangle_green_geometry
+from torchcage.families.green.far_triangle import FAR_RATIO
+from torchcage.families.green.kernel3d import TriangleGreenData, batch_face_tables, triangle_green_geometry
 
 __all__ = [
     "batch_chunk",
@@ -83,14 +83,7 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
     ``(B, V, 3)`` float64 (centred), ``tri`` ``(T, 3)``, ``tol`` ``(B,)`` the on-cage tolerances.
     Element by element the tables :func:`native_tables` builds for one cage (the same operations,
     over a leading batch axis)."""
-    p = vertices[:, tri]  # (B, T, 3, 3)
-    cross = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
-    two_area = cross.norm(dim=-1)  # (as triangle_geometry)
-    normal = cross / two_area[..., None]
-    _, _, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
-    longest = (p.roll(-1, dims=-2) - p).norm(dim=-1).amax(dim=-1)  # (as triangle_green_data)
-    far = far_nodes(p, two_area)
-    return _batch_arguments(vertices, tri, tol, (normal, two_area, edge_dir, edge_out, grad_bary), longest, far)
+    return _batch_arguments(vertices, tri, tol, *batch_face_tables(vertices, tri))
 
 
 def batch_subset_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:

@@ -26,12 +26,12 @@ import triton.language as tl
 from torchcage._core.thin_triangle import THIN_ASPECT, THIN_DISTANCE
 from torchcage.backends.triton import interpreted, point_batch, warps
 from torchcage.backends.triton.common import atan2, log
-from torchcage.families.green.far_triangle import FAR_RATIO, far_nodes
+from torchcage.families.green.far_triangle import FAR_RATIO
 from torchcage.families.green.kernel3d import (
     PERPENDICULAR_PLANE_RATIO,
     PERPENDICULAR_VERTEX_RATIO,
     TriangleGreenData,
-    triangle_green_geometry,
+    batch_face_tables,
 )
 from torchcage.families.mean_value.triton.mvc3d import _thin_pair
 
@@ -327,13 +327,7 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
         tol: ``(B,)`` absolute on-cage tolerances.
     """
     tri = tri.to(vertices.device)
-    p = vertices[:, tri]  # (B, T, 3, 3)
-    cross = torch.linalg.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], dim=-1)
-    two_area = cross.norm(dim=-1)  # (as triangle_geometry)
-    _, _, edge_dir, edge_out, grad_bary = triangle_green_geometry(p)
-    longest = (p.roll(-1, dims=-2) - p).norm(dim=-1).amax(dim=-1)  # (as triangle_green_data)
-    geometry = (cross / two_area[..., None], two_area, edge_dir, edge_out, grad_bary)
-    return _arguments(vertices, tri, tol, geometry, longest, far_nodes(p, two_area))
+    return _arguments(vertices, tri, tol, *batch_face_tables(vertices, tri))
 
 
 def _arguments(
