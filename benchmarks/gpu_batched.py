@@ -95,7 +95,8 @@ def main() -> None:
         return best, out
 
     print(
-        f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages, float32 inputs, "
+        f"B = {args.batch} cages x N = {args.points} points, 42-vertex / 80-triangle cages (2D: 32-gons), "
+        "float32 inputs, "
         f"{torch.cuda.get_device_name() if device == 'cuda' else 'CPU (interpreter)'}, best of {args.repeat}\n"
     )
     with torch.no_grad():

@@ -273,9 +273,17 @@ def test_invalid_quads_name_the_batch_element():
         with pytest.raises(torchcage.CageError, match=r"not valid in batch element \(2,\) \(Thiery"):
             fn(x, cage._like(V))
     V[3] = V[2]
-    with pytest.raises(torchcage.CageError, match=r"not valid in batch element \(2,\) and 1 other element\(s\)"):
+    V[3, q[3]] = V[3, q[1]] + 0.1 * (V[3, q[1]] - V[3, q[3]])  # (element 3: two quads fold)
+    with pytest.raises(torchcage.CageError, match=r"not valid in batch element \(2,\) \(and some in 1 other") as err:
         F.quad_mean_value_coordinates(x, cage._like(V))
-    with pytest.warns(UserWarning, match=r"in batch element \(1, 0\) and 1 other element"):
+    own = cage[2]._like(V[2]).invalid_quads().tolist()  # (the count and the examples are element 2's own)
+    assert str(err.value).startswith(f"{len(own)} quad(s)") and f"e.g. quads {own}" in str(err.value)
+    for backend in ("torch", "auto"):  # the per-element paths too (the torch kernel; a graph)
+        pts = x if backend == "torch" else x.clone().requires_grad_()
+        for fn in (F.quad_mean_value_coordinates, F.quad_green_coordinates):
+            with pytest.raises(torchcage.CageError, match=r"not valid in batch element \(2,\)"):
+                fn(pts, cage._like(V), backend=backend)
+    with pytest.warns(UserWarning, match=r"in batch element \(1, 0\) \(and some in 1 other"):
         F.quad_mean_value_coordinates(x, cage._like(V.reshape(2, 2, *V.shape[1:])), allow_invalid=True)
     with pytest.raises(torchcage.CageError, match=r"quad\(s\) of the cage are not valid \(Thiery"):
         F.quad_mean_value_coordinates(x, cage[2]._like(V[2]))  # (one cage: no element to name)

@@ -45,22 +45,25 @@ def warps(block: int) -> int:
     return max(1, min(4, block // 32))
 
 
-def point_batch(x: torch.Tensor, cages: int, kernel: str, what: str = "cages") -> tuple[torch.Tensor, bool]:
+def point_batch(
+    x: torch.Tensor, cages: int, kernel: str, what: str = "cages", dim: int = 3
+) -> tuple[torch.Tensor, bool]:
     """A Triton wrapper's points ``x`` as ``(XB, n, D)`` contiguous, and whether they came batched:
     ``(n, D)`` for tables of one cage, or ``(XB, n, D)`` with ``XB`` 1 (shared) or ``cages``.
 
     Raises:
-        ValueError: points whose batch is neither 1 nor ``cages`` (naming ``kernel`` and ``what``).
+        ValueError: points of another shape than ``(n, dim)`` or ``(XB, n, dim)``, or whose batch
+            is neither 1 nor ``cages`` (naming ``kernel`` and ``what``).
 
     Examples:
-        >>> X, batched = point_batch(torch.zeros(5, 2), 1, "k")
+        >>> X, batched = point_batch(torch.zeros(5, 2), 1, "k", dim=2)
         >>> tuple(X.shape), batched
         ((1, 5, 2), False)
     """
     batched = x.dim() == 3
     X = x.contiguous() if batched else x.contiguous()[None]
-    if X.shape[0] not in (1, cages) or (not batched and cages != 1):
-        D = x.shape[-1]
+    D = dim
+    if x.dim() not in (2, 3) or x.shape[-1] != dim or X.shape[0] not in (1, cages) or (not batched and cages != 1):
         raise ValueError(
             f"{kernel}: points of shape {tuple(x.shape)} for tables of {cages} {what}: give (1 or {cages}, n, {D})"
             + (f" or (n, {D})" if cages == 1 else "")

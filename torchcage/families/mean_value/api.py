@@ -53,8 +53,8 @@ def mean_value_coordinates(
             Or a batch of cages ``(*B, V, D)`` with one topology: then ``points`` are
             ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
             (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
-            Without an autograd graph, the whole batch is one native kernel call (CPU: triangle
-            cages and polygons) or one Triton launch (CUDA: triangle cages) per chunk of points;
+            Without an autograd graph, the whole batch is one native kernel call (CPU) or one
+            Triton launch (CUDA), triangle cages and polygons, per chunk of points;
             with a graph, a batch of triangle cages takes one native call forward and one
             backward (CPU); elsewhere, one call per element.
         chunk_size: points per chunk; peak memory grows with ``chunk_size x faces``. Default: about
@@ -106,8 +106,8 @@ def mean_value_coordinates(
         return lam
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
-        # One native call / Triton launch for the whole batch (a triangle cage, or without an
-        # autograd graph a polygon on the CPU; with a graph, the native kernels forward and
+        # One native call / Triton launch for the whole batch (triangle cages and polygons without
+        # an autograd graph; with a graph, triangle cages on the native kernels forward and
         # backward) ...
         if records_graph(points, cage.vertices):
             lam = _batch_with_graph(points, cage, chunk_size, dtype, progress, backend)

@@ -26,7 +26,7 @@ from torchcage.errors import warn_outside
 from torchcage.families.green.kernel3d import triangle_green_geometry, triangle_integrals
 from torchcage.families.quad_green.kernel import QuadGreenData, qgc3d_chunk, quad_green_data
 from torchcage.families.quad_green.native import native_coordinates
-from torchcage.families.quad_mean_value.api import check_tol, prepare_quad_call, quad_batch_call
+from torchcage.families.quad_mean_value.api import check_quads, check_tol, prepare_quad_call, quad_batch_call
 
 __all__ = ["quad_green_coordinates"]
 
@@ -257,7 +257,10 @@ def quad_green_coordinates(
             phi, psi = out
             warn_outside(phi.detach().sum(dim=-1).reshape(-1), "quad Green coordinates")
             return phi, psi
-        # (the torch kernel, graphs, torch.func transforms: one call per element)
+        # (the torch kernel, graphs, torch.func transforms: one call per element, invalid quads
+        # refused first for the batch, naming the element)
+        if not allow_invalid:
+            check_quads(cage, False, "quad Green coordinates")
         return over_cage_batch(
             quad_green_coordinates,
             points,

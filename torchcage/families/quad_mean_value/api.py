@@ -54,17 +54,18 @@ def check_quads(cage: Cage, allow_invalid: bool, what: str = "quad mean value co
         raise CageError(f"{what} need a 3D cage; use {other} for polygons")
     bad = cage.invalid_quads()
     if bad.numel():
-        shown = bad[:10].tolist()
         where = ""
-        if cage.is_batched:  # (the elements that hold them: the first named, the others counted)
-            mask = cage._invalid_quad_mask().reshape(-1, cage.quads.shape[0]).any(dim=1)
-            first = torch.nonzero(mask).flatten()
-            more = int(mask.sum()) - 1
-            where = _batch_name(first[0], cage.batch_shape) + (f" and {more} other element(s)" if more else "")
+        if cage.is_batched:  # (the first element that holds some, its quads; the others counted)
+            mask = cage._invalid_quad_mask().reshape(-1, cage.quads.shape[0])  # (B, Q)
+            elements = torch.nonzero(mask.any(dim=1)).flatten()
+            bad = torch.nonzero(mask[elements[0]]).flatten()
+            more = elements.numel() - 1
+            where = _batch_name(elements[0], cage.batch_shape)
+            where += f" (and some in {more} other element(s))" if more else ""
         msg = (
             f"{bad.numel()} quad(s) of the cage are not valid{where} (Thiery et al. 2018, Definition 1: the "
             f"projection of a quad onto the planes of its corner triangles must be convex), e.g. quads "
-            f"{shown} (indices into cage.quads)"
+            f"{bad[:10].tolist()} (indices into cage.quads)"
         )
         if not allow_invalid:
             raise CageError(msg + "; fix the cage, split these quads, or pass allow_invalid=True to proceed")
@@ -223,7 +224,10 @@ def quad_mean_value_coordinates(
         lam = _native_batch(points, cage, n, chunk_size, dtype, progress, backend, allow_invalid, tol)
         if lam is not None:
             return lam
-        # (the torch and Triton kernels, graphs, torch.func transforms: one call per element)
+        # (the torch and Triton kernels, graphs, torch.func transforms: one call per element,
+        # invalid quads refused first for the batch, naming the element)
+        if not allow_invalid:
+            check_quads(cage, False)
         return over_cage_batch(
             quad_mean_value_coordinates,
             points,

@@ -139,7 +139,7 @@ def mvc2d_triton(
         ValueError: points whose batch is neither 1 nor the polygons'.
     """
     B = tables["P"].shape[0]  # type: ignore[attr-defined]
-    X, batched = point_batch(x, B, "mvc2d_triton", "polygons")
+    X, batched = point_batch(x, B, "mvc2d_triton", "polygons", dim=2)
     XB, n = X.shape[0], X.shape[1]
     if block is None:
         block = min(4096, triton.next_power_of_2(max(n, 16))) if interpreted() else 128
