@@ -261,9 +261,29 @@ def test_batched_quad_families_broadcast_the_points_batch(dtype):
                     assert_same_to_rounding(o[i, j], r)
 
 
+def _folded(cage: torchcage.Cage, elements: tuple[int, ...]) -> torch.Tensor:
+    """The vertices of ``cage`` with its first quad folded over in ``elements``."""
+    q = cage.quads[0]
+    V = cage.vertices.clone()
+    for b in elements:
+        V[b, q[2]] = V[b, q[0]] + 0.1 * (V[b, q[0]] - V[b, q[2]])
+    return V
+
+
+@pytest.mark.native
+def test_allowed_invalid_quads_warn_naming_the_batch_element():
+    """With ``allow_invalid=True`` the batched native call warns once, naming the first element
+    that holds invalid quads (the per-element paths warn once per element)."""
+    cage = _batch(triquad(), 4)
+    V = _folded(cage, (2, 3))
+    x = torch.zeros(3, 3, dtype=D64)
+    with pytest.warns(UserWarning, match=r"in batch element \(1, 0\) \(and some in 1 other"):
+        F.quad_mean_value_coordinates(x, cage._like(V.reshape(2, 2, *V.shape[1:])), allow_invalid=True)
+
+
 def test_invalid_quads_name_the_batch_element():
-    """A quad that folds over in some elements of a batch: the error (and, when allowed, the
-    warning) names the first such element and counts the others, for both quad families."""
+    """A quad that folds over in some elements of a batch: the error names the first such element,
+    with its own quads, and counts the others, for both quad families and every path."""
     cage = _batch(triquad(), 4)
     q = cage.quads[0]
     V = cage.vertices.clone()
@@ -283,7 +303,5 @@ def test_invalid_quads_name_the_batch_element():
         for fn in (F.quad_mean_value_coordinates, F.quad_green_coordinates):
             with pytest.raises(torchcage.CageError, match=r"not valid in batch element \(2,\)"):
                 fn(pts, cage._like(V), backend=backend)
-    with pytest.warns(UserWarning, match=r"in batch element \(1, 0\) \(and some in 1 other"):
-        F.quad_mean_value_coordinates(x, cage._like(V.reshape(2, 2, *V.shape[1:])), allow_invalid=True)
     with pytest.raises(torchcage.CageError, match=r"quad\(s\) of the cage are not valid \(Thiery"):
         F.quad_mean_value_coordinates(x, cage[2]._like(V[2]))  # (one cage: no element to name)

@@ -316,10 +316,10 @@ def _native_derivatives_batch(
         return None
     pts, verts, batch = inputs
     D = cage.dim
+    check_finite_batch(pts, batch)  # (naming the element on every CPU path, the loop's too)
     lib = select(MVC_DERIVATIVES, backend, pts.new_empty((0, D), dtype=torch.float64), graph=False).lib
     if lib is None:
         return None
-    check_finite_batch(pts, batch)
     tols = on_cage_tolerances(verts)  # (the uncentred cages', as the single-cage call's)
     x, v = centred_batch(pts.detach(), verts.detach(), torch.float64)  # (each relative to its centre)
     if D == 2:
