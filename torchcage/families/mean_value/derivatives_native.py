@@ -14,6 +14,7 @@ from torchcage._core.common import collapsed_gauss, on_cage_tolerance, unique_fa
 from torchcage.backends import native as _native
 from torchcage.cage import Cage
 from torchcage.errors import CageError
+from torchcage.families.mean_value import native2d
 
 __all__ = ["DERIVATIVE_FAR_FIELD_ORDER", "DERIVATIVE_FAR_FIELD_RATIO", "DERIVATIVE_SPLIT_FORM_RATIO", "G_ORDER",
            "batch_tables", "native_chunk", "native_tables", "one_cage", "polygon_tables"]  # fmt: skip
@@ -120,10 +121,9 @@ def polygon_tables(vertices: torch.Tensor, edges: torch.Tensor, tol: torch.Tenso
         >>> t["B"], t["V"], t["NE"]
         (2, 4, 4)
     """
-    P = vertices.detach().to("cpu", torch.float64).contiguous()
-    e = edges.to("cpu", torch.int32).contiguous()
-    tol = tol.to("cpu", torch.float64).contiguous()
-    return {"B": P.shape[0], "P": P, "V": P.shape[1], "edges": e, "NE": e.shape[0], "tol": tol}
+    tables = native2d.batch_tables(vertices, edges, tol)  # (the same arguments as tc_mvc2d's ...)
+    tables["NE"] = tables.pop("E")  # (... but for the edge count's name)
+    return tables
 
 
 #: The keys of :func:`batch_tables` that carry the batch axis.
