@@ -76,3 +76,132 @@ def test_triton_without_a_device_says_why() -> None:
         if "triton" in fam.backends:
             with pytest.raises(RuntimeError, match=r"[Tt]riton"):
                 _call(fam.function(), x, _cage(fam), "triton")
+
+
+# ------------------------------------------------------------------ the backend in force: use()
+@pytest.fixture
+def fresh_dynamo():
+    torch._dynamo.reset()
+    yield
+    torch._dynamo.reset()
+
+
+def _tuple(out) -> tuple:
+    return out if isinstance(out, tuple) else (out,)
+
+
+def _points() -> torch.Tensor:
+    return torch.tensor([[0.1, 0.2, -0.3], [0.5, -0.4, 0.2]], dtype=D64)
+
+
+@pytest.mark.parametrize("fam", CLOSED, ids=lambda f: f.short)
+def test_use_is_the_backend_of_auto_calls(fam, monkeypatch) -> None:
+    """Inside ``use(b)`` a call that leaves ``backend="auto"`` runs as ``backend=b`` (the native loader
+    is never reached under ``use("torch")``; a backend the family lacks gets its one error text,
+    naming the block); a call that names its backend keeps it; the block restores the one before."""
+    cage, fn, x = _cage(fam), fam.function(), _points()
+    ref = _call(fn, x, cage, "torch")
+    with monkeypatch.context() as m:
+        m.setattr(torchcage.backends.native, "library", lambda: (_ for _ in ()).throw(AssertionError("native")))
+        with torchcage.backends.use("torch"):
+            out = _call(fn, x, cage, "auto")
+        with pytest.raises(AssertionError, match="native"):  # (outside the block: auto asks for it)
+            _call(fn, x, cage, "auto")
+    for a, b in zip(out, ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    missing = [b for b in BACKENDS if b not in ("auto", *fam.backends)]
+    for backend in missing:
+        with torchcage.backends.use(backend):
+            with pytest.raises(ValueError, match=rf"got '{backend}' \(the backend in force: torchcage.backends.use\)"):
+                _call(fn, x, cage, "auto")
+            for a, b in zip(_call(fn, x, cage, "torch"), ref, strict=True):  # the call's own backend wins
+                torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert torchcage.backends.preferred() == "auto"
+
+
+def test_use_nests_restores_and_refuses_unknown_values() -> None:
+    use, preferred = torchcage.backends.use, torchcage.backends.preferred
+    with use("torch"):
+        with use("native"):
+            assert preferred() == "native"
+        assert preferred() == "torch"
+        with pytest.raises(RuntimeError, match="boom"), use("triton"):
+            raise RuntimeError("boom")
+        assert preferred() == "torch"
+    assert preferred() == "auto"
+    for bad in ("cuda", "", "Torch"):
+        with pytest.raises(ValueError, match="backend must be one of 'auto', 'native', 'torch', 'triton'"):
+            with use(bad):
+                pass
+
+
+def test_use_is_per_thread() -> None:
+    import threading
+
+    seen = []
+    with torchcage.backends.use("torch"):
+        t = threading.Thread(target=lambda: seen.append(torchcage.backends.preferred()))
+        t.start()
+        t.join()
+        assert torchcage.backends.preferred() == "torch"
+    assert seen == ["auto"]
+
+
+def test_registered_ops_carry_no_backend() -> None:
+    """No torchcage op's schema has a backend argument (or any string): the tensors' device and the
+    backend in force choose the kernel."""
+    names = [f.op for f in FAMILIES if f.op] + [f"{f.op}_backward" for f in FAMILIES if f.op]
+    names += ["mean_value_coordinates", "mean_value_derivatives"]
+    assert len(names) >= 10
+    for name in names:
+        schema = getattr(torch.ops.torchcage, name).default._schema
+        kinds = {a.name: str(a.type) for a in schema.arguments}
+        assert "backend" not in kinds and "str" not in kinds.values(), (name, kinds)
+
+
+@pytest.mark.parametrize("fam", CLOSED, ids=lambda f: f.short)
+def test_vmap_takes_the_calls_backend(fam, monkeypatch) -> None:
+    """Under ``torch.func.vmap`` (the families' registered ops, or for mean value coordinates the
+    autograd Function's op) a call's ``backend="torch"`` reaches the kernel choice without a string
+    in any schema: the native loader is never reached (mean value coordinates: the Function's op
+    computes the values with the torch kernel; its derivatives stay analytic where they can)."""
+    cage, fn = _cage(fam), fam.function()
+    X = torch.stack([_points(), 0.5 * _points()])
+    if fam.short == "mvc" and not torchcage.backends.native.available():
+        pytest.skip("vmap of mean value coordinates without the native kernel: the torch kernel branches on the data")
+    if fam.short == "mvc":
+        from torchcage.families.mean_value import ops
+
+        seen, flat = [], ops.coordinates_flat
+        monkeypatch.setattr(ops, "coordinates_flat", lambda *a: seen.append(a[-1]) or flat(*a))
+    else:
+        monkeypatch.setattr(torchcage.backends.native, "library", lambda: (_ for _ in ()).throw(AssertionError()))
+    out = torch.func.vmap(lambda y: _call(fn, y, cage, "torch"))(X)
+    monkeypatch.undo()
+    assert fam.short != "mvc" or seen == ["torch"]
+    for b in range(2):
+        for a, r in zip(out, _call(fn, X[b], cage, "torch"), strict=True):
+            torch.testing.assert_close(a[b], r, rtol=0, atol=1e-14)
+
+
+@pytest.mark.filterwarnings("ignore:Dynamo does not know how to trace")
+@pytest.mark.parametrize("fam", CLOSED, ids=lambda f: f.short)
+def test_compiled_calls_take_the_backend_in_force_when_they_run(fam, monkeypatch, fresh_dynamo) -> None:
+    """A compiled call's op reads the backend in force when the graph runs, not when it was traced:
+    compiled (and run once) outside any block, then run inside ``use("torch")``, it never reaches
+    the native loader, and gives the torch kernel's numbers; a ``backend=`` inside the compiled
+    function is refused with that advice."""
+    cage, fn, x = _cage(fam), fam.function(), _points()
+    compiled = torch.compile(lambda y: _tuple(fn(y, cage)), fullgraph=True, backend="eager")
+    compiled(x)
+    with monkeypatch.context() as m:
+        m.setattr(torchcage.backends.native, "library", lambda: (_ for _ in ()).throw(AssertionError("native")))
+        with torchcage.backends.use("torch"):
+            out = compiled(x)
+        with pytest.raises(AssertionError, match="native"):
+            compiled(x)
+    for a, b in zip(out, _call(fn, x, cage, "torch"), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    named = torch.compile(lambda y: _tuple(fn(y, cage, backend="torch")), fullgraph=True, backend="eager")
+    with pytest.raises(Exception, match=r"torchcage.backends.use\('torch'\)"):
+        named(x)

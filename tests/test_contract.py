@@ -487,7 +487,7 @@ def _op_arguments(case: Case) -> tuple:
     """The arguments of a family's registered op (``torchcage._core.compiled.CompiledOp``)."""
     c = case.cage
     n, tol = case.options.get("n", 0), case.options.get("tol", -1.0)
-    return (case.points, c.vertices, c.triangles, c.quads, c.edges, 0, "auto", n, tol)
+    return (case.points, c.vertices, c.triangles, c.quads, c.edges, 0, n, tol)
 
 
 @pytest.mark.parametrize(

@@ -4,9 +4,15 @@ Dynamo cannot trace the public functions' checks (data-dependent branches, ``.it
 native calls or the analytic backward passes. Under compilation a family's public function calls
 instead ``torchcage::<name>``: the whole eager function (checks, centring, the kernel chosen by
 :func:`torchcage.backends.select`, the far field) run as one custom op, differentiated through
-``torchcage::<name>_vjp`` (the eager backward, whatever it is for that family: analytic gradients,
-fused vertex passes, autograd of the torch kernel). Both have fake implementations, so the compiled
-graph knows their shapes; neither is traced into.
+``torchcage::<name>_backward`` (the eager backward, whatever it is for that family: analytic
+gradients, fused vertex passes, autograd of the torch kernel). Both have fake implementations, so
+the compiled graph knows their shapes; neither is traced into.
+
+No backend is in their schemas: the tensors' device picks the kernel, through
+:func:`torchcage.backends.select`, and the user's choice is the backend in force when the op runs
+(:func:`torchcage.backends.use` around the compiled call). A ``backend=`` other than ``"auto"``
+inside a compiled function cannot reach the op, and is refused with that advice (a compiled graph
+replays its ops, not the Python that set a preference while it was traced).
 
 What compiles: values and first derivatives with respect to the points and the cage's vertices,
 batched cages included. Not under compilation: double backward and ``torch.func`` transforms (eager
@@ -24,6 +30,9 @@ Examples:
     >>> f = torch.compile(lambda y: F.mean_value_coordinates(y, cube), fullgraph=True, backend="eager")
     >>> torch.allclose(f(x), F.mean_value_coordinates(x, cube))
     True
+    >>> with torchcage.backends.use("torch"):  # (the backend of the compiled call's op)
+    ...     torch.allclose(f(x), F.mean_value_coordinates(x, cube))
+    True
     >>> torch._dynamo.reset()  # (the compiled code's caches, before the doctest's globals go)
 """
 
@@ -37,6 +46,7 @@ from typing import List  # noqa: UP035 (torch 2.5 infers op schemas from typing.
 import torch
 from torch import Tensor
 
+from torchcage.backends import Op, check, preferred, resolve, use
 from torchcage.cage import Cage
 
 __all__ = ["CompiledOp", "through_op"]
@@ -132,23 +142,26 @@ def _lead(points: Tensor, vertices: Tensor) -> list[int]:
 
 
 class CompiledOp:
-    """The pair of opaque ops of one family (``torchcage::<name>`` and ``torchcage::<name>_vjp``).
+    """The pair of opaque ops of one family (``torchcage::<name>`` and
+    ``torchcage::<name>_backward``).
 
     Their schemas are a compatibility surface: ``torch.compile``'s on-disk caches keep compiled
-    backward graphs that call ``torchcage::<name>_vjp`` with these arguments, found again by the
-    forward graph (which does not show the VJP op's schema). A changed argument list breaks every
+    backward graphs that call the backward op with these arguments, found again by the forward
+    graph (which does not show the backward op's schema). A changed argument list breaks every
     graph an earlier version cached (seen: a cached backward called the op without two arguments
-    added since); give a changed op a new name instead.
+    added since); give a changed op a new name instead (the backward ops were ``<name>_vjp`` while
+    their schemas carried a backend string).
 
     Args:
         name: the op's name in the ``torchcage`` namespace.
         eager: the family's eager public function, as ``eager(points, cage, options)`` returning
             a tuple of outputs.
         widths: the last dimension of each output for a cage.
+        op: the family's operation (the ``backend=`` values it accepts: one error text).
     """
 
-    def __init__(self, name: str, eager: Eager, widths: Widths) -> None:
-        self.name, self.eager, self.widths = name, eager, widths
+    def __init__(self, name: str, eager: Eager, widths: Widths, op: Op) -> None:
+        self.name, self.eager, self.widths, self.op = name, eager, widths, op
         outer = self
 
         @torch.library.custom_op(f"torchcage::{name}", mutates_args=())
@@ -159,21 +172,20 @@ class CompiledOp:
             quads: Tensor,
             edges: Tensor,
             chunk_size: int,
-            backend: str,
             n: int,
             tol: float,
         ) -> List[Tensor]:  # noqa: UP006 (torch 2.5's infer_schema reads typing.List)
             with torch.no_grad():
                 cage = _cage(vertices, triangles, quads, edges)
-                return [o.clone() for o in outer.eager(points, cage, outer._options(chunk_size, backend, n, tol))]
+                return [o.clone() for o in outer.eager(points, cage, outer._options(chunk_size, n, tol))]
 
         @values.register_fake
-        def _(points, vertices, triangles, quads, edges, chunk_size, backend, n, tol):
+        def _(points, vertices, triangles, quads, edges, chunk_size, n, tol):
             dtype = torch.promote_types(points.dtype, vertices.dtype)
             lead = _lead(points, vertices)
             return [points.new_empty([*lead, k], dtype=dtype) for k in outer.widths(vertices, triangles, quads, edges)]
 
-        @torch.library.custom_op(f"torchcage::{name}_vjp", mutates_args=())
+        @torch.library.custom_op(f"torchcage::{name}_backward", mutates_args=())
         def vjp(
             points: Tensor,
             vertices: Tensor,
@@ -182,11 +194,10 @@ class CompiledOp:
             edges: Tensor,
             grads: List[Tensor],  # noqa: UP006
             chunk_size: int,
-            backend: str,
             n: int,
             tol: float,
         ) -> List[Tensor]:  # noqa: UP006 (the two gradients)
-            options = outer._options(chunk_size, backend, n, tol)
+            options = outer._options(chunk_size, n, tol)
 
             def run() -> tuple[Tensor | None, Tensor | None]:
                 x = points.detach().requires_grad_()
@@ -206,7 +217,7 @@ class CompiledOp:
             return [gx, gP]
 
         @vjp.register_fake
-        def _(points, vertices, triangles, quads, edges, grads, chunk_size, backend, n, tol):
+        def _(points, vertices, triangles, quads, edges, grads, chunk_size, n, tol):
             return [torch.empty_like(points), torch.empty_like(vertices)]
 
         def setup(ctx, inputs, output) -> None:
@@ -223,27 +234,28 @@ class CompiledOp:
             points, vertices, triangles, quads, edges = ctx.saved_tensors
             grads = [g if g is not None else torch.zeros(()) for g in grads]
             gx, gP = vjp(points, vertices, triangles, quads, edges, list(grads), *ctx.options)
-            return gx, gP, None, None, None, None, None, None, None
+            return gx, gP, None, None, None, None, None, None
 
         values.register_autograd(backward, setup_context=setup)
 
-        def values_vmap(info, in_dims, points, vertices, triangles, quads, edges, chunk_size, backend, n, tol):
+        def values_vmap(info, in_dims, points, vertices, triangles, quads, edges, chunk_size, n, tol):
             if any(d is not None for d in in_dims[2:5]):
                 raise ValueError(
                     f"torchcage::{name}: vmap over the cage's faces is not supported (one topology for every "
                     "call); map over the points or the vertices"
                 )
             p, v, back = _vmap_inputs(points, vertices, in_dims[0], in_dims[1])
-            outs = values(p, v, triangles, quads, edges, chunk_size, backend, n, tol)
+            outs = values(p, v, triangles, quads, edges, chunk_size, n, tol)
             return [back(o) for o in outs], [0] * len(outs)
 
         values.register_vmap(values_vmap)
         self.values, self.vjp = values, vjp
 
     @staticmethod
-    def _options(chunk_size: int, backend: str, n: int, tol: float) -> dict:
-        """The public function's keyword options (0 and -1 stand for "not given")."""
-        options: dict = {"chunk_size": chunk_size or None, "backend": backend}
+    def _options(chunk_size: int, n: int, tol: float) -> dict:
+        """The public function's keyword options (0 and -1 stand for "not given"), with the backend
+        in force where the op runs."""
+        options: dict = {"chunk_size": chunk_size or None, "backend": preferred()}
         if n > 0:
             options["n"] = n
         if tol >= 0:
@@ -260,12 +272,16 @@ class CompiledOp:
         tol: float | None = None,
         dtype: torch.dtype | None = None,
     ) -> list[Tensor]:
-        """The outputs, through the op (under ``torch.compile``), in ``dtype`` when given. The
-        options are checked as the eager function checks them (the op's sentinels 0 and -1 must
-        not turn a wrong value into the default).
+        """The outputs, through the op (under ``torch.compile``, or ``torch.func.vmap``), in
+        ``dtype`` when given. The options are checked as the eager function checks them (the op's
+        sentinels 0 and -1 must not turn a wrong value into the default). ``backend`` reaches the op
+        as the backend in force: set here for an eager call (vmap); under compilation, only
+        ``"auto"`` (the op then takes the backend in force when the compiled graph runs).
 
         Raises:
-            ValueError: ``chunk_size`` or ``n`` not a positive integer, a negative ``tol``.
+            ValueError: ``chunk_size`` or ``n`` not a positive integer, a negative ``tol``, a
+                ``backend`` the family does not have, or another backend than ``"auto"`` under
+                ``torch.compile``.
             TypeError: ``dtype`` not a floating-point dtype.
         """
         for name, value in (("chunk_size", chunk_size), ("n", n)):
@@ -275,15 +291,26 @@ class CompiledOp:
             raise ValueError(f"tol must be a nonnegative number, got {tol!r}")
         if dtype is not None and not dtype.is_floating_point:
             raise TypeError(f"dtype must be a floating-point dtype, got {dtype}")
-        outs = self.values(
+        check(self.op, backend)
+        if backend != "auto" and torch.compiler.is_compiling():
+            raise ValueError(
+                f"backend={backend!r} inside a compiled function: under torch.compile the family runs as one op "
+                f"(torchcage::{self.name}) that takes the backend in force when the compiled code runs; leave "
+                f"backend='auto' and call the compiled function inside `with torchcage.backends.use({backend!r}):`"
+            )
+        args = (
             points,
             cage.vertices,
             cage.triangles,
             cage.quads,
             cage.edges,
             chunk_size or 0,
-            backend,
             0 if n is None else int(n),
             -1.0 if tol is None else float(tol),
         )
+        if torch.compiler.is_compiling():
+            outs = self.values(*args)
+        else:
+            with use(resolve(backend)):
+                outs = self.values(*args)
         return outs if dtype is None else [o.to(dtype) for o in outs]

@@ -13,6 +13,13 @@ behave the same for every operation:
 - anything else, or a backend the op does not have: :class:`ValueError` with one text that lists
   what the op supports.
 
+A call's ``"auto"`` means the backend in force: ``"auto"`` unless a :func:`use` block sets another
+(on the thread that runs the call); each family's public functions read it once, on entry
+(:func:`resolve`), so internal helpers keep their own choice. The block is also how a compiled graph chooses: under
+``torch.compile`` a family runs as one registered op whose schema carries no backend (the device
+of the tensors picks the kernel, through :func:`select`), so a compiled call takes its backend from
+a ``with torchcage.backends.use(...)`` around it, not from its own ``backend=``.
+
 Examples:
     >>> import torch
     >>> from torchcage.backends import Op, select
@@ -28,6 +35,9 @@ Examples:
 from __future__ import annotations
 
 import ctypes
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Literal
 
@@ -38,11 +48,63 @@ from torch.autograd import forward_ad
 from torchcage.backends import native as _native
 from torchcage.backends import triton as _triton
 
-__all__ = ["BACKENDS", "Backend", "Choice", "Op", "check", "select"]
+__all__ = ["BACKENDS", "Backend", "Choice", "Op", "check", "preferred", "resolve", "select", "use"]
 
 #: Every value of ``backend=`` that some operation accepts.
 BACKENDS = ("auto", "native", "torch", "triton")
 Backend = Literal["auto", "native", "torch", "triton"]
+
+
+_preference = threading.local()
+
+
+def preferred() -> str:
+    """The backend in force on this thread: the innermost :func:`use` block's, else ``"auto"``."""
+    return getattr(_preference, "backend", "auto")
+
+
+def resolve(backend: str) -> str:
+    """A call's ``backend=`` with ``"auto"`` read as the backend in force (:func:`preferred`).
+    Under ``torch.compile``'s tracing the value is returned as it is (the registered ops read the
+    backend in force when they run, not when they are traced)."""
+    if backend != "auto" or torch.compiler.is_compiling():
+        return backend
+    return preferred()
+
+
+@contextmanager
+def use(backend: str) -> Iterator[None]:
+    """Run the calls inside with ``backend`` wherever they pass ``backend="auto"`` (the default),
+    on this thread, eager or compiled; a call that names another backend keeps its own. Blocks
+    nest; leaving one restores the backend before it. An operation that does not have the backend
+    raises the error it raises for that ``backend=``.
+
+    Args:
+        backend: ``"auto"``, ``"native"``, ``"torch"`` or ``"triton"``.
+
+    Raises:
+        ValueError: any other value.
+
+    Examples:
+        >>> import torch, torchcage
+        >>> from torchcage import functional as F
+        >>> cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+        >>> x = torch.tensor([[0.1, 0.2, -0.3]], dtype=torch.float64)
+        >>> with torchcage.backends.use("torch"):
+        ...     w = F.mean_value_coordinates(x, cube)  # the torch kernel
+        >>> torchcage.backends.preferred()
+        'auto'
+        >>> torch.allclose(w, F.mean_value_coordinates(x, cube))
+        True
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(map(repr, BACKENDS))}, got {backend!r}")
+    before = preferred()
+    _preference.backend = backend
+    try:
+        yield
+    finally:
+        _preference.backend = before
 
 
 @dataclass(frozen=True)
@@ -93,7 +155,10 @@ def check(op: Op, backend: str) -> None:
         ValueError: ``backend must be one of 'auto', ... for <op>, got <value>``.
     """
     if backend not in op.supported:
-        raise ValueError(f"backend must be one of {', '.join(map(repr, op.supported))} for {op.name}, got {backend!r}")
+        where = " (the backend in force: torchcage.backends.use)" if backend == preferred() != "auto" else ""
+        raise ValueError(
+            f"backend must be one of {', '.join(map(repr, op.supported))} for {op.name}, got {backend!r}{where}"
+        )
 
 
 def select(
@@ -108,7 +173,7 @@ def select(
 
     Args:
         op: the operation.
-        backend: the user's ``backend=``.
+        backend: the user's ``backend=``, resolved (:func:`resolve`) by the public function.
         points: the query points (their device, dtype and ``D`` decide).
         cage_vertices: the cage's vertices (whether they require grad).
         graph: whether the call records an autograd graph (default: a ``torch.func`` transform

@@ -22,10 +22,11 @@ from torchcage._core.common import (
     unit_sum,
 )
 from torchcage._core.compiled import CompiledOp, through_op
+from torchcage.backends import resolve
 from torchcage.cage import Cage
 from torchcage.families.green.batch import coordinates_batch
 from torchcage.families.green.batch2d import polygons_batch
-from torchcage.families.green.dispatch import green_flat
+from torchcage.families.green.dispatch import GC, green_flat
 from torchcage.families.green.exterior import extend_outside
 from torchcage.families.green.kernel3d import triangle_green_data
 from torchcage.families.green.ops import green_function
@@ -59,6 +60,7 @@ COMPILED = CompiledOp(
         vertices.shape[-2],
         triangles.shape[0] if vertices.shape[-1] == 3 else edges.shape[0],
     ],
+    GC,
 )
 
 
@@ -124,6 +126,7 @@ def green_coordinates(
     if through_op(points, cage) and exterior == "extend":  # one opaque op (compile, vmap: :mod:`_core.compiled`)
         phi, psi = COMPILED(points, cage, chunk_size, backend, dtype=dtype)
         return phi, psi
+    backend = resolve(backend)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         # One native call for the whole batch (a triangle cage, the CPU; with a graph, one more

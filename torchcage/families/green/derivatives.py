@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 
 from torchcage._core.common import as_inputs, check_points, result_dtype
-from torchcage.backends import check
+from torchcage.backends import check, resolve
 from torchcage.cage import Cage
 from torchcage.errors import CageError
 from torchcage.families.green.api import centred, green_coordinates
@@ -81,6 +81,7 @@ def green_derivatives(
     """
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order!r}")
+    backend = resolve(backend)
     check(GC_DERIVATIVES, backend)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:

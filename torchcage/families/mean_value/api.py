@@ -15,7 +15,7 @@ from torchcage._core.batch import check_finite_batch, native_batch_inputs, over_
 from torchcage._core.centre import centre_of, centred
 from torchcage._core.common import as_inputs, check_points, far_unity, records_graph, result_dtype
 from torchcage._core.compiled import CompiledOp
-from torchcage.backends import select
+from torchcage.backends import resolve, select
 from torchcage.cage import Cage
 from torchcage.families.mean_value.dispatch import MVC, coordinates_batch, coordinates_flat
 from torchcage.families.mean_value.kernel3d import triangle_cage_data
@@ -28,6 +28,7 @@ COMPILED = CompiledOp(
     "mvc",
     lambda points, cage, options: (mean_value_coordinates(points, cage, **options),),
     lambda vertices, triangles, quads, edges: [vertices.shape[-2]],
+    MVC,
 )
 
 
@@ -104,6 +105,7 @@ def mean_value_coordinates(
     if torch.compiler.is_compiling():  # one opaque op: the checks below are not traceable
         (lam,) = COMPILED(points, cage, chunk_size, backend, dtype=dtype)
         return lam
+    backend = resolve(backend)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         # One native call / Triton launch for the whole batch (triangle cages and polygons without

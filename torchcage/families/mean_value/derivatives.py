@@ -50,7 +50,7 @@ from torchcage._core.common import (
     on_cage_tolerances,
     triangle_geometry,
 )
-from torchcage.backends import Op, select
+from torchcage.backends import Op, resolve, select
 from torchcage.cage import Cage, _batch_name
 from torchcage.errors import PointsError
 from torchcage.families.mean_value import derivatives_native as _mvcd_native
@@ -262,6 +262,7 @@ def mean_value_derivatives(
         >>> torch.allclose(torch.einsum("nvc,vd->ncd", grad, cube.vertices), torch.eye(3, dtype=torch.float64))
         True
     """
+    backend = resolve(backend)
     points, cage = as_inputs(points, cage)
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order}")

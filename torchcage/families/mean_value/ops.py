@@ -34,6 +34,7 @@ from torchcage._core.common import (
     result_dtype,
 )
 from torchcage.backends import native as _native
+from torchcage.backends import preferred, use
 from torchcage.backends import triton as _triton
 from torchcage.cage import Cage
 from torchcage.families.mean_value.derivatives import derivatives_flat
@@ -63,17 +64,19 @@ def _torch_coordinates(points: Tensor, vertices: Tensor, faces: Tensor) -> Tenso
 
 # ----------------------------------------------------------------------------------- custom ops
 @torch.library.custom_op("torchcage::mean_value_coordinates", mutates_args=())
-def _coordinates_op(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int, backend: str) -> Tensor:
+def _coordinates_op(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int) -> Tensor:
+    """The coordinates by the kernel that :func:`torchcage.backends.select` takes for the points'
+    device and the backend in force (:func:`torchcage.backends.use`: no backend in the schema)."""
     check_finite(points)
     cage = _cage(vertices, faces)
     compute, out = result_dtype(points, cage, None)
     with torch.no_grad():
-        lam = coordinates_flat(points.to(compute), cage, chunk_size if chunk_size > 0 else None, False, backend)
+        lam = coordinates_flat(points.to(compute), cage, chunk_size if chunk_size > 0 else None, False, preferred())
     return lam.to(out)
 
 
 @_coordinates_op.register_fake
-def _(points, vertices, faces, chunk_size, backend):
+def _(points, vertices, faces, chunk_size):
     dt = torch.promote_types(points.dtype, vertices.dtype)
     return points.new_empty((points.shape[0], vertices.shape[0]), dtype=dt)
 
@@ -118,9 +121,9 @@ def _fold(points: Tensor, vertices: Tensor, pdim: int | None, vdim: int | None) 
     return x.reshape(-1, x.shape[-1]), x.shape[0]
 
 
-def _coordinates_vmap(info, in_dims, points, vertices, faces, chunk_size, backend):
+def _coordinates_vmap(info, in_dims, points, vertices, faces, chunk_size):
     x, B = _fold(points, vertices, in_dims[0], in_dims[1])
-    lam = _coordinates_op(x, vertices, faces, chunk_size, backend)
+    lam = _coordinates_op(x, vertices, faces, chunk_size)
     return lam.reshape(B, -1, lam.shape[-1]), 0
 
 
@@ -496,7 +499,8 @@ class MeanValueFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(points: Tensor, vertices: Tensor, faces: Tensor, chunk_size: int, backend: str) -> Tensor:
-        return _coordinates_op(points, vertices, faces, chunk_size, backend)
+        with use(backend):  # (the op reads it: no backend in its schema)
+            return _coordinates_op(points, vertices, faces, chunk_size)
 
     setup_context = staticmethod(_save_points_and_vertices)
 

@@ -20,7 +20,7 @@ from torchcage._core.common import (
     unit_sum,
 )
 from torchcage._core.compiled import CompiledOp, through_op
-from torchcage.backends import Op, select
+from torchcage.backends import Op, resolve, select
 from torchcage.cage import Cage
 from torchcage.errors import warn_outside
 from torchcage.families.green.kernel3d import triangle_green_geometry, triangle_integrals
@@ -173,6 +173,7 @@ COMPILED = CompiledOp(
     "qgc",
     lambda points, cage, options: tuple(quad_green_coordinates(points, cage, **options)),
     lambda vertices, triangles, quads, edges: [vertices.shape[-2], triangles.shape[0] + 4 * quads.shape[0]],
+    QGC,
 )
 
 
@@ -250,6 +251,7 @@ def quad_green_coordinates(
     if through_op(points, cage) and not allow_invalid:  # one opaque op (compile, vmap: :mod:`_core.compiled`)
         phi, psi = COMPILED(points, cage, chunk_size, backend, n, check_tol(tol), dtype=dtype)
         return phi, psi
+    backend = resolve(backend)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         out = _native_batch(points, cage, n, chunk_size, dtype, progress, backend, allow_invalid, tol)

@@ -27,7 +27,7 @@ from torchcage._core.common import (
     result_dtype,
 )
 from torchcage._core.compiled import CompiledOp, through_op
-from torchcage.backends import Op, check, select
+from torchcage.backends import Op, check, resolve, select
 from torchcage.cage import Cage, _batch_name
 from torchcage.errors import CageError, PointsError
 from torchcage.families.mean_value.kernel3d import TriangleCageData, mvc3d_chunk, triangle_data
@@ -142,6 +142,7 @@ COMPILED = CompiledOp(
     "qmvc",
     lambda points, cage, options: (quad_mean_value_coordinates(points, cage, **options),),
     lambda vertices, triangles, quads, edges: [vertices.shape[-2]],
+    QMVC,
 )
 
 
@@ -219,6 +220,7 @@ def quad_mean_value_coordinates(
     if through_op(points, cage) and not allow_invalid:  # one opaque op (compile, vmap: :mod:`_core.compiled`)
         (lam,) = COMPILED(points, cage, chunk_size, backend, n, check_tol(tol), dtype=dtype)
         return lam
+    backend = resolve(backend)
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         lam = _native_batch(points, cage, n, chunk_size, dtype, progress, backend, allow_invalid, tol)
