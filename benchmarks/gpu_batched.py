@@ -1,7 +1,7 @@
 """GPU benchmark of batched rest cages: mean value coordinates of B cages with one topology as one
 Triton launch, against the loop of single-cage calls and the dense batched torch formula; Green
-coordinates (the exterior continued) and 2D mean value coordinates of 32-gons likewise, batched
-launch against the loop.
+coordinates (the exterior continued), 2D mean value coordinates of 32-gons and their gradients and
+Hessians likewise, batched launch against the loop.
 
 The setting of ``learnable.py`` / ``batched.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each,
 a jittered 42-vertex / 80-triangle icosphere cage per shape, float32 inputs, on CUDA. Rows:
@@ -132,6 +132,22 @@ def main() -> None:
     print()
     ref2 = results["batched (float64 compute)"][1].double()
     _table("2D forward (32-gons)", results, ref2, ("loop (float64 compute)",))
+
+    def derivatives(batched: bool) -> Callable[[], torch.Tensor]:
+        def run() -> torch.Tensor:
+            fn = F.mean_value_derivatives
+            lam, grad, hess = fn(x2, polygons, 2, **f64) if batched else over_cage_batch(fn, x2, polygons, 2, **f64)
+            return torch.cat([lam[..., None], grad, hess.flatten(-2)], dim=-1).flatten(-2)
+
+        return run
+
+    results = {
+        "loop (float64 compute)": timed(derivatives(False)),
+        "batched (float64 compute)": timed(derivatives(True)),
+    }
+    print()
+    ref3 = results["batched (float64 compute)"][1].double()
+    _table("2D derivatives, order 2 (32-gons)", results, ref3, ("loop (float64 compute)",))
 
     cot = torch.randn(args.batch, args.points, 42, generator=torch.Generator().manual_seed(1)).to(device)
 

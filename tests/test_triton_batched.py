@@ -22,6 +22,7 @@ require_triton()
 from torchcage.families.green.triton import gc3d as _gc3d  # noqa: E402
 from torchcage.families.mean_value.triton import mvc2d as _mvc2d  # noqa: E402
 from torchcage.families.mean_value.triton import mvc3d as _mvc3d  # noqa: E402
+from torchcage.families.mean_value.triton import mvcd2d as _mvcd2d  # noqa: E402
 
 DEVICE = TRITON_DEVICE
 D64 = torch.float64
@@ -363,3 +364,80 @@ def test_batched_polygon_kernel_blocks_and_point_batches() -> None:
             assert torch.equal(gf, rf)
     with pytest.raises(ValueError, match="for tables of 2 polygons"):
         _mvc2d.mvc2d_triton(torch.zeros(3, 5, 2, dtype=D64, device=DEVICE), tables)
+
+
+# ------------------------------------------------------------------------- polygons: derivatives
+def _off_polygon_points(V: torch.Tensor, seed: int) -> torch.Tensor:
+    """:func:`_polygon_points` without the points on the polygon (the derivatives refuse them)."""
+    x = _polygon_points(V, seed)
+    return torch.cat([x[:6], x[12:]])
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_batched_polygon_derivatives_in_one_launch_equal_the_loop(order: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Gradients and Hessians of 2D mean value coordinates of three polygons (the last 1e3 from the
+    origin), points one set per polygon and shared: one launch per chunk for the batch
+    (``mvcd2d_triton_batch``), element by element the single-polygon Triton call, and linear
+    precision (``sum_i grad_i v_i^T = I``, ``sum_i hess_i v_i = 0``) near the polygons."""
+    V, edges = _polygons(3, shift=1e3)
+    cage = torchcage.Cage(V.to(DEVICE), edges.to(DEVICE))
+    per = torch.stack([_off_polygon_points(V[b], seed=b) for b in range(3)]).to(DEVICE)
+    launches = _Launches(monkeypatch, _mvcd2d, "mvcd2d_triton_batch")
+    for pts in (per, per[0]):
+        launches.batches.clear()
+        out = F.mean_value_derivatives(pts, cage, order, backend="triton")
+        assert launches.batches == [3]  # one launch for the whole batch
+        refs = [F.mean_value_derivatives(pts if pts.ndim == 2 else pts[b], cage[b], order, backend="triton")
+                for b in range(3)]  # fmt: skip
+        assert launches.batches == [3, 1, 1, 1]
+        for k in range(3 if order == 2 else 2):
+            _assert_close(out[k], torch.stack([r[k] for r in refs]))
+        X = (pts if pts.ndim == 3 else pts.expand(3, -1, -1)).cpu()
+        near = (X - V.mean(1, keepdim=True)).norm(dim=-1) < 10
+        Vc = V - V.mean(1, keepdim=True)  # (the identities about the centre: the derivatives sum to 0)
+        G = torch.einsum("bnvc,bvd->bncd", out[1].cpu(), Vc)
+        assert float((G - torch.eye(2, dtype=D64))[near].abs().max()) < 1e-9
+        if order == 2:
+            H = torch.einsum("bnvcd,bve->bncde", out[2].cpu(), Vc)
+            assert float(H[near].abs().max()) < 1e-8
+    assert out[2] is None if order == 1 else out[2].shape == (3, per.shape[1], 8, 2, 2)
+
+
+def test_batched_polygon_derivative_kernel_blocks_and_point_batches() -> None:
+    """The 2D derivative kernel with small blocks (two programs per polygon, the last partial)
+    against each polygon's own tables, points one set per polygon and shared, on-polygon rows
+    included (flag 1, the interpolant's derivative); a point batch that is neither 1 nor the
+    polygons' is refused."""
+    V, edges = _polygons(2, shift=5.0)
+    V, edges = V.to(DEVICE), edges.to(DEVICE)
+    x = torch.stack([_polygon_points(V[b].cpu(), seed=4 + b)[:13] for b in range(2)]).to(DEVICE)  # (2, 13, 2)
+    tol = torch.full((2,), 1e-13, dtype=D64)
+    tables = _mvcd2d.batch_tables(V, edges, tol)
+    out = _mvcd2d.mvcd2d_triton_batch(x, tables, 2, block=8)
+    shared = _mvcd2d.mvcd2d_triton_batch(x[:1], tables, 2, block=8)
+    assert out[0].shape == (2, 13, 8) and int((out[3] == 1).sum()) > 0 and int((out[3] == 0).sum()) > 0
+    for b in range(2):
+        one = _mvcd2d.batch_tables(V[b : b + 1], edges, tol[b : b + 1])
+        for X, got in ((x[b], out), (x[0], shared)):
+            ref = _mvcd2d.mvcd2d_triton_batch(X[None], one, 2, block=8)
+            for k in range(3):
+                _assert_close(got[k][b], ref[k][0])
+            assert torch.equal(got[3][b], ref[3][0])
+    with pytest.raises(ValueError, match="for tables of 2 polygons"):
+        _mvcd2d.mvcd2d_triton_batch(torch.zeros(3, 5, 2, dtype=D64, device=DEVICE), tables, 1)
+
+
+def test_batched_polygon_derivatives_name_the_element() -> None:
+    """Points on a polygon of the batch (not differentiable there) and NaN points are refused,
+    naming the element, as the loop names them."""
+    V, edges = _polygons(3)
+    cage = torchcage.Cage(V.to(DEVICE), edges.to(DEVICE))
+    pts = torch.stack([_off_polygon_points(V[b], seed=b)[:6] for b in range(3)]).to(DEVICE)
+    on = pts.clone()
+    on[2, 4] = V[2, 3].to(DEVICE)
+    with pytest.raises(torchcage.PointsError, match=r"points \[4\] in batch element \(2,\) lie on the cage"):
+        F.mean_value_derivatives(on, cage, backend="triton")
+    bad = pts.clone()
+    bad[1, 0, 0] = float("nan")
+    with pytest.raises(torchcage.PointsError, match=r"batch element \(1,\)"):
+        F.mean_value_derivatives(bad, cage, backend="triton")

@@ -40,7 +40,7 @@ import torch
 from torch._C._functorch import is_functorch_wrapped_tensor
 
 from torchcage._core.alloc import empty_output
-from torchcage._core.batch import check_finite_batch, native_batch_inputs, over_cage_batch
+from torchcage._core.batch import broadcast_batch, check_finite_batch, native_batch_inputs, over_cage_batch
 from torchcage._core.centre import centred, centred_batch, extent_of, keep_extent
 from torchcage._core.common import (
     as_inputs,
@@ -267,10 +267,10 @@ def mean_value_derivatives(
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order}")
     if cage.is_batched:
-        out = _native_derivatives_batch(points, cage, order, chunk_size, progress, backend)
+        out = _derivatives_batch(points, cage, order, chunk_size, progress, backend)
         if out is not None:
             return out
-        # (the torch and Triton kernels, torch.func transforms: one call per element)
+        # (the torch kernel, 3D on Triton, torch.func transforms: one call per element)
         return over_cage_batch(
             mean_value_derivatives, points, cage, order=order, chunk_size=chunk_size, progress=progress, backend=backend
         )
@@ -294,7 +294,7 @@ def mean_value_derivatives(
     return out_l, out_g, out_h
 
 
-def _native_derivatives_batch(
+def _derivatives_batch(
     points: torch.Tensor,
     cage: Cage,
     order: int,
@@ -302,32 +302,42 @@ def _native_derivatives_batch(
     progress: bool | Callable[[int, int], None],
     backend: str,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None:
-    """:func:`mean_value_derivatives` of a batch of 3D triangle cages or polygons with one topology
-    by the native kernel: one call per chunk of points for every cage, the tables of the batch
-    built by one set of tensor operations; element by element the numbers of the single-cage call.
-    ``None`` where it does not serve (quads, another backend or device, ``torch.func`` transforms,
-    no native build): the caller then loops over the cages.
+    """:func:`mean_value_derivatives` of a batch of cages with one topology in one kernel call per
+    chunk of points for every cage: the native kernel (CPU: 3D triangle cages and polygons) or the
+    Triton kernel (polygons: CUDA, or CPU under ``TRITON_INTERPRET=1``), the tables of the batch
+    built by one set of tensor operations; element by element the numbers of the single-cage call
+    (the native kernel: bitwise; Triton: to rounding). ``None`` where neither serves (quads, another
+    backend or device, ``torch.func`` transforms, no native build, 3D on CUDA): the caller then
+    loops over the cages.
 
     Raises:
         PointsError: points that do not broadcast with the cages, NaN or inf, points on the cage or
             where the coordinates are undefined, naming the batch element.
     """
-    inputs = native_batch_inputs(points, cage, backend, planar=True)
-    if inputs is None:
-        return None
-    pts, verts, batch = inputs
     D = cage.dim
-    check_finite_batch(pts, batch)  # (naming the element on every CPU path, the loop's too)
-    lib = select(MVC_DERIVATIVES, backend, pts.new_empty((0, D), dtype=torch.float64), graph=False).lib
-    if lib is None:
-        return None
+    lib = None
+    inputs = native_batch_inputs(points, cage, backend, planar=True)
+    if inputs is not None:
+        check_finite_batch(inputs[0], inputs[2])  # (naming the element on every CPU path, the loop's too)
+        probe = inputs[0].new_empty((0, D), dtype=torch.float64)
+        lib = select(MVC_DERIVATIVES, backend, probe, graph=False).lib
+        inputs = inputs if lib is not None else None
+    if inputs is None:
+        inputs = _triton_batch_inputs(points, cage, backend)
+        if inputs is None:
+            return None
+        check_finite_batch(inputs[0], inputs[2])
+    pts, verts, batch = inputs
     tols = on_cage_tolerances(verts)  # (the uncentred cages', as the single-cage call's)
     x, v = centred_batch(pts.detach(), verts.detach(), torch.float64)  # (each relative to its centre)
-    if D == 2:
-        tables = _mvcd_native.polygon_tables(v, cage.edges, tols)
+    if lib is None:
+        lam, grad, hess, flags = _triton_polygons(x, v, cage.edges, tols, order, chunk_size, progress)
     else:
-        tables = _mvcd_native.batch_tables(v, cage.triangles.cpu(), tols)
-    lam, grad, hess, flags = native_batch(x, tables, lib, order, chunk_size, progress)
+        if D == 2:
+            tables = _mvcd_native.polygon_tables(v, cage.edges, tols)
+        else:
+            tables = _mvcd_native.batch_tables(v, cage.triangles.cpu(), tols)
+        lam, grad, hess, flags = native_batch(x, tables, lib, order, chunk_size, progress)
     _refuse(flags, batch)
     grad.sub_(grad.mean(dim=2, keepdim=True))  # (as derivatives_flat: the kernels' rounding of the sum)
     if order == 2:
@@ -345,6 +355,55 @@ def _native_derivatives_batch(
     dt = pts.dtype
     out_h = h.to(dt).reshape(*batch, N, V, D, D) if h is not None else None
     return lam.to(dt).reshape(*batch, N, V), grad.to(dt).reshape(*batch, N, V, D), out_h  # type: ignore[union-attr]
+
+
+def _triton_batch_inputs(
+    points: torch.Tensor, cage: Cage, backend: str
+) -> tuple[torch.Tensor, torch.Tensor, torch.Size] | None:
+    """:func:`broadcast_batch` of a batched polygon call that the Triton kernel serves (``backend``
+    ``"auto"`` or ``"triton"``, points where :func:`select` takes it), else ``None``.
+
+    Raises:
+        RuntimeError: ``backend="triton"`` where the kernel cannot serve (as the loop's calls raise).
+    """
+    if cage.dim != 2 or backend not in ("auto", "triton"):
+        return None
+    if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
+        return None
+    pts, verts, batch = broadcast_batch(points, cage)
+    if not pts.is_floating_point() or pts.device != verts.device:
+        return None
+    probe = pts.new_empty((0, 2), dtype=torch.float64)
+    if select(MVC_DERIVATIVES, backend, probe, graph=False).kind != "triton":
+        return None
+    return pts, verts, batch
+
+
+def _triton_polygons(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    edges: torch.Tensor,
+    tol: torch.Tensor,
+    order: int,
+    chunk_size: int | None,
+    progress: bool | Callable[[int, int], None],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The Triton kernel on a batch of polygons: centred float64 points ``x`` ``(B or 1, N, 2)`` and
+    vertices ``v`` ``(B, V, 2)`` on the kernel's device, ``tol`` ``(B,)`` -> as :func:`native_batch`
+    (on the points' device); one launch per chunk of points (default 4096) for every polygon."""
+    from torchcage.families.mean_value.triton.mvcd2d import batch_tables, mvcd2d_triton_batch
+
+    tables = batch_tables(v, edges, tol)
+    B, N, V = v.shape[0], x.shape[1], v.shape[1]
+    lam = x.new_empty((B, N, V))
+    grad = x.new_empty((B, N, V, 2))
+    hess = x.new_empty((B, N, V, 2, 2) if order == 2 else (0,))
+    flags = torch.empty((B, N), dtype=torch.uint8, device=x.device)
+    for sl in chunks(N, chunk_size if chunk_size is not None else 4096, progress, desc="mean value derivatives"):
+        lam[:, sl], grad[:, sl], h, flags[:, sl] = mvcd2d_triton_batch(x[:, sl], tables, order)
+        if order == 2:
+            hess[:, sl] = h
+    return lam, grad, hess, flags
 
 
 def mean_value_gradients(points: torch.Tensor, cage: Cage, **kwargs: object) -> torch.Tensor:

@@ -13,7 +13,9 @@ torch on the same device (by the total, or far away by the first moment, as the 
 
 Shapes: ``P (V, 2)``, ``edges (E, 2)`` int32, ``X (n, 2)`` -> ``lam (n, V)``, ``grad (n, V, 2)``,
 ``hess (n, V, 2, 2)`` and ``flags (n,)`` (1: on the polygon, where the rows hold the linear
-interpolant along the edge and its derivative; 2: the total weight vanishes).
+interpolant along the edge and its derivative; 2: the total weight vanishes). A batch of ``B``
+polygons with one topology is one launch (:func:`mvcd2d_triton_batch`): ``P (B, V, 2)``, points
+``(B or 1, n, 2)``, every output with a leading ``B``.
 """
 
 from __future__ import annotations
@@ -23,10 +25,10 @@ import triton
 import triton.language as tl
 
 from torchcage._core.common import FAR_MOMENT, on_cage_tolerance
-from torchcage.backends.triton import interpreted, warps
+from torchcage.backends.triton import interpreted, point_batch, warps
 from torchcage.cage import Cage
 
-__all__ = ["derivative_tables", "mvcd2d_triton"]
+__all__ = ["batch_tables", "derivative_tables", "mvcd2d_triton", "mvcd2d_triton_batch"]
 
 
 @triton.jit
@@ -80,12 +82,21 @@ def _acc(row, v, live, wv, wx, wy, wxx, wyy, wxy):
 
 
 @triton.jit
-def _mvcd2d_kernel(X, n, P, V, edges, E, tol, ACC, flags, ends, BLOCK: tl.constexpr):
-    offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+def _mvcd2d_kernel(X, xs, n, P, V, edges, E, tol, ACC, flags, ends, BLOCK: tl.constexpr):
+    # one program: a block of points against polygon b (program index b * blocks + block); the
+    # edges are shared, the vertices and the tolerance have a leading polygon axis
+    pid = tl.program_id(0)
+    nblk = tl.cdiv(n, BLOCK)
+    b = (pid // nblk).to(tl.int64)
+    offs = (pid % nblk) * BLOCK + tl.arange(0, BLOCK)
     live = offs < n
+    P += b * V * 2
+    tol = tl.load(tol + b)
+    X += b * xs
     x0 = tl.load(X + 2 * offs, mask=live, other=0.0)
     x1 = tl.load(X + 2 * offs + 1, mask=live, other=0.0)
-    row = ACC + offs.to(tl.int64) * (6 * V)
+    point = b * n + offs.to(tl.int64)
+    row = ACC + point * (6 * V)
     zero = tl.zeros_like(x0)
     for q in range(6 * V):
         tl.store(row + q, zero, mask=live)
@@ -180,16 +191,29 @@ def _mvcd2d_kernel(X, n, P, V, edges, E, tol, ACC, flags, ends, BLOCK: tl.conste
         _acc(row, j, live & ~on, wv, wx, wy, wxx, wyy, wxy)
         wv, wx, wy, wxx, wyy, wxy = _jdiv(tv, tx, ty, txx, tyy, txy, rkv, rkx, rky, rkxx, rkyy, rkxy)
         _acc(row, k, live & ~on, wv, wx, wy, wxx, wyy, wxy)
-    tl.store(flags + offs, tl.where(on, 1, 0), mask=live)
-    tl.store(ends + 2 * offs, oj, mask=live)
-    tl.store(ends + 2 * offs + 1, ok, mask=live)
+    tl.store(flags + point, tl.where(on, 1, 0), mask=live)
+    tl.store(ends + 2 * point, oj, mask=live)
+    tl.store(ends + 2 * point + 1, ok, mask=live)
 
 
 def derivative_tables(cage: Cage, dtype: torch.dtype) -> dict[str, object]:
-    """The kernel's per-polygon arguments (``dtype``, the cage's device)."""
-    v = cage.vertices.detach().to(dtype).contiguous()
-    edges = cage.edges.to(device=v.device, dtype=torch.int32).contiguous()
-    return {"P": v, "V": v.shape[0], "edges": edges, "E": edges.shape[0], "tol": on_cage_tolerance(cage)}
+    """The kernel's arguments for one polygon (a batch of one; ``dtype``, the cage's device)."""
+    tol = torch.tensor([on_cage_tolerance(cage)], dtype=dtype, device=cage.device)
+    return batch_tables(cage.vertices.detach().to(dtype)[None], cage.edges, tol)
+
+
+def batch_tables(vertices: torch.Tensor, edges: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """The kernel's arguments for a batch of polygons with one topology (no host synchronisation).
+
+    Args:
+        vertices: ``(B, V, 2)`` vertices (float64: the jets of far points overflow in float32), on
+            the kernel's device.
+        edges: ``(E, 2)`` the shared directed edges.
+        tol: ``(B,)`` absolute on-polygon tolerances.
+    """
+    v = vertices.detach().contiguous()
+    e = edges.to(device=v.device, dtype=torch.int32).contiguous()
+    return {"P": v, "V": v.shape[1], "edges": e, "E": e.shape[0], "tol": tol.to(v.device, v.dtype).contiguous()}
 
 
 def _jet_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -220,63 +244,83 @@ def mvcd2d_triton(
     The public way in is ``F.mean_value_derivatives(points, polygon, backend="triton")`` (or
     ``"auto"`` for CUDA points), and the autograd Functions take it for 2D CUDA points.
     """
-    dtype = torch.float64
-    tables = derivative_tables(cage.with_vertices(cage.vertices.to(x.device)), dtype)
+    tables = derivative_tables(cage.with_vertices(cage.vertices.to(x.device)), torch.float64)
+    lam, grad, hess, flags = mvcd2d_triton_batch(x.detach().to(torch.float64)[None], tables, order, block)
+    return lam[0], grad[0], hess[0] if order == 2 else hess, flags[0]
+
+
+def mvcd2d_triton_batch(
+    x: torch.Tensor, tables: dict[str, object], order: int, block: int | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`mvcd2d_triton` for a batch of ``B`` polygons with one topology in one launch: float64
+    points ``x`` ``(B, n, 2)``, or ``(1, n, 2)`` shared by every polygon, on the tables' device
+    (:func:`batch_tables`) -> ``lam (B, n, V)``, ``grad (B, n, V, 2)``, ``hess (B, n, V, 2, 2)``
+    (empty for ``order=1``) and the uint8 flags ``(B, n)``. Element by element the numbers of
+    :func:`mvcd2d_triton` on each polygon, to rounding.
+
+    Raises:
+        ValueError: points whose batch is neither 1 nor the polygons'.
+    """
     P = tables["P"]
-    xs = x.detach().to(dtype).contiguous()
-    n, V = xs.shape[0], tables["V"]
-    acc = torch.empty((n, V, 6), dtype=dtype, device=x.device)
-    flags = torch.empty(n, dtype=torch.int32, device=x.device)
-    ends = torch.empty((n, 2), dtype=torch.int32, device=x.device)
+    B, V = P.shape[0], tables["V"]  # type: ignore[attr-defined]
+    X, _ = point_batch(x, B, "mvcd2d_triton_batch", "polygons", dim=2)
+    XB, n = X.shape[0], X.shape[1]
+    dtype, dev = torch.float64, X.device
+    acc = torch.empty((B, n, V, 6), dtype=dtype, device=dev)
+    flags = torch.empty((B, n), dtype=torch.int32, device=dev)
+    ends = torch.empty((B, n, 2), dtype=torch.int32, device=dev)
     if block is None:
         block = min(1024, triton.next_power_of_2(max(n, 16))) if interpreted() else 128
     if n:
-        _mvcd2d_kernel[(triton.cdiv(n, block),)](
-            xs, n, **tables, ACC=acc, flags=flags, ends=ends, BLOCK=block, num_warps=warps(block)
-        )
+        _mvcd2d_kernel[(B * triton.cdiv(n, block),)](
+            X, 0 if XB == 1 else 2 * n, n, **tables, ACC=acc, flags=flags, ends=ends, BLOCK=block,
+            num_warps=warps(block),
+        )  # fmt: skip
     on = flags == 1
-    lo, hi = P.min(dim=0).values, P.max(dim=0).values
-    c = 0.5 * (lo + hi)
-    far2 = FAR_MOMENT * FAR_MOMENT * float(((P - c) ** 2).sum(dim=1).max())
-    y = xs - c
-    y2 = (y * y).sum(dim=1)
-    far = (y2 > far2) & ~on
+    c = 0.5 * (P.amin(dim=1) + P.amax(dim=1))  # (B, 2): each bounding box's centre
+    Pc = P - c[:, None]  # (B, V, 2)
+    far2 = FAR_MOMENT * FAR_MOMENT * (Pc**2).sum(dim=-1).amax(dim=-1)  # (B,)
+    y = X - c[:, None]  # (B, n, 2)
+    y2 = (y * y).sum(dim=-1)
+    far = (y2 > far2[:, None]) & ~on
     # the total as a jet: the sum of the weights, or far away their first moment (P - c) . y / |y|^2
-    total = acc.sum(dim=1)  # (n, 6)
+    total = acc.sum(dim=2)  # (B, n, 6)
     if bool(far.any()):
-        a = acc[far]
-        S = torch.einsum("nvk,vd->ndk", a, P - c)  # (m, 2, 6)
-        yj = torch.zeros(a.shape[0], 2, 6, dtype=dtype, device=x.device)
-        yj[:, 0, 0], yj[:, 0, 1] = y[far, 0], 1.0
-        yj[:, 1, 0], yj[:, 1, 2] = y[far, 1], 1.0
+        bi, ni = torch.nonzero(far, as_tuple=True)
+        a = acc[bi, ni]  # (m, V, 6)
+        S = (a[:, :, None, :] * Pc[bi][:, :, :, None]).sum(dim=1)  # (m, 2, 6)
+        yf, y2f = y[bi, ni], y2[bi, ni]
+        yj = torch.zeros(a.shape[0], 2, 6, dtype=dtype, device=dev)
+        yj[:, 0, 0], yj[:, 0, 1] = yf[:, 0], 1.0
+        yj[:, 1, 0], yj[:, 1, 2] = yf[:, 1], 1.0
         num = _jet_mul(S, yj).sum(dim=1)
         den = torch.zeros_like(num)
-        den[:, 0], den[:, 1], den[:, 2], den[:, 3], den[:, 4] = y2[far], 2 * y[far, 0], 2 * y[far, 1], 2.0, 2.0
-        total[far] = _jet_mul(num, _jet_recip(den))
-    bad = ~on & ~((total[:, 0] != 0) & torch.isfinite(total[:, 0]))
-    safe = torch.where(bad[:, None], torch.ones_like(total), total)
-    lam6 = _jet_mul(acc, _jet_recip(safe)[:, None, :])  # (n, V, 6)
+        den[:, 0], den[:, 1], den[:, 2], den[:, 3], den[:, 4] = y2f, 2 * yf[:, 0], 2 * yf[:, 1], 2.0, 2.0
+        total[bi, ni] = _jet_mul(num, _jet_recip(den))
+    bad = ~on & ~((total[..., 0] != 0) & torch.isfinite(total[..., 0]))
+    safe = torch.where(bad[..., None], torch.ones_like(total), total)
+    lam6 = _jet_mul(acc, _jet_recip(safe)[:, :, None, :])  # (B, n, V, 6)
     lam = lam6[..., 0]
     grad = lam6[..., 1:3].clone()
-    hess = torch.empty((n, V, 2, 2) if order == 2 else (0,), dtype=dtype, device=x.device)
+    hess = torch.empty((B, n, V, 2, 2) if order == 2 else (0,), dtype=dtype, device=dev)
     if order == 2:
         hess[..., 0, 0], hess[..., 1, 1] = lam6[..., 3], lam6[..., 4]
         hess[..., 0, 1] = hess[..., 1, 0] = lam6[..., 5]
     if bool(on.any()):  # on the polygon: the linear interpolant along the edge, its derivative
-        rows = torch.nonzero(on).flatten()
-        j, k = ends[rows, 0].long(), ends[rows, 1].long()
-        e = P[k] - P[j]
+        bi, ni = torch.nonzero(on, as_tuple=True)
+        j, k = ends[bi, ni, 0].long(), ends[bi, ni, 1].long()
+        pj, e = P[bi, j], P[bi, k] - P[bi, j]
         l2 = (e * e).sum(dim=1)
-        t = (((xs[rows] - P[j]) * e).sum(dim=1) / l2).clamp(0.0, 1.0)
-        lam[rows] = 0.0
-        grad[rows] = 0.0
-        lam[rows, j] = 1.0 - t
-        lam[rows, k] = t
+        t = (((X[bi if XB > 1 else torch.zeros_like(bi), ni] - pj) * e).sum(dim=1) / l2).clamp(0.0, 1.0)
+        lam[bi, ni] = 0.0
+        grad[bi, ni] = 0.0
+        lam[bi, ni, j] = 1.0 - t
+        lam[bi, ni, k] = t
         inner = (t > 0) & (t < 1)
         g = torch.where(inner[:, None], e / l2[:, None], torch.zeros_like(e))
-        grad[rows, k] = g
-        grad[rows, j] = -g
+        grad[bi, ni, k] = g
+        grad[bi, ni, j] = -g
         if order == 2:
-            hess[rows] = 0.0
+            hess[bi, ni] = 0.0
     out = torch.where(on, 1, torch.where(bad, 2, 0)).to(torch.uint8)
     return lam, grad, hess, out
