@@ -205,3 +205,103 @@ def test_compiled_calls_take_the_backend_in_force_when_they_run(fam, monkeypatch
     named = torch.compile(lambda y: _tuple(fn(y, cage, backend="torch")), fullgraph=True, backend="eager")
     with pytest.raises(Exception, match=r"torchcage.backends.use\('torch'\)"):
         named(x)
+
+
+def _refuse_native(m: pytest.MonkeyPatch) -> None:
+    m.setattr(torchcage.backends.native, "library", lambda: (_ for _ in ()).throw(AssertionError("native")))
+
+
+def _spy(m: pytest.MonkeyPatch, fam) -> list[str]:
+    """Refuse the native kernel (``AssertionError``); for mean value coordinates, whose analytic
+    point derivatives take the native kernel whatever the values' backend, record instead the
+    backend its values' op computes with."""
+    seen: list[str] = []
+    if fam.short != "mvc":
+        _refuse_native(m)
+        return seen
+    from torchcage.families.mean_value import ops
+
+    flat = ops.coordinates_flat
+    m.setattr(ops, "coordinates_flat", lambda *a: seen.append(a[-1]) or flat(*a))
+    return seen
+
+
+@pytest.mark.filterwarnings("ignore:Dynamo does not know how to trace")
+@pytest.mark.parametrize("fam", CLOSED, ids=lambda f: f.short)
+def test_the_backward_pass_keeps_the_forwards_backend(fam, monkeypatch, fresh_dynamo) -> None:
+    """The backward pass of a compiled call (and of a mapped one) runs with the backend its forward
+    ran with: forward inside ``use("torch")`` (or with ``backend="torch"`` under vmap), backward
+    after the block, never the native kernel (:func:`_spy`); the gradients equal eager's with the
+    torch kernel."""
+    cage, fn = _cage(fam), fam.function()
+    x0 = _points()
+
+    def loss(y: torch.Tensor) -> torch.Tensor:
+        return sum((o * o).sum() for o in _tuple(fn(y, cage)))
+
+    compiled = torch.compile(loss, fullgraph=True, backend="aot_eager")
+    compiled(x0.clone().requires_grad_())  # (compiled outside any block)
+    x = x0.clone().requires_grad_()
+    X = torch.stack([x0, 0.5 * x0]).requires_grad_()
+    mapped = torch.func.vmap(lambda y: torch.cat([o.flatten() for o in _tuple(fn(y, cage, backend="torch"))]))
+    with monkeypatch.context() as m:
+        seen = _spy(m, fam)
+        with torchcage.backends.use("torch"):
+            value = compiled(x)
+        (g,) = torch.autograd.grad(value, x)  # (after the block)
+        (gm,) = torch.autograd.grad((mapped(X) ** 2).sum(), X)
+    assert fam.short != "mvc" or (seen and set(seen) == {"torch"}), seen
+    for y, got in ((x0, g), (x0, gm[0]), (0.5 * x0, gm[1])):
+        ye = y.clone().requires_grad_()
+        with torchcage.backends.use("torch"):
+            (want,) = torch.autograd.grad(loss(ye), ye)
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("fam", CLOSED, ids=lambda f: f.short)
+def test_unknown_values_with_a_graph_get_the_familys_text(fam) -> None:
+    """With an autograd graph (and under vmap) an unknown ``backend=`` gets the same text as
+    without: naming the family's operation."""
+    cage, fn = _cage(fam), fam.function()
+    x = _points().requires_grad_()
+    with pytest.raises(ValueError, match=r"backend must be one of 'auto', .* for .*, got 'cuda'$"):
+        fn(x, cage, backend="cuda")
+    with pytest.raises(ValueError, match=r"backend must be one of 'auto', .* for .*, got 'cuda'$"):
+        torch.func.vmap(lambda y: _tuple(fn(y, cage, backend="cuda"))[0])(x.detach()[None])
+
+
+def test_green_derivatives_take_the_block_as_their_backend() -> None:
+    """Inside ``use(b)`` Green derivatives behave as with ``backend=b``: the block is the
+    derivatives' backend, not that of the values they compute first."""
+    square = torchcage.Cage(
+        torch.tensor([[0.0, 0], [1, 0], [1, 1], [0, 1]], dtype=D64), torch.tensor([[0, 1], [1, 2], [2, 3], [3, 0]])
+    )
+    x = torch.tensor([[0.3, 0.4]], dtype=D64)
+    with pytest.raises(ValueError) as said:
+        F.green_derivatives(x, square, backend="native")
+    with torchcage.backends.use("native"), pytest.raises(ValueError) as block:
+        F.green_derivatives(x, square)
+    assert str(block.value).startswith(str(said.value))
+
+
+@pytest.mark.filterwarnings("ignore:Dynamo does not know how to trace")
+def test_compiled_code_outside_the_ops_follows_the_block(monkeypatch, fresh_dynamo) -> None:
+    """Compiled code that chooses its kernel while traced (the derivatives: no registered op) is
+    compiled again under another backend in force (its read is guarded), and ``use`` inside a
+    compiled function is refused."""
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+    x = _points()
+    f = torch.compile(lambda y: F.mean_value_derivatives(y, cube, 1)[1], backend="eager")
+    f(x)
+    with monkeypatch.context() as m:
+        _refuse_native(m)
+        with torchcage.backends.use("torch"):
+            got = f(x)
+    torch.testing.assert_close(got, F.mean_value_derivatives(x, cube, 1, backend="torch")[1], rtol=0, atol=0)
+
+    def inner(y: torch.Tensor) -> torch.Tensor:
+        with torchcage.backends.use("torch"):
+            return F.mean_value_coordinates(y, cube)
+
+    with pytest.raises(Exception, match="inside a compiled function"):
+        torch.compile(inner, fullgraph=True, backend="eager")(x)

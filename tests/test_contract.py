@@ -503,7 +503,9 @@ def test_opcheck(key) -> None:
     op = getattr(torch.ops.torchcage, case.fam.op)
     args = _op_arguments(case)
     torch.library.opcheck(op.default, args)
-    for o, r in zip(op(*args), case.call(), strict=True):
+    *outs, code = op(*args)  # (code: the backend the op ran with, for its backward op)
+    assert code.dtype == torch.int8 and torchcage.backends.BACKENDS[int(code)] == "auto"
+    for o, r in zip(outs, case.call(), strict=True):
         close(o, r, 1e-14)
 
 

@@ -9,10 +9,14 @@ gradients, fused vertex passes, autograd of the torch kernel). Both have fake im
 the compiled graph knows their shapes; neither is traced into.
 
 No backend is in their schemas: the tensors' device picks the kernel, through
-:func:`torchcage.backends.select`, and the user's choice is the backend in force when the op runs
-(:func:`torchcage.backends.use` around the compiled call). A ``backend=`` other than ``"auto"``
-inside a compiled function cannot reach the op, and is refused with that advice (a compiled graph
-replays its ops, not the Python that set a preference while it was traced).
+:func:`torchcage.backends.select`, and the user's choice is the backend in force when the forward
+op runs (:func:`torchcage.backends.use` around the compiled call). The forward op returns that
+backend as one more output, a 0-dim int8 code (an index in :data:`torchcage.backends.BACKENDS`),
+which the backward op takes as an input: the backward pass runs with the forward's backend, on
+whatever thread and whenever it runs (after the ``use`` block; on CUDA autograd's device thread). A
+``backend=`` other than ``"auto"`` inside a compiled function cannot reach the op, and raises with
+that advice (a compiled graph replays its ops, not the Python that set a preference while it was
+traced); ``fullgraph=True`` then fails, and without it Dynamo runs that call eagerly.
 
 What compiles: values and first derivatives with respect to the points and the cage's vertices,
 batched cages included. Not under compilation: double backward and ``torch.func`` transforms (eager
@@ -46,7 +50,7 @@ from typing import List  # noqa: UP035 (torch 2.5 infers op schemas from typing.
 import torch
 from torch import Tensor
 
-from torchcage.backends import Op, check, preferred, resolve, use
+from torchcage.backends import BACKENDS, Op, check, preferred, resolve, use
 from torchcage.cage import Cage
 
 __all__ = ["CompiledOp", "through_op"]
@@ -175,15 +179,19 @@ class CompiledOp:
             n: int,
             tol: float,
         ) -> List[Tensor]:  # noqa: UP006 (torch 2.5's infer_schema reads typing.List)
+            code = torch.tensor(BACKENDS.index(preferred()), dtype=torch.int8)  # (for the backward op)
             with torch.no_grad():
                 cage = _cage(vertices, triangles, quads, edges)
-                return [o.clone() for o in outer.eager(points, cage, outer._options(chunk_size, n, tol))]
+                outs = outer.eager(points, cage, outer._options(chunk_size, n, tol))
+                return [*(o.clone() for o in outs), code]
 
         @values.register_fake
         def _(points, vertices, triangles, quads, edges, chunk_size, n, tol):
             dtype = torch.promote_types(points.dtype, vertices.dtype)
             lead = _lead(points, vertices)
-            return [points.new_empty([*lead, k], dtype=dtype) for k in outer.widths(vertices, triangles, quads, edges)]
+            widths = outer.widths(vertices, triangles, quads, edges)
+            code = points.new_empty((), dtype=torch.int8, device="cpu")
+            return [*(points.new_empty([*lead, k], dtype=dtype) for k in widths), code]
 
         @torch.library.custom_op(f"torchcage::{name}_backward", mutates_args=())
         def vjp(
@@ -193,11 +201,13 @@ class CompiledOp:
             quads: Tensor,
             edges: Tensor,
             grads: List[Tensor],  # noqa: UP006
+            code: Tensor,
             chunk_size: int,
             n: int,
             tol: float,
         ) -> List[Tensor]:  # noqa: UP006 (the two gradients)
-            options = outer._options(chunk_size, n, tol)
+            with use(BACKENDS[int(code)]):  # (the forward's backend: its code output)
+                options = outer._options(chunk_size, n, tol)
 
             def run() -> tuple[Tensor | None, Tensor | None]:
                 x = points.detach().requires_grad_()
@@ -217,12 +227,12 @@ class CompiledOp:
             return [gx, gP]
 
         @vjp.register_fake
-        def _(points, vertices, triangles, quads, edges, grads, chunk_size, n, tol):
+        def _(points, vertices, triangles, quads, edges, grads, code, chunk_size, n, tol):
             return [torch.empty_like(points), torch.empty_like(vertices)]
 
         def setup(ctx, inputs, output) -> None:
             points, vertices, triangles, quads, edges, *options = inputs
-            ctx.save_for_backward(points, vertices, triangles, quads, edges)
+            ctx.save_for_backward(points, vertices, triangles, quads, edges, output[-1])
             ctx.options = options
 
         def backward(ctx, grads):
@@ -231,9 +241,9 @@ class CompiledOp:
                     f"double backward of torchcage::{name} is not available under torch.compile; call the function "
                     "eagerly for second derivatives"
                 )
-            points, vertices, triangles, quads, edges = ctx.saved_tensors
-            grads = [g if g is not None else torch.zeros(()) for g in grads]
-            gx, gP = vjp(points, vertices, triangles, quads, edges, list(grads), *ctx.options)
+            points, vertices, triangles, quads, edges, code = ctx.saved_tensors
+            grads = [g if g is not None else torch.zeros(()) for g in grads[:-1]]  # (not the code's)
+            gx, gP = vjp(points, vertices, triangles, quads, edges, grads, code, *ctx.options)
             return gx, gP, None, None, None, None, None, None
 
         values.register_autograd(backward, setup_context=setup)
@@ -245,8 +255,8 @@ class CompiledOp:
                     "call); map over the points or the vertices"
                 )
             p, v, back = _vmap_inputs(points, vertices, in_dims[0], in_dims[1])
-            outs = values(p, v, triangles, quads, edges, chunk_size, n, tol)
-            return [back(o) for o in outs], [0] * len(outs)
+            *outs, code = values(p, v, triangles, quads, edges, chunk_size, n, tol)
+            return [*(back(o) for o in outs), code], [0] * len(outs) + [None]
 
         values.register_vmap(values_vmap)
         self.values, self.vjp = values, vjp
@@ -309,8 +319,8 @@ class CompiledOp:
             -1.0 if tol is None else float(tol),
         )
         if torch.compiler.is_compiling():
-            outs = self.values(*args)
+            outs = self.values(*args)[:-1]
         else:
             with use(resolve(backend)):
-                outs = self.values(*args)
+                outs = self.values(*args)[:-1]
         return outs if dtype is None else [o.to(dtype) for o in outs]

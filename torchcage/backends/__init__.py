@@ -65,25 +65,29 @@ def preferred() -> str:
 
 def resolve(backend: str) -> str:
     """A call's ``backend=`` with ``"auto"`` read as the backend in force (:func:`preferred`).
-    Under ``torch.compile``'s tracing the value is returned as it is (the registered ops read the
-    backend in force when they run, not when they are traced)."""
-    if backend != "auto" or torch.compiler.is_compiling():
-        return backend
-    return preferred()
+    (Traced by ``torch.compile``, the read is guarded: a compiled function that reaches it is
+    compiled again when it runs under another backend.)"""
+    return preferred() if backend == "auto" else backend
 
 
 @contextmanager
 def use(backend: str) -> Iterator[None]:
-    """Run the calls inside with ``backend`` wherever they pass ``backend="auto"`` (the default),
-    on this thread, eager or compiled; a call that names another backend keeps its own. Blocks
-    nest; leaving one restores the backend before it. An operation that does not have the backend
-    raises the error it raises for that ``backend=``.
+    """Run the coordinate functions called inside (those of the closed-form families, and what
+    calls them: modules, ``deform``, image warping) with ``backend`` wherever they pass
+    ``backend="auto"`` (the default), on this thread; a call that names another backend keeps its
+    own. Blocks nest; leaving one restores the backend before it. A family that does not have the
+    backend raises the error it raises for that ``backend=``.
+
+    Around a compiled function it chooses the backend of the compiled calls (their registered ops
+    read it when they run, and the backward pass keeps the forward's); inside a compiled function
+    it is refused (the compiled graph would not replay it).
 
     Args:
         backend: ``"auto"``, ``"native"``, ``"torch"`` or ``"triton"``.
 
     Raises:
         ValueError: any other value.
+        RuntimeError: under ``torch.compile``'s tracing.
 
     Examples:
         >>> import torch, torchcage
@@ -97,8 +101,15 @@ def use(backend: str) -> Iterator[None]:
         >>> torch.allclose(w, F.mean_value_coordinates(x, cube))
         True
     """
+    if torch.compiler.is_compiling():
+        raise RuntimeError(
+            "torchcage.backends.use() inside a compiled function: the compiled graph would not replay it; "
+            "call the compiled function inside the block instead"
+        )
     if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {', '.join(map(repr, BACKENDS))}, got {backend!r}")
+        raise ValueError(
+            f"backend must be one of {', '.join(map(repr, BACKENDS))}, got {backend!r} (torchcage.backends.use)"
+        )
     before = preferred()
     _preference.backend = backend
     try:

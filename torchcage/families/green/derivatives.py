@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 
 from torchcage._core.common import as_inputs, check_points, result_dtype
-from torchcage.backends import check, resolve
+from torchcage.backends import check, resolve, use
 from torchcage.cage import Cage
 from torchcage.errors import CageError
 from torchcage.families.green.api import centred, green_coordinates
@@ -94,12 +94,13 @@ def green_derivatives(
     # extension uses (families/green/exterior.py), so values and derivatives agree on which points are
     # extended (a separate winding number flipped points within 1e-13 of the size outside a needle's
     # edge); only the points outside are computed again, extended (inside, both are the same)
-    phi, psi = green_coordinates(x, cage, exterior="none")
-    inside = phi.sum(dim=1) >= 0.5 if exterior == "extend" else torch.ones(x.shape[0], dtype=torch.bool)
-    inside = inside.to(x.device)
-    out_rows = torch.nonzero(~inside).flatten()
-    if out_rows.numel():
-        phi[out_rows], psi[out_rows] = green_coordinates(x.index_select(0, out_rows), cage, exterior="extend")
+    with use("auto"):  # (the values' own choice of kernel: `backend` is the derivatives')
+        phi, psi = green_coordinates(x, cage, exterior="none")
+        inside = phi.sum(dim=1) >= 0.5 if exterior == "extend" else torch.ones(x.shape[0], dtype=torch.bool)
+        inside = inside.to(x.device)
+        out_rows = torch.nonzero(~inside).flatten()
+        if out_rows.numel():
+            phi[out_rows], psi[out_rows] = green_coordinates(x.index_select(0, out_rows), cage, exterior="extend")
     V, T, D = phi.shape[1], psi.shape[1], cage.dim
     # (closed_form's outputs are fresh tensors: scaled and centred in place below, sparing a pass
     # of allocation over the Hessians' N x V x 9 entries per step)

@@ -33,12 +33,12 @@ from torchcage._core.common import (
     on_cage_tolerances,
     result_dtype,
 )
+from torchcage.backends import check, preferred, use
 from torchcage.backends import native as _native
-from torchcage.backends import preferred, use
 from torchcage.backends import triton as _triton
 from torchcage.cage import Cage
 from torchcage.families.mean_value.derivatives import derivatives_flat
-from torchcage.families.mean_value.dispatch import coordinates_flat, native_batch
+from torchcage.families.mean_value.dispatch import MVC, coordinates_flat, native_batch
 from torchcage.families.mean_value.edge_line import edge_line_offsets as _edge_line_offsets
 from torchcage.families.mean_value.kernel3d import _stable_face_weights
 from torchcage.families.mean_value.vjp3d import direct_vjp
@@ -593,6 +593,7 @@ def mean_value_function(points: Tensor, cage: Cage, chunk_size: int | None = Non
     where the native kernel serves, else by plain autograd of the torch kernel (any device; the
     same values, derivatives to about 1e-12 relative; see docs/accuracy.md). The one place that
     chooses between them."""
+    check(MVC, backend)  # (before MeanValueFunction sets it in force: the family's error text)
     faces = cage.triangles if cage.dim == 3 else cage.edges
     if not _analytic(points) and is_functorch_wrapped_tensor(points):
         # torch.func transforms without the native kernel: autograd of the torch kernel throughout
