@@ -10,11 +10,26 @@ import torch
 
 import torchcage
 from torchcage import functional as F
+from torchcage._core.compiled import _vmap_records_autograd
 from torchcage.backends import BACKENDS
 from torchcage.families import FAMILIES
 
 D64 = torch.float64
 CLOSED = [f for f in FAMILIES if f.backends]
+#: torch 2.5 records no autograd through a custom op's vmap rule: there the families' functions
+#: run eagerly under vmap, and their Functions fail inside it (test_contract.py marks the same).
+OLD_VMAP = "this torch (2.5) records no autograd through a custom op's vmap rule: the eager path runs under vmap"
+
+
+def _maps(fam) -> bool:
+    """Whether ``torch.func.vmap`` maps the family's function here (mean value coordinates: through
+    the native kernel, the torch kernel branching on the data; the others: through their op's vmap
+    rule, which torch 2.5 cannot differentiate)."""
+    return torchcage.backends.native.available() if fam.short == "mvc" else _vmap_records_autograd()
+
+
+#: What Dynamo reports for an exception raised in traced code: torch 2.5 shows no message.
+REFUSED = r"torchcage.backends.use\('torch'\)|^Observed exception"
 
 
 def _call(fn, x, cage, backend):
@@ -167,8 +182,8 @@ def test_vmap_takes_the_calls_backend(fam, monkeypatch) -> None:
     computes the values with the torch kernel; its derivatives stay analytic where they can)."""
     cage, fn = _cage(fam), fam.function()
     X = torch.stack([_points(), 0.5 * _points()])
-    if fam.short == "mvc" and not torchcage.backends.native.available():
-        pytest.skip("vmap of mean value coordinates without the native kernel: the torch kernel branches on the data")
+    if not _maps(fam):
+        pytest.skip(OLD_VMAP if fam.short != "mvc" else "no native kernel: the torch kernel branches on the data")
     if fam.short == "mvc":
         from torchcage.families.mean_value import ops
 
@@ -203,7 +218,7 @@ def test_compiled_calls_take_the_backend_in_force_when_they_run(fam, monkeypatch
     for a, b in zip(out, _call(fn, x, cage, "torch"), strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     named = torch.compile(lambda y: _tuple(fn(y, cage, backend="torch")), fullgraph=True, backend="eager")
-    with pytest.raises(Exception, match=r"torchcage.backends.use\('torch'\)"):
+    with pytest.raises(Exception, match=REFUSED):
         named(x)
 
 
@@ -249,9 +264,12 @@ def test_the_backward_pass_keeps_the_forwards_backend(fam, monkeypatch, fresh_dy
         with torchcage.backends.use("torch"):
             value = compiled(x)
         (g,) = torch.autograd.grad(value, x)  # (after the block)
-        (gm,) = torch.autograd.grad((mapped(X) ** 2).sum(), X)
+        checks = [(x0, g)]
+        if _maps(fam):
+            (gm,) = torch.autograd.grad((mapped(X) ** 2).sum(), X)
+            checks += [(x0, gm[0]), (0.5 * x0, gm[1])]
     assert fam.short != "mvc" or (seen and set(seen) == {"torch"}), seen
-    for y, got in ((x0, g), (x0, gm[0]), (0.5 * x0, gm[1])):
+    for y, got in checks:
         ye = y.clone().requires_grad_()
         with torchcage.backends.use("torch"):
             (want,) = torch.autograd.grad(loss(ye), ye)
@@ -266,8 +284,9 @@ def test_unknown_values_with_a_graph_get_the_familys_text(fam) -> None:
     x = _points().requires_grad_()
     with pytest.raises(ValueError, match=r"backend must be one of 'auto', .* for .*, got 'cuda'$"):
         fn(x, cage, backend="cuda")
-    with pytest.raises(ValueError, match=r"backend must be one of 'auto', .* for .*, got 'cuda'$"):
-        torch.func.vmap(lambda y: _tuple(fn(y, cage, backend="cuda"))[0])(x.detach()[None])
+    if _maps(fam):
+        with pytest.raises(ValueError, match=r"backend must be one of 'auto', .* for .*, got 'cuda'$"):
+            torch.func.vmap(lambda y: _tuple(fn(y, cage, backend="cuda"))[0])(x.detach()[None])
 
 
 def test_green_derivatives_take_the_block_as_their_backend() -> None:
@@ -287,8 +306,11 @@ def test_green_derivatives_take_the_block_as_their_backend() -> None:
 @pytest.mark.filterwarnings("ignore:Dynamo does not know how to trace")
 def test_compiled_code_outside_the_ops_follows_the_block(monkeypatch, fresh_dynamo) -> None:
     """Compiled code that chooses its kernel while traced (the derivatives: no registered op) is
-    compiled again under another backend in force (its read is guarded), and ``use`` inside a
-    compiled function is refused."""
+    compiled again under another backend in force (its read is guarded)."""
+    from packaging.version import Version
+
+    if Version(torch.__version__).release < (2, 6):
+        pytest.skip("torch 2.5's Dynamo cannot trace mean_value_derivatives (it iterates a Proxy)")
     cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
     x = _points()
     f = torch.compile(lambda y: F.mean_value_derivatives(y, cube, 1)[1], backend="eager")
@@ -299,9 +321,15 @@ def test_compiled_code_outside_the_ops_follows_the_block(monkeypatch, fresh_dyna
             got = f(x)
     torch.testing.assert_close(got, F.mean_value_derivatives(x, cube, 1, backend="torch")[1], rtol=0, atol=0)
 
+
+@pytest.mark.filterwarnings("ignore:Dynamo does not know how to trace")
+def test_use_inside_a_compiled_function_is_refused(fresh_dynamo) -> None:
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj")).triangulated()
+    x = _points()
+
     def inner(y: torch.Tensor) -> torch.Tensor:
         with torchcage.backends.use("torch"):
             return F.mean_value_coordinates(y, cube)
 
-    with pytest.raises(Exception, match="inside a compiled function"):
+    with pytest.raises(Exception, match=r"inside a compiled function|skip function use"):
         torch.compile(inner, fullgraph=True, backend="eager")(x)
