@@ -1,7 +1,8 @@
 """GPU benchmark of batched rest cages: mean value coordinates of B cages with one topology as one
 Triton launch, against the loop of single-cage calls and the dense batched torch formula; Green
 coordinates (the exterior continued), 2D mean value coordinates of 32-gons and their gradients and
-Hessians likewise, batched launch against the loop.
+Hessians, and quad mean value coordinates (the bundled bar's 14-quad cage) likewise, batched launch
+against the loop.
 
 The setting of ``learnable.py`` / ``batched.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each,
 a jittered 42-vertex / 80-triangle icosphere cage per shape, float32 inputs, on CUDA. Rows:
@@ -148,6 +149,22 @@ def main() -> None:
     print()
     ref3 = results["batched (float64 compute)"][1].double()
     _table("2D derivatives, order 2 (32-gons)", results, ref3, ("loop (float64 compute)",))
+
+    from batched import quad_problem
+
+    xq, Pq, quad_faces = quad_problem(args.batch, args.points, torch.float32)
+    quad_cages = torchcage.Cage(Pq.to(device), quad_faces)
+    xq, opts = xq.to(device), {"n": 4, **f64}
+    with torch.no_grad():
+        results = {
+            "loop (float64 compute)": timed(
+                lambda: over_cage_batch(F.quad_mean_value_coordinates, xq, quad_cages, **opts)
+            ),
+            "batched (float64 compute)": timed(lambda: F.quad_mean_value_coordinates(xq, quad_cages, **opts)),
+        }
+    print()
+    ref4 = results["batched (float64 compute)"][1].double()
+    _table("quad mean value forward (bar cage, 14 quads, n = 4)", results, ref4, ("loop (float64 compute)",))
 
     cot = torch.randn(args.batch, args.points, 42, generator=torch.Generator().manual_seed(1)).to(device)
 

@@ -441,3 +441,100 @@ def test_batched_polygon_derivatives_name_the_element() -> None:
     bad[1, 0, 0] = float("nan")
     with pytest.raises(torchcage.PointsError, match=r"batch element \(1,\)"):
         F.mean_value_derivatives(bad, cage, backend="triton")
+
+
+# ------------------------------------------------------------------------ quad mean value coordinates
+def _triquads(B: int, shift: float = 0.0) -> torchcage.Cage:
+    """``B`` jittered, scaled copies (float64, on the device) of the cube with one face split into
+    two triangles (5 quads, 2 triangles: small, the interpreter runs a quad at a time); ``shift``
+    moves the last one that far from the origin."""
+    cube = torchcage.load_cage(torchcage.data.path("cube.obj")).to(D64)
+    q = cube.quads
+    faces = [q[0, [0, 1, 2]].tolist(), q[0, [0, 2, 3]].tolist(), *q[1:].tolist()]
+    g = torch.Generator().manual_seed(5)
+    V = cube.vertices * (1 + 0.2 * torch.rand(B, 1, 1, generator=g, dtype=D64))
+    V = V + 0.02 * torch.randn(B, *cube.vertices.shape, generator=g, dtype=D64)
+    V[-1] += shift
+    return torchcage.Cage(V.to(DEVICE), faces)
+
+
+def _quad_points(V: torch.Tensor, cage: torchcage.Cage, seed: int) -> torch.Tensor:
+    """Points for the triquad cage ``V`` ``(V, 3)``: inside, on a vertex, on a quad's middle and a
+    triangle's, just off them, outside, far (1e4) and very far (1e7: the first-moment normaliser)."""
+    g = torch.Generator().manual_seed(seed)
+    c = V.mean(0)
+    d = torch.nn.functional.normalize(torch.randn(8, 3, generator=g, dtype=D64), dim=1)
+    quad = V[cage.quads[3].cpu()].mean(0)
+    tri = V[cage.triangles[1].cpu()].mean(0)
+    return torch.cat([c + 0.3 * d[:4], V[:1], quad[None], tri[None], quad[None] * (1 + 1e-9), c + 3 * d[4:6],
+                      c + 1e4 * d[6:7], c + 1e7 * d[7:8]])  # fmt: skip
+
+
+def test_batched_quad_mean_value_launches_equal_the_loop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Quad mean value coordinates of three triquad cages (the last 1e3 from the origin), points
+    one set per cage and shared: one launch of the triangle kernel and one of the quad kernel for
+    the batch, element by element the single-cage Triton call; rows sum to one and reproduce the
+    points near the cages."""
+    from torchcage.families.quad_mean_value.triton import qmvc3d as _qmvc3d
+
+    cage = _triquads(3, shift=1e3)
+    V = cage.vertices.cpu()
+    per = torch.stack([_quad_points(V[b], cage, seed=b) for b in range(3)]).to(DEVICE)
+    quads = _Launches(monkeypatch, _qmvc3d, "qmvc3d_triton")
+    tris = _Launches(monkeypatch, _mvc3d, "mvc3d_triton")
+    for pts in (per, per[0]):
+        quads.batches.clear()
+        tris.batches.clear()
+        out = F.quad_mean_value_coordinates(pts, cage, n=2, backend="triton")
+        assert quads.batches == [3] and tris.batches == [3]  # one launch each for the whole batch
+        ref = torch.stack(
+            [F.quad_mean_value_coordinates(pts if pts.ndim == 2 else pts[b], cage[b], n=2, backend="triton")
+             for b in range(3)]
+        )  # fmt: skip
+        _assert_close(out, ref)
+        W, X = out.cpu(), (pts if pts.ndim == 3 else pts.expand(3, -1, -1)).cpu()
+        near = (X - V.mean(1, keepdim=True)).norm(dim=-1) < 10
+        assert bool(((W.sum(-1) - 1).abs() <= 1e-12 * W.abs().sum(-1).clamp_min(1.0)).all())
+        assert float((W @ V - X).norm(dim=-1)[near].max()) < 1e-9 * (1 + V.abs().max())
+
+
+def test_batched_quad_kernel_blocks_and_point_batches() -> None:
+    """The quad kernel with small blocks (programs per cage, the last partial) against each cage's
+    own tables, points one set per cage and shared, rows on a quad included (flag 1); a point
+    batch that is neither 1 nor the cages' is refused."""
+    from torchcage.families.quad_mean_value.triton import qmvc3d as _qmvc3d
+
+    cage = _triquads(2, shift=5.0)
+    V = cage.vertices
+    x = torch.stack([_quad_points(V[b].cpu(), cage, seed=7 + b) for b in range(2)]).to(DEVICE)  # (2, 13, 3)
+    tol = torch.full((2,), 1e-12, dtype=D64)
+    tables = _qmvc3d.batch_tables(V, cage.quads, tol, 2)
+    for X in (x, x[:1]):
+        W = torch.zeros(2, x.shape[1], V.shape[1], dtype=D64, device=DEVICE)
+        f = torch.zeros(2, x.shape[1], dtype=torch.int32, device=DEVICE)
+        _qmvc3d.qmvc3d_triton(X, tables, W, f, block=8)
+        assert int((f == 1).sum()) > 0 and int((f == 0).sum()) > 0
+        for b in range(2):
+            one = _qmvc3d.batch_tables(V[b : b + 1], cage.quads, tol[b : b + 1], 2)
+            Wr = torch.zeros(x.shape[1], V.shape[1], dtype=D64, device=DEVICE)
+            fr = torch.zeros(x.shape[1], dtype=torch.int32, device=DEVICE)
+            _qmvc3d.qmvc3d_triton(X[b if X.shape[0] > 1 else 0], one, Wr, fr, block=8)
+            _assert_close(W[b], Wr)
+            assert torch.equal(f[b], fr)
+    with pytest.raises(ValueError, match="for tables of 2 cages"):
+        _qmvc3d.qmvc3d_triton(torch.zeros(3, 5, 3, dtype=D64, device=DEVICE), tables, W, f)
+
+
+def test_batched_quad_mean_value_thin_triangles_and_errors() -> None:
+    """A batch of triangle-only cages (the sliver cube and a stretched copy) through quad mean value
+    coordinates: the points that see the sliver from a few widths are redone by the torch kernel,
+    per cage, as one cage; NaN points are refused naming the element."""
+    cage, x = _sliver_batch()
+    out = F.quad_mean_value_coordinates(x, cage, backend="triton")
+    for b in range(2):
+        ref = F.quad_mean_value_coordinates(x.cpu(), cage[b].to("cpu"), backend="torch")
+        assert float(((out[b].cpu() - ref).abs() / ref.abs().clamp_min(1.0)).max()) < 1e-10
+    bad = torch.stack([x, x]).clone()
+    bad[1, 3, 0] = float("nan")
+    with pytest.raises(torchcage.PointsError, match=r"batch element \(1,\)"):
+        F.quad_mean_value_coordinates(bad, cage, backend="triton")

@@ -100,6 +100,11 @@ def _kernels() -> list[tuple[str, object, dict[str, object]]]:
         x3, qmvc3d.triton_tables(quads.vertices, quad_data(quads.vertices, quads.quads, 1e-12), 4),
         torch.zeros(4, 8, dtype=D), torch.zeros(4, dtype=torch.int32)))  # fmt: skip
     out.append(("qmvc3d", k, a))
+    twoq = torch.stack([quads.vertices, 1.5 * quads.vertices])  # (a batch of two cages: the BATCHED kernel)
+    k, a = _recorded(qmvc3d, "_qmvc3d_kernel", lambda: qmvc3d.qmvc3d_triton(
+        x3[None], qmvc3d.batch_tables(twoq, quads.quads, torch.full((2,), 1e-12, dtype=D), 4),
+        torch.zeros(2, 4, 8, dtype=D), torch.zeros(2, 4, dtype=torch.int32)))  # fmt: skip
+    out.append(("qmvc3d batched", k, a))
     k, a = _recorded(mvcd2d, "_mvcd2d_kernel", lambda: mvcd2d.mvcd2d_triton(x2, square, 2))
     out.append(("mvcd2d", k, a))
     k, a = _recorded(mvcd3d, "_mvcd3d_kernel", lambda: mvcd3d.mvcd3d_triton(x3, cube, 2))

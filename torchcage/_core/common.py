@@ -365,7 +365,8 @@ def far_unity(
 
 def normalise_weights(W: torch.Tensor, on: torch.Tensor, vertices: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """Mean value weights ``W`` ``(n, V)`` of points ``x`` ``(n, D)`` divided by their total, except
-    rows on the cage (``on`` ``(n,)``, already final).
+    rows on the cage (``on`` ``(n,)``, already final). A batch of cages ``vertices`` ``(B, V, D)``:
+    ``W`` ``(B, n, V)``, ``on`` ``(B, n)``, ``x`` ``(B or 1, n, D)``.
 
     The total is the sum of the weights, except far from the cage (beyond ``FAR_MOMENT`` times its
     radius from its centre ``c``), where the sum cancels to about ``size / distance`` of its terms; there it is the
@@ -374,13 +375,13 @@ def normalise_weights(W: torch.Tensor, on: torch.Tensor, vertices: torch.Tensor,
     sum gave 1e-7 to 1). Partition of unity then holds to ``eps * distance / size``.
     """
     c, far = far_region(vertices, x)
-    y = x - c
-    y2 = (y * y).sum(dim=1)
-    total = W.sum(dim=1)
+    y = x - c[..., None, :]
+    y2 = (y * y).sum(dim=-1)
+    total = W.sum(dim=-1)
     if bool(far.any()):
-        moment = ((W @ (vertices.to(W.dtype) - c)) * y).sum(dim=1) / torch.where(far, y2, 1.0)
+        moment = ((W @ (vertices.to(W.dtype) - c[..., None, :])) * y).sum(dim=-1) / torch.where(far, y2, 1.0)
         total = torch.where(far, moment, total)
-    return torch.where(on[:, None], W, W / torch.where(on, 1.0, total)[:, None])
+    return torch.where(on[..., None], W, W / torch.where(on, 1.0, total)[..., None])
 
 
 def safe_sqrt(x: torch.Tensor) -> torch.Tensor:

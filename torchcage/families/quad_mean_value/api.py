@@ -9,9 +9,10 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import torch
+from torch._C._functorch import is_functorch_wrapped_tensor
 
 from torchcage._core.alloc import cat_output
-from torchcage._core.batch import check_finite_batch, native_batch_inputs, over_cage_batch
+from torchcage._core.batch import broadcast_batch, check_finite_batch, native_batch_inputs, over_cage_batch
 from torchcage._core.centre import centre_of, centred_batch
 from torchcage._core.common import (
     as_inputs,
@@ -224,9 +225,11 @@ def quad_mean_value_coordinates(
     points, cage = as_inputs(points, cage)
     if cage.is_batched:
         lam = _native_batch(points, cage, n, chunk_size, dtype, progress, backend, allow_invalid, tol)
+        if lam is None:
+            lam = _triton_batch(points, cage, n, chunk_size, dtype, progress, backend, allow_invalid, tol)
         if lam is not None:
             return lam
-        # (the torch and Triton kernels, graphs, torch.func transforms: one call per element,
+        # (the torch kernel, graphs, torch.func transforms: one call per element,
         # invalid quads refused first for the batch, naming the element)
         if not allow_invalid:
             check_quads(cage, False)
@@ -316,6 +319,84 @@ def _native_batch(
     if may_be_far(v, x):  # (else far_unity leaves every row as it is)
         (out,) = far_unity(out, x.expand(v.shape[0], *x.shape[1:]), v)
     return out.to(out_dtype).reshape(*batch, x.shape[1], cage.num_vertices)
+
+
+def _triton_batch(
+    points: torch.Tensor,
+    cage: Cage,
+    n: int,
+    chunk_size: int | None,
+    dtype: torch.dtype | None,
+    progress: bool | Callable[[int, int], None],
+    backend: str,
+    allow_invalid: bool,
+    tol: float | None,
+) -> torch.Tensor | None:
+    """Quad mean value coordinates ``(*B', N, V)`` of a batch of cages with one topology by the
+    Triton kernels (CUDA, or CPU under ``TRITON_INTERPRET=1``): per chunk of points, one launch of
+    the triangle kernel (raw weights) and one of the quad kernel for every cage, the cages' tables
+    built by one set of tensor operations; the weights normalised for the batch at once; points
+    that see a thin triangle from a few widths redone by the torch kernel, cage by cage (as the
+    single-cage call redoes them). Element by element the numbers of the single-cage Triton call,
+    to rounding. ``None`` where it does not serve (another backend or device, ``tol=`` (exact
+    integrals: the torch kernel), a compute dtype other than float64, an autograd graph or a
+    ``torch.func`` transform): the caller then loops over the cages.
+
+    Raises:
+        ValueError: a wrong ``n``, ``tol`` or ``backend``.
+        CageError: invalid quads (unless ``allow_invalid``).
+        PointsError: points that do not broadcast with the cages, NaN or inf, or points where the
+            coordinates are undefined, naming the batch element.
+    """
+    check_grid(n)
+    check(QMVC, backend)
+    if check_tol(tol) is not None or backend not in ("auto", "triton") or cage.dim != 3:
+        return None
+    if records_graph(points, cage.vertices) or is_functorch_wrapped_tensor(points):
+        return None
+    pts, verts, batch = broadcast_batch(points, cage)
+    if not pts.is_floating_point() or pts.device != verts.device:
+        return None
+    compute, out_dtype = result_dtype(pts, cage, dtype)
+    if compute != torch.float64 or select(QMVC, backend, pts.new_empty((0, 3), dtype=compute)).kind != "triton":
+        return None
+    from torchcage.families.mean_value.triton.mvc3d import mvc3d_triton, part_batch_tables
+    from torchcage.families.quad_mean_value.triton.qmvc3d import batch_tables, qmvc3d_triton
+
+    check_quads(cage, allow_invalid, "quad mean value coordinates")
+    check_finite_batch(pts, batch)
+    tols = on_cage_tolerances(verts)  # (the uncentred cages', as the single-cage call)
+    x, v = centred_batch(pts, verts, compute)  # (each cage relative to its centre: module _core.centre)
+    B, N, V = v.shape[0], x.shape[1], v.shape[1]
+    tri, quads = cage.triangles.to(v.device), cage.quads.to(v.device)
+    tri_tables = part_batch_tables(v, tri, tols) if tri.shape[0] else None
+    quad_tables = batch_tables(v, quads, tols, n) if quads.shape[0] else None
+    out = torch.empty((B, N, V), dtype=compute, device=v.device)
+    flags = torch.empty((B, N), dtype=torch.int32, device=v.device)
+    size = chunk_size or max(256, (1 << 23) // (B * V))
+    for sl in chunks(N, size, progress, desc="quad mean value coordinates"):
+        c = x[:, sl]
+        m = c.shape[1]
+        if tri_tables is not None:
+            W, f = mvc3d_triton(c, tri_tables, normalize=quad_tables is None)
+        else:
+            W = torch.zeros((B, m, V), dtype=compute, device=v.device)
+            f = torch.zeros((B, m), dtype=torch.int32, device=v.device)
+        if quad_tables is not None:
+            qmvc3d_triton(c, quad_tables, W, f)
+            W = normalise_weights(W, f == 1, v, c)
+        out[:, sl], flags[:, sl] = W, f
+    redo = flags == 2  # (B, N): a thin triangle seen from a few widths (the torch kernel's swept form)
+    for b in torch.nonzero(redo.any(dim=1)).flatten().tolist():
+        idx = torch.nonzero(redo[b]).flatten()
+        tb = float(tols[b])
+        tdata = triangle_data(v[b], tri, tb) if tri.shape[0] else None
+        qdata = quad_data(v[b], quads, tb) if quads.shape[0] else None
+        out[b, idx] = _torch_chunk(x[b if x.shape[0] > 1 else 0].index_select(0, idx), v[b], tdata, qdata, n)
+    _refuse_undefined(out, batch)
+    if may_be_far(v, x):  # (else far_unity leaves every row as it is)
+        (out,) = far_unity(out, x.expand(B, N, 3), v)
+    return out.to(out_dtype).reshape(*batch, N, V)
 
 
 class QuadBatchCall(NamedTuple):

@@ -36,7 +36,7 @@ from torchcage.families.mean_value.kernel3d import (
     face_constants,
 )
 
-__all__ = ["batch_tables", "mvc3d_triton", "part_tables", "triton_tables"]
+__all__ = ["batch_tables", "mvc3d_triton", "part_batch_tables", "part_tables", "triton_tables"]
 
 TWO_PI = tl.constexpr(6.283185307179586)
 #: The split form serves pairs with ``|h| < TRITON_SPLIT_FORM_RATIO min |a_i|``: wider than the
@@ -473,7 +473,15 @@ def part_tables(data: TriangleCageData) -> dict[str, object]:
     """:func:`triton_tables` for the triangles of a triquad cage (raw weights, ``normalize=False``):
     their own sum does not show the far field's cancellation, so faces seen small always take the
     quadrature (as the native kernel's part mode)."""
-    tables = triton_tables(data)
+    return _part(triton_tables(data))
+
+
+def part_batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """:func:`batch_tables` for the triangles of a batch of triquad cages (as :func:`part_tables`)."""
+    return _part(batch_tables(vertices, tri, tol))
+
+
+def _part(tables: dict[str, object]) -> dict[str, object]:
     tables["cancel_c"] = 0.0
     tables["far_c"] = PART_FAR_FIELD_RATIO
     return tables

@@ -14,7 +14,10 @@ by the caller before this kernel runs; the normalisation is the caller's too. Th
 
 Shapes: ``P (V, 3)``, ``quads (Q, 4)`` int32, per-quad tables ``(Q, ...)``, ``X (n, 3)``; ``W (n, V)``
 in/out (raw weights: the triangles' on entry, plus the quads' on exit), ``flags (n,)`` int32 in/out
-(1: the row is final, on the cage).
+(1: the row is final, on the cage). A batch of ``B`` cages with one topology is one launch (a
+program per cage and block of points): ``quads`` and the Gauss table are shared, the vertices, the
+per-quad tables and the tolerance carry a leading cage axis, ``X (B or 1, n, 3)``, ``W (B, n, V)``,
+``flags (B, n)``; one cage is a batch of one.
 """
 
 from __future__ import annotations
@@ -23,12 +26,20 @@ import torch
 import triton
 import triton.language as tl
 
-from torchcage.backends.triton import device_function, interpreted, warps
+from torchcage.backends.triton import device_function, interpreted, point_batch, warps
 from torchcage.backends.triton.common import log
 from torchcage.families.mean_value.triton.mvc3d import TRITON_SPLIT_FORM_RATIO, _half_angle, face_form
-from torchcage.families.quad_mean_value.kernel import FAR_QUAD_LOG, GAUSS4, NEAR_FLAT, ON_QUAD_BAND, REFINE, QuadData
+from torchcage.families.quad_mean_value.kernel import (
+    FAR_QUAD_LOG,
+    GAUSS4,
+    NEAR_FLAT,
+    ON_QUAD_BAND,
+    REFINE,
+    QuadData,
+    quad_sizes,
+)
 
-__all__ = ["qmvc3d_triton", "triton_tables"]
+__all__ = ["batch_tables", "qmvc3d_triton", "triton_tables"]
 
 INV_LN10 = tl.constexpr(0.4342944819032518)
 FAR_LO = tl.constexpr(FAR_QUAD_LOG[0])
@@ -124,16 +135,35 @@ def _node(k, t, n, zero):
 
 @triton.jit
 def _qmvc3d_kernel(
-    X, n, P, V, quads, Q, geom, area2, size, gauss, tol, N, W, flags, BLOCK: tl.constexpr,
+    X, xs, n, P, V, quads, Q, geom, area2, size, gauss, tol, N, W, flags, BLOCK: tl.constexpr,
+    BATCHED: tl.constexpr = True,
 ):  # fmt: skip
-    offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    # one program: a block of points against cage b (program index b * blocks + block); the quads
+    # and the Gauss table are shared, every other table has a leading cage axis. One cage (BATCHED
+    # false, a compile-time constant): no cage offsets, so a single cage's launch keeps its registers.
+    pid = tl.program_id(0)
+    if BATCHED:
+        nblk = tl.cdiv(n, BLOCK)
+        cb = (pid // nblk).to(tl.int64)  # (the cage; the body's own b is a loop variable)
+        offs = (pid % nblk) * BLOCK + tl.arange(0, BLOCK)
+        P += cb * V * 3
+        geom += cb * Q * 18
+        area2 += cb * Q
+        size += cb * Q
+        tol = tl.load(tol + cb)
+        X += cb * xs
+        point = cb * n + offs.to(tl.int64)
+    else:
+        offs = pid * BLOCK + tl.arange(0, BLOCK)
+        tol = tl.load(tol)
+        point = offs.to(tl.int64)
     live = offs < n
     x0 = tl.load(X + 3 * offs, mask=live, other=0.0)
     x1 = tl.load(X + 3 * offs + 1, mask=live, other=0.0)
     x2 = tl.load(X + 3 * offs + 2, mask=live, other=0.0)
-    row = W + offs.to(tl.int64) * V
+    row = W + point * V
     zero = tl.zeros_like(x0)
-    done = (tl.load(flags + offs, mask=live, other=1) == 1) | ~live  # final rows (on a triangle)
+    done = (tl.load(flags + point, mask=live, other=1) == 1) | ~live  # final rows (on a triangle)
     hit = offs < 0  # on a quad: the bilinear values of the first quad holding the point
     h0 = tl.zeros_like(offs)
     h1 = tl.zeros_like(offs)
@@ -141,7 +171,7 @@ def _qmvc3d_kernel(
     h3 = tl.zeros_like(offs)
     hu = zero
     hv = zero
-    # (tol reaches a compiled kernel as an fp32 scalar: its square is taken in float64, where a tiny
+    # (tol is read from its float64 table; its square is taken per lane, in float64, where a tiny
     # cage's tolerance does not underflow)
     tolv = zero + tol
     tol2 = tolv * tolv
@@ -525,34 +555,53 @@ def _qmvc3d_kernel(
         tl.store(row + h1, hu * (1.0 - hv), mask=hit)
         tl.store(row + h2, hu * hv, mask=hit)
         tl.store(row + h3, (1.0 - hu) * hv, mask=hit)
-        tl.store(flags + offs, tl.zeros_like(offs) + 1, mask=hit)
+        tl.store(flags + point, tl.zeros_like(offs) + 1, mask=hit)
 
 
 def triton_tables(verts: torch.Tensor, qdata: QuadData, n: int) -> dict[str, object]:
-    """The kernel's per-cage arguments (float64, the cage's device): the vertices, the quads, per
-    quad the sheet's ``b, c, d, N0, Nu, Nv`` ``(Q, 18)``, twice the sum of its corner triangles'
-    areas and its size, the Gauss table, the on-cage tolerance and the grid parameter ``n``."""
-    P = verts.to(torch.float64).contiguous()
-    quads = qdata.quads.to(torch.int32).contiguous()
-    q = P[qdata.quads]  # (Q, 4, 3)
-    b, c = q[:, 1] - q[:, 0], q[:, 3] - q[:, 0]
-    d = q[:, 0] - q[:, 1] + q[:, 2] - q[:, 3]
+    """The kernel's arguments for one cage (a batch of one; float64, the cage's device): the
+    vertices, the quads, per quad the sheet's ``b, c, d, N0, Nu, Nv`` ``(Q, 18)``, twice the sum of
+    its corner triangles' areas and its size, the Gauss table, the on-cage tolerance and the grid
+    parameter ``n``."""
+    P = verts.to(torch.float64)
+    tol = torch.full((1,), float(qdata.tol), dtype=torch.float64, device=P.device)
+    return batch_tables(P[None], qdata.quads, tol, n)
+
+
+def batch_tables(vertices: torch.Tensor, quads: torch.Tensor, tol: torch.Tensor, n: int) -> dict[str, object]:
+    """The kernel's arguments for a batch of cages with one topology, each per-cage table computed
+    for the ``B`` cages by one set of tensor operations (element by element the numbers of
+    :func:`triton_tables`).
+
+    Args:
+        vertices: ``(B, V, 3)`` the cages' vertices (float64 compute), on the kernel's device.
+        quads: ``(Q, 4)`` the shared quads.
+        tol: ``(B,)`` absolute on-cage tolerances.
+        n: the grid parameter of the Riemann sums.
+    """
+    P = vertices.to(torch.float64).contiguous()
+    quads = quads.to(P.device)
+    q = P[:, quads]  # (B, Q, 4, 3)
+    b, c = q[..., 1, :] - q[..., 0, :], q[..., 3, :] - q[..., 0, :]
+    d = q[..., 0, :] - q[..., 1, :] + q[..., 2, :] - q[..., 3, :]
     cross = torch.linalg.cross
-    geom = torch.cat([b, c, d, cross(b, c), cross(b, d), cross(d, c)], dim=1).contiguous()
+    geom = torch.cat([b, c, d, cross(b, c), cross(b, d), cross(d, c)], dim=-1).contiguous()
     area2 = sum(
-        cross(q[:, (i + 2) % 4] - q[:, (i + 1) % 4], q[:, (i + 3) % 4] - q[:, (i + 1) % 4]).norm(dim=1)
+        cross(q[..., (i + 2) % 4, :] - q[..., (i + 1) % 4, :], q[..., (i + 3) % 4, :] - q[..., (i + 1) % 4, :]).norm(
+            dim=-1
+        )
         for i in range(4)
     )
     return {
         "P": P,
-        "V": P.shape[0],
-        "quads": quads,
+        "V": P.shape[1],
+        "quads": quads.to(torch.int32).contiguous(),
         "Q": quads.shape[0],
         "geom": geom,
         "area2": area2.contiguous(),
-        "size": qdata.size[:, 0].to(torch.float64).contiguous(),
+        "size": quad_sizes(P, quads).contiguous(),
         "gauss": torch.tensor(GAUSS4[0] + GAUSS4[1], dtype=torch.float64, device=P.device),
-        "tol": float(qdata.tol),
+        "tol": tol.to(P.device, torch.float64).reshape(-1).contiguous(),
         "N": int(n),
     }
 
@@ -560,14 +609,25 @@ def triton_tables(verts: torch.Tensor, qdata: QuadData, n: int) -> dict[str, obj
 def qmvc3d_triton(
     x: torch.Tensor, tables: dict[str, object], W: torch.Tensor, flags: torch.Tensor, block: int | None = None
 ) -> None:
-    """Add the quads' raw weights of points ``x`` ``(m, 3)`` (float64, the tables' device) into ``W``
-    ``(m, V)`` (contiguous; the triangles' raw weights, or zeros), skipping rows with ``flags == 1``
-    (int32 ``(m,)``, final: on the cage); rows of points on a quad become its bilinear values and
-    their flag 1. ``block``: points per program (32 on a GPU; large in the interpreter)."""
-    m = x.shape[0]
+    """Add the quads' raw weights of points ``x`` (float64, the tables' device) into ``W``
+    (contiguous; the triangles' raw weights, or zeros), skipping rows with ``flags == 1`` (int32,
+    final: on the cage); rows of points on a quad become its bilinear values and their flag 1.
+    ``block``: points per program (32 on a GPU; large in the interpreter).
+
+    One cage (tables of a batch of one): ``x`` ``(m, 3)``, ``W`` ``(m, V)``, ``flags`` ``(m,)``. A
+    batch of ``B`` cages (:func:`batch_tables`): ``x`` ``(B, m, 3)``, or ``(1, m, 3)`` shared by every
+    cage, ``W`` ``(B, m, V)``, ``flags`` ``(B, m)``.
+
+    Raises:
+        ValueError: points whose batch is neither 1 nor the cages'.
+    """
+    B = tables["P"].shape[0]  # type: ignore[attr-defined]
+    X, _ = point_batch(x, B, "qmvc3d_triton")
+    XB, m = X.shape[0], X.shape[1]
     if m == 0 or tables["Q"] == 0:
         return
     if block is None:
         block = min(4096, triton.next_power_of_2(max(m, 16))) if interpreted() else 32
-    grid = (triton.cdiv(m, block),)
-    _qmvc3d_kernel[grid](x.contiguous(), m, **tables, W=W, flags=flags, BLOCK=block, num_warps=warps(block))
+    grid = (B * triton.cdiv(m, block),)
+    _qmvc3d_kernel[grid](X, 0 if XB == 1 else 3 * m, m, **tables, W=W, flags=flags, BLOCK=block, BATCHED=B > 1,
+                         num_warps=warps(block))  # fmt: skip
