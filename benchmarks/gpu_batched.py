@@ -1,7 +1,7 @@
 """GPU benchmark of batched rest cages: mean value coordinates of B cages with one topology as one
 Triton launch, against the loop of single-cage calls and the dense batched torch formula; Green
 coordinates (the exterior continued), 2D mean value coordinates of 32-gons and their gradients and
-Hessians, and quad mean value coordinates (the bundled bar's 14-quad cage) likewise, batched launch
+Hessians, the 3D gradients and Hessians, and quad mean value coordinates (the bundled bar's 14-quad cage) likewise, batched launch
 against the loop.
 
 The setting of ``learnable.py`` / ``batched.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each,
@@ -134,21 +134,29 @@ def main() -> None:
     ref2 = results["batched (float64 compute)"][1].double()
     _table("2D forward (32-gons)", results, ref2, ("loop (float64 compute)",))
 
-    def derivatives(batched: bool) -> Callable[[], torch.Tensor]:
+    def derivatives(batched: bool, xx: torch.Tensor, cages: torchcage.Cage) -> Callable[[], torch.Tensor]:
         def run() -> torch.Tensor:
             fn = F.mean_value_derivatives
-            lam, grad, hess = fn(x2, polygons, 2, **f64) if batched else over_cage_batch(fn, x2, polygons, 2, **f64)
+            call = fn if batched else lambda *a, **k: over_cage_batch(fn, *a, **k)
+            lam, grad, hess = call(xx, cages, order=2, **f64)
             return torch.cat([lam[..., None], grad, hess.flatten(-2)], dim=-1).flatten(-2)
 
         return run
 
     results = {
-        "loop (float64 compute)": timed(derivatives(False)),
-        "batched (float64 compute)": timed(derivatives(True)),
+        "loop (float64 compute)": timed(derivatives(False, x2, polygons)),
+        "batched (float64 compute)": timed(derivatives(True, x2, polygons)),
     }
     print()
     ref3 = results["batched (float64 compute)"][1].double()
     _table("2D derivatives, order 2 (32-gons)", results, ref3, ("loop (float64 compute)",))
+    results = {
+        "loop (float64 compute)": timed(derivatives(False, x, cage(P))),
+        "batched (float64 compute)": timed(derivatives(True, x, cage(P))),
+    }
+    print()
+    ref3 = results["batched (float64 compute)"][1].double()
+    _table("3D derivatives, order 2", results, ref3, ("loop (float64 compute)",))
 
     from batched import quad_problem
 

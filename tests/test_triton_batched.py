@@ -538,3 +538,87 @@ def test_batched_quad_mean_value_thin_triangles_and_errors() -> None:
     bad[1, 3, 0] = float("nan")
     with pytest.raises(torchcage.PointsError, match=r"batch element \(1,\)"):
         F.quad_mean_value_coordinates(bad, cage, backend="triton")
+
+
+# ---------------------------------------------------------------------- 3D mean value derivatives
+def _off_cage_points(V: torch.Tensor, tri: torch.Tensor, seed: int) -> torch.Tensor:
+    """:func:`_points` off the cage (the derivatives refuse points on it), with an outside and a far
+    point (the first-moment normaliser)."""
+    x = _points(V, tri, seed)
+    c = V.mean(0)
+    return torch.cat([x[:8], x[23:], c + torch.tensor([[3.0, 0.5, 0.2], [2e4, 1e4, -3e4]], dtype=D64)])
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_batched_3d_derivatives_in_one_launch_equal_the_loop(order: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Gradients and Hessians of 3D mean value coordinates of three cages (the last 1e3 from the
+    origin), points one set per cage and shared (inside, near faces on both sides, outside, far):
+    one launch per chunk for the batch (``mvcd3d_triton_batch``), element by element the
+    single-cage Triton call, and linear precision near the cages."""
+    from torchcage.families.mean_value.triton import mvcd3d as _mvcd3d
+
+    V, tri = _cages(3, shift=1e3)
+    cage = torchcage.Cage(V.to(DEVICE), tri.to(DEVICE))
+    per = torch.stack([_off_cage_points(V[b], tri, seed=b) for b in range(3)]).to(DEVICE)
+    launches = _Launches(monkeypatch, _mvcd3d, "mvcd3d_triton_batch")
+    for pts in (per, per[0]):
+        launches.batches.clear()
+        out = F.mean_value_derivatives(pts, cage, order, backend="triton")
+        assert launches.batches == [3]  # one launch for the whole batch
+        refs = [F.mean_value_derivatives(pts if pts.ndim == 2 else pts[b], cage[b], order, backend="triton")
+                for b in range(3)]  # fmt: skip
+        for k in range(3 if order == 2 else 2):
+            _assert_close(out[k], torch.stack([r[k] for r in refs]))
+        X = (pts if pts.ndim == 3 else pts.expand(3, -1, -1)).cpu()
+        near = (X - V.mean(1, keepdim=True)).norm(dim=-1) < 10
+        Vc = V - V.mean(1, keepdim=True)
+        G = torch.einsum("bnvc,bvd->bncd", out[1].cpu(), Vc)
+        assert float((G - torch.eye(3, dtype=D64))[near].abs().max()) < 1e-8
+        if order == 2:
+            H = torch.einsum("bnvcd,bve->bncde", out[2].cpu(), Vc)
+            assert float(H[near].abs().max()) < 1e-7
+
+
+def test_batched_3d_derivative_kernel_blocks_point_batches_and_redo(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The 3D derivative kernel with small blocks against each cage's own tables, points one set per
+    cage and shared; the sliver cube's batch: points the kernel flags (next to the thin face) are
+    redone by the torch kernel's derivatives per cage, as one cage; a point batch that is neither 1
+    nor the cages' is refused."""
+    from torchcage.families.mean_value.triton import mvcd3d as _mvcd3d
+
+    V, tri = _cages(2, shift=5.0)
+    V, tri = V.to(DEVICE), tri.to(DEVICE)
+    x = torch.stack([_off_cage_points(V[b].cpu(), tri.cpu(), seed=4 + b)[:13] for b in range(2)]).to(DEVICE)
+    tol = torch.full((2,), 1e-13, dtype=D64)
+    cages = [torchcage.Cage(V[b], tri) for b in range(2)]
+    tables = _mvcd3d.batch_tables(V, tri, tol)
+    for X in (x, x[:1]):
+        out = _mvcd3d.mvcd3d_triton_batch(X, tables, 2, cages, block=8)
+        for b in range(2):
+            one = _mvcd3d.batch_tables(V[b : b + 1], tri, tol[b : b + 1])
+            ref = _mvcd3d.mvcd3d_triton_batch(X[b if X.shape[0] > 1 else 0][None], one, 2, cages[b : b + 1], block=8)
+            for k in range(3):
+                _assert_close(out[k][b], ref[k][0])
+            assert torch.equal(out[3][b], ref[3][0])
+    with pytest.raises(ValueError, match="for tables of 2 cages"):
+        _mvcd3d.mvcd3d_triton_batch(torch.zeros(3, 5, 3, dtype=D64, device=DEVICE), tables, 1, cages)
+    sliver, xs = _sliver_batch()
+    xs = xs[:20]  # (inside the box: off the cage)
+    redone, real = [], _mvcd3d.torch_derivatives
+    monkeypatch.setattr(_mvcd3d, "torch_derivatives", lambda y, c, o: redone.append(y.shape[0]) or real(y, c, o))
+    out = F.mean_value_derivatives(xs, sliver, 2, backend="triton")
+    assert len(redone) == 2 and min(redone) > 0  # (each cage redoes its points next to the sliver)
+    for b in range(2):
+        ref = F.mean_value_derivatives(xs.cpu(), sliver[b].to("cpu"), 2, backend="torch")
+        for k in range(3):
+            assert float(((out[k][b].cpu() - ref[k]).abs() / ref[k].abs().clamp_min(1.0)).max()) < 1e-7
+
+
+def test_batched_3d_derivatives_name_the_element() -> None:
+    V, tri = _cages(3)
+    cage = torchcage.Cage(V.to(DEVICE), tri.to(DEVICE))
+    pts = torch.stack([_off_cage_points(V[b], tri, seed=b)[:6] for b in range(3)]).to(DEVICE)
+    on = pts.clone()
+    on[2, 4] = V[2, 3].to(DEVICE)
+    with pytest.raises(torchcage.PointsError, match=r"points \[4\] in batch element \(2,\) lie on the cage"):
+        F.mean_value_derivatives(on, cage, backend="triton")

@@ -20,8 +20,8 @@ pytestmark = pytest.mark.triton
 pytest.importorskip("triton", reason="triton is not installed (pip install torchcage[triton])")
 
 KERNELS = ["mvc3d torch.float64", "mvc2d torch.float64", "gc3d torch.float64", "mvc3d torch.float32",
-           "mvc2d torch.float32", "gc3d torch.float32", "gc3d batched", "mvc3d raw weights", "qmvc3d", "qmvc3d batched", "mvcd2d",
-           "mvcd3d"]  # fmt: skip
+           "mvc2d torch.float32", "gc3d torch.float32", "gc3d batched", "mvc3d raw weights", "qmvc3d",
+           "qmvc3d batched", "mvcd2d", "mvcd3d", "mvcd3d batched"]  # fmt: skip
 
 
 def test_every_kernel_compiles_for_sm90() -> None:

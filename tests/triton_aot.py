@@ -109,6 +109,10 @@ def _kernels() -> list[tuple[str, object, dict[str, object]]]:
     out.append(("mvcd2d", k, a))
     k, a = _recorded(mvcd3d, "_mvcd3d_kernel", lambda: mvcd3d.mvcd3d_triton(x3, cube, 2))
     out.append(("mvcd3d", k, a))
+    cages = [cube, cube.with_vertices(1.5 * cube.vertices)]
+    k, a = _recorded(mvcd3d, "_mvcd3d_kernel", lambda: mvcd3d.mvcd3d_triton_batch(
+        x3[None], mvcd3d.batch_tables(two, cube.triangles, torch.full((2,), 1e-13, dtype=D)), 2, cages))  # fmt: skip
+    out.append(("mvcd3d batched", k, a))
     return out
 
 

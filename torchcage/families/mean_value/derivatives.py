@@ -270,7 +270,7 @@ def mean_value_derivatives(
         out = _derivatives_batch(points, cage, order, chunk_size, progress, backend)
         if out is not None:
             return out
-        # (the torch kernel, 3D on Triton, torch.func transforms: one call per element)
+        # (the torch kernel, torch.func transforms: one call per element)
         return over_cage_batch(
             mean_value_derivatives, points, cage, order=order, chunk_size=chunk_size, progress=progress, backend=backend
         )
@@ -303,11 +303,11 @@ def _derivatives_batch(
     backend: str,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None:
     """:func:`mean_value_derivatives` of a batch of cages with one topology in one kernel call per
-    chunk of points for every cage: the native kernel (CPU: 3D triangle cages and polygons) or the
-    Triton kernel (polygons: CUDA, or CPU under ``TRITON_INTERPRET=1``), the tables of the batch
+    chunk of points for every cage: the native kernel (CPU) or the Triton kernels (CUDA, or CPU
+    under ``TRITON_INTERPRET=1``), 3D triangle cages and polygons, the tables of the batch
     built by one set of tensor operations; element by element the numbers of the single-cage call
     (the native kernel: bitwise; Triton: to rounding). ``None`` where neither serves (quads, another
-    backend or device, ``torch.func`` transforms, no native build, 3D on CUDA): the caller then
+    backend or device, ``torch.func`` transforms, no native build): the caller then
     loops over the cages.
 
     Raises:
@@ -331,7 +331,8 @@ def _derivatives_batch(
     tols = on_cage_tolerances(verts)  # (the uncentred cages', as the single-cage call's)
     x, v = centred_batch(pts.detach(), verts.detach(), torch.float64)  # (each relative to its centre)
     if lib is None:
-        lam, grad, hess, flags = _triton_polygons(x, v, cage.edges, tols, order, chunk_size, progress)
+        faces = cage.edges if D == 2 else cage.triangles
+        lam, grad, hess, flags = _triton_batch(x, v, faces, tols, order, chunk_size, progress, verts)
     else:
         if D == 2:
             tables = _mvcd_native.polygon_tables(v, cage.edges, tols)
@@ -360,47 +361,65 @@ def _derivatives_batch(
 def _triton_batch_inputs(
     points: torch.Tensor, cage: Cage, backend: str
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Size] | None:
-    """:func:`broadcast_batch` of a batched polygon call that the Triton kernel serves (``backend``
-    ``"auto"`` or ``"triton"``, points where :func:`select` takes it), else ``None``.
+    """:func:`broadcast_batch` of a batched call (polygons, 3D triangle cages) that the Triton
+    kernels serve (``backend`` ``"auto"`` or ``"triton"``, points where :func:`select` takes them),
+    else ``None``.
 
     Raises:
         RuntimeError: ``backend="triton"`` where the kernel cannot serve (as the loop's calls raise).
     """
-    if cage.dim != 2 or backend not in ("auto", "triton"):
+    if cage.has_quads or backend not in ("auto", "triton"):
         return None
     if is_functorch_wrapped_tensor(points) or is_functorch_wrapped_tensor(cage.vertices):
         return None
     pts, verts, batch = broadcast_batch(points, cage)
     if not pts.is_floating_point() or pts.device != verts.device:
         return None
-    probe = pts.new_empty((0, 2), dtype=torch.float64)
+    probe = pts.new_empty((0, cage.dim), dtype=torch.float64)
     if select(MVC_DERIVATIVES, backend, probe, graph=False).kind != "triton":
         return None
     return pts, verts, batch
 
 
-def _triton_polygons(
+def _triton_batch(
     x: torch.Tensor,
     v: torch.Tensor,
-    edges: torch.Tensor,
+    faces: torch.Tensor,
     tol: torch.Tensor,
     order: int,
     chunk_size: int | None,
     progress: bool | Callable[[int, int], None],
+    uncentred: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The Triton kernel on a batch of polygons: centred float64 points ``x`` ``(B or 1, N, 2)`` and
-    vertices ``v`` ``(B, V, 2)`` on the kernel's device, ``tol`` ``(B,)`` -> as :func:`native_batch`
-    (on the points' device); one launch per chunk of points (default 4096) for every polygon."""
-    from torchcage.families.mean_value.triton.mvcd2d import batch_tables, mvcd2d_triton_batch
+    """The Triton kernels on a batch of cages (``mvcd2d``: polygons, ``mvcd3d``: triangle cages):
+    centred float64 points ``x`` ``(B or 1, N, D)`` and vertices ``v`` ``(B, V, D)`` on the
+    kernel's device, ``faces`` the edges or triangles, ``tol`` ``(B,)``, the ``uncentred`` vertices
+    (the extents of the 3D redo's tolerances) -> as :func:`native_batch` (on the points' device);
+    one launch per chunk of points (default 4096) for every cage."""
+    B, N, V, D = v.shape[0], x.shape[1], v.shape[1], v.shape[2]
+    if D == 2:
+        from torchcage.families.mean_value.triton.mvcd2d import batch_tables, mvcd2d_triton_batch
 
-    tables = batch_tables(v, edges, tol)
-    B, N, V = v.shape[0], x.shape[1], v.shape[1]
+        tables = batch_tables(v, faces, tol)
+
+        def launch(c: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            return mvcd2d_triton_batch(c, tables, order)
+    else:
+        from torchcage.families.mean_value.triton import mvcd3d
+
+        tables = mvcd3d.batch_tables(v, faces, tol)
+        cages = [Cage._from_faces(v[b], faces.to(v.device)) for b in range(B)]  # (the rare redo's)
+        extents = uncentred.detach().abs().amax(dim=(1, 2))
+
+        def launch(c: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            return mvcd3d.mvcd3d_triton_batch(c, tables, order, cages, extents=extents)
+
     lam = x.new_empty((B, N, V))
-    grad = x.new_empty((B, N, V, 2))
-    hess = x.new_empty((B, N, V, 2, 2) if order == 2 else (0,))
+    grad = x.new_empty((B, N, V, D))
+    hess = x.new_empty((B, N, V, D, D) if order == 2 else (0,))
     flags = torch.empty((B, N), dtype=torch.uint8, device=x.device)
     for sl in chunks(N, chunk_size if chunk_size is not None else 4096, progress, desc="mean value derivatives"):
-        lam[:, sl], grad[:, sl], h, flags[:, sl] = mvcd2d_triton_batch(x[:, sl], tables, order)
+        lam[:, sl], grad[:, sl], h, flags[:, sl] = launch(x[:, sl])
         if order == 2:
             hess[:, sl] = h
     return lam, grad, hess, flags

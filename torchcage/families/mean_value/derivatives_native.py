@@ -17,7 +17,7 @@ from torchcage.errors import CageError
 from torchcage.families.mean_value import native2d
 
 __all__ = ["DERIVATIVE_FAR_FIELD_ORDER", "DERIVATIVE_FAR_FIELD_RATIO", "DERIVATIVE_SPLIT_FORM_RATIO", "G_ORDER",
-           "batch_tables", "native_chunk", "native_tables", "one_cage", "polygon_tables"]  # fmt: skip
+           "batch_tables", "native_chunk", "native_tables", "polygon_tables"]  # fmt: skip
 
 #: Faces whose longest edge is below ``DERIVATIVE_FAR_FIELD_RATIO`` times their distance use the
 #: far-field rule (measured against 60-digit references: the direct form's Hessians lose up to
@@ -67,18 +67,20 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
     tables of the ``B`` cages by one set of tensor operations, with a leading batch axis.
 
     Args:
-        vertices: ``(B, V, 3)`` float64 CPU vertices.
-        tri: ``(T, 3)`` the shared triangles.
+        vertices: ``(B, V, 3)`` float64 vertices: on the CPU for the native kernel (the Triton
+            kernel takes the same tables on its device).
+        tri: ``(T, 3)`` the shared triangles (on the vertices' device).
         tol: ``(B,)`` float64 absolute on-cage tolerances.
     """
+    dev = vertices.device
     p = vertices[:, tri]  # (B, T, 3, 3)
     cross = torch.linalg.cross(p[:, :, 1] - p[:, :, 0], p[:, :, 2] - p[:, :, 0], dim=-1)
     two_area = cross.norm(dim=-1)
     normal = cross / two_area[..., None]
     E = p.roll(-1, dims=2) - p.roll(-2, dims=2)  # (B, T, 3, 3): E_e = p_{e+1} - p_{e+2}
     ell = E.norm(dim=-1)
-    bary, qw = collapsed_gauss(DERIVATIVE_FAR_FIELD_ORDER, torch.float64, torch.device("cpu"))
-    gy, gw = _gauss01(G_ORDER)
+    bary, qw = collapsed_gauss(DERIVATIVE_FAR_FIELD_ORDER, torch.float64, dev)
+    gy, gw = (t.to(dev) for t in _gauss01(G_ORDER))
     edges, face_edge, _ = unique_face_edges(tri)
     far_nodes = torch.einsum("qi,btic->btqc", bary, p).contiguous()
     return {
@@ -103,7 +105,7 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
         "gl_y": gy.contiguous(),
         "gl_w": gw.contiguous(),
         "ng": G_ORDER,
-        "tol": tol.to(torch.float64).contiguous(),
+        "tol": tol.to(dev, torch.float64).contiguous(),
     }
 
 
@@ -124,18 +126,6 @@ def polygon_tables(vertices: torch.Tensor, edges: torch.Tensor, tol: torch.Tenso
     tables = native2d.batch_tables(vertices, edges, tol)  # (the same arguments as tc_mvc2d's ...)
     tables["NE"] = tables.pop("E")  # (... but for the edge count's name)
     return tables
-
-
-#: The keys of :func:`batch_tables` that carry the batch axis.
-BATCHED_KEYS = ("P", "E", "nrm", "two_area", "ell", "gram", "longest", "far_nodes", "far_coef", "tol")
-
-
-def one_cage(tables: dict[str, object]) -> dict[str, object]:
-    """The tables of a batch of one (:func:`native_tables` of a 3D cage) without their batch axis,
-    ``tol`` a float: the per-cage arguments other kernels take (the Triton kernel's)."""
-    out = {k: (v[0] if k in BATCHED_KEYS else v) for k, v in tables.items() if k != "B"}  # type: ignore[index]
-    out["tol"] = float(out["tol"])  # type: ignore[arg-type]
-    return out
 
 
 def native_chunk(

@@ -29,12 +29,14 @@ import torch
 import triton
 import triton.language as tl
 
+from torchcage._core.centre import keep_extent
 from torchcage._core.common import FAR_MOMENT
 from torchcage._core.thin_triangle import THIN_ASPECT, THIN_DISTANCE
-from torchcage.backends.triton import device_function, interpreted, warps
+from torchcage.backends.triton import device_function, interpreted, point_batch, warps
 from torchcage.backends.triton.common import atan, atan2
 from torchcage.cage import Cage
-from torchcage.families.mean_value.derivatives_native import native_tables, one_cage
+from torchcage.families.mean_value.derivatives_native import batch_tables as native_batch_tables
+from torchcage.families.mean_value.derivatives_native import native_tables
 from torchcage.families.mean_value.derivatives_torch import torch_derivatives
 from torchcage.families.mean_value.triton.jet3 import (
     atan_over,
@@ -55,7 +57,7 @@ from torchcage.families.mean_value.triton.jet3 import (
 )
 from torchcage.families.mean_value.triton.mvc3d import _thin_pair
 
-__all__ = ["mvcd3d_triton"]
+__all__ = ["batch_tables", "derivative_tables", "mvcd3d_triton", "mvcd3d_triton_batch"]
 
 TWO_PI = tl.constexpr(6.283185307179586)
 
@@ -502,15 +504,39 @@ def _acc(row, v, m, a):
 
 @triton.jit
 def _mvcd3d_kernel(
-    X, n, P, V, tri, T, nrm, two_area, ell, gram, longest, thin, far_nodes, far_coef, Q, far_c, near_c,
+    X, xs, n, P, V, tri, T, nrm, two_area, ell, gram, longest, thin, far_nodes, far_coef, Q, far_c, near_c,
     gl_y, gl_w, ng, tol, thin_distance, ACC, SFACE, SWIND, flags, BLOCK: tl.constexpr, QT: tl.constexpr,
-    NG: tl.constexpr,
+    NG: tl.constexpr, BATCHED: tl.constexpr = True,
 ):  # fmt: skip
-    offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    # one program: a block of points against cage cb (program index cb * blocks + block); the
+    # topology and the quadrature tables are shared, the geometric tables have a leading cage axis.
+    # One cage (BATCHED false, a compile-time constant): no cage offsets, which cost registers in a
+    # kernel that spills already.
+    pid = tl.program_id(0)
+    if BATCHED:
+        nblk = tl.cdiv(n, BLOCK)
+        cb = (pid // nblk).to(tl.int64)
+        offs = (pid % nblk) * BLOCK + tl.arange(0, BLOCK)
+        P += cb * V * 3
+        nrm += cb * T * 3
+        two_area += cb * T
+        ell += cb * T * 3
+        gram += cb * T * 9
+        longest += cb * T
+        thin += cb * T
+        far_nodes += cb * T * Q * 3
+        far_coef += cb * T * Q * 3
+        tol = tl.load(tol + cb)
+        X += cb * xs
+        point = cb * n + offs.to(tl.int64)
+    else:
+        offs = pid * BLOCK + tl.arange(0, BLOCK)
+        tol = tl.load(tol)
+        point = offs.to(tl.int64)
     live = offs < n
     x = (tl.load(X + 3 * offs, mask=live, other=0.0), tl.load(X + 3 * offs + 1, mask=live, other=0.0),
          tl.load(X + 3 * offs + 2, mask=live, other=0.0))  # fmt: skip
-    row = ACC + offs.to(tl.int64) * (10 * V)
+    row = ACC + point * (10 * V)
     for k in range(10 * V):
         tl.store(row + k, tl.zeros_like(x[0]), mask=live)
     redo = offs < 0
@@ -596,15 +622,36 @@ def _mvcd3d_kernel(
             _acc(row, tl.where(i == 0, i0, tl.where(i == 1, i1, i2)), keep, jwhere(i == 0, w0, jwhere(i == 1, w1, w2)))
     # the kept face and its winding: the caller rebuilds k s_i and h from them (a few stores: every
     # memory operation costs the compiler's coalescing pass time)
-    tl.store(SFACE + offs, tl.where(has, sf, -1), mask=live)
-    tl.store(SWIND + offs, swind, mask=live)
-    tl.store(flags + offs, tl.where(redo, 1, 0), mask=live)
+    tl.store(SFACE + point, tl.where(has, sf, -1), mask=live)
+    tl.store(SWIND + point, swind, mask=live)
+    tl.store(flags + point, tl.where(redo, 1, 0), mask=live)
 
 
 def derivative_tables(cage: Cage, device: torch.device) -> dict[str, object]:
-    """The kernel's per-cage arguments: the native kernel's tables (float64) on ``device``."""
-    t = one_cage(native_tables(cage))
-    out = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in t.items() if k not in ("fe", "NE", "E")}
+    """The kernel's arguments for one cage (a batch of one): the native kernel's tables (float64)
+    on ``device``."""
+    return _triton_tables(native_tables(cage), device)
+
+
+def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """The kernel's arguments for a batch of cages with one topology (the native kernel's tables,
+    built by one set of tensor operations on the vertices' device).
+
+    Args:
+        vertices: ``(B, V, 3)`` float64 vertices on the kernel's device.
+        tri: ``(T, 3)`` the shared triangles.
+        tol: ``(B,)`` absolute on-cage tolerances.
+    """
+    dev = vertices.device
+    return _triton_tables(native_batch_tables(vertices, tri.to(dev), tol.to(dev)), dev)
+
+
+def _triton_tables(t: dict[str, object], device: torch.device) -> dict[str, object]:
+    """The native tables ``t`` (a leading cage axis) as the kernel's: the native-only edge tables
+    dropped, the thin faces flagged, on ``device``."""
+    out = {
+        k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in t.items() if k not in ("fe", "NE", "E", "B")
+    }
     out["thin"] = ((out["two_area"] > 0) & (out["longest"] ** 2 > THIN_ASPECT * out["two_area"])).to(torch.int32)
     out["thin_distance"] = THIN_DISTANCE
     return out
@@ -640,41 +687,44 @@ def _linear_jet(value: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
 
 
 def _totals(acc: torch.Tensor, xs: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
-    """The normaliser of each point as a jet ``(n, 10)``: the sum of the weights, or far from the
-    cage their first moment ``(sum_v w_v (P_v - c)) . y / |y|^2`` (``y = x - c``)."""
-    lo, hi = P.min(dim=0).values, P.max(dim=0).values
-    c = 0.5 * (lo + hi)
-    far2 = FAR_MOMENT * FAR_MOMENT * float(((P - c) ** 2).sum(dim=1).max())
-    y = xs - c
-    y2 = (y * y).sum(dim=1)
-    total = acc.sum(dim=1)
-    far = y2 > far2
+    """The normaliser of each point as a jet ``(B, n, 10)``: the sum of the weights ``acc``
+    ``(B, n, V, 10)``, or far from the cage ``P`` ``(B, V, 3)`` their first moment
+    ``(sum_v w_v (P_v - c)) . y / |y|^2`` (``y = x - c``, points ``xs`` ``(B, n, 3)``)."""
+    c = 0.5 * (P.amin(dim=1) + P.amax(dim=1))  # (B, 3)
+    Pc = P - c[:, None]
+    far2 = FAR_MOMENT * FAR_MOMENT * (Pc**2).sum(dim=-1).amax(dim=-1)  # (B,)
+    y = xs - c[:, None]
+    y2 = (y * y).sum(dim=-1)
+    total = acc.sum(dim=2)
+    far = y2 > far2[:, None]
     if bool(far.any()):
-        S = torch.einsum("nvk,vd->ndk", acc[far], P - c)  # (m, 3, 10)
+        bi, ni = torch.nonzero(far, as_tuple=True)
+        S = (acc[bi, ni][:, :, None, :] * Pc[bi][:, :, :, None]).sum(dim=1)  # (m, 3, 10)
         eye = torch.eye(3, dtype=P.dtype, device=P.device)
         yj = torch.zeros(S.shape[0], 3, 10, dtype=P.dtype, device=P.device)
-        yj[..., 0], yj[..., 1:4] = y[far], eye
+        yj[..., 0], yj[..., 1:4] = y[bi, ni], eye
         num = _jet_mul(S, yj).sum(dim=1)
         den = torch.zeros_like(num)
-        den[:, 0], den[:, 1:4], den[:, 4:7] = y2[far], 2 * y[far], 2.0
-        total[far] = _jet_mul(num, _jet_recip(den))
+        den[:, 0], den[:, 1:4], den[:, 4:7] = y2[bi, ni], 2 * y[bi, ni], 2.0
+        total[bi, ni] = _jet_mul(num, _jet_recip(den))
     return total
 
 
 def _singular(
-    x: torch.Tensor, face: torch.Tensor, wind: torch.Tensor, tables: dict[str, object]
+    x: torch.Tensor, cage: torch.Tensor, face: torch.Tensor, wind: torch.Tensor, tables: dict[str, object]
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The kept singular part of points ``x (m, 3)`` next to faces ``face (m,)`` of winding ``wind``:
-    the jets ``(m, 10)`` of ``h = n . (p_0 - x)``, ``(m, 3, 10)`` of ``k s_i`` (``s_i = n . N_i``,
-    ``k = 2 pi wind / (4 area)``; affine in ``x``) and the corners' vertices ``(m, 3)``."""
+    """The kept singular part of points ``x (m, 3)`` of cages ``cage (m,)`` next to faces
+    ``face (m,)`` of winding ``wind``: the jets ``(m, 10)`` of ``h = n . (p_0 - x)``, ``(m, 3, 10)``
+    of ``k s_i`` (``s_i = n . N_i``, ``k = 2 pi wind / (4 area)``; affine in ``x``) and the corners'
+    vertices ``(m, 3)``."""
     idx = tables["tri"][face].long()  # (m, 3)
-    p = tables["P"][idx]  # (m, 3, 3)
+    p = tables["P"][cage[:, None], idx]  # (m, 3, 3)
     a = p - x[:, None, :]
-    n = tables["nrm"][face]  # (m, 3)
+    n = tables["nrm"][cage, face]  # (m, 3)
     h = (n * a[:, 0]).sum(dim=1)
     N = torch.cross(a.roll(-1, dims=1), a.roll(-2, dims=1), dim=2)  # N_i = a_{i+1} x a_{i+2}
     E = p.roll(-1, dims=1) - p.roll(-2, dims=1)
-    k = 2.0 * torch.pi * wind / (2.0 * tables["two_area"][face])
+    k = 2.0 * torch.pi * wind / (2.0 * tables["two_area"][cage, face])
     ks = torch.zeros(x.shape[0], 3, 10, dtype=x.dtype, device=x.device)
     ks[..., 0] = k[:, None] * (N * n[:, None, :]).sum(dim=2)
     ks[..., 1:4] = k[:, None, None] * torch.cross(E, n[:, None, :].expand_as(E), dim=2)
@@ -694,61 +744,81 @@ def mvcd3d_triton(
     ``"auto"`` for CUDA points); the autograd Functions take it for CUDA points. ``tables``:
     :func:`derivative_tables` of the cage on the points' device (built here when ``None``).
     """
-    dtype = torch.float64
     if tables is None:
         tables = derivative_tables(cage, x.device)
+    xs = x.detach().to(torch.float64)[None]
+    lam, grad, hess, out = mvcd3d_triton_batch(xs, tables, order, [cage], block)
+    return lam[0], grad[0], hess[0] if order == 2 else hess, out[0]
+
+
+def mvcd3d_triton_batch(
+    x: torch.Tensor,
+    tables: dict[str, object],
+    order: int,
+    cages: list[Cage],
+    block: int | None = None,
+    extents: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`mvcd3d_triton` for a batch of ``B`` cages with one topology in one launch: float64
+    points ``x`` ``(B, n, 3)``, or ``(1, n, 3)`` shared by every cage, on the tables' device
+    (:func:`batch_tables`) -> ``lam (B, n, V)``, ``grad (B, n, V, 3)``, ``hess (B, n, V, 3, 3)``
+    (empty for ``order=1``) and the uint8 flags ``(B, n)``. ``cages``: each cage (``B`` of them),
+    for the points redone by the torch kernel (on a cage, next to a thin face), cage by cage;
+    ``extents`` ``(B,)``: the largest coordinate of each uncentred cage (their redo's on-cage tolerance, as
+    :func:`torchcage._core.centre.keep_extent` gives the single-cage call). Element by element the
+    numbers of :func:`mvcd3d_triton`, to rounding.
+
+    Raises:
+        ValueError: points whose batch is neither 1 nor the cages'.
+    """
+    dtype = torch.float64
     P = tables["P"]
-    xs = x.detach().to(dtype).contiguous()
-    n, V = xs.shape[0], tables["V"]
-    acc = torch.empty((n, V, 10), dtype=dtype, device=x.device)
-    sface = torch.empty(n, dtype=torch.int32, device=x.device)
-    swind = torch.empty(n, dtype=dtype, device=x.device)
-    flags = torch.empty(n, dtype=torch.int32, device=x.device)
+    B, V = P.shape[0], tables["V"]  # type: ignore[attr-defined]
+    X, _ = point_batch(x, B, "mvcd3d_triton_batch")
+    XB, n = X.shape[0], X.shape[1]
+    dev = X.device
+    acc = torch.empty((B, n, V, 10), dtype=dtype, device=dev)
+    sface = torch.empty((B, n), dtype=torch.int32, device=dev)
+    swind = torch.empty((B, n), dtype=dtype, device=dev)
+    flags = torch.empty((B, n), dtype=torch.int32, device=dev)
     if block is None:
         block = min(512, triton.next_power_of_2(max(n, 16))) if interpreted() else 32
     # quadrature nodes per step: all at once in the interpreter (one numpy op per step), one on a GPU
-    tile = triton.next_power_of_2(int(tables["Q"])) if interpreted() else 1
-    gtile = triton.next_power_of_2(int(tables["ng"])) if interpreted() else 1
+    tile = triton.next_power_of_2(int(tables["Q"])) if interpreted() else 1  # type: ignore[call-overload]
+    gtile = triton.next_power_of_2(int(tables["ng"])) if interpreted() else 1  # type: ignore[call-overload]
     if n:
-        _mvcd3d_kernel[(triton.cdiv(n, block),)](
-            xs,
-            n,
-            **tables,
-            ACC=acc,
-            SFACE=sface,
-            SWIND=swind,
-            flags=flags,
-            BLOCK=block,
-            QT=tile,
-            NG=gtile,
-            num_warps=warps(block),
-        )
-    total = _totals(acc, xs, P)
+        _mvcd3d_kernel[(B * triton.cdiv(n, block),)](
+            X, 0 if XB == 1 else 3 * n, n, **tables, ACC=acc, SFACE=sface, SWIND=swind, flags=flags, BLOCK=block,
+            QT=tile, NG=gtile, BATCHED=B > 1, num_warps=warps(block),
+        )  # fmt: skip
+    Xb = X.expand(B, n, 3)
+    total = _totals(acc, Xb, P)  # type: ignore[arg-type]
     num = acc
-    rows = torch.nonzero(sface >= 0).flatten()
-    if rows.numel():  # lam_v = (k s_v + h r_v) / (k sum s + h sum r)
-        hj, ks, idx = _singular(xs[rows], sface[rows].long(), swind[rows], tables)
+    bi, ni = torch.nonzero(sface >= 0, as_tuple=True)
+    if bi.numel():  # lam_v = (k s_v + h r_v) / (k sum s + h sum r)
+        hj, ks, idx = _singular(Xb[bi, ni], bi, sface[bi, ni].long(), swind[bi, ni], tables)
         num = acc.clone()
-        num[rows] = _jet_mul(hj[:, None, :], acc[rows])
+        num[bi, ni] = _jet_mul(hj[:, None, :], acc[bi, ni])
         for i in range(3):
-            num[rows, idx[:, i]] += ks[:, i]
+            num[bi, ni, idx[:, i]] += ks[:, i]
         total = total.clone()
-        total[rows] = _jet_mul(hj, acc[rows].sum(dim=1)) + ks.sum(dim=1)
+        total[bi, ni] = _jet_mul(hj, acc[bi, ni].sum(dim=1)) + ks.sum(dim=1)
     redo = flags == 1
-    bad = ~redo & ~((total[:, 0] != 0) & torch.isfinite(total[:, 0]))
-    safe = torch.where(bad[:, None], torch.ones_like(total), total)
-    lam10 = _jet_mul(num, _jet_recip(safe)[:, None, :])  # (n, V, 10)
+    bad = ~redo & ~((total[..., 0] != 0) & torch.isfinite(total[..., 0]))
+    safe = torch.where(bad[..., None], torch.ones_like(total), total)
+    lam10 = _jet_mul(num, _jet_recip(safe)[:, :, None, :])  # (B, n, V, 10)
     lam = lam10[..., 0].contiguous()
     grad = lam10[..., 1:4].contiguous()
-    hess = torch.empty((n, V, 3, 3) if order == 2 else (0,), dtype=dtype, device=x.device)
+    hess = torch.empty((B, n, V, 3, 3) if order == 2 else (0,), dtype=dtype, device=dev)
     if order == 2:
-        hess = lam10[..., [4, 7, 8, 7, 5, 9, 8, 9, 6]].reshape(n, V, 3, 3).contiguous()
+        hess = lam10[..., [4, 7, 8, 7, 5, 9, 8, 9, 6]].reshape(B, n, V, 3, 3).contiguous()
     out = torch.where(bad, 2, 0).to(torch.uint8)
-    if bool(redo.any()):
-        rows = torch.nonzero(redo).flatten()
-        lr, gr, hr, onr = torch_derivatives(xs[rows], cage, order)
-        lam[rows], grad[rows] = lr, gr
+    for b in torch.nonzero(redo.any(dim=1)).flatten().tolist():  # (rare: on a cage, next to a thin face)
+        rows = torch.nonzero(redo[b]).flatten()
+        with keep_extent(float(extents[b]) if extents is not None else 0.0):
+            lr, gr, hr, onr = torch_derivatives(Xb[b, rows], cages[b], order)
+        lam[b, rows], grad[b, rows] = lr, gr
         if order == 2:
-            hess[rows] = hr
-        out[rows] = onr.to(torch.uint8)
+            hess[b, rows] = hr
+        out[b, rows] = onr.to(torch.uint8)
     return lam, grad, hess, out
