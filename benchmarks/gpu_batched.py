@@ -1,8 +1,8 @@
 """GPU benchmark of batched rest cages: mean value coordinates of B cages with one topology as one
 Triton launch, against the loop of single-cage calls and the dense batched torch formula; Green
 coordinates (the exterior continued), 2D mean value coordinates of 32-gons and their gradients and
-Hessians, the 3D gradients and Hessians, and quad mean value coordinates (the bundled bar's 14-quad cage) likewise, batched launch
-against the loop.
+Hessians, the 3D gradients and Hessians, and quad mean value coordinates (the bundled bar's 14-quad
+cage) likewise, batched launch against the loop.
 
 The setting of ``learnable.py`` / ``batched.py`` (Neural Cages): B = 8 shapes, N = 5,000 points each,
 a jittered 42-vertex / 80-triangle icosphere cage per shape, float32 inputs, on CUDA. Rows:
