@@ -53,7 +53,7 @@ from torch import Tensor
 from torchcage.backends import BACKENDS, Op, check, preferred, resolve, use
 from torchcage.cage import Cage
 
-__all__ = ["CompiledOp", "through_op"]
+__all__ = ["CompiledOp", "DerivativesOp", "through_op"]
 
 #: ``eager(points, cage, options) -> tuple of outputs`` (each ``(*, N, K)``).
 Eager = Callable[[Tensor, Cage, dict], tuple[Tensor, ...]]
@@ -324,3 +324,85 @@ class CompiledOp:
             with use(resolve(backend)):
                 outs = self.values(*args)[:-1]
         return outs if dtype is None else [o.to(dtype) for o in outs]
+
+
+#: ``eager(points, cage, order, chunk_size, extend) -> outputs`` (``None`` for an output not asked).
+DerivativesEager = Callable[[Tensor, Cage, int, "int | None", bool], tuple["Tensor | None", ...]]
+#: ``tails(vertices, triangles, quads, edges, order) -> [trailing shape of each output, or None]``.
+Tails = Callable[[Tensor, Tensor, Tensor, Tensor, int], list["list[int] | None"]]
+
+
+class DerivativesOp:
+    """``torchcage::<name>``: a family's analytic derivatives as one opaque op under
+    ``torch.compile``, so that ``fullgraph=True`` takes them (their checks and kernels are not
+    traceable). Their outputs are plain values (the eager function detaches its inputs: no
+    autograd graph), so the op is called on detached inputs and has no autograd formula; the kernel
+    is the backend in force where the op runs (no backend in the schema, as :class:`CompiledOp`).
+
+    Args:
+        name: the op's name in the ``torchcage`` namespace.
+        eager: the eager public function as ``eager(points, cage, order, chunk_size, extend)``
+            (``extend``: Green's ``exterior="extend"``; ignored where a family has no exterior).
+        tails: each output's trailing shape after the points' (``None``: an output not computed
+            for that order, returned as ``None``).
+        op: the family's operation (the ``backend=`` values it accepts).
+        promote: the outputs' dtype is the points' and the vertices' promoted (else the points').
+    """
+
+    def __init__(self, name: str, eager: DerivativesEager, tails: Tails, op: Op, promote: bool) -> None:
+        self.name, self.tails, self.backends = name, tails, op
+
+        @torch.library.custom_op(f"torchcage::{name}", mutates_args=())
+        def values(
+            points: Tensor,
+            vertices: Tensor,
+            triangles: Tensor,
+            quads: Tensor,
+            edges: Tensor,
+            order: int,
+            chunk_size: int,
+            extend: bool,
+        ) -> List[Tensor]:  # noqa: UP006 (torch 2.5's infer_schema reads typing.List)
+            cage = _cage(vertices, triangles, quads, edges)
+            with _autograd_inside_an_op():  # (the torch kernels' fallbacks differentiate by autograd)
+                outs = eager(points, cage, order, chunk_size or None, extend)
+            return [o.detach().clone() if o is not None else points.new_empty((0,)) for o in outs]
+
+        @values.register_fake
+        def _(points, vertices, triangles, quads, edges, order, chunk_size, extend):
+            dtype = torch.promote_types(points.dtype, vertices.dtype) if promote else points.dtype
+            lead = _lead(points, vertices)
+            return [
+                points.new_empty([*lead, *t] if t is not None else [0], dtype=dtype)
+                for t in tails(vertices, triangles, quads, edges, order)
+            ]
+
+        self.values = values
+
+    def __call__(
+        self, points: Tensor, cage: Cage, order: int, chunk_size: int | None, backend: str, extend: bool = True
+    ) -> tuple[Tensor | None, ...]:
+        """The outputs through the op (under ``torch.compile``); ``None`` where the order asks for
+        none. ``backend`` as :meth:`CompiledOp.__call__` takes it under compilation.
+
+        Raises:
+            ValueError: ``chunk_size`` not a positive integer, a ``backend`` the family does not
+                have, or another backend than ``"auto"`` under ``torch.compile``.
+        """
+        if chunk_size is not None and (
+            isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1
+        ):
+            raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+        check(self.backends, backend)
+        if backend != "auto":
+            raise ValueError(
+                f"backend={backend!r} inside a compiled function: under torch.compile the derivatives run as one op "
+                f"(torchcage::{self.name}) that takes the backend in force when the compiled code runs; leave "
+                f"backend='auto' and call the compiled function inside `with torchcage.backends.use({backend!r}):`"
+            )
+        c = cage
+        outs = self.values(
+            points.detach(), c.vertices.detach(), c.triangles, c.quads, c.edges, order, chunk_size or 0, extend
+        )
+        tails = self.tails(c.vertices, c.triangles, c.quads, c.edges, order)
+        return tuple(o if t is not None else None for o, t in zip(outs, tails, strict=True))

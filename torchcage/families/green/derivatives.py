@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 
 from torchcage._core.common import as_inputs, check_points, result_dtype
+from torchcage._core.compiled import DerivativesOp
 from torchcage.backends import check, resolve, use
 from torchcage.cage import Cage
 from torchcage.errors import CageError
@@ -29,6 +30,23 @@ def _autograd_rows(
     """The derivatives of :func:`green_coordinates` (with ``exterior``) at ``x`` by autograd of
     the torch kernel (:func:`._green_derivatives_flat.autograd_rows`)."""
     return autograd_rows(x, order, lambda y: green_coordinates(y, cage, backend="torch", exterior=exterior))
+
+
+def _eager(
+    points: torch.Tensor, cage: Cage, order: int, chunk_size: int | None, extend: bool
+) -> tuple[torch.Tensor, ...]:
+    return green_derivatives(points, cage, order, chunk_size=chunk_size, exterior="extend" if extend else "none")
+
+
+def _tails(v: torch.Tensor, t: torch.Tensor, q: torch.Tensor, e: torch.Tensor, order: int) -> list[list[int] | None]:
+    V, D = v.shape[-2], v.shape[-1]
+    T = t.shape[0] if D == 3 else e.shape[0]
+    first = [[V], [T], [V, D], [T, D]]
+    return [*first, [V, D, D], [T, D, D]] if order == 2 else first
+
+
+#: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
+COMPILED = DerivativesOp("green_derivatives", _eager, _tails, GC_DERIVATIVES, promote=True)
 
 
 def green_derivatives(
@@ -81,6 +99,11 @@ def green_derivatives(
     """
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order!r}")
+    if exterior not in ("extend", "none"):
+        raise ValueError(f"exterior must be 'extend' or 'none', got {exterior!r}")
+    if torch.compiler.is_compiling():  # one opaque op: the checks and kernels below are not traceable
+        outs = COMPILED(points, cage, order, chunk_size, backend, exterior == "extend")
+        return tuple(o if dtype is None else o.to(dtype) for o in outs if o is not None)
     backend = resolve(backend)
     check(GC_DERIVATIVES, backend)
     points, cage = as_inputs(points, cage)

@@ -50,6 +50,7 @@ from torchcage._core.common import (
     on_cage_tolerances,
     triangle_geometry,
 )
+from torchcage._core.compiled import DerivativesOp
 from torchcage.backends import Op, resolve, select
 from torchcage.cage import Cage, _batch_name
 from torchcage.errors import PointsError
@@ -63,6 +64,26 @@ __all__ = ["derivatives_flat", "mean_value_derivatives", "mean_value_gradients",
 #: dtype (cast to float64) and serves calls inside autograd Functions (it computes derivatives).
 MVC_DERIVATIVES = Op(
     "mean value derivatives", native_dims=(2, 3), native_float64_only=False, triton=True, triton_dims=(2, 3)
+)
+
+
+def _eager(
+    points: torch.Tensor, cage: Cage, order: int, chunk_size: int | None, extend: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    return mean_value_derivatives(points, cage, order, chunk_size=chunk_size)
+
+
+#: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
+COMPILED = DerivativesOp(
+    "mvc_derivatives",
+    _eager,
+    lambda v, t, q, e, order: (
+        [[v.shape[-2]], [v.shape[-2], v.shape[-1]], [v.shape[-2], v.shape[-1], v.shape[-1]]]
+        if order == 2
+        else [[v.shape[-2]], [v.shape[-2], v.shape[-1]], None]
+    ),
+    MVC_DERIVATIVES,
+    promote=False,
 )
 
 
@@ -262,10 +283,12 @@ def mean_value_derivatives(
         >>> torch.allclose(torch.einsum("nvc,vd->ncd", grad, cube.vertices), torch.eye(3, dtype=torch.float64))
         True
     """
-    backend = resolve(backend)
-    points, cage = as_inputs(points, cage)
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, got {order}")
+    if torch.compiler.is_compiling():  # one opaque op: the checks and kernels below are not traceable
+        return COMPILED(points, cage, order, chunk_size, backend)  # type: ignore[return-value]
+    backend = resolve(backend)
+    points, cage = as_inputs(points, cage)
     if cage.is_batched:
         out = _derivatives_batch(points, cage, order, chunk_size, progress, backend)
         if out is not None:
