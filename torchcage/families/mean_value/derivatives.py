@@ -250,9 +250,10 @@ def mean_value_derivatives(
             ``(*B, N, D)`` (or ``(N, D)``, shared) and every result gains the batch shape in front
             (``(*B, N, V)``); each element equals the call on ``cage[b]`` (docs/learning.md).
         order: 1 (gradients) or 2 (gradients and Hessians).
-        chunk_size: points per chunk (memory grows with ``chunk_size x V x D^2``). Default: 4096
-            (on the native kernel: every point in one call, written into the outputs; with a
-            progress bar, chunks of ``4096 / B`` points for a batch of ``B`` cages).
+        chunk_size: points per chunk (memory grows with ``chunk_size x V x D^2``, times ``B`` for
+            a batch of ``B`` cages). Default: 4096 (on the native kernel: every point in one call,
+            written into the outputs; with a progress bar, and on the Triton kernels, chunks of
+            ``4096 / B`` points for a batch of ``B`` cages).
         progress: ``True`` for a progress bar, or a callable ``progress(done, total)``.
         backend: ``"auto"`` (default): the native kernel for CPU points when it is loadable; for
             points on CUDA the Triton kernel where triton is installed; else autograd of the
@@ -418,7 +419,8 @@ def _triton_batch(
     centred float64 points ``x`` ``(B or 1, N, D)`` and vertices ``v`` ``(B, V, D)`` on the
     kernel's device, ``faces`` the edges or triangles, ``tol`` ``(B,)``, the ``uncentred`` vertices
     (the extents of the 3D redo's tolerances) -> as :func:`native_batch` (on the points' device);
-    one launch per chunk of points (default 4096) for every cage."""
+    one launch per chunk of points for every cage (default ``4096 / B`` points: a chunk's jets are
+    ``B x chunk x V x 10`` float64)."""
     B, N, V, D = v.shape[0], x.shape[1], v.shape[1], v.shape[2]
     if D == 2:
         from torchcage.families.mean_value.triton.mvcd2d import batch_tables, mvcd2d_triton_batch
@@ -441,7 +443,8 @@ def _triton_batch(
     grad = x.new_empty((B, N, V, D))
     hess = x.new_empty((B, N, V, D, D) if order == 2 else (0,))
     flags = torch.empty((B, N), dtype=torch.uint8, device=x.device)
-    for sl in chunks(N, chunk_size if chunk_size is not None else 4096, progress, desc="mean value derivatives"):
+    size = chunk_size if chunk_size is not None else max(64, 4096 // B)
+    for sl in chunks(N, size, progress, desc="mean value derivatives"):
         lam[:, sl], grad[:, sl], h, flags[:, sl] = launch(x[:, sl])
         if order == 2:
             hess[:, sl] = h

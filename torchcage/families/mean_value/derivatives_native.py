@@ -17,7 +17,7 @@ from torchcage.errors import CageError
 from torchcage.families.mean_value import native2d
 
 __all__ = ["DERIVATIVE_FAR_FIELD_ORDER", "DERIVATIVE_FAR_FIELD_RATIO", "DERIVATIVE_SPLIT_FORM_RATIO", "G_ORDER",
-           "batch_tables", "native_chunk", "native_tables", "polygon_tables"]  # fmt: skip
+           "batch_tables", "face_tables", "native_chunk", "native_tables", "polygon_tables"]  # fmt: skip
 
 #: Faces whose longest edge is below ``DERIVATIVE_FAR_FIELD_RATIO`` times their distance use the
 #: far-field rule (measured against 60-digit references: the direct form's Hessians lose up to
@@ -64,11 +64,26 @@ def native_tables(cage: Cage) -> dict[str, object]:
 
 def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
     """``tc_mvcd3d``'s arguments for a batch of triangle cages with one topology: the geometric
-    tables of the ``B`` cages by one set of tensor operations, with a leading batch axis.
+    tables of the ``B`` cages by one set of tensor operations, with a leading batch axis
+    (:func:`face_tables`), and the faces' edge ids.
 
     Args:
-        vertices: ``(B, V, 3)`` float64 vertices: on the CPU for the native kernel (the Triton
-            kernel takes the same tables on its device).
+        vertices: ``(B, V, 3)`` float64 CPU vertices.
+        tri: ``(T, 3)`` the shared triangles.
+        tol: ``(B,)`` float64 absolute on-cage tolerances.
+    """
+    tables = face_tables(vertices, tri, tol)
+    edges, face_edge, _ = unique_face_edges(tri)
+    tables["fe"], tables["NE"] = face_edge.to(torch.int32).contiguous(), edges.shape[0]
+    return tables
+
+
+def face_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -> dict[str, object]:
+    """:func:`batch_tables` but the edge ids (the native kernel's only), on the vertices' device:
+    what the Triton kernel takes too.
+
+    Args:
+        vertices: ``(B, V, 3)`` float64 vertices.
         tri: ``(T, 3)`` the shared triangles (on the vertices' device).
         tol: ``(B,)`` float64 absolute on-cage tolerances.
     """
@@ -81,7 +96,6 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
     ell = E.norm(dim=-1)
     bary, qw = collapsed_gauss(DERIVATIVE_FAR_FIELD_ORDER, torch.float64, dev)
     gy, gw = (t.to(dev) for t in _gauss01(G_ORDER))
-    edges, face_edge, _ = unique_face_edges(tri)
     far_nodes = torch.einsum("qi,btic->btqc", bary, p).contiguous()
     return {
         "B": vertices.shape[0],
@@ -89,8 +103,6 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
         "V": vertices.shape[1],
         "tri": tri.to(torch.int32).contiguous(),
         "T": tri.shape[0],
-        "fe": face_edge.to(torch.int32).contiguous(),
-        "NE": edges.shape[0],
         "E": E.contiguous(),
         "nrm": normal.contiguous(),
         "two_area": two_area.contiguous(),

@@ -352,7 +352,7 @@ def _triton_batch(
     check(QMVC, backend)
     if check_tol(tol) is not None or backend not in ("auto", "triton") or cage.dim != 3:
         return None
-    if records_graph(points, cage.vertices) or is_functorch_wrapped_tensor(points):
+    if records_graph(points, cage.vertices) or any(map(is_functorch_wrapped_tensor, (points, cage.vertices))):
         return None
     pts, verts, batch = broadcast_batch(points, cage)
     if not pts.is_floating_point() or pts.device != verts.device:

@@ -288,7 +288,8 @@ def mvcd2d_triton_batch(
     if bool(far.any()):
         bi, ni = torch.nonzero(far, as_tuple=True)
         a = acc[bi, ni]  # (m, V, 6)
-        S = (a[:, :, None, :] * Pc[bi][:, :, :, None]).sum(dim=1)  # (m, 2, 6)
+        # (m, 2, 6); one cage: its vertices shared by the rows, as the single-cage kernel always did
+        S = torch.einsum("nvk,vd->ndk", a, Pc[0]) if B == 1 else torch.einsum("mvk,mvd->mdk", a, Pc[bi])
         yf, y2f = y[bi, ni], y2[bi, ni]
         yj = torch.zeros(a.shape[0], 2, 6, dtype=dtype, device=dev)
         yj[:, 0, 0], yj[:, 0, 1] = yf[:, 0], 1.0

@@ -35,8 +35,7 @@ from torchcage._core.thin_triangle import THIN_ASPECT, THIN_DISTANCE
 from torchcage.backends.triton import device_function, interpreted, point_batch, warps
 from torchcage.backends.triton.common import atan, atan2
 from torchcage.cage import Cage
-from torchcage.families.mean_value.derivatives_native import batch_tables as native_batch_tables
-from torchcage.families.mean_value.derivatives_native import native_tables
+from torchcage.families.mean_value.derivatives_native import face_tables, native_tables
 from torchcage.families.mean_value.derivatives_torch import torch_derivatives
 from torchcage.families.mean_value.triton.jet3 import (
     atan_over,
@@ -643,7 +642,7 @@ def batch_tables(vertices: torch.Tensor, tri: torch.Tensor, tol: torch.Tensor) -
         tol: ``(B,)`` absolute on-cage tolerances.
     """
     dev = vertices.device
-    return _triton_tables(native_batch_tables(vertices, tri.to(dev), tol.to(dev)), dev)
+    return _triton_tables(face_tables(vertices, tri.to(dev), tol.to(dev)), dev)
 
 
 def _triton_tables(t: dict[str, object], device: torch.device) -> dict[str, object]:
@@ -699,7 +698,9 @@ def _totals(acc: torch.Tensor, xs: torch.Tensor, P: torch.Tensor) -> torch.Tenso
     far = y2 > far2[:, None]
     if bool(far.any()):
         bi, ni = torch.nonzero(far, as_tuple=True)
-        S = (acc[bi, ni][:, :, None, :] * Pc[bi][:, :, :, None]).sum(dim=1)  # (m, 3, 10)
+        a = acc[bi, ni]
+        # (m, 3, 10); one cage: its vertices shared by the rows, as the single-cage kernel always did
+        S = torch.einsum("nvk,vd->ndk", a, Pc[0]) if P.shape[0] == 1 else torch.einsum("mvk,mvd->mdk", a, Pc[bi])
         eye = torch.eye(3, dtype=P.dtype, device=P.device)
         yj = torch.zeros(S.shape[0], 3, 10, dtype=P.dtype, device=P.device)
         yj[..., 0], yj[..., 1:4] = y[bi, ni], eye
