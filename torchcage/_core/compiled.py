@@ -145,6 +145,33 @@ def _lead(points: Tensor, vertices: Tensor) -> list[int]:
     return [*torch.broadcast_shapes(points.shape[:-2], vertices.shape[:-2]), points.shape[-2]]
 
 
+def _positive_integers(**values: object) -> None:
+    """Refuse options that must be positive integers when given (an op's sentinel 0 must not turn
+    a wrong value into the default).
+
+    Raises:
+        ValueError: ``<name> must be a positive integer, got <value>``.
+    """
+    for name, value in values.items():
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
+def _auto_only(name: str, backend: str) -> None:
+    """Refuse a per-call ``backend`` other than ``"auto"`` under compilation: it cannot reach the op
+    ``torchcage::<name>``, which takes the backend in force when the compiled code runs.
+
+    Raises:
+        ValueError: the advice to set the backend around the compiled call instead.
+    """
+    if backend != "auto":
+        raise ValueError(
+            f"backend={backend!r} inside a compiled function: under torch.compile this runs as one op "
+            f"(torchcage::{name}) that takes the backend in force when the compiled code runs; leave "
+            f"backend='auto' and call the compiled function inside `with torchcage.backends.use({backend!r}):`"
+        )
+
+
 class CompiledOp:
     """The pair of opaque ops of one family (``torchcage::<name>`` and
     ``torchcage::<name>_backward``).
@@ -294,20 +321,14 @@ class CompiledOp:
                 ``torch.compile``.
             TypeError: ``dtype`` not a floating-point dtype.
         """
-        for name, value in (("chunk_size", chunk_size), ("n", n)):
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        _positive_integers(chunk_size=chunk_size, n=n)
         if tol is not None and not float(tol) >= 0:
             raise ValueError(f"tol must be a nonnegative number, got {tol!r}")
         if dtype is not None and not dtype.is_floating_point:
             raise TypeError(f"dtype must be a floating-point dtype, got {dtype}")
         check(self.op, backend)
-        if backend != "auto" and torch.compiler.is_compiling():
-            raise ValueError(
-                f"backend={backend!r} inside a compiled function: under torch.compile the family runs as one op "
-                f"(torchcage::{self.name}) that takes the backend in force when the compiled code runs; leave "
-                f"backend='auto' and call the compiled function inside `with torchcage.backends.use({backend!r}):`"
-            )
+        if torch.compiler.is_compiling():
+            _auto_only(self.name, backend)
         args = (
             points,
             cage.vertices,
@@ -389,17 +410,9 @@ class DerivativesOp:
             ValueError: ``chunk_size`` not a positive integer, a ``backend`` the family does not
                 have, or another backend than ``"auto"`` under ``torch.compile``.
         """
-        if chunk_size is not None and (
-            isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1
-        ):
-            raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+        _positive_integers(chunk_size=chunk_size)
         check(self.backends, backend)
-        if backend != "auto":
-            raise ValueError(
-                f"backend={backend!r} inside a compiled function: under torch.compile the derivatives run as one op "
-                f"(torchcage::{self.name}) that takes the backend in force when the compiled code runs; leave "
-                f"backend='auto' and call the compiled function inside `with torchcage.backends.use({backend!r}):`"
-            )
+        _auto_only(self.name, backend)
         c = cage
         outs = self.values(
             points.detach(), c.vertices.detach(), c.triangles, c.quads, c.edges, order, chunk_size or 0, extend

@@ -73,18 +73,13 @@ def _eager(
     return mean_value_derivatives(points, cage, order, chunk_size=chunk_size)
 
 
+def _tails(v: torch.Tensor, t: torch.Tensor, q: torch.Tensor, e: torch.Tensor, order: int) -> list[list[int] | None]:
+    V, D = v.shape[-2], v.shape[-1]
+    return [[V], [V, D], [V, D, D] if order == 2 else None]
+
+
 #: The function as one opaque custom op under ``torch.compile`` (:mod:`torchcage._core.compiled`).
-COMPILED = DerivativesOp(
-    "mvc_derivatives",
-    _eager,
-    lambda v, t, q, e, order: (
-        [[v.shape[-2]], [v.shape[-2], v.shape[-1]], [v.shape[-2], v.shape[-1], v.shape[-1]]]
-        if order == 2
-        else [[v.shape[-2]], [v.shape[-2], v.shape[-1]], None]
-    ),
-    MVC_DERIVATIVES,
-    promote=False,
-)
+COMPILED = DerivativesOp("mvc_derivatives", _eager, _tails, MVC_DERIVATIVES, promote=False)
 
 
 def derivatives_flat(
